@@ -1,0 +1,1 @@
+"""Projector-camera calibration and the projector's pose in the tracker frame."""

@@ -1,0 +1,1 @@
+"""`dpmhw bench …`: benchmarks."""

@@ -1,0 +1,1 @@
+"""`dpmhw render`: render one frame of a scene."""

@@ -1,0 +1,1 @@
+"""The FastAPI service: status, settings, session control."""
