@@ -32,7 +32,7 @@ def _register() -> None:
     from dpmhw.cli import bench  # noqa: F401
     import importlib
 
-    for optional in ("dpmhw.cli.mock",):
+    for optional in ("dpmhw.cli.mock", "dpmhw.cli.calibrate", "dpmhw.cli.projector"):
         try:
             importlib.import_module(optional)
         except ModuleNotFoundError as exc:  # a group another issue has not landed yet
