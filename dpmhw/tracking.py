@@ -1,0 +1,356 @@
+"""Tracked rigid-body poses as the loop consumes them, and the contract every tracker driver meets.
+
+A tracker driver (NatNet, serial, a replay file) runs a background receiver and publishes
+`PoseSample`s: the newest one per rigid body for the loop (`latest`), callbacks and bounded
+subscriptions for recording. Every sample carries the time it *describes* on this host's
+monotonic clock (`time.monotonic_ns()`), not only when it arrived, so motion prediction can
+extrapolate from the right instant. `ClockMapping` turns a device's own clock into host time.
+
+Drivers live in `drivers/`; this module imports none of them.
+"""
+
+from __future__ import annotations
+
+import enum
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from dpmhw.errors import DpmhwError
+
+__all__ = [
+    "ClockMapping",
+    "LatestPoses",
+    "PoseSample",
+    "SampleSubscription",
+    "Tracker",
+    "TrackerDecodeError",
+    "TrackerError",
+    "TrackerState",
+    "TrackerStatus",
+    "quaternions_xyzw_to_matrices",
+]
+
+
+class TrackerError(DpmhwError, RuntimeError):
+    """A tracker could not be reached or configured (names the device and what to check)."""
+
+
+class TrackerDecodeError(DpmhwError, ValueError):
+    """Bytes from a tracker do not form a valid message: the receiver counts it and drops it.
+
+    The message names the field, the byte offset and what was expected, so a capture of the
+    offending datagram or record can be matched against the protocol description.
+    """
+
+
+@dataclass(frozen=True, eq=False)
+class PoseSample:
+    """One rigid body's pose at one tracker frame.
+
+    rotation : (3, 3) float64, object→world; NaN when the tracker sent no usable orientation
+    translation : (3,) float64, metres, object origin in the world (tracker) frame
+    t_exposure_ns : int, host monotonic time the pose describes (camera mid-exposure)
+    t_arrival_ns : int, host monotonic time the data arrived
+    valid : bool, the tracker solved this body in this frame (False: occluded / dropout)
+    mean_marker_error : float, metres (0 when the device does not report it)
+    frame_number : int, the device's frame counter
+    """
+
+    rigid_body_id: int
+    rotation: np.ndarray
+    translation: np.ndarray
+    t_exposure_ns: int
+    t_arrival_ns: int
+    valid: bool
+    mean_marker_error: float = 0.0
+    frame_number: int = -1
+
+    @property
+    def latency_ns(self) -> int:
+        """Exposure-to-arrival latency on the host clock."""
+        return self.t_arrival_ns - self.t_exposure_ns
+
+    def as_matrix(self) -> np.ndarray:
+        """(4, 4) homogeneous object→world transform."""
+        m = np.eye(4)
+        m[:3, :3] = self.rotation
+        m[:3, 3] = self.translation
+        return m
+
+
+class TrackerState(str, enum.Enum):
+    """Where a tracker's link is; the loop blanks the projector unless STREAMING."""
+
+    STOPPED = "stopped"  # not started, or stopped by the user
+    CONNECTING = "connecting"  # opening the port / handshaking
+    CONNECTED = "connected"  # handshake done, no frame yet
+    STREAMING = "streaming"  # frames arriving
+    STALE = "stale"  # no frame for longer than the stale timeout; may recover
+    LOST = "lost"  # link down (timeout, error); reconnecting with backoff
+
+
+@dataclass(frozen=True)
+class TrackerStatus:
+    """A snapshot of a tracker's health, safe to hand to another thread."""
+
+    state: TrackerState
+    reason: str = ""
+    frames: int = 0  # frames decoded and published
+    malformed: int = 0  # datagrams / records dropped because they failed to decode
+    frames_missed: int = 0  # gaps in the device's frame numbers
+    out_of_order: int = 0  # frames older than one already published (dropped)
+    reconnects: int = 0
+    last_arrival_ns: int | None = None
+    latency_ns: int | None = None  # arrival minus exposure of the newest frame
+    clock_offset_ns: int | None = None  # host = device + offset
+    details: dict = field(default_factory=dict)
+
+
+@runtime_checkable
+class Tracker(Protocol):
+    """What the loop needs from any tracker driver."""
+
+    def start(self) -> None:
+        """Start the background receiver; returns at once (poll `status()`)."""
+
+    def stop(self) -> None:
+        """Stop the receiver and release every socket, port and thread."""
+
+    def latest(self, rigid_body_id: int) -> PoseSample | None:
+        """Newest sample of one rigid body, or None if none arrived yet."""
+
+    def latest_all(self) -> dict[int, PoseSample]:
+        """Newest sample of every rigid body seen so far."""
+
+    def status(self) -> TrackerStatus:
+        """Current link state, with a reason when not streaming."""
+
+    def add_callback(self, callback: Callable[[PoseSample], None]) -> None:
+        """Call `callback(sample)` on the receiver thread for every new sample."""
+
+    def subscribe(self, maxlen: int = 4096) -> "SampleSubscription":
+        """A bounded stream of every sample from now on, for recording."""
+
+
+def quaternions_xyzw_to_matrices(quaternions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation matrices from (x, y, z, w) quaternions, as NatNet sends them.
+
+    Parameters
+    ----------
+    quaternions : (n, 4) float, not necessarily normalised
+
+    Returns
+    -------
+    rotations : (n, 3, 3) float64; NaN where the quaternion is zero or not finite
+    usable : (n,) bool, False where the rotations are NaN
+    """
+    q = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)
+    norms = np.linalg.norm(q, axis=1)
+    usable = np.isfinite(norms) & (norms > 1e-6)
+    rotations = np.full((q.shape[0], 3, 3), np.nan)
+    if usable.any():
+        x, y, z, w = (q[usable] / norms[usable, None]).T
+        r = rotations[usable]
+        r[:, 0, 0] = 1 - 2 * (y * y + z * z)
+        r[:, 0, 1] = 2 * (x * y - z * w)
+        r[:, 0, 2] = 2 * (x * z + y * w)
+        r[:, 1, 0] = 2 * (x * y + z * w)
+        r[:, 1, 1] = 1 - 2 * (x * x + z * z)
+        r[:, 1, 2] = 2 * (y * z - x * w)
+        r[:, 2, 0] = 2 * (x * z - y * w)
+        r[:, 2, 1] = 2 * (y * z + x * w)
+        r[:, 2, 2] = 1 - 2 * (x * x + y * y)
+        rotations[usable] = r
+    return rotations, usable
+
+
+class ClockMapping:
+    """Maps a device clock (ns since some device epoch) to the host monotonic clock.
+
+    Two kinds of evidence, both bounded in memory:
+
+    - one-way: a message stamped `device_ns` by the device just before sending arrived at
+      `arrival_ns`; `arrival - device` over-estimates the offset by the transit delay, so the
+      minimum over a sliding window tends to offset + smallest transit (a running minimum);
+    - round trip (Cristian): the host sent at `t0`, the device stamped `device_ns` and the reply
+      arrived at `t1`; the offset is `(t0 + t1) / 2 - device_ns` within half the round trip.
+      The round trip with the smallest duration in the window wins.
+
+    Round trips are preferred when present: they are unbiased, the one-way minimum is biased by
+    the fastest transit. Windows let a slowly drifting device clock be followed.
+    """
+
+    def __init__(self, window: int = 512):
+        self._one_way: deque[int] = deque(maxlen=window)
+        self._round_trips: deque[tuple[int, int]] = deque(maxlen=max(8, window // 8))
+        self._lock = threading.Lock()
+
+    def add_one_way(self, device_ns: int, arrival_ns: int) -> None:
+        with self._lock:
+            self._one_way.append(arrival_ns - device_ns)
+
+    def add_round_trip(self, sent_ns: int, device_ns: int, received_ns: int) -> None:
+        if received_ns < sent_ns:
+            return  # not a round trip on a monotonic clock: ignore rather than corrupt
+        with self._lock:
+            rtt = received_ns - sent_ns
+            self._round_trips.append((rtt, (sent_ns + received_ns) // 2 - device_ns))
+
+    @property
+    def offset_ns(self) -> int | None:
+        """host_ns = device_ns + offset_ns; None until some evidence arrived."""
+        with self._lock:
+            if self._round_trips:
+                return min(self._round_trips)[1]
+            if self._one_way:
+                return min(self._one_way)
+            return None
+
+    @property
+    def method(self) -> str:
+        with self._lock:
+            return "round-trip" if self._round_trips else ("one-way minimum" if self._one_way else "none")
+
+    def to_host_ns(self, device_ns: int) -> int | None:
+        offset = self.offset_ns
+        return None if offset is None else device_ns + offset
+
+
+class SampleSubscription:
+    """A bounded FIFO of samples for one consumer (a recorder). Oldest samples are dropped
+    and counted when the consumer falls behind, so a slow recorder never grows memory."""
+
+    def __init__(self, maxlen: int, on_close: Callable[["SampleSubscription"], None] | None = None):
+        if maxlen < 1:
+            raise ValueError(f"subscription maxlen must be >= 1, got {maxlen}")
+        self._items: deque[PoseSample] = deque(maxlen=maxlen)
+        self._cond = threading.Condition()
+        self._closed = False
+        self._on_close = on_close
+        self.dropped = 0
+
+    def put(self, sample: PoseSample) -> None:
+        with self._cond:
+            if self._closed:
+                return
+            if len(self._items) == self._items.maxlen:
+                self.dropped += 1
+            self._items.append(sample)
+            self._cond.notify()
+
+    def get(self, timeout: float | None = None) -> PoseSample | None:
+        """Next sample, or None after `timeout` seconds / once closed and drained."""
+        with self._cond:
+            if not self._items and not self._closed:
+                self._cond.wait(timeout)
+            return self._items.popleft() if self._items else None
+
+    def drain(self) -> list[PoseSample]:
+        with self._cond:
+            items = list(self._items)
+            self._items.clear()
+            return items
+
+    def __iter__(self) -> Iterator[PoseSample]:
+        """Yield samples until the subscription is closed (blocks between samples)."""
+        while True:
+            sample = self.get(timeout=0.1)
+            if sample is not None:
+                yield sample
+            elif self._closed:
+                return
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        if self._on_close is not None:
+            self._on_close(self)
+
+    def __enter__(self) -> "SampleSubscription":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class LatestPoses:
+    """The newest sample per rigid body plus fan-out to callbacks and subscriptions.
+
+    Shared by every driver's receiver thread; readers on other threads get whole samples
+    (samples are immutable, so handing out references is safe).
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._latest: dict[int, PoseSample] = {}
+        self._callbacks: list[Callable[[PoseSample], None]] = []
+        self._subscriptions: list[SampleSubscription] = []
+        self.callback_errors = 0
+        self.last_callback_error: str = ""
+
+    def publish(self, samples: list[PoseSample]) -> None:
+        with self._lock:
+            for s in samples:
+                self._latest[s.rigid_body_id] = s
+            callbacks = list(self._callbacks)
+            subscriptions = list(self._subscriptions)
+        for s in samples:
+            for sub in subscriptions:
+                sub.put(s)
+            for cb in callbacks:
+                try:
+                    cb(s)
+                except Exception as exc:  # a consumer's bug must not kill the receiver thread
+                    self.callback_errors += 1
+                    self.last_callback_error = f"{type(exc).__name__}: {exc}"
+
+    def latest(self, rigid_body_id: int) -> PoseSample | None:
+        with self._lock:
+            return self._latest.get(rigid_body_id)
+
+    def latest_all(self) -> dict[int, PoseSample]:
+        with self._lock:
+            return dict(self._latest)
+
+    def add_callback(self, callback: Callable[[PoseSample], None]) -> None:
+        with self._lock:
+            self._callbacks.append(callback)
+
+    def remove_callback(self, callback: Callable[[PoseSample], None]) -> None:
+        with self._lock:
+            self._callbacks.remove(callback)
+
+    def subscribe(self, maxlen: int = 4096) -> SampleSubscription:
+        sub = SampleSubscription(maxlen, on_close=self._unsubscribe)
+        with self._lock:
+            self._subscriptions.append(sub)
+        return sub
+
+    def _unsubscribe(self, sub: SampleSubscription) -> None:
+        with self._lock:
+            if sub in self._subscriptions:
+                self._subscriptions.remove(sub)
+
+    def close_subscriptions(self) -> None:
+        with self._lock:
+            subs = list(self._subscriptions)
+        for sub in subs:
+            sub.close()
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.005) -> bool:
+    """Poll `predicate` until true or `timeout_s` elapses; returns its last value."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if predicate():
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(poll_s)
