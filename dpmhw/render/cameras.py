@@ -1,0 +1,66 @@
+"""OpenCV pinhole + distortion cameras (a projector is one): pixel → ray and point → pixel.
+
+Same convention as `cv2.projectPoints`: camera x right, y down, z forward; pixel (0, 0) is the
+centre of the top-left pixel. Lens distortion is inverted once per pixel (iteratively, to 1e-12)
+when the camera is built, so per-frame ray generation is one rotation.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from dpmhw.transforms import Pose
+
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+
+
+class PinholeCamera:
+    """K : (3, 3); dist : (5,) k1 k2 p1 p2 k3; pose : camera→world."""
+
+    def __init__(self, K, dist, width: int, height: int, pose: Pose):
+        self.K = np.asarray(K, dtype=np.float64)
+        self.dist = np.asarray(dist, dtype=np.float64).reshape(5)
+        self.width, self.height = int(width), int(height)
+        self.pose = pose
+        self._dirs_cam = self._pixel_directions()
+
+    def _pixel_directions(self) -> np.ndarray:
+        """(H*W, 3) float32 unit directions in camera space through pixel centres, row-major."""
+        ys, xs = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        pixels = np.stack([xs.ravel(), ys.ravel()], axis=1).reshape(-1, 1, 2)
+        if np.any(self.dist != 0):
+            ideal = cv2.undistortPoints(pixels, self.K, self.dist, R=np.eye(3), P=np.eye(3), criteria=_UNDISTORT_CRITERIA)
+            xy = ideal.reshape(-1, 2)
+        else:
+            xy = np.stack([(pixels[:, 0, 0] - self.K[0, 2]) / self.K[0, 0], (pixels[:, 0, 1] - self.K[1, 2]) / self.K[1, 1]], axis=1)
+        d = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return d.astype(np.float32)
+
+    def with_pose(self, pose: Pose) -> "PinholeCamera":
+        """The same intrinsics at another pose, without recomputing the undistortion."""
+        other = object.__new__(PinholeCamera)
+        other.__dict__.update(self.__dict__)
+        other.pose = pose
+        return other
+
+    def generate_rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Primary rays through every pixel centre: origins (n, 3), directions (n, 3), float32, row-major."""
+        d = self._dirs_cam @ self.pose.R.T.astype(np.float32)
+        o = np.broadcast_to(self.pose.t.astype(np.float32), d.shape)
+        return o, d
+
+    def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """points : (n, 3) world → pixels (n, 2) float64 and in_front (n,) bool (z > 0)."""
+        cam = (np.asarray(points_world, dtype=np.float64) - self.pose.t) @ self.pose.R
+        z = cam[:, 2]
+        safe_z = np.where(z > 1e-12, z, 1.0)
+        x, y = cam[:, 0] / safe_z, cam[:, 1] / safe_z
+        k1, k2, p1, p2, k3 = self.dist
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        px = np.stack([self.K[0, 0] * xd + self.K[0, 2], self.K[1, 1] * yd + self.K[1, 2]], axis=1)
+        return px, z > 1e-12

@@ -1,0 +1,93 @@
+"""The scene as the kernels see it: flat triangle, material and light tables, plus Embree BVHs.
+
+Built once per scene. Triangles are stored in each object's model space (scale applied), so the
+G-buffer's model-space hit point comes straight from the barycentrics, and a moving object only
+changes its pose row in `poses()`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dpmhw.render.accel import EmbreeAccel
+from dpmhw.render.kernels import MIN_ALPHA
+from dpmhw.scene_file import Scene
+from dpmhw.transforms import Pose
+
+f32 = np.float32
+
+
+def _luminance(rgb: np.ndarray) -> np.ndarray:
+    return rgb @ np.array([0.2126, 0.7152, 0.0722])
+
+
+class SceneGeometry:
+    def __init__(self, scene: Scene, threads: int = 2):
+        self.scene = scene
+        objects = scene.objects
+        unique: dict[int, int] = {}  # id(mesh) → offset of its triangles
+        v0, e1, e2, ng, vn = [], [], [], [], []
+        offset = 0
+        self.tri_offsets = np.zeros(len(objects), np.int32)
+        for i, obj in enumerate(objects):
+            mesh = obj.mesh
+            if id(mesh) not in unique:
+                tri = mesh.triangles
+                unique[id(mesh)] = offset
+                cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+                normal = cross / np.linalg.norm(cross, axis=1, keepdims=True)
+                v0.append(tri[:, 0])
+                e1.append(tri[:, 1] - tri[:, 0])
+                e2.append(tri[:, 2] - tri[:, 0])
+                ng.append(normal)
+                corner = mesh.vertex_normals[mesh.faces] if mesh.vertex_normals is not None else np.repeat(normal[:, None], 3, 1)
+                vn.append(corner)
+                offset += len(tri)
+            self.tri_offsets[i] = unique[id(mesh)]
+        self.tri_v0, self.tri_e1, self.tri_e2, self.tri_ng = (np.ascontiguousarray(np.concatenate(a), f32) for a in (v0, e1, e2, ng))
+        self.tri_n = np.ascontiguousarray(np.concatenate(vn), f32)
+        self.triangle_count = sum(len(o.mesh.faces) for o in objects)
+
+        self.obj_albedo = np.array([o.albedo for o in objects], f32)
+        self.obj_specular = np.array([o.specular for o in objects], f32)
+        self.obj_alpha = np.array([max(o.roughness**2, MIN_ALPHA) for o in objects], f32)
+        self.obj_emission = np.array([o.emission for o in objects], f32)
+
+        # Emissive triangles, chosen with probability ∝ area × luminance(emission).
+        light_prim, light_obj, weight = [], [], []
+        for i, o in enumerate(objects):
+            if o.is_emissive:
+                areas = o.mesh.face_areas()
+                light_prim.append(self.tri_offsets[i] + np.arange(len(areas)))
+                light_obj.append(np.full(len(areas), i))
+                weight.append(areas * max(_luminance(o.emission), 1e-12))
+        self.obj_pdf_area = np.zeros(len(objects), f32)
+        if light_prim:
+            w = np.concatenate(weight)
+            total = w.sum()
+            self.light_prim = np.concatenate(light_prim).astype(np.int32)
+            self.light_obj = np.concatenate(light_obj).astype(np.int32)
+            self.light_cdf = (np.cumsum(w) / total).astype(f32)
+            self.light_cdf[-1] = 1.0
+            for i, o in enumerate(objects):
+                if o.is_emissive:  # pdf per unit area on any of its triangles
+                    self.obj_pdf_area[i] = max(_luminance(o.emission), 1e-12) / total
+        else:
+            self.light_prim = np.zeros(1, np.int32)
+            self.light_obj = np.zeros(1, np.int32)
+            self.light_cdf = np.ones(1, f32)
+        background = scene.render.background
+        has_bg = bool(np.any(background > 0))
+        # One shadow ray per vertex: the environment or the area lights, half and half when both exist.
+        self.p_env = 0.0 if not has_bg else (1.0 if not light_prim else 0.5)
+        self.background = background.astype(f32)
+        self.accel = EmbreeAccel(objects, self.tri_offsets, threads=threads)
+
+    def poses(self, poses: list[Pose]) -> tuple[np.ndarray, np.ndarray]:
+        """Per-object model→world rotation (O, 3, 3) and translation (O, 3), float32."""
+        R = np.array([p.R for p in poses], f32)
+        t = np.array([p.t for p in poses], f32)
+        return R, t
+
+    def close(self) -> None:
+        self.accel.close()

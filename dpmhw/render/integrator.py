@@ -1,0 +1,176 @@
+"""Wavefront path tracer: Embree for every ray query, fused numba kernels for everything else.
+
+Per pass (1 sample per pixel, through the pixel centre): primary hits (traced once per frame and
+reused by every pass, since pixel-centre rays do not change), then per bounce: `shade` (emission
+with MIS, one NEE shadow ray, BSDF sampling, Russian roulette) → occlusion query for the shadow
+rays → compaction of the surviving paths → closest-hit query. With `max_bounces` = B a path has
+B + 1 vertices; the last one is lit by NEE alone, unless the scene has glossy lobes, where one
+more ray is traced from it so emitters it finds get MIS weights (`mis_last`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from dpmhw.errors import RenderError
+from dpmhw.render import kernels
+from dpmhw.render.accel import Hits
+from dpmhw.render.cameras import PinholeCamera
+from dpmhw.render.frame import Frame
+from dpmhw.render.geometry import SceneGeometry
+from dpmhw.scene_file import Scene
+from dpmhw.transforms import Pose
+
+f32 = np.float32
+GLOSSY_ROUGHNESS = 0.5  # below this, a specular lobe is sharp enough that NEE alone is noisy
+
+
+@dataclass
+class RayCounts:
+    """Rays traced in one render call, by query type (for the benchmark)."""
+
+    primary: int = 0
+    intersect: int = 0
+    occluded: int = 0
+    by_depth: list[int] = field(default_factory=list)
+
+    @property
+    def total(self) -> int:
+        return self.primary + self.intersect + self.occluded
+
+
+class PathIntegrator:
+    """Renders a Scene from its camera. Thread count applies to Embree queries."""
+
+    def __init__(self, scene: Scene, threads: int = 2, mis_last: bool | None = None):
+        self.scene = scene
+        self.geometry = SceneGeometry(scene, threads=threads)
+        r = scene.render
+        self.width, self.height, self.max_bounces = r.width, r.height, r.max_bounces
+        self.camera = PinholeCamera(scene.camera.K, scene.camera.dist, r.width, r.height, scene.camera.pose)
+        if mis_last is None:
+            mis_last = any(np.any(o.specular > 0) and o.roughness < GLOSSY_ROUGHNESS for o in scene.objects)
+        self.mis_last = bool(mis_last)
+        self.use_viewer = not np.allclose(scene.viewer_position, scene.camera.pose.t)
+        self.counts = RayCounts()
+
+    def close(self) -> None:
+        self.geometry.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def render(
+        self,
+        time: float = 0.0,
+        seed: int = 0,
+        spp: int = 1,
+        poses: list[Pose] | None = None,
+        camera_pose: Pose | None = None,
+        progress: Callable[[int, int], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> Frame:
+        """Render `spp` passes of the scene at `time` (poses override the scripted ones, e.g. from
+        a tracker). `should_stop` is polled between passes: the frame then holds the finished ones."""
+        if spp < 1:
+            raise ValueError(f"spp must be ≥ 1, got {spp}")
+        poses = poses if poses is not None else self.scene.object_poses(time)
+        if len(poses) != len(self.scene.objects):
+            raise ValueError(f"expected {len(self.scene.objects)} poses, got {len(poses)}")
+        camera = self.camera if camera_pose is None else self.camera.with_pose(camera_pose)
+        R, T = self.geometry.poses(poses)
+        self.counts = RayCounts()
+        npix = self.width * self.height
+        film = {k: np.zeros((npix, 3), f32) for k in ("emit", "diff", "spec")}
+        gbuf = _GBuffer(npix)
+        nonfinite = np.zeros(npix, np.int32)
+        o, d = camera.generate_rays()
+        primary = self.geometry.accel.intersect(o, d, R, T)
+        self.counts.primary = npix
+        done = 0
+        for p in range(spp):
+            if should_stop is not None and done > 0 and should_stop():
+                break
+            self._trace_pass(kernels.pass_key(seed, p), d, primary, R, T, camera, film, gbuf, nonfinite, p == 0)
+            done += 1
+            if progress is not None:
+                progress(done, spp)
+        H, W = self.height, self.width
+        emit, diff, spec = (film[k].reshape(H, W, 3) / f32(done) for k in ("emit", "diff", "spec"))
+        return Frame(
+            radiance=emit + diff + spec, diffuse=diff, specular=spec,
+            object_id=gbuf.id.reshape(H, W), model_position=gbuf.model.reshape(H, W, 3),
+            position=gbuf.pos.reshape(H, W, 3), normal=gbuf.normal.reshape(H, W, 3),
+            depth=gbuf.depth.reshape(H, W), albedo=gbuf.alb.reshape(H, W, 3),
+            specular_albedo=gbuf.spec.reshape(H, W, 3), roughness=gbuf.rough.reshape(H, W),
+            spp=done, time=float(time), seed=int(seed), nonfinite_samples=int(nonfinite.sum()),
+        )
+
+    def _trace_pass(self, key, primary_dirs, primary: Hits, R, T, camera, film, gbuf, nonfinite, write_gbuffer):
+        g = self.geometry
+        n = len(primary.t)
+        pixel = np.arange(n, dtype=np.int32)
+        rd, hits = primary_dirs, primary
+        beta = np.ones((n, 3), f32)
+        kd = np.ones((n, 3), f32)
+        prev_pdf = np.zeros(n, f32)
+        prev_n = np.zeros((n, 3), f32)
+        cam_fwd = camera.pose.R[:, 2].astype(f32)
+        viewer = self.scene.viewer_position.astype(f32)
+        last_depth = self.max_bounces + (1 if self.mis_last else 0)
+        depth = 0
+        while True:
+            m = len(pixel)
+            sh_o = np.empty((m, 3), f32)
+            sh_d = np.empty((m, 3), f32)
+            sh_tmax = np.empty(m, f32)
+            sh_c = np.empty((m, 6), f32)
+            sh_valid = np.empty(m, np.bool_)
+            nx_o = np.empty((m, 3), f32)
+            nx_d = np.empty((m, 3), f32)
+            alive = np.empty(m, np.bool_)
+            kernels.shade(
+                depth, self.max_bounces, self.mis_last, key, pixel, np.ascontiguousarray(rd, f32),
+                hits.t, hits.obj, hits.prim, hits.u, hits.v, beta, kd, prev_pdf, prev_n,
+                g.tri_v0, g.tri_e1, g.tri_e2, g.tri_ng, g.tri_n,
+                R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
+                g.light_prim, g.light_obj, g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd,
+                film["emit"], film["diff"], film["spec"], nonfinite,
+                gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer,
+                sh_o, sh_d, sh_tmax, sh_c, sh_valid, nx_o, nx_d, alive,
+            )
+            shadow = np.flatnonzero(sh_valid)
+            if shadow.size:
+                blocked = g.accel.occluded(sh_o[shadow], sh_d[shadow], sh_tmax[shadow], R, T)
+                self.counts.occluded += shadow.size
+                kernels.add_unoccluded(pixel[shadow], sh_c[shadow], blocked, film["diff"], film["spec"])
+            if depth >= last_depth:
+                break
+            keep = np.flatnonzero(alive)
+            if keep.size == 0:
+                break
+            pixel, beta, kd, prev_pdf, prev_n = pixel[keep], beta[keep], kd[keep], prev_pdf[keep], prev_n[keep]
+            origins, rd = nx_o[keep], nx_d[keep]
+            hits = g.accel.intersect(origins, rd, R, T)
+            self.counts.intersect += keep.size
+            depth += 1
+            if depth > 4096:
+                raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
+
+
+class _GBuffer:
+    def __init__(self, npix: int):
+        self.id = np.full(npix, -1, np.int32)
+        self.model = np.zeros((npix, 3), f32)
+        self.pos = np.zeros((npix, 3), f32)
+        self.normal = np.zeros((npix, 3), f32)
+        self.depth = np.full(npix, np.inf, f32)
+        self.alb = np.zeros((npix, 3), f32)
+        self.spec = np.zeros((npix, 3), f32)
+        self.rough = np.zeros(npix, f32)

@@ -1,0 +1,425 @@
+"""The per-frame shading kernels, fused with numba (parallel, cached on disk).
+
+Chained numpy temporaries cost several times the arithmetic here, so each wavefront stage is one
+kernel over the active paths: surface interaction, emission with MIS, next-event estimation,
+BSDF sampling and Russian roulette. Numpy arrays stay the interface between stages and Embree.
+
+BSDF: Lambert diffuse scaled by (1 − specular) plus a GGX lobe (Smith G, visible-normal
+sampling), so reflectance never exceeds max(albedo, specular) ≤ 1. Randomness is a counter-based
+hash of (pass key, pixel, dimension): the same seed gives the same image bit for bit whatever the
+thread count or scheduling.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+INV_PI = 1.0 / math.pi
+DIMS_PER_BOUNCE = 8
+MIN_ALPHA = 1e-3  # GGX α floor: mirror-like lobes stay finite
+RR_START_DEPTH = 3
+RR_MAX_SURVIVAL = 0.95
+SHADOW_SHORTEN = 1e-4  # relative: stop shadow rays just before the sampled light point
+OFFSET_REL = 3e-5  # origin offset along the geometric normal, relative to coordinate magnitude
+
+_jit = dict(cache=True, error_model="numpy")
+
+M1 = np.uint64(0xBF58476D1CE4E5B9)
+M2 = np.uint64(0x94D049BB133111EB)
+GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+S30, S27, S31, S40 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(40)
+
+
+@nb.njit(inline="always", **_jit)
+def _mix64(x):
+    x = (x ^ (x >> S30)) * M1
+    x = (x ^ (x >> S27)) * M2
+    return x ^ (x >> S31)
+
+
+@nb.njit(inline="always", **_jit)
+def rand(key, pixel, dim):
+    """Uniform float in [0, 1) from (pass key, pixel index, dimension)."""
+    x = _mix64(key ^ (np.uint64(pixel) * GOLDEN + np.uint64(dim)))
+    return np.float32(x >> S40) * np.float32(1.0 / 16777216.0)
+
+
+def pass_key(seed: int, pass_index: int) -> np.uint64:
+    """The per-pass hash key (Python side, same mixing as the kernels)."""
+    mask = (1 << 64) - 1
+
+    def mix(x):
+        x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & mask
+        x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & mask
+        return x ^ (x >> 31)
+
+    return np.uint64(mix((mix(seed & mask) + pass_index * 0x9E3779B97F4A7C15) & mask))
+
+
+@nb.njit(inline="always", **_jit)
+def _dot(a0, a1, a2, b0, b1, b2):
+    return a0 * b0 + a1 * b1 + a2 * b2
+
+
+@nb.njit(inline="always", **_jit)
+def _lum(r, g, b):
+    return 0.2126 * r + 0.7152 * g + 0.0722 * b
+
+
+@nb.njit(inline="always", **_jit)
+def _basis(n0, n1, n2):
+    """Orthonormal tangents of a unit normal (Duff et al. 2017)."""
+    sign = 1.0 if n2 >= 0.0 else -1.0
+    a = -1.0 / (sign + n2)
+    b = n0 * n1 * a
+    return 1.0 + sign * n0 * n0 * a, sign * b, -sign * n0, b, sign + n1 * n1 * a, -n1
+
+
+@nb.njit(inline="always", **_jit)
+def _ggx_d(cos_h, a2):
+    c2 = cos_h * cos_h
+    denom = c2 * (a2 - 1.0) + 1.0
+    return a2 / (math.pi * denom * denom)
+
+
+@nb.njit(inline="always", **_jit)
+def _ggx_g1(cos_v, a2):
+    return 2.0 * cos_v / (cos_v + math.sqrt(a2 + (1.0 - a2) * cos_v * cos_v))
+
+
+@nb.njit(inline="always", **_jit)
+def _max_abs3(x, y, z):
+    return max(abs(x), max(abs(y), abs(z)))
+
+
+@nb.njit(inline="always", **_jit)
+def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, alb, spec, alpha, p_spec):
+    """Diffuse and specular BSDF values (fd0..2, fs0..2) and the lobe-mixture pdf of wi."""
+    cos_o = _dot(wo0, wo1, wo2, n0, n1, n2)
+    cos_i = _dot(wi0, wi1, wi2, n0, n1, n2)
+    fd0 = alb[0] * (1.0 - spec[0]) * INV_PI
+    fd1 = alb[1] * (1.0 - spec[1]) * INV_PI
+    fd2 = alb[2] * (1.0 - spec[2]) * INV_PI
+    fs0 = fs1 = fs2 = 0.0
+    pdf = (1.0 - p_spec) * cos_i * INV_PI
+    if p_spec > 0.0:
+        h0, h1, h2 = wo0 + wi0, wo1 + wi1, wo2 + wi2
+        hl = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
+        if hl > 1e-12:
+            cos_h = _dot(h0, h1, h2, n0, n1, n2) / hl
+            if cos_h > 0.0:
+                a2 = alpha * alpha
+                d = _ggx_d(cos_h, a2)
+                g1o = _ggx_g1(cos_o, a2)
+                common = d * g1o * _ggx_g1(cos_i, a2) / (4.0 * cos_o * cos_i)
+                fs0, fs1, fs2 = spec[0] * common, spec[1] * common, spec[2] * common
+                pdf += p_spec * g1o * d / (4.0 * cos_o)
+    return fd0, fd1, fd2, fs0, fs1, fs2, pdf
+
+
+@nb.njit(parallel=True, **_jit)
+def shade(
+    depth, max_bounces, mis_last, key, pixel, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v,
+    beta, kd, prev_pdf, prev_n,
+    tri_v0, tri_e1, tri_e2, tri_ng, tri_n,
+    obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
+    light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
+    film_emit, film_diff, film_spec, nonfinite,
+    gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
+    sh_o, sh_d, sh_tmax, sh_c, sh_valid,
+    nx_o, nx_d, alive,
+):
+    """One wavefront step over the active paths (see module doc).
+
+    Writes the film at each path's pixel; a shadow ray per path (sh_o, sh_d, sh_tmax, with its
+    diffuse and specular contributions in sh_c[:, 0:3] and sh_c[:, 3:6], added if unoccluded);
+    and the continuation (nx_o, nx_d, alive, with beta, kd, prev_pdf, prev_n updated in place)."""
+    n = pixel.shape[0]
+    p_area = 1.0 - p_env
+    has_bg = background[0] > 0.0 or background[1] > 0.0 or background[2] > 0.0
+    last = depth >= max_bounces
+    base_dim = depth * DIMS_PER_BOUNCE
+    for k in nb.prange(n):
+        pix = pixel[k]
+        sh_valid[k] = False
+        alive[k] = False
+        d0, d1, d2 = rd[k, 0], rd[k, 1], rd[k, 2]
+        ob = hit_obj[k]
+        b0, b1, b2 = beta[k, 0], beta[k, 1], beta[k, 2]
+        if depth == 0:
+            kdr, kdg, kdb = 1.0, 1.0, 1.0
+        else:
+            kdr, kdg, kdb = kd[k, 0], kd[k, 1], kd[k, 2]
+        tri = 0
+        u = v = 0.0
+        R = obj_R[0]
+        em = obj_emit[0]
+        g0 = g1 = g2 = 0.0
+        le0 = le1 = le2 = 0.0  # radiance arriving along this ray from a light, MIS-weighted
+        if ob < 0:  # escaped: the constant environment
+            if has_bg:
+                if depth == 0:
+                    film_emit[pix, 0] += background[0]
+                    film_emit[pix, 1] += background[1]
+                    film_emit[pix, 2] += background[2]
+                else:
+                    cos_prev = _dot(prev_n[k, 0], prev_n[k, 1], prev_n[k, 2], d0, d1, d2)
+                    pl = p_env * max(cos_prev, 0.0) * INV_PI
+                    pb = prev_pdf[k]
+                    w = pb * pb / (pb * pb + pl * pl)
+                    le0, le1, le2 = background[0] * w, background[1] * w, background[2] * w
+        else:
+            tri = hit_prim[k]
+            u, v = hit_u[k], hit_v[k]
+            R = obj_R[ob]
+            g0 = R[0, 0] * tri_ng[tri, 0] + R[0, 1] * tri_ng[tri, 1] + R[0, 2] * tri_ng[tri, 2]
+            g1 = R[1, 0] * tri_ng[tri, 0] + R[1, 1] * tri_ng[tri, 1] + R[1, 2] * tri_ng[tri, 2]
+            g2 = R[2, 0] * tri_ng[tri, 0] + R[2, 1] * tri_ng[tri, 1] + R[2, 2] * tri_ng[tri, 2]
+            em = obj_emit[ob]
+            if (em[0] > 0.0 or em[1] > 0.0 or em[2] > 0.0) and _dot(g0, g1, g2, d0, d1, d2) < 0.0:
+                if depth == 0:
+                    if not use_viewer:
+                        film_emit[pix, 0] += em[0]
+                        film_emit[pix, 1] += em[1]
+                        film_emit[pix, 2] += em[2]
+                else:
+                    t = hit_t[k]
+                    pl = p_area * obj_pdfA[ob] * t * t / max(-_dot(g0, g1, g2, d0, d1, d2), 1e-12)
+                    pb = prev_pdf[k]
+                    w = pb * pb / (pb * pb + pl * pl)
+                    le0, le1, le2 = em[0] * w, em[1] * w, em[2] * w
+        if depth > 0 and (le0 > 0.0 or le1 > 0.0 or le2 > 0.0):
+            c0, c1, c2 = b0 * le0, b1 * le1, b2 * le2
+            if math.isfinite(c0 + c1 + c2):
+                film_diff[pix, 0] += c0 * kdr
+                film_diff[pix, 1] += c1 * kdg
+                film_diff[pix, 2] += c2 * kdb
+                film_spec[pix, 0] += c0 * (1.0 - kdr)
+                film_spec[pix, 1] += c1 * (1.0 - kdg)
+                film_spec[pix, 2] += c2 * (1.0 - kdb)
+            else:
+                nonfinite[pix] += 1
+        if ob < 0 or depth > max_bounces:
+            continue  # escaped, or the extra ray that only looked for emitters (mis_last)
+        # ---- surface interaction: hit point from barycentrics in model space, then to world ----
+        w0 = 1.0 - u - v
+        pm0 = tri_v0[tri, 0] + u * tri_e1[tri, 0] + v * tri_e2[tri, 0]
+        pm1 = tri_v0[tri, 1] + u * tri_e1[tri, 1] + v * tri_e2[tri, 1]
+        pm2 = tri_v0[tri, 2] + u * tri_e1[tri, 2] + v * tri_e2[tri, 2]
+        T = obj_t[ob]
+        p0 = R[0, 0] * pm0 + R[0, 1] * pm1 + R[0, 2] * pm2 + T[0]
+        p1 = R[1, 0] * pm0 + R[1, 1] * pm1 + R[1, 2] * pm2 + T[1]
+        p2 = R[2, 0] * pm0 + R[2, 1] * pm1 + R[2, 2] * pm2 + T[2]
+        sm0 = w0 * tri_n[tri, 0, 0] + u * tri_n[tri, 1, 0] + v * tri_n[tri, 2, 0]
+        sm1 = w0 * tri_n[tri, 0, 1] + u * tri_n[tri, 1, 1] + v * tri_n[tri, 2, 1]
+        sm2 = w0 * tri_n[tri, 0, 2] + u * tri_n[tri, 1, 2] + v * tri_n[tri, 2, 2]
+        s0 = R[0, 0] * sm0 + R[0, 1] * sm1 + R[0, 2] * sm2
+        s1 = R[1, 0] * sm0 + R[1, 1] * sm1 + R[1, 2] * sm2
+        s2 = R[2, 0] * sm0 + R[2, 1] * sm1 + R[2, 2] * sm2
+        sl = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+        if sl > 1e-12:
+            s0, s1, s2 = s0 / sl, s1 / sl, s2 / sl
+        else:
+            s0, s1, s2 = g0, g1, g2
+        wo0, wo1, wo2 = -d0, -d1, -d2
+        if depth == 0 and use_viewer:  # in DPM the eye, not the projector, sees the surface
+            e0, e1, e2 = viewer[0] - p0, viewer[1] - p1, viewer[2] - p2
+            el = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+            if el > 1e-12:
+                wo0, wo1, wo2 = e0 / el, e1 / el, e2 / el
+        front = _dot(g0, g1, g2, wo0, wo1, wo2) > 0.0
+        if not front:  # two-sided shading: face both normals towards wo
+            g0, g1, g2, s0, s1, s2 = -g0, -g1, -g2, -s0, -s1, -s2
+        if _dot(s0, s1, s2, wo0, wo1, wo2) <= 1e-6:
+            s0, s1, s2 = g0, g1, g2
+        alb = obj_alb[ob]
+        spec = obj_spec[ob]
+        alpha = obj_alpha[ob]
+        if depth == 0:
+            if use_viewer and front and (em[0] > 0.0 or em[1] > 0.0 or em[2] > 0.0):
+                film_emit[pix, 0] += em[0]
+                film_emit[pix, 1] += em[1]
+                film_emit[pix, 2] += em[2]
+            if write_gbuffer:
+                gb_id[pix] = ob
+                gb_model[pix, 0], gb_model[pix, 1], gb_model[pix, 2] = pm0, pm1, pm2
+                gb_pos[pix, 0], gb_pos[pix, 1], gb_pos[pix, 2] = p0, p1, p2
+                gb_normal[pix, 0], gb_normal[pix, 1], gb_normal[pix, 2] = s0, s1, s2
+                gb_depth[pix] = hit_t[k] * _dot(d0, d1, d2, cam_fwd[0], cam_fwd[1], cam_fwd[2])
+                for c in range(3):
+                    gb_alb[pix, c] = alb[c]
+                    gb_spec[pix, c] = spec[c]
+                gb_rough[pix] = math.sqrt(alpha)
+        wd = _lum(alb[0] * (1.0 - spec[0]), alb[1] * (1.0 - spec[1]), alb[2] * (1.0 - spec[2]))
+        ws = _lum(spec[0], spec[1], spec[2])
+        if wd + ws <= 0.0:
+            continue  # black surface: nothing is reflected
+        p_spec = ws / (wd + ws)
+        eps = OFFSET_REL * max(_max_abs3(p0, p1, p2), _max_abs3(pm0, pm1, pm2)) + 1e-20
+        o0, o1, o2 = p0 + g0 * eps, p1 + g1 * eps, p2 + g2 * eps
+        continues = not last
+        # ---- next-event estimation: one shadow ray, to the environment or an emissive triangle ----
+        u_sel = rand(key, pix, base_dim)
+        u1 = rand(key, pix, base_dim + 1)
+        u2 = rand(key, pix, base_dim + 2)
+        li0 = li1 = li2 = 0.0
+        pdf_l = 0.0
+        tmax = 0.0
+        wi0 = wi1 = wi2 = 0.0
+        if u_sel < p_env:
+            t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
+            r = math.sqrt(u1)
+            phi = 2.0 * math.pi * u2
+            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))
+            wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
+            pdf_l = p_env * z * INV_PI
+            li0, li1, li2 = background[0], background[1], background[2]
+            tmax = 3.0e38
+        elif p_area > 0.0:
+            ut = (u_sel - p_env) / p_area
+            lo, hi = 0, light_cdf.shape[0] - 1
+            while lo < hi:  # first triangle whose cumulative weight exceeds ut
+                mid = (lo + hi) // 2
+                if light_cdf[mid] <= ut:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            lt = light_prim[lo]
+            lob = light_obj[lo]
+            su = math.sqrt(u1)
+            bb1, bb2 = u2 * su, 1.0 - su
+            lm0 = tri_v0[lt, 0] + bb1 * tri_e1[lt, 0] + bb2 * tri_e2[lt, 0]
+            lm1 = tri_v0[lt, 1] + bb1 * tri_e1[lt, 1] + bb2 * tri_e2[lt, 1]
+            lm2 = tri_v0[lt, 2] + bb1 * tri_e1[lt, 2] + bb2 * tri_e2[lt, 2]
+            LR = obj_R[lob]
+            LT = obj_t[lob]
+            q0 = LR[0, 0] * lm0 + LR[0, 1] * lm1 + LR[0, 2] * lm2 + LT[0] - o0
+            q1 = LR[1, 0] * lm0 + LR[1, 1] * lm1 + LR[1, 2] * lm2 + LT[1] - o1
+            q2 = LR[2, 0] * lm0 + LR[2, 1] * lm1 + LR[2, 2] * lm2 + LT[2] - o2
+            dist = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
+            if dist > 1e-20:
+                wi0, wi1, wi2 = q0 / dist, q1 / dist, q2 / dist
+                ln0 = LR[0, 0] * tri_ng[lt, 0] + LR[0, 1] * tri_ng[lt, 1] + LR[0, 2] * tri_ng[lt, 2]
+                ln1 = LR[1, 0] * tri_ng[lt, 0] + LR[1, 1] * tri_ng[lt, 1] + LR[1, 2] * tri_ng[lt, 2]
+                ln2 = LR[2, 0] * tri_ng[lt, 0] + LR[2, 1] * tri_ng[lt, 1] + LR[2, 2] * tri_ng[lt, 2]
+                cos_l = -_dot(ln0, ln1, ln2, wi0, wi1, wi2)
+                if cos_l > 0.0:
+                    pdf_l = p_area * obj_pdfA[lob] * dist * dist / cos_l
+                    le = obj_emit[lob]
+                    li0, li1, li2 = le[0], le[1], le[2]
+                    tmax = dist * (1.0 - SHADOW_SHORTEN)
+        cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
+        if pdf_l > 0.0 and cos_i > 0.0 and _dot(wi0, wi1, wi2, g0, g1, g2) > 0.0:
+            fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, alb, spec, alpha, p_spec)
+            w = 1.0
+            if continues or mis_last:
+                w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
+            scale = cos_i * w / pdf_l
+            cd0, cd1, cd2 = fd0 * li0 * scale * b0, fd1 * li1 * scale * b1, fd2 * li2 * scale * b2
+            cs0, cs1, cs2 = fs0 * li0 * scale * b0, fs1 * li1 * scale * b1, fs2 * li2 * scale * b2
+            if depth > 0:  # deeper vertices inherit the first vertex's diffuse/specular split
+                t0 = cd0 + cs0
+                t1 = cd1 + cs1
+                t2 = cd2 + cs2
+                cd0, cd1, cd2 = t0 * kdr, t1 * kdg, t2 * kdb
+                cs0, cs1, cs2 = t0 - cd0, t1 - cd1, t2 - cd2
+            if math.isfinite(cd0 + cd1 + cd2 + cs0 + cs1 + cs2):
+                if cd0 + cd1 + cd2 + cs0 + cs1 + cs2 > 0.0:
+                    sh_valid[k] = True
+                    sh_o[k, 0], sh_o[k, 1], sh_o[k, 2] = o0, o1, o2
+                    sh_d[k, 0], sh_d[k, 1], sh_d[k, 2] = wi0, wi1, wi2
+                    sh_tmax[k] = tmax
+                    sh_c[k, 0], sh_c[k, 1], sh_c[k, 2] = cd0, cd1, cd2
+                    sh_c[k, 3], sh_c[k, 4], sh_c[k, 5] = cs0, cs1, cs2
+            else:
+                nonfinite[pix] += 1
+        if not (continues or mis_last):
+            continue
+        # ---- BSDF sampling: the continuation ray ----
+        u_lobe = rand(key, pix, base_dim + 3)
+        u1 = rand(key, pix, base_dim + 4)
+        u2 = rand(key, pix, base_dim + 5)
+        t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
+        if u_lobe < p_spec:  # GGX visible-normal sampling (Heitz 2018) in the local frame
+            lx = _dot(wo0, wo1, wo2, t0, t1, t2)
+            ly = _dot(wo0, wo1, wo2, c0, c1, c2)
+            lz = _dot(wo0, wo1, wo2, s0, s1, s2)
+            vx, vy, vz = alpha * lx, alpha * ly, lz
+            vl = math.sqrt(vx * vx + vy * vy + vz * vz)
+            vx, vy, vz = vx / vl, vy / vl, vz / vl
+            lensq = vx * vx + vy * vy
+            if lensq > 1e-14:
+                il = 1.0 / math.sqrt(lensq)
+                a0, a1, a2 = -vy * il, vx * il, 0.0
+            else:
+                a0, a1, a2 = 1.0, 0.0, 0.0
+            e0, e1, e2 = vy * a2 - vz * a1, vz * a0 - vx * a2, vx * a1 - vy * a0
+            r = math.sqrt(u1)
+            phi = 2.0 * math.pi * u2
+            q1 = r * math.cos(phi)
+            q2 = r * math.sin(phi)
+            sv = 0.5 * (1.0 + vz)
+            q2 = (1.0 - sv) * math.sqrt(max(0.0, 1.0 - q1 * q1)) + sv * q2
+            q3 = math.sqrt(max(0.0, 1.0 - q1 * q1 - q2 * q2))
+            hx = q1 * a0 + q2 * e0 + q3 * vx
+            hy = q1 * a1 + q2 * e1 + q3 * vy
+            hz = max(1e-6, q3 * vz + q2 * e2)
+            hx, hy = alpha * hx, alpha * hy
+            hl = math.sqrt(hx * hx + hy * hy + hz * hz)
+            hx, hy, hz = hx / hl, hy / hl, hz / hl
+            h0 = hx * t0 + hy * c0 + hz * s0
+            h1 = hx * t1 + hy * c1 + hz * s1
+            h2 = hx * t2 + hy * c2 + hz * s2
+            dh = 2.0 * _dot(wo0, wo1, wo2, h0, h1, h2)
+            wi0, wi1, wi2 = dh * h0 - wo0, dh * h1 - wo1, dh * h2 - wo2
+        else:
+            r = math.sqrt(u1)
+            phi = 2.0 * math.pi * u2
+            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))
+            wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
+        cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
+        if cos_i <= 0.0 or _dot(wi0, wi1, wi2, g0, g1, g2) <= 0.0:
+            continue
+        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, alb, spec, alpha, p_spec)
+        if not pdf_b > 0.0:
+            continue
+        f0, f1, f2 = fd0 + fs0, fd1 + fs1, fd2 + fs2
+        if depth == 0:  # split the path by the lobe weights at the first vertex
+            kd[k, 0] = fd0 / f0 if f0 > 0.0 else 1.0
+            kd[k, 1] = fd1 / f1 if f1 > 0.0 else 1.0
+            kd[k, 2] = fd2 / f2 if f2 > 0.0 else 1.0
+        scale = cos_i / pdf_b
+        nb0, nb1, nb2 = b0 * f0 * scale, b1 * f1 * scale, b2 * f2 * scale
+        if depth + 1 >= RR_START_DEPTH:
+            q = min(RR_MAX_SURVIVAL, max(nb0, max(nb1, nb2)))
+            if rand(key, pix, base_dim + 6) >= q:
+                continue
+            nb0, nb1, nb2 = nb0 / q, nb1 / q, nb2 / q
+        if not math.isfinite(nb0 + nb1 + nb2):
+            nonfinite[pix] += 1
+            continue
+        if nb0 + nb1 + nb2 <= 0.0:
+            continue
+        beta[k, 0], beta[k, 1], beta[k, 2] = nb0, nb1, nb2
+        prev_pdf[k] = pdf_b
+        prev_n[k, 0], prev_n[k, 1], prev_n[k, 2] = s0, s1, s2
+        nx_o[k, 0], nx_o[k, 1], nx_o[k, 2] = o0, o1, o2
+        nx_d[k, 0], nx_d[k, 1], nx_d[k, 2] = wi0, wi1, wi2
+        alive[k] = True
+
+
+@nb.njit(parallel=True, **_jit)
+def add_unoccluded(pixel, contrib, blocked, film_diff, film_spec):
+    """Add each shadow ray's contribution where nothing blocked it."""
+    for k in nb.prange(pixel.shape[0]):
+        if not blocked[k]:
+            p = pixel[k]
+            film_diff[p, 0] += contrib[k, 0]
+            film_diff[p, 1] += contrib[k, 1]
+            film_diff[p, 2] += contrib[k, 2]
+            film_spec[p, 0] += contrib[k, 3]
+            film_spec[p, 1] += contrib[k, 4]
+            film_spec[p, 2] += contrib[k, 5]

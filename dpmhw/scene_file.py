@@ -1,0 +1,341 @@
+"""Scene files (TOML, written by hand) and the built-in scenes.
+
+Every error names the file, the field and what was expected, because the person reading it is a
+lab operator with the file open in an editor. Unknown fields are errors too: a typo must not pass
+silently as a default.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from dpmhw.errors import SceneError
+from dpmhw.meshes import TriangleMesh, box_mesh, find_bunny, load_mesh, procedural_bunny, quad_mesh, sphere_mesh, BOX_FACES
+from dpmhw.motion import ScriptedMotion
+from dpmhw.transforms import Pose, look_at, rotation_from_euler_xyz_deg, rotation_from_quat_xyzw
+
+log = logging.getLogger(__name__)
+
+BUILTIN_SCENES = ("paper-static", "paper-dynamic", "dpm-bunny")
+SHAPES = ("quad", "box", "sphere", "mesh")
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    width: int
+    height: int
+    max_bounces: int  # indirect bounces after the first hit; 0 = direct light only
+    background: np.ndarray  # (3,) radiance of escaping rays; a constant environment light
+    fps: float  # frame k of the timeline is at t = k / fps
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """OpenCV pinhole + distortion, and its camera→world pose (x right, y down, z forward)."""
+
+    K: np.ndarray  # (3, 3)
+    dist: np.ndarray  # (5,) k1 k2 p1 p2 k3
+    pose: Pose
+
+
+@dataclass
+class ObjectSpec:
+    name: str
+    shape: str
+    mesh: TriangleMesh  # model space, metres, scale applied
+    pose: Pose  # model→world at t = 0 (before scripted motion)
+    albedo: np.ndarray
+    specular: np.ndarray
+    roughness: float
+    emission: np.ndarray
+    rigid_body: int | None = None
+    motion: ScriptedMotion | None = None
+
+    @property
+    def is_dynamic(self) -> bool:
+        return self.motion is not None or self.rigid_body is not None
+
+    @property
+    def is_emissive(self) -> bool:
+        return bool(np.any(self.emission > 0))
+
+    def pose_at(self, t: float) -> Pose:
+        return self.motion.pose_at(t, self.pose) if self.motion is not None else self.pose
+
+
+@dataclass
+class Scene:
+    source: str
+    render: RenderSettings
+    camera: CameraSpec
+    viewer_position: np.ndarray  # (3,) eye for view-dependent shading
+    objects: list[ObjectSpec] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # e.g. "procedural bunny used"
+
+    def object_poses(self, t: float) -> list[Pose]:
+        return [obj.pose_at(t) for obj in self.objects]
+
+
+class _Fields:
+    """Typed access to one TOML table, raising SceneError with the full field path."""
+
+    def __init__(self, source: str, table: dict, path: str, known: set[str]):
+        self.source, self.table, self.path = source, table, path
+        if not isinstance(table, dict):
+            self.fail("", f"expected a table, got {type(table).__name__}")
+        unknown = sorted(set(table) - known)
+        if unknown:
+            self.fail(unknown[0], f"unknown field (known fields: {', '.join(sorted(known))})")
+
+    def fail(self, key: str, message: str):
+        name = f"{self.path}.{key}" if key and self.path else (key or self.path)
+        raise SceneError(self.source, name, message)
+
+    def has(self, key: str) -> bool:
+        return key in self.table
+
+    def number(self, key, default=None, lo=-math.inf, hi=math.inf, integer=False, lo_open=False):
+        if key not in self.table:
+            if default is None:
+                self.fail(key, "missing required field")
+            return default
+        value = self.table[key]
+        kind = "an integer" if integer else "a number"
+        if isinstance(value, bool) or not isinstance(value, (int,) if integer else (int, float)):
+            self.fail(key, f"expected {kind}, got {value!r}")
+        if not math.isfinite(value):
+            self.fail(key, f"expected a finite number, got {value!r}")
+        if value < lo or value > hi or (lo_open and value == lo):
+            bracket = "(" if lo_open else "["
+            self.fail(key, f"expected {kind} in {bracket}{lo}, {hi}], got {value!r}")
+        return value
+
+    def vector(self, key, n=3, default=None, lo=-math.inf, hi=math.inf, scalar_ok=False) -> np.ndarray:
+        if key not in self.table:
+            if default is None:
+                self.fail(key, "missing required field")
+            return np.asarray(default, dtype=float)
+        value = self.table[key]
+        if scalar_ok and isinstance(value, (int, float)) and not isinstance(value, bool):
+            value = [value] * n
+        if not isinstance(value, list) or len(value) != n or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
+        ):
+            self.fail(key, f"expected a list of {n} numbers, got {value!r}")
+        arr = np.asarray(value, dtype=float)
+        if not np.all(np.isfinite(arr)):
+            self.fail(key, f"expected finite numbers, got {value!r}")
+        if np.any(arr < lo) or np.any(arr > hi):
+            self.fail(key, f"expected every value in [{lo}, {hi}], got {value!r}")
+        return arr
+
+    def string(self, key, default=None, choices=None) -> str:
+        if key not in self.table:
+            if default is None:
+                self.fail(key, "missing required field")
+            return default
+        value = self.table[key]
+        if not isinstance(value, str):
+            self.fail(key, f"expected a string, got {value!r}")
+        if choices and value not in choices:
+            self.fail(key, f"expected one of {', '.join(choices)}, got {value!r}")
+        return value
+
+
+def _rotation(f: _Fields, key: str = "rotation") -> np.ndarray:
+    if not f.has(key):
+        return np.eye(3)
+    value = f.table[key]
+    if isinstance(value, list) and len(value) == 4:
+        q = f.vector(key, 4)
+        if np.linalg.norm(q) < 1e-9:
+            f.fail(key, "quaternion (x, y, z, w) has zero length")
+        return rotation_from_quat_xyzw(q)
+    if isinstance(value, list) and len(value) == 3:
+        return rotation_from_euler_xyz_deg(f.vector(key, 3))
+    f.fail(key, f"expected Euler XYZ degrees [rx, ry, rz] or a quaternion [x, y, z, w], got {value!r}")
+
+
+def _parse_render(source: str, table: dict) -> RenderSettings:
+    f = _Fields(source, table, "render", {"width", "height", "max_bounces", "background", "fps"})
+    return RenderSettings(
+        width=f.number("width", lo=1, hi=16384, integer=True),
+        height=f.number("height", lo=1, hi=16384, integer=True),
+        max_bounces=f.number("max_bounces", default=1, lo=0, hi=64, integer=True),
+        background=f.vector("background", default=(0, 0, 0), lo=0.0),
+        fps=float(f.number("fps", default=947.0, lo=0.0, hi=1e5, lo_open=True)),
+    )
+
+
+def _parse_camera(source: str, table: dict, base_dir: Path, render: RenderSettings) -> CameraSpec:
+    f = _Fields(source, table, "camera", {"fx", "fy", "cx", "cy", "dist", "position", "look_at", "up", "calibration"})
+    if f.has("calibration"):
+        return _camera_from_calibration(f, base_dir, render)
+    K = np.array(
+        [
+            [f.number("fx", lo=0, lo_open=True), 0.0, f.number("cx")],
+            [0.0, f.number("fy", lo=0, lo_open=True), f.number("cy")],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    dist = f.vector("dist", n=5, default=np.zeros(5))
+    try:
+        pose = look_at(f.vector("position"), f.vector("look_at"), f.vector("up", default=(0, 1, 0)))
+    except ValueError as exc:
+        f.fail("look_at", str(exc))
+    return CameraSpec(K, dist, pose)
+
+
+def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings) -> CameraSpec:
+    extra = sorted(set(f.table) - {"calibration"})
+    if extra:
+        f.fail(extra[0], "cannot be combined with 'calibration' (the calibration file gives intrinsics and pose)")
+    path = base_dir / f.string("calibration")
+    try:
+        from dpmhw.projector_calibration import load_projector_calibration
+    except ImportError:
+        f.fail("calibration", "calibration files need dpmhw.projector_calibration, which this install lacks")
+    try:
+        calib = load_projector_calibration(path)
+    except Exception as exc:
+        f.fail("calibration", f"cannot load {path}: {exc}")
+    if (calib.width, calib.height) != (render.width, render.height):
+        f.fail("calibration", f"{path} is for {calib.width}×{calib.height}, but [render] asks {render.width}×{render.height}")
+    return CameraSpec(np.asarray(calib.K, float), np.asarray(calib.dist, float).reshape(5), calib.pose)
+
+
+OBJECT_FIELDS = {
+    "name", "shape", "size", "radius", "scale", "mesh", "smooth", "recentre", "open", "position", "rotation",
+    "albedo", "specular", "roughness", "emission", "rigid_body", "motion",
+}
+MOTION_FIELDS = {"rotate_axis", "rotate_deg_per_s", "oscillate_direction", "oscillate_amplitude", "oscillate_period_s", "velocity"}
+
+
+def _parse_motion(source: str, table, path: str) -> ScriptedMotion:
+    f = _Fields(source, table, path, MOTION_FIELDS)
+    axis = f.vector("rotate_axis", default=(0, 1, 0))
+    direction = f.vector("oscillate_direction", default=(1, 0, 0))
+    for key, v in (("rotate_axis", axis), ("oscillate_direction", direction)):
+        if np.linalg.norm(v) < 1e-9:
+            f.fail(key, "expected a non-zero direction")
+    return ScriptedMotion(
+        rotate_axis=tuple(axis),
+        rotate_deg_per_s=float(f.number("rotate_deg_per_s", default=0.0)),
+        oscillate_direction=tuple(direction),
+        oscillate_amplitude=float(f.number("oscillate_amplitude", default=0.0, lo=0.0)),
+        oscillate_period_s=float(f.number("oscillate_period_s", default=1.0, lo=0.0, lo_open=True)),
+        velocity=tuple(f.vector("velocity", default=(0, 0, 0))),
+    )
+
+
+def _parse_mesh_shape(f: _Fields, shape: str, base_dir: Path, notes: list[str], mesh_override: Path | None) -> TriangleMesh:
+    smooth = f.table.get("smooth", shape in ("sphere", "mesh"))
+    if not isinstance(smooth, bool):
+        f.fail("smooth", f"expected true or false, got {smooth!r}")
+    if shape == "quad":
+        return quad_mesh(f.vector("size", n=2, lo=0.0))
+    if shape == "box":
+        open_faces = f.table.get("open", [])
+        if not isinstance(open_faces, list) or any(face not in BOX_FACES for face in open_faces):
+            f.fail("open", f"expected a list of faces among {', '.join(BOX_FACES)}, got {open_faces!r}")
+        return box_mesh(f.vector("size", lo=0.0), open_faces)
+    if shape == "sphere":
+        return sphere_mesh(f.number("radius", lo=0.0, lo_open=True), smooth=smooth)
+    name = f.string("mesh")
+    if name == "builtin:bunny":
+        path = mesh_override or find_bunny()
+        if path is None:
+            notes.append("the Stanford bunny was not found (../shared/data or $DPMHW_BUNNY); using a procedural bunny")
+            mesh = procedural_bunny()
+        else:
+            mesh = _load_mesh_field(f, Path(path), smooth)
+    else:
+        mesh = _load_mesh_field(f, base_dir / name, smooth)
+    scale = f.vector("scale", default=(1, 1, 1), lo=0.0, scalar_ok=True)
+    if np.any(scale <= 0):
+        f.fail("scale", "expected positive scale factors")
+    recentre = f.string("recentre", default="none", choices=("none", "centroid", "bottom"))
+    return mesh.recentred(recentre).scaled(scale)
+
+
+def _load_mesh_field(f: _Fields, path: Path, smooth: bool) -> TriangleMesh:
+    try:
+        return load_mesh(path, smooth=smooth)
+    except (FileNotFoundError, ValueError) as exc:
+        f.fail("mesh", str(exc))
+
+
+def _parse_object(source: str, table, index: int, base_dir: Path, notes: list[str], mesh_override) -> ObjectSpec:
+    path = f"objects[{index}]"
+    f = _Fields(source, table, path, OBJECT_FIELDS)
+    shape = f.string("shape", choices=SHAPES)
+    name = f.string("name", default=f"{shape}{index}")
+    mesh = _parse_mesh_shape(f, shape, base_dir, notes, mesh_override)
+    if len(mesh.faces) == 0:
+        f.fail("size" if shape != "mesh" else "mesh", "the shape has no non-degenerate triangles")
+    albedo = f.vector("albedo", default=(0.8, 0.8, 0.8), lo=0.0, hi=1.0, scalar_ok=True)
+    specular = f.vector("specular", default=(0, 0, 0), lo=0.0, hi=1.0, scalar_ok=True)
+    rigid_body = f.number("rigid_body", default=-1, lo=0, integer=True) if f.has("rigid_body") else None
+    return ObjectSpec(
+        name=name,
+        shape=shape,
+        mesh=mesh,
+        pose=Pose(_rotation(f), f.vector("position", default=(0, 0, 0))),
+        albedo=albedo,
+        specular=specular,
+        roughness=float(f.number("roughness", default=0.5, lo=0.0, hi=1.0)),
+        emission=f.vector("emission", default=(0, 0, 0), lo=0.0, scalar_ok=True),
+        rigid_body=rigid_body,
+        motion=_parse_motion(source, f.table["motion"], f"{path}.motion") if f.has("motion") else None,
+    )
+
+
+def parse_scene(text: str, source: str, base_dir: Path, mesh_override: Path | None = None) -> Scene:
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(source, "(syntax)", f"not valid TOML: {exc}") from None
+    top = _Fields(source, data, "", {"render", "camera", "viewer", "objects"})
+    for section in ("render", "camera", "objects"):
+        if not top.has(section):
+            top.fail(section, "missing required section")
+    render = _parse_render(source, data["render"])
+    camera = _parse_camera(source, data["camera"], base_dir, render)
+    viewer = camera.pose.t.copy()
+    if top.has("viewer"):
+        viewer = _Fields(source, data["viewer"], "viewer", {"position"}).vector("position")
+    objects_table = data["objects"]
+    if not isinstance(objects_table, list) or not objects_table:
+        top.fail("objects", "expected at least one [[objects]] table")
+    notes: list[str] = []
+    objects = [_parse_object(source, t, i, base_dir, notes, mesh_override) for i, t in enumerate(objects_table)]
+    names = [o.name for o in objects]
+    for i, name in enumerate(names):
+        if names.index(name) != i:
+            raise SceneError(source, f"objects[{i}].name", f"duplicate object name {name!r}")
+    if not any(o.is_emissive for o in objects) and not np.any(render.background > 0):
+        top.fail("objects", "the scene has no light: give an object an emission or [render] a background")
+    return Scene(source, render, camera, viewer, objects, sorted(set(notes)))
+
+
+def load_scene(name_or_path: str | Path, mesh_override: Path | None = None) -> Scene:
+    """Load a scene by built-in name (see BUILTIN_SCENES) or from a TOML file."""
+    key = str(name_or_path)
+    if key in BUILTIN_SCENES:
+        text = resources.files("dpmhw.scenes").joinpath(f"{key}.toml").read_text()
+        scene = parse_scene(text, f"built-in scene {key!r}", Path("."), mesh_override)
+    else:
+        path = Path(name_or_path)
+        if not path.is_file():
+            raise SceneError(str(path), "(file)", f"no such scene file; built-in scenes are {', '.join(BUILTIN_SCENES)}")
+        scene = parse_scene(path.read_text(), str(path), path.parent, mesh_override)
+    for note in scene.notes:
+        log.warning("%s: %s", scene.source, note)
+    return scene
