@@ -1,0 +1,634 @@
+"""The DLPC900 controller as a state machine, written from the programmer's guide (DLPU018).
+
+This is the device side only: it takes one complete command (flags, sequence, opcode, payload)
+and answers with a reply payload or an error code, exactly as `protocols.md` describes. The USB
+framing lives in `dlpc900_usb.py`. Nothing here imports `drivers`: the image decoder below is
+written from the specification, so a driver whose encoder is wrong fails against it.
+
+Time comes from an injectable clock (ns), so tests can step the ~300 ms display-mode settle and
+the pattern timeline without sleeping.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+# Error codes (0x0100) and the descriptions the emulated firmware reports on 0x0101.
+ERR_NONE = 0
+ERR_DEVICE_FAILURE = 2
+ERR_INVALID_COMMAND = 3
+ERR_NOT_ALLOWED = 5
+ERR_INVALID_PARAMETER = 6
+ERR_ITEM_NOT_PRESENT = 7
+ERR_OUT_OF_MEMORY = 8
+ERR_INVALID_COMPRESSION = 9
+ERR_BIT_OUT_OF_RANGE = 10
+ERR_DARK_TIME = 12
+ERR_SIGNAL_DELAY = 13
+ERR_EXPOSURE = 14
+ERR_PATTERN_NUMBER = 15
+ERR_PATTERN_DEFINITION = 16
+ERR_IMAGE_ADDRESS = 17
+ERR_INTERNAL = 255
+
+ERROR_NAMES = {
+    0: "no error", 1: "batch file checksum error", 2: "device failure", 3: "invalid command number",
+    4: "incompatible controller and DMD", 5: "command not allowed in current mode",
+    6: "invalid command parameter", 7: "item referred by the parameter is not present",
+    8: "out of resource (RAM or flash)", 9: "invalid BMP compression type", 10: "pattern bit number out of range",
+    11: "pattern BMP not present in flash", 12: "pattern dark time out of range",
+    13: "signal delay parameter out of range", 14: "pattern exposure time out of range",
+    15: "pattern number out of range", 16: "invalid pattern definition", 17: "pattern image memory address out of range",
+    255: "internal error",
+}
+
+# Minimum exposure (µs) per bit depth for a DLP6500. 1, 2, 4, 8 bits from protocols.md; the
+# others from the DLPC900 datasheet's pattern-rate table (DLP6500, no LED modulation).
+MIN_EXPOSURE_US = {1: 105, 2: 304, 3: 394, 4: 823, 5: 1215, 6: 1487, 7: 1998, 8: 4046}
+SETTLE_NS = 300_000_000  # display-mode switch
+MAX_IMAGE_INDEX = 255  # image pattern index is bits 10:0 but the guide limits it to 0..255
+
+RESET_LED_ENABLE = 0x08
+RESET_LED_CURRENT = (0x97, 0x78, 0x7D)
+
+
+class CommandError(Exception):
+    """A command the controller rejects; carries the 0x0100 code and 0x0101 text."""
+
+    def __init__(self, code: int, description: str | None = None):
+        self.code = code
+        self.description = description or ERROR_NAMES.get(code, "error")
+        super().__init__(f"{code}: {self.description}")
+
+
+@dataclass
+class LoggedCommand:
+    t_ns: int
+    seq: int
+    opcode: int
+    read: bool
+    reply_wanted: bool
+    data: bytes
+    error: int  # 0 = accepted
+
+
+@dataclass(frozen=True)
+class LutEntry:
+    """One pattern-LUT definition (0x1A34), decoded."""
+
+    index: int
+    exposure_us: int
+    clear_after: bool
+    bit_depth: int
+    color: int
+    wait_trigger: bool
+    dark_us: int
+    disable_trigger_out2: bool
+    image_index: int
+    bit_position: int
+
+
+@dataclass(frozen=True)
+class DisplayedPattern:
+    """One pattern the DMD showed: when, which LUT entry, which bits of which image."""
+
+    t_ns: int
+    lut_index: int
+    image_index: int
+    bit_position: int
+    bit_depth: int
+    exposure_us: int
+
+
+class ImageDecodeError(ValueError):
+    def __init__(self, message: str, code: int = ERR_INVALID_COMPRESSION):
+        self.code = code
+        super().__init__(message)
+
+
+def _read_count(buf: bytes, i: int) -> tuple[int, int]:
+    b0 = buf[i]
+    if b0 < 0x80:
+        return b0, i + 1
+    if i + 1 >= len(buf):
+        raise ImageDecodeError("count byte truncated")
+    return (b0 & 0x7F) | (buf[i + 1] << 7), i + 2
+
+
+def decode_pattern_image(blob: bytes) -> np.ndarray:
+    """Header + payload -> (H, W) uint32 image, as the controller would unpack it.
+
+    Raises ImageDecodeError for a bad signature, an unknown compression, a line that over- or
+    under-runs the width, a copy on the first line, a missing end-of-image or trailing lines.
+    """
+    if len(blob) < 48:
+        raise ImageDecodeError(f"image shorter than its 48-byte header ({len(blob)} bytes)")
+    if blob[:4] != b"Spld":
+        raise ImageDecodeError("bad image signature (expected 'Spld')")
+    width, height, nbytes = struct.unpack_from("<HHI", blob, 4)
+    compression = blob[25]
+    payload = blob[48:]
+    if width == 0 or height == 0:
+        raise ImageDecodeError("zero image size", ERR_INVALID_PARAMETER)
+    if nbytes != len(payload):
+        raise ImageDecodeError(f"header says {nbytes} data bytes, {len(payload)} received", ERR_INVALID_PARAMETER)
+    if compression == 0:
+        if len(payload) != 3 * width * height:
+            raise ImageDecodeError("uncompressed image size does not match width x height x 3")
+        b = np.frombuffer(payload, np.uint8).reshape(height, width, 3).astype(np.uint32)
+        return b[..., 0] | (b[..., 1] << 8) | (b[..., 2] << 16)
+    if compression != 2:
+        raise ImageDecodeError(f"compression {compression} is not emulated (only 0 and 2)")
+    return _decode_erle(payload, width, height)
+
+
+def _decode_erle(buf: bytes, width: int, height: int) -> np.ndarray:
+    out = np.zeros((height, width), dtype=np.uint32)
+    raw = np.frombuffer(buf, dtype=np.uint8)
+    y = x = 0
+    i = 0
+    n_bytes = len(buf)
+    while True:
+        if i >= n_bytes:
+            raise ImageDecodeError("image data ended without the end-of-image code (00 01 00)")
+        if buf[i] != 0:  # repeat
+            n, i = _read_count(buf, i)
+            if i + 3 > n_bytes:
+                raise ImageDecodeError("repeat token truncated")
+            if y >= height or x + n > width:
+                raise ImageDecodeError(f"repeat of {n} overruns line {y} at column {x}")
+            out[y, x:x + n] = buf[i] | (buf[i + 1] << 8) | (buf[i + 2] << 16)
+            x += n
+            i += 3
+            continue
+        if i + 1 >= n_bytes:
+            raise ImageDecodeError("control code truncated")
+        c = buf[i + 1]
+        if c == 0:  # end of line
+            if x != width:
+                raise ImageDecodeError(f"line {y} ended after {x} of {width} pixels")
+            y, x, i = y + 1, 0, i + 2
+            continue
+        if c == 1:  # copy from previous line, or end of image
+            if i + 2 >= n_bytes:
+                raise ImageDecodeError("copy / end-of-image code truncated")
+            n, j = _read_count(buf, i + 2)
+            if n == 0:
+                if x == width:  # tolerate a last line not closed by 00 00
+                    y, x = y + 1, 0
+                if x != 0 or y != height:
+                    raise ImageDecodeError(f"end of image after {y} of {height} lines")
+                if j != n_bytes:
+                    raise ImageDecodeError(f"{n_bytes - j} bytes after the end-of-image code")
+                return out
+            if y == 0:
+                raise ImageDecodeError("copy from the previous line on the first line")
+            if y >= height or x + n > width:
+                raise ImageDecodeError(f"copy of {n} overruns line {y} at column {x}")
+            out[y, x:x + n] = out[y - 1, x:x + n]
+            x, i = x + n, j
+            continue
+        n, j = _read_count(buf, i + 1)  # uncompressed block of n >= 2 pixels
+        if j + 3 * n > n_bytes:
+            raise ImageDecodeError("uncompressed block truncated")
+        if y >= height or x + n > width:
+            raise ImageDecodeError(f"uncompressed block of {n} overruns line {y} at column {x}")
+        b = raw[j:j + 3 * n].reshape(n, 3).astype(np.uint32)
+        out[y, x:x + n] = b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16)
+        x, i = x + n, j + 3 * n
+
+
+@dataclass
+class _ImageLoad:
+    index: int
+    expected: int
+    secondary: bool
+    buf: bytearray = field(default_factory=bytearray)
+
+
+class DLPC900Model:
+    """Controller state and command semantics.
+
+    `execute(opcode, data, read)` returns the reply payload or raises CommandError; the USB layer
+    turns that into reply reports and latches the error code for 0x0100.
+    """
+
+    def __init__(self, *, width: int = 1920, height: int = 1080, dmd_type: int = 1,
+                 tag: str = "DLPC900 emulator", clock: Callable[[], int] = time.monotonic_ns,
+                 firmware: tuple[tuple[int, int, int], ...] = ((5, 3, 0), (5, 1, 0), (2, 0, 0), (3, 1, 0))):
+        self.width, self.height = width, height
+        self.dmd_type = dmd_type
+        self.tag = tag
+        self.clock = clock
+        self.firmware = firmware  # (major, minor, patch) for application, API, sw config, seq config
+        self.command_log: list[LoggedCommand] = []
+        self.events: list[tuple[int, str]] = []  # (t_ns, what) for sequencer and mode changes
+        self.trigger_times: list[int] = []  # external trigger-in edges (tests add them)
+        self.power_on()
+
+    # ---- state -------------------------------------------------------------------------
+    def power_on(self) -> None:
+        """Power-on defaults: video mode, sequencer stopped, LEDs under sequencer control."""
+        self.standby = False
+        self.idle = False
+        self.parked = False
+        self.display_mode = 0
+        self._mode_from = 0
+        self._mode_settled_at = 0
+        self.sequencer = "stopped"  # stopped | running | paused
+        self._run_started_at: int | None = None
+        self.led_enable = RESET_LED_ENABLE
+        self.led_current = RESET_LED_CURRENT
+        self.curtain = (0, 0, 0)
+        self.input_source = 0
+        self.trigger_out = {1: (0, 0, 0), 2: (0, 0, 0)}
+        self.trigger_in1_delay = 104
+        self.trigger_in2_polarity = 0
+        self.lut: dict[int, LutEntry] = {}
+        self.lut_config: tuple[int, int] | None = None  # (entries, repeat)
+        self._lut_dirty = False
+        self.images: dict[int, np.ndarray] = {}
+        self.images_secondary: dict[int, np.ndarray] = {}
+        self._load: _ImageLoad | None = None
+        self.hw_status = 0x01  # init OK
+        self.error_code = 0
+        self.error_description = ""
+        self._timeline: list[DisplayedPattern] = []
+
+    @property
+    def dark(self) -> bool:
+        """True when no light reaches the DMD output: standby, idle, parked or LEDs off."""
+        leds = self.led_enable & 0x07 or (self.led_enable & 0x08 and self._sequencer_lights())
+        return self.standby or self.idle or self.parked or not leds
+
+    def _sequencer_lights(self) -> bool:
+        # With the sequencer in control, light flows in video mode or while a pattern runs.
+        return self.display_mode == 0 or self.sequencer == "running"
+
+    def main_status(self) -> int:
+        return (int(self.parked) | (int(self.sequencer == "running") << 1))
+
+    @property
+    def settled_display_mode(self) -> int:
+        return self.display_mode if self.clock() >= self._mode_settled_at else self._mode_from
+
+    # ---- faults tests can raise from the device side -------------------------------------
+    def abort_sequence(self) -> None:
+        """Sequencer abort: the hardware-status abort bit sets and the sequence stops."""
+        self.hw_status |= 0x40
+        self._stop("abort")
+
+    def trigger(self, t_ns: int | None = None) -> None:
+        self.trigger_times.append(self.clock() if t_ns is None else t_ns)
+
+    # ---- the command set ----------------------------------------------------------------
+    STANDBY_ALLOWED = {0x0100, 0x0101, 0x0200, 0x1A0A, 0x1A0B, 0x1A0C}
+
+    def execute(self, opcode: int, data: bytes, read: bool) -> bytes:
+        if self.standby and opcode not in self.STANDBY_ALLOWED:
+            raise CommandError(ERR_NOT_ALLOWED, "controller is in standby: only wake (0x0200 = 0) is accepted")
+        spec = _COMMANDS.get(opcode)
+        if spec is None:
+            raise CommandError(ERR_INVALID_COMMAND, f"unknown command 0x{opcode:04X}")
+        reader, writer, sizes = spec
+        if read:
+            if reader is None:
+                raise CommandError(ERR_INVALID_COMMAND, f"command 0x{opcode:04X} cannot be read")
+            return reader(self)
+        if writer is None:
+            raise CommandError(ERR_INVALID_COMMAND, f"command 0x{opcode:04X} is read-only")
+        if sizes is not None and len(data) not in sizes:
+            raise CommandError(ERR_INVALID_PARAMETER,
+                               f"command 0x{opcode:04X} takes {sorted(sizes)} data bytes, got {len(data)}")
+        writer(self, data)
+        return b""
+
+    # reads
+    def _r_error(self) -> bytes:
+        return bytes([self.error_code])
+
+    def _r_error_desc(self) -> bytes:
+        return self.error_description.encode("ascii", "replace")[:127] + b"\x00"
+
+    def _r_power(self) -> bytes:
+        return bytes([1 if self.standby else 0])
+
+    def _r_idle(self) -> bytes:
+        return bytes([int(self.idle)])
+
+    def _r_version(self) -> bytes:
+        return b"".join(struct.pack("<HBB", p, mi, ma) for ma, mi, p in self.firmware)
+
+    def _r_hwconfig(self) -> bytes:
+        return bytes([self.dmd_type]) + self.tag.encode("ascii")[:31].ljust(31, b"\x00")
+
+    def _r_park(self) -> bytes:
+        return bytes([int(self.parked)])
+
+    def _r_curtain(self) -> bytes:
+        return struct.pack("<3H", *self.curtain)
+
+    def _r_source(self) -> bytes:
+        return bytes([self.input_source])
+
+    def _r_led_enable(self) -> bytes:
+        return bytes([self.led_enable])
+
+    def _r_hw_status(self) -> bytes:
+        return bytes([self.hw_status])
+
+    def _r_sys_status(self) -> bytes:
+        return b"\x01"
+
+    def _r_main_status(self) -> bytes:
+        return bytes([self.main_status()])
+
+    def _r_display_mode(self) -> bytes:
+        return bytes([self.settled_display_mode])
+
+    def _r_trig_out(self, n: int) -> bytes:
+        inv, rise, fall = self.trigger_out[n]
+        return struct.pack("<Bhh", inv, rise, fall)
+
+    def _r_pattern(self) -> bytes:
+        return bytes([{"stopped": 0, "paused": 1, "running": 2}[self.sequencer]])
+
+    def _r_lut_config(self) -> bytes:
+        n, rep = self.lut_config or (0, 0)
+        return struct.pack("<HI", n, rep)
+
+    def _r_trig_in1(self) -> bytes:
+        return struct.pack("<H", self.trigger_in1_delay)
+
+    def _r_trig_in2(self) -> bytes:
+        return bytes([self.trigger_in2_polarity])
+
+    def _r_led_current(self) -> bytes:
+        return bytes(self.led_current)
+
+    # writes
+    def _w_power(self, d: bytes) -> None:
+        mode = d[0]
+        if mode == 0:
+            self.standby = False
+        elif mode == 1:
+            self._stop("standby")
+            self.standby = True
+        elif mode == 2:
+            self.power_on()
+            self.events.append((self.clock(), "software reset"))
+        else:
+            raise CommandError(ERR_INVALID_PARAMETER, f"power mode {mode} (expected 0, 1 or 2)")
+
+    def _w_idle(self, d: bytes) -> None:
+        if d[0] & 0xFE:
+            raise CommandError(ERR_INVALID_PARAMETER, "idle mode: only bit 0 is defined")
+        on = bool(d[0] & 1)
+        if on and self.sequencer != "stopped":
+            raise CommandError(ERR_NOT_ALLOWED, "stop the pattern sequence before entering idle mode")
+        self.idle = on
+        self.events.append((self.clock(), "idle on" if on else "idle off"))
+
+    def _w_park(self, d: bytes) -> None:
+        if d[0] not in (0, 1):
+            raise CommandError(ERR_INVALID_PARAMETER, "park: 1 park, 0 unpark")
+        self.parked = bool(d[0])
+
+    def _w_curtain(self, d: bytes) -> None:
+        rgb = struct.unpack("<3H", d)
+        if max(rgb) > 0x3FF:
+            raise CommandError(ERR_INVALID_PARAMETER, "curtain colour is 10 bits per channel")
+        self.curtain = rgb
+
+    def _w_source(self, d: bytes) -> None:
+        if d[0] & 0x07 > 3 or d[0] & 0xE0:
+            raise CommandError(ERR_INVALID_PARAMETER, f"input source byte 0x{d[0]:02X}")
+        self.input_source = d[0]
+
+    def _w_led_enable(self, d: bytes) -> None:
+        if d[0] & 0xF0:
+            raise CommandError(ERR_INVALID_PARAMETER, "LED enable: bits 7:4 are reserved")
+        self.led_enable = d[0]
+
+    def _w_display_mode(self, d: bytes) -> None:
+        mode = d[0]
+        if mode > 3:
+            raise CommandError(ERR_INVALID_PARAMETER, f"display mode {mode} (expected 0..3)")
+        if self.sequencer != "stopped":
+            raise CommandError(ERR_NOT_ALLOWED, "stop the pattern sequence before changing the display mode")
+        if mode != self.display_mode:
+            self._mode_from = self.settled_display_mode
+            self.display_mode = mode
+            self._mode_settled_at = self.clock() + SETTLE_NS
+            self.lut.clear()
+            self.lut_config = None
+            self.events.append((self.clock(), f"display mode {mode}"))
+
+    def _w_trig_out(self, n: int, d: bytes) -> None:
+        inv, rise, fall = struct.unpack("<Bhh", d)
+        if inv > 1:
+            raise CommandError(ERR_INVALID_PARAMETER, "trigger out invert: 0 or 1")
+        if not (-20 <= rise <= 20000 and -20 <= fall <= 20000):
+            raise CommandError(ERR_SIGNAL_DELAY, f"trigger out {n} delay out of -20..20000 µs")
+        self.trigger_out[n] = (inv, rise, fall)
+
+    def _w_pattern(self, d: bytes) -> None:
+        what = d[0]
+        if what not in (0, 1, 2):
+            raise CommandError(ERR_INVALID_PARAMETER, "pattern start/stop: 0 stop, 1 pause, 2 start")
+        if what == 0:
+            self._stop("stop")
+            return
+        if self.display_mode == 0:
+            raise CommandError(ERR_NOT_ALLOWED, "no pattern sequence in video mode")
+        if what == 1:
+            if self.sequencer == "running":
+                self._close_timeline()
+                self.sequencer = "paused"
+                self.events.append((self.clock(), "pause"))
+            return
+        if self.idle:
+            raise CommandError(ERR_NOT_ALLOWED, "controller is in idle mode")
+        if self.clock() < self._mode_settled_at:
+            raise CommandError(ERR_NOT_ALLOWED, "display mode switch still in progress")
+        if self.lut_config is None or self._lut_dirty:
+            raise CommandError(ERR_PATTERN_DEFINITION, "LUT must be configured (0x1A31) after its definitions")
+        n, _ = self.lut_config
+        for k in range(n):
+            e = self.lut[k]
+            if self.display_mode == 3 and e.image_index not in self.images:
+                raise CommandError(ERR_ITEM_NOT_PRESENT, f"LUT entry {k} names image {e.image_index}, not loaded")
+        if self.sequencer != "running":
+            self.sequencer = "running"
+            self.hw_status &= ~0x40
+            self._run_started_at = self.clock()
+            self.events.append((self.clock(), "start"))
+
+    def _stop(self, why: str) -> None:
+        if self.sequencer != "stopped":
+            if self.sequencer == "running":
+                self._close_timeline()
+            self.sequencer = "stopped"
+            self.events.append((self.clock(), why))
+
+    def _w_image_init(self, secondary: bool, d: bytes) -> None:
+        index, size = struct.unpack("<HI", d)
+        if self.display_mode != 3:
+            raise CommandError(ERR_NOT_ALLOWED, "image load needs pattern on-the-fly mode (3)")
+        if self.sequencer != "stopped":
+            raise CommandError(ERR_NOT_ALLOWED, "stop the sequence before loading images")
+        if index > MAX_IMAGE_INDEX:
+            raise CommandError(ERR_IMAGE_ADDRESS, f"image index {index} > {MAX_IMAGE_INDEX}")
+        if size < 48 or size > 3 * self.width * self.height + 4 * self.height + 1024:
+            raise CommandError(ERR_OUT_OF_MEMORY, f"image of {size} bytes does not fit")
+        self._load = _ImageLoad(index, size, secondary)
+
+    def _w_image_data(self, secondary: bool, d: bytes) -> None:
+        if len(d) < 2:
+            raise CommandError(ERR_INVALID_PARAMETER, "image data: missing byte count")
+        n = struct.unpack_from("<H", d)[0] & 0x3FF
+        chunk = d[2:]
+        if n != len(chunk) or n > 504:
+            raise CommandError(ERR_INVALID_PARAMETER, f"image data: count {n} but {len(chunk)} bytes (max 504)")
+        load = self._load
+        if load is None or load.secondary != secondary:
+            raise CommandError(ERR_NOT_ALLOWED, "image data without a load init (0x1A2A/0x1A2C)")
+        if len(load.buf) + n > load.expected:
+            self._load = None
+            raise CommandError(ERR_INVALID_PARAMETER, "more image data than announced")
+        load.buf += chunk
+        if len(load.buf) == load.expected:
+            self._load = None
+            try:
+                img = decode_pattern_image(bytes(load.buf))
+            except ImageDecodeError as exc:
+                raise CommandError(exc.code, str(exc)) from None
+            if (img.shape[1], img.shape[0]) != (self.width, self.height):
+                raise CommandError(ERR_INVALID_PARAMETER,
+                                   f"image is {img.shape[1]}x{img.shape[0]}, DMD is {self.width}x{self.height}")
+            (self.images_secondary if secondary else self.images)[load.index] = img
+            self.events.append((self.clock(), f"image {load.index} loaded"))
+
+    def _w_lut_config(self, d: bytes) -> None:
+        n, repeat = struct.unpack("<HI", d)
+        if self.display_mode == 0:
+            raise CommandError(ERR_NOT_ALLOWED, "LUT configuration needs a pattern display mode")
+        if n == 0 or any(k not in self.lut for k in range(n)):
+            raise CommandError(ERR_PATTERN_NUMBER, f"{n} entries configured but not all are defined")
+        self.lut_config = (n, repeat)
+        self._lut_dirty = False
+
+    def _w_lut_define(self, d: bytes) -> None:
+        index = struct.unpack_from("<H", d, 0)[0]
+        exposure = int.from_bytes(d[2:5], "little")
+        opts = d[5]
+        dark = int.from_bytes(d[6:9], "little")
+        trig2 = d[9]
+        img_word = struct.unpack_from("<H", d, 10)[0]
+        if self.display_mode == 0:
+            raise CommandError(ERR_NOT_ALLOWED, "set a pattern display mode before defining the LUT")
+        if self.sequencer != "stopped":
+            raise CommandError(ERR_NOT_ALLOWED, "stop the sequence before changing the LUT")
+        depth = ((opts >> 1) & 0x07) + 1
+        entry = LutEntry(index=index, exposure_us=exposure, clear_after=bool(opts & 1), bit_depth=depth,
+                         color=(opts >> 4) & 0x07, wait_trigger=bool(opts & 0x80), dark_us=dark,
+                         disable_trigger_out2=bool(trig2 & 1), image_index=img_word & 0x7FF,
+                         bit_position=img_word >> 11)
+        if index >= 400:
+            raise CommandError(ERR_PATTERN_NUMBER, f"pattern index {index} out of range")
+        if exposure < MIN_EXPOSURE_US[depth]:
+            raise CommandError(ERR_EXPOSURE, f"{exposure} µs is below the {MIN_EXPOSURE_US[depth]} µs minimum for {depth}-bit")
+        if entry.bit_position > 23 or entry.bit_position + depth > 24 or entry.bit_position % depth:
+            raise CommandError(ERR_BIT_OUT_OF_RANGE, f"bit position {entry.bit_position} for {depth}-bit patterns")
+        if entry.image_index > MAX_IMAGE_INDEX:
+            raise CommandError(ERR_IMAGE_ADDRESS, f"image index {entry.image_index}")
+        self.lut[index] = entry
+        self._lut_dirty = True
+
+    def _w_trig_in1(self, d: bytes) -> None:
+        (delay,) = struct.unpack("<H", d)
+        if delay < 104:
+            raise CommandError(ERR_SIGNAL_DELAY, f"trigger in 1 delay {delay} µs is below 104 µs")
+        self.trigger_in1_delay = delay
+
+    def _w_trig_in2(self, d: bytes) -> None:
+        if d[0] > 1:
+            raise CommandError(ERR_INVALID_PARAMETER, "trigger in 2 polarity: 0 or 1")
+        self.trigger_in2_polarity = d[0]
+
+    def _w_led_current(self, d: bytes) -> None:
+        self.led_current = tuple(d)
+
+    # ---- what the DMD showed ------------------------------------------------------------
+    def dmd_pattern(self, lut_index: int) -> np.ndarray:
+        """(H, W) uint8 values the DMD shows for one LUT entry (bit-depth-wide field of its image)."""
+        e = self.lut[lut_index]
+        img = self.images[e.image_index]
+        return ((img >> e.bit_position) & ((1 << e.bit_depth) - 1)).astype(np.uint8)
+
+    def _close_timeline(self) -> None:
+        self._timeline.extend(self._run_timeline(self.clock()))
+        self._run_started_at = None
+
+    def _run_timeline(self, until_ns: int) -> list[DisplayedPattern]:
+        if self._run_started_at is None or self.lut_config is None:
+            return []
+        n, repeat = self.lut_config
+        t = self._run_started_at
+        out: list[DisplayedPattern] = []
+        triggers = iter(sorted(x for x in self.trigger_times if x >= t))
+        passes = 0
+        while t < until_ns and (repeat == 0 or passes < repeat) and len(out) < 100_000:
+            for k in range(n):
+                e = self.lut[k]
+                if e.wait_trigger:
+                    t = next((x for x in triggers if x >= t), None)
+                    if t is None or t >= until_ns:
+                        return out
+                if t >= until_ns:
+                    return out
+                out.append(DisplayedPattern(t, k, e.image_index, e.bit_position, e.bit_depth, e.exposure_us))
+                t += (e.exposure_us + e.dark_us) * 1000
+            passes += 1
+        return out
+
+    def displayed(self, until_ns: int | None = None) -> list[DisplayedPattern]:
+        """Every pattern shown so far (or until `until_ns`), with its start time."""
+        until = self.clock() if until_ns is None else until_ns
+        return self._timeline + (self._run_timeline(until) if self.sequencer == "running" else [])
+
+
+# opcode -> (reader, writer, accepted write payload sizes)
+_COMMANDS: dict[int, tuple] = {
+    0x0100: (DLPC900Model._r_error, None, None),
+    0x0101: (DLPC900Model._r_error_desc, None, None),
+    0x0200: (DLPC900Model._r_power, DLPC900Model._w_power, {1}),
+    0x0201: (DLPC900Model._r_idle, DLPC900Model._w_idle, {1}),
+    0x0205: (DLPC900Model._r_version, None, None),
+    0x0206: (DLPC900Model._r_hwconfig, None, None),
+    0x0609: (DLPC900Model._r_park, DLPC900Model._w_park, {1}),
+    0x1100: (DLPC900Model._r_curtain, DLPC900Model._w_curtain, {6}),
+    0x1A00: (DLPC900Model._r_source, DLPC900Model._w_source, {1}),
+    0x1A07: (DLPC900Model._r_led_enable, DLPC900Model._w_led_enable, {1}),
+    0x1A0A: (DLPC900Model._r_hw_status, None, None),
+    0x1A0B: (DLPC900Model._r_sys_status, None, None),
+    0x1A0C: (DLPC900Model._r_main_status, None, None),
+    0x1A1B: (DLPC900Model._r_display_mode, DLPC900Model._w_display_mode, {1}),
+    0x1A1D: (lambda m: m._r_trig_out(1), lambda m, d: m._w_trig_out(1, d), {5}),
+    0x1A1E: (lambda m: m._r_trig_out(2), lambda m, d: m._w_trig_out(2, d), {5}),
+    0x1A24: (DLPC900Model._r_pattern, DLPC900Model._w_pattern, {1}),
+    0x1A2A: (None, lambda m, d: m._w_image_init(False, d), {6}),
+    0x1A2B: (None, lambda m, d: m._w_image_data(False, d), None),
+    0x1A2C: (None, lambda m, d: m._w_image_init(True, d), {6}),
+    0x1A2D: (None, lambda m, d: m._w_image_data(True, d), None),
+    0x1A31: (DLPC900Model._r_lut_config, DLPC900Model._w_lut_config, {6}),
+    0x1A34: (None, DLPC900Model._w_lut_define, {12}),
+    0x1A35: (DLPC900Model._r_trig_in1, DLPC900Model._w_trig_in1, {2}),
+    0x1A36: (DLPC900Model._r_trig_in2, DLPC900Model._w_trig_in2, {1}),
+    0x0B01: (DLPC900Model._r_led_current, DLPC900Model._w_led_current, {3}),
+}
