@@ -209,17 +209,24 @@ def raw_encode(image: np.ndarray) -> bytes:
     return px.view(np.uint8).reshape(-1, 4)[:, :3].tobytes()
 
 
-def encode_image(image: np.ndarray, compression: int = COMPRESSION_ERLE,
+def encode_image(image: np.ndarray, compression: int | str = "auto",
                  background_bgr: tuple[int, int, int] = (0, 0, 0)) -> EncodedImage:
-    """Header + payload for one 24-bit (H, W) image, ready for 0x1A2A/0x1A2B."""
+    """Header + payload for one 24-bit (H, W) image, ready for 0x1A2A/0x1A2B.
+
+    "auto" sends enhanced RLE unless it comes out larger than the raw pixels (random
+    patterns), in which case the image goes uncompressed: fewer bytes over USB either way.
+    """
     image = np.asarray(image)
     if image.ndim != 2:
         raise ValueError(f"image: expected (H, W), got {image.shape}")
     h, w = image.shape
-    if compression == COMPRESSION_ERLE:
+    if compression in ("auto", COMPRESSION_ERLE):
         payload = erle_encode(image)
+        chosen = COMPRESSION_ERLE
+        if compression == "auto" and len(payload) > 3 * h * w:
+            payload, chosen = raw_encode(image), COMPRESSION_NONE
     elif compression == COMPRESSION_NONE:
-        payload = raw_encode(image)
+        payload, chosen = raw_encode(image), COMPRESSION_NONE
     else:
-        raise ValueError("compression: only 0 (none) and 2 (enhanced RLE) are produced here")
-    return EncodedImage(w, h, compression, image_header(w, h, len(payload), compression, background_bgr) + payload)
+        raise ValueError(f"compression: expected 'auto', 0 (none) or 2 (enhanced RLE), got {compression!r}")
+    return EncodedImage(w, h, chosen, image_header(w, h, len(payload), chosen, background_bgr) + payload)

@@ -484,7 +484,7 @@ class DLPC900Model:
             raise CommandError(ERR_NOT_ALLOWED, "stop the sequence before loading images")
         if index > MAX_IMAGE_INDEX:
             raise CommandError(ERR_IMAGE_ADDRESS, f"image index {index} > {MAX_IMAGE_INDEX}")
-        if size < 48 or size > 3 * self.width * self.height + 4 * self.height + 1024:
+        if size < 48 or size > 48 + 4 * self.width * self.height + 5 * self.height + 3:
             raise CommandError(ERR_OUT_OF_MEMORY, f"image of {size} bytes does not fit")
         self._load = _ImageLoad(index, size, secondary)
 

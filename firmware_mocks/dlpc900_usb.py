@@ -194,11 +194,10 @@ class EmulatedDLPC900:
             except Exception as exc:  # a model bug must not kill the emulated device
                 code, description = 255, f"internal error: {exc!r}"
         self.model.command_log.append(LoggedCommand(self.model.clock(), seq, opcode, read, bool(flags & 0x40), data, code))
-        if opcode not in (0x0100, 0x0101):
-            if code:
-                self._latch(code, description)
-            else:
-                self._latch(0, "")
+        if code:
+            self._latch(code, description)
+        elif not (read and opcode in (0x0100, 0x0101)):  # reading the error keeps it
+            self._latch(0, "")
         if read or flags & 0x40:
             self._queue_reply(flags | (0x20 if code else 0), seq, b"" if code else reply, opcode)
 

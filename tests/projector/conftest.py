@@ -45,6 +45,11 @@ def dlp(emu, clock):
     d.close()
 
 
+@pytest.fixture
+def gray():
+    return gray_codes
+
+
 def gray_codes(width: int, height: int, vertical: bool = True) -> np.ndarray:
     """(n, H, W) bool Gray-code stripes, as structured-light calibration shows them."""
     n = int(np.ceil(np.log2(width if vertical else height)))

@@ -118,8 +118,10 @@ def test_bit_plane_order():
 
 def test_encoded_image_is_header_plus_payload():
     img = np.arange(12, dtype=np.uint32).reshape(3, 4)
-    enc = encode_image(img)
+    enc = encode_image(img, compression=2)
     assert enc.data[:48] == image_header(4, 3, enc.payload_size)
     assert np.array_equal(decode_pattern_image(enc.data), img)
     raw = encode_image(img, compression=0)
     assert raw.payload_size == 36 and np.array_equal(decode_pattern_image(raw.data), img)
+    assert encode_image(img).compression == 0  # "auto": RLE would be larger than the raw pixels
+    assert encode_image(np.zeros((3, 4), np.uint32)).compression == 2
