@@ -1,0 +1,185 @@
+"""Injected faults give typed errors at once (never a hang), and blank() still leaves the mock dark."""
+
+from __future__ import annotations
+
+import errno
+
+import numpy as np
+import pytest
+
+from drivers.dlpc900 import (
+    DLPC900, DLPC900DeviceError, DLPC900Disconnected, DLPC900ProtocolError, DLPC900SafetyError, DLPC900Timeout,
+    DLPC900USBError,
+)
+
+pytestmark = pytest.mark.timeout(30)
+
+
+def _lit(dlp, emu):
+    """Put the mock in a bright state: a pattern sequence running with LEDs on."""
+    emu.model.width, emu.model.height = 16, 4
+    dlp.upload_patterns(np.ones((2, 4, 16), bool), exposure_us=500, start=True)
+    assert not emu.model.dark
+
+
+def test_lost_reply_is_a_timeout_then_blank_works(dlp, emu):
+    _lit(dlp, emu)
+    emu.drop_replies(1)
+    with pytest.raises(DLPC900Timeout):
+        dlp.main_status()
+    assert dlp.blank().method == "idle" and emu.model.dark
+
+
+def test_stalled_endpoint_is_a_usb_error_with_errno(dlp, emu):
+    _lit(dlp, emu)
+    emu.stall(1)
+    with pytest.raises(DLPC900USBError) as err:
+        dlp.set_led_current(1, 2, 3)
+    assert err.value.errno == errno.EPIPE
+    dlp.blank()
+    assert emu.model.dark
+
+
+def test_error_reply_carries_code_and_description(dlp, emu):
+    emu.fail_commands(2, opcode=0x0B01, description="LED driver fault")
+    with pytest.raises(DLPC900DeviceError) as err:
+        dlp.set_led_current(1, 2, 3)
+    assert (err.value.code, err.value.description, err.value.command) == (2, "LED driver fault", 0x0B01)
+    assert dlp.error_code() == (2, "LED driver fault")  # reading the error does not clear it
+
+
+@pytest.mark.parametrize("how", ["short", "sequence", "length", "flags"])
+def test_malformed_replies_are_protocol_errors(dlp, emu, how):
+    _lit(dlp, emu)
+    emu.corrupt_replies(how, opcode=0x1A0C)
+    with pytest.raises(DLPC900ProtocolError):
+        dlp.main_status()
+    # the link is back in step for the next command, and blanking still works
+    assert dlp.main_status().sequencer_running
+    dlp.blank()
+    assert emu.model.dark
+
+
+def test_malformed_write_ack_is_caught(dlp, emu):
+    emu.corrupt_replies("length", opcode=0x0B01)
+    with pytest.raises(DLPC900ProtocolError, match="data bytes"):
+        dlp.set_led_current(1, 2, 3)
+
+
+def test_sequencer_abort_is_reported(dlp, emu):
+    _lit(dlp, emu)
+    emu.model.abort_sequence()
+    hs = dlp.hardware_status()
+    assert hs.sequencer_abort and "sequencer_abort" in hs.faults
+    assert not dlp.main_status().sequencer_running
+    dlp.blank()
+    assert emu.model.dark
+
+
+def test_standby_counts_as_dark(dlp, emu):
+    dlp.standby()
+    report = dlp.blank()
+    assert report.method == "standby" and emu.model.dark
+
+
+def test_blank_falls_back_to_leds_off_when_idle_is_refused(dlp, emu):
+    _lit(dlp, emu)
+    emu.fail_commands(5, opcode=0x0201, count=1)  # idle rejected once
+    report = dlp.blank()
+    assert report.method == "leds off" and emu.model.led_enable == 0 and emu.model.dark
+
+
+def test_blank_raises_when_darkness_cannot_be_confirmed(dlp, emu):
+    _lit(dlp, emu)
+    emu.fail_commands(5, opcode=0x0201, count=10)
+    emu.fail_commands(5, opcode=0x1A07, count=10)
+    with pytest.raises(DLPC900SafetyError):
+        dlp.blank()
+
+
+def test_unplug_gives_disconnected(dlp, emu):
+    emu.unplug()
+    with pytest.raises(DLPC900Disconnected) as err:
+        dlp.main_status()
+    assert err.value.errno == errno.ENODEV
+
+
+def test_reconnect_backs_off_then_gives_up(dlp, emu, clock):
+    emu.unplug()
+    dlp.reconnect_attempts = 4
+    with pytest.raises(DLPC900Disconnected, match="4 attempts"):
+        dlp.reconnect()
+    assert clock.sleeps == [0.05, 0.1, 0.2]  # exponential backoff between attempts
+
+
+def test_reconnect_restores_configured_state_after_power_cycle(dlp, emu, clock):
+    emu.model.width, emu.model.height = 32, 4
+    pats = np.random.default_rng(5).random((5, 4, 32)) < 0.5
+    dlp.set_led_current(11, 22, 33)
+    dlp.set_led_enable(green=True, sequencer_controlled=True)
+    dlp.set_trigger_out(2, invert=True, rising_delay_us=40)
+    dlp.set_trigger_in1_delay(300)
+    dlp.upload_patterns(pats, exposure_us=700, start=True)
+    emu.unplug()
+    emu.replug(power_cycle=True)  # comes back with power-on defaults, new address
+    assert emu.model.led_current == (0x97, 0x78, 0x7D) and not emu.model.images
+    dlp.reconnect()
+    m = emu.model
+    assert m.led_current == (11, 22, 33) and m.led_enable == 0b1010
+    assert m.trigger_out[2] == (1, 40, 0) and m.trigger_in1_delay == 300
+    assert m.display_mode == 3 and m.lut_config == (5, 0)
+    for k in range(5):
+        assert np.array_equal(m.dmd_pattern(k).astype(bool), pats[k])
+    assert m.sequencer == "stopped"  # not restarted unless asked: light only on purpose
+    dlp.start()
+    assert m.sequencer == "running"
+
+
+def test_reconnect_can_resume_the_sequence(dlp, emu):
+    _lit(dlp, emu)
+    emu.unplug()
+    emu.replug()
+    dlp.reconnect(resume=True)
+    assert emu.model.sequencer == "running"
+
+
+def test_auto_reconnect_retries_the_command(emu, clock):
+    dlp = DLPC900.open(sleep=clock.sleep, auto_reconnect=True)
+    dlp.set_led_current(9, 9, 9)
+    emu.unplug()
+    emu.replug()
+    assert dlp.led_current() == (9, 9, 9)  # reconnected, restored, then answered
+    dlp.close()
+
+
+def test_blank_after_unplug_and_replug_leaves_the_mock_dark(dlp, emu):
+    _lit(dlp, emu)
+    emu.unplug()
+    emu.replug(power_cycle=False)  # controller kept running while the cable was out
+    assert not emu.model.dark
+    dlp.blank()
+    assert emu.model.dark
+
+
+def test_blank_while_unplugged_is_a_safety_error(dlp, emu):
+    emu.unplug()
+    dlp.reconnect_attempts = 2
+    with pytest.raises(DLPC900SafetyError, match="unreachable"):
+        dlp.blank()
+
+
+def test_context_exit_blanks_after_a_fault(emu, clock):
+    with pytest.raises(DLPC900Timeout):
+        with DLPC900.open(sleep=clock.sleep) as dlp:
+            _lit(dlp, emu)
+            emu.drop_replies(1)
+            dlp.hardware_status()
+    assert emu.model.dark and dlp.closed
+
+
+def test_image_upload_error_is_read_back(dlp, emu):
+    """Image data goes without replies; a decode failure is still reported via 0x0100."""
+    emu.model.width, emu.model.height = 16, 4  # patterns below are 8 pixels wide
+    with pytest.raises(DLPC900DeviceError) as err:
+        dlp.upload_patterns(np.ones((1, 4, 8), bool), exposure_us=200)
+    assert err.value.code == 6 and "8x4" in err.value.description
