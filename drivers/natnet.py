@@ -1,0 +1,330 @@
+"""OptiTrack Motive client over NatNet/UDP: rigid-body poses stamped at mid-exposure on the host clock.
+
+Handshake on the command port (connect → server info: NatNet version, clock frequency,
+multicast or unicast, data port), model definitions (rigid-body names ↔ ids), then frames:
+multicast frames arrive on a data socket bound to the group address and joined on an explicit
+interface; unicast frames arrive on the command socket, which sends keep-alives.
+
+Timing: each frame carries camera mid-exposure and transmit stamps in server clock ticks. The
+server→host clock offset comes from echo round trips (Cristian's method) and, until the first
+echo returns, from the running minimum of arrival minus transmit. Each pose is stamped with its
+mid-exposure instant mapped to `time.monotonic_ns()`.
+
+Every datagram is decoded defensively: malformed ones are counted (`status().malformed`) and
+dropped; a frame with a flagged-tracked body whose pose is not a pose is malformed too.
+"""
+
+from __future__ import annotations
+
+import select
+import socket
+import time
+from collections import deque
+
+import numpy as np
+
+from dpmhw.tracking import PoseSample, TrackerError, TrackerState, quaternions_xyzw_to_matrices
+from drivers.natnet_protocol import (
+    MessageId,
+    ModelDefinitions,
+    MocapFrame,
+    NatNetDecodeError,
+    ServerInfo,
+    decode_echo_response,
+    decode_frame,
+    decode_model_definitions,
+    decode_server_info,
+    encode_connect,
+    encode_echo_request,
+    encode_message,
+    parse_version,
+    split_message,
+)
+from drivers.tracker_base import LinkLost, ReceiverTracker
+
+__all__ = ["NatNetClient"]
+
+_MAX_DATAGRAM = 65536
+_DRAIN_LIMIT = 256  # datagrams handled per wake-up before checking timers
+
+
+class NatNetClient(ReceiverTracker):
+    """Receive rigid-body poses from Motive (or `firmware_mocks.natnet_server`).
+
+    server : Motive's address; command_port : its command port (1510).
+    local_interface : the address of this host's interface towards Motive (used to bind the
+        command socket and to join the multicast group on the right NIC).
+    multicast : None follows what the server announces in its server info.
+    natnet_version : force a bitstream version (e.g. "4.1"); None uses the server's.
+    """
+
+    kind = "natnet"
+
+    def __init__(
+        self,
+        server: str = "127.0.0.1",
+        *,
+        command_port: int = 1510,
+        local_interface: str = "127.0.0.1",
+        multicast: bool | None = None,
+        data_port: int | None = None,
+        multicast_group: str | None = None,
+        natnet_version: str | None = None,
+        connect_timeout_s: float = 1.0,
+        keepalive_interval_s: float = 1.0,
+        echo_interval_s: float = 0.5,
+        stale_after_s: float = 0.1,
+        lost_after_s: float = 1.0,
+        backoff_initial_s: float = 0.1,
+        backoff_max_s: float = 2.0,
+    ):
+        super().__init__(
+            stale_after_s=stale_after_s, lost_after_s=lost_after_s,
+            backoff_initial_s=backoff_initial_s, backoff_max_s=backoff_max_s,
+        )
+        self.server = server
+        self.command_port = command_port
+        self.local_interface = local_interface
+        self.multicast = multicast
+        self.data_port = data_port
+        self.multicast_group = multicast_group
+        self.forced_version = parse_version(natnet_version) if natnet_version else None
+        self.version: tuple[int, int] | None = self.forced_version
+        self.connect_timeout_s = connect_timeout_s
+        self.keepalive_interval_s = keepalive_interval_s
+        self.echo_interval_s = echo_interval_s
+        self.server_info: ServerInfo | None = None
+        self.clock_hz: int | None = None
+        self.models = ModelDefinitions()
+        self.system_latency_s: float | None = None  # Motive's own mid-exposure→transmit
+        self.other_messages = 0
+        self._cmd: socket.socket | None = None
+        self._data: socket.socket | None = None
+        self._echoes_sent: deque[int] = deque(maxlen=64)
+        self._want_models = False
+
+    # -- names ---------------------------------------------------------------------------------
+
+    def rigid_body_names(self) -> dict[int, str]:
+        return self.models.rigid_body_names()
+
+    def rigid_body_id(self, name: str) -> int:
+        for rb_id, rb_name in self.rigid_body_names().items():
+            if rb_name == name:
+                return rb_id
+        known = ", ".join(sorted(self.rigid_body_names().values())) or "none yet"
+        raise KeyError(f"no rigid body named {name!r} in Motive's model definitions (known: {known})")
+
+    # -- datagram handling (also usable directly, e.g. for replaying captures) -----------------
+
+    def process_datagram(self, datagram: bytes, arrival_ns: int | None = None) -> list[PoseSample]:
+        """Handle one datagram from the server; returns the samples it published (may be empty).
+
+        Never raises for bad input: malformed datagrams are counted and dropped.
+        """
+        arrival_ns = time.monotonic_ns() if arrival_ns is None else arrival_ns
+        try:
+            msg_id, payload = split_message(datagram)
+            if msg_id == MessageId.FRAME_OF_DATA:
+                return self._handle_frame(payload, arrival_ns)
+            if msg_id == MessageId.SERVER_INFO:
+                self._apply_server_info(decode_server_info(payload))
+            elif msg_id == MessageId.MODEL_DEF:
+                if self.version is None:
+                    raise NatNetDecodeError("model definitions arrived before the server info (version unknown)")
+                self.models = decode_model_definitions(payload, self.version)
+            elif msg_id == MessageId.ECHO_RESPONSE:
+                self._handle_echo(payload, arrival_ns)
+            else:
+                self.other_messages += 1
+        except (NatNetDecodeError, TrackerError) as exc:
+            self._count_malformed(exc)
+        except Exception as exc:
+            self._count_internal_error(exc)
+        return []
+
+    def _apply_server_info(self, info: ServerInfo) -> None:
+        try:
+            server_version = parse_version(info.natnet_version)
+        except ValueError as exc:
+            raise TrackerError(f"{info.app_name} at {self.server}: {exc}") from None
+        if info.clock_hz is None:
+            raise TrackerError(f"{info.app_name} at {self.server}: server info lacks the clock frequency")
+        self.server_info = info
+        self.version = self.forced_version or server_version
+        self.clock_hz = info.clock_hz
+
+    def _ticks_to_ns(self, ticks: int) -> int:
+        return ticks * 1_000_000_000 // self.clock_hz
+
+    def _handle_echo(self, payload, arrival_ns: int) -> None:
+        echoed, server_ticks = decode_echo_response(payload)
+        if echoed not in self._echoes_sent or self.clock_hz is None:
+            raise NatNetDecodeError(f"echo response: client time {echoed} is not one this client sent")
+        self._echoes_sent.remove(echoed)
+        self.clock.add_round_trip(echoed, self._ticks_to_ns(server_ticks), arrival_ns)
+
+    def _handle_frame(self, payload, arrival_ns: int) -> list[PoseSample]:
+        if self.version is None or self.clock_hz is None:
+            raise NatNetDecodeError("frame arrived before the server info (version and clock unknown)")
+        frame = decode_frame(payload, self.version)
+        if not 0 < frame.stamp_mid_exposure <= frame.stamp_transmit:
+            raise NatNetDecodeError(
+                f"frame {frame.frame_number}: camera mid-exposure stamp {frame.stamp_mid_exposure} is not "
+                f"positive and before the transmit stamp {frame.stamp_transmit}"
+            )
+        samples = self._samples(frame, arrival_ns)  # validates before anything is counted
+        self.clock.add_one_way(self._ticks_to_ns(frame.stamp_transmit), arrival_ns)
+        if frame.models_changed:
+            self._want_models = True
+        if not self._accept_frame_number(frame.frame_number):
+            return []
+        self.system_latency_s = frame.system_latency_s(self.clock_hz)
+        mid_host = self.clock.to_host_ns(self._ticks_to_ns(frame.stamp_mid_exposure))
+        samples = [
+            PoseSample(s.rigid_body_id, s.rotation, s.translation, mid_host, arrival_ns, s.valid, s.mean_marker_error, s.frame_number)
+            for s in samples
+        ]
+        self._publish_frame(samples, arrival_ns)
+        return samples
+
+    def _samples(self, frame: MocapFrame, arrival_ns: int) -> list[PoseSample]:
+        rb = frame.rigid_bodies
+        if len(rb) == 0:
+            return []
+        positions = rb.positions.astype(np.float64)
+        rotations, usable = quaternions_xyzw_to_matrices(rb.quaternions)
+        norms = np.linalg.norm(rb.quaternions.astype(np.float64), axis=1)
+        tracked = rb.tracked
+        bad = tracked & ~(np.isfinite(positions).all(axis=1) & (np.abs(norms - 1.0) < 1e-3))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise NatNetDecodeError(
+                f"frame {frame.frame_number}: rigid body {int(rb.ids[i])} is flagged tracked but its pose is not "
+                f"valid (position {positions[i].tolist()}, quaternion norm {norms[i]:.4g})"
+            )
+        valid = tracked & usable
+        return [
+            PoseSample(
+                int(rb.ids[i]), rotations[i], positions[i], 0, arrival_ns, bool(valid[i]),
+                float(rb.mean_errors[i]), frame.frame_number,
+            )
+            for i in range(len(rb))
+        ]
+
+    # -- the session ---------------------------------------------------------------------------
+
+    def _send(self, datagram: bytes) -> None:
+        self._cmd.sendto(datagram, (self.server, self.command_port))
+
+    def _close_transport(self) -> None:
+        for sock in (self._cmd, self._data):
+            if sock is not None:
+                sock.close()
+        self._cmd = self._data = None
+
+    def _handshake(self) -> None:
+        self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._cmd.bind((self.local_interface, 0))
+        self.server_info = None
+        deadline = time.monotonic() + self.connect_timeout_s
+        next_try = 0.0
+        while self.server_info is None:
+            if self._stop.is_set():
+                return
+            now = time.monotonic()
+            if now > deadline:
+                raise LinkLost(
+                    f"no server info from {self.server}:{self.command_port} within {self.connect_timeout_s} s "
+                    "(is Motive streaming, and are the address and command port right?)"
+                )
+            if now >= next_try:
+                self._send(encode_connect((*(self.forced_version or (4, 1)), 0, 0)))
+                next_try = now + 0.2
+            if select.select([self._cmd], [], [], 0.02)[0]:
+                data = self._cmd.recv(_MAX_DATAGRAM)
+                try:
+                    msg_id, payload = split_message(data)
+                    if msg_id == MessageId.SERVER_INFO:
+                        self._apply_server_info(decode_server_info(payload))
+                except NatNetDecodeError as exc:
+                    self._count_malformed(exc)
+
+    def _sync_clock(self, round_trips: int = 8, timeout_s: float = 0.5) -> None:
+        """Echo burst before streaming, so even the first frame is stamped with a round-trip
+        clock offset. Frames arriving meanwhile (unicast) are skipped, not mis-stamped."""
+        deadline = time.monotonic() + timeout_s
+        got = 0
+        while got < round_trips and time.monotonic() < deadline and not self._stop.is_set():
+            stamp = time.monotonic_ns()
+            self._echoes_sent.append(stamp)
+            self._send(encode_echo_request(stamp))
+            reply_deadline = time.monotonic() + 0.05
+            while time.monotonic() < reply_deadline:
+                if not select.select([self._cmd], [], [], 0.01)[0]:
+                    continue
+                data = self._cmd.recv(_MAX_DATAGRAM)
+                arrival = time.monotonic_ns()
+                if len(data) >= 2 and int.from_bytes(data[:2], "little") == MessageId.FRAME_OF_DATA:
+                    self.other_messages += 1
+                    continue
+                before = len(self._echoes_sent)
+                self.process_datagram(data, arrival)
+                if len(self._echoes_sent) < before:  # our echo came back
+                    got += 1
+                    break
+
+    def _open_data_socket(self, info: ServerInfo) -> None:
+        group = self.multicast_group or info.multicast_group
+        port = self.data_port or info.data_port
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+            # Linux: bind the group address (not the interface's) so only this group's datagrams
+            # arrive, then join on the explicit interface (8-byte ip_mreq: group, interface).
+            sock.bind((group, port))
+            mreq = socket.inet_aton(group) + socket.inet_aton(self.local_interface)
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
+        except OSError as exc:
+            sock.close()
+            raise TrackerError(f"cannot join multicast {group}:{port} on {self.local_interface}: {exc}") from None
+        self._data = sock
+
+    def _session(self) -> None:
+        self._handshake()
+        if self._stop.is_set():
+            return
+        self._sync_clock()
+        info = self.server_info
+        use_multicast = info.is_multicast if self.multicast is None else self.multicast
+        if use_multicast:
+            self._open_data_socket(info)
+        mode = f"multicast {self.multicast_group or info.multicast_group}" if use_multicast else "unicast"
+        self._set_state(TrackerState.CONNECTED, f"{info.app_name} NatNet {self.version[0]}.{self.version[1]}, {mode}")
+        self._send(encode_message(MessageId.REQUEST_MODEL_DEF))
+        sockets = [s for s in (self._cmd, self._data) if s is not None]
+        connected_ns = last_keepalive = last_echo = time.monotonic_ns()
+        frames_at_start = self.frames
+        while not self._stop.is_set():
+            for sock in select.select(sockets, [], [], 0.02)[0]:
+                for _ in range(_DRAIN_LIMIT):
+                    try:
+                        data = sock.recv(_MAX_DATAGRAM, socket.MSG_DONTWAIT)
+                    except (BlockingIOError, InterruptedError):
+                        break
+                    self.process_datagram(data, time.monotonic_ns())
+            now = time.monotonic_ns()
+            if not use_multicast and now - last_keepalive > self.keepalive_interval_s * 1e9:
+                self._send(encode_message(MessageId.KEEP_ALIVE))
+                last_keepalive = now
+            if now - last_echo > self.echo_interval_s * 1e9:  # keeps following clock drift
+                stamp = time.monotonic_ns()
+                self._echoes_sent.append(stamp)
+                self._send(encode_echo_request(stamp))
+                last_echo = stamp
+            if self._want_models:
+                self._want_models = False
+                self._send(encode_message(MessageId.REQUEST_MODEL_DEF))
+            since = self._last_arrival_ns if self.frames > frames_at_start else connected_ns
+            self._check_alive(since, "frame of data")

@@ -1,0 +1,218 @@
+"""What every tracker driver shares: a receiver thread, the newest pose per body, link status,
+frame-number bookkeeping and reconnection with exponential backoff.
+
+A driver subclasses `ReceiverTracker` and implements `_session()`: open the transport, handshake,
+then loop reading until `self._stop` is set, calling `_publish_frame(...)` per decoded frame.
+Raising `LinkLost` (or `OSError`) from `_session()` makes the base class mark the tracker LOST,
+wait with backoff and call `_session()` again. The receiver thread never dies of bad input:
+decoders raise `TrackerDecodeError`, which drivers count and drop.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+from dpmhw.tracking import (
+    ClockMapping,
+    LatestPoses,
+    PoseSample,
+    SampleSubscription,
+    TrackerError,
+    TrackerState,
+    TrackerStatus,
+)
+
+__all__ = ["LinkLost", "ReceiverTracker"]
+
+log = logging.getLogger(__name__)
+
+# Device frame numbers that go back by more than this mean the device restarted, not reordering.
+_RESTART_JUMP = 1000
+
+
+class LinkLost(TrackerError):
+    """The link to the device is down (timeout, port gone); the receiver will reconnect."""
+
+
+class ReceiverTracker:
+    """Base of the tracker drivers; implements the `dpmhw.tracking.Tracker` protocol."""
+
+    kind = "tracker"
+
+    def __init__(
+        self,
+        *,
+        stale_after_s: float = 0.1,
+        lost_after_s: float = 1.0,
+        backoff_initial_s: float = 0.1,
+        backoff_max_s: float = 2.0,
+    ):
+        if not 0 < stale_after_s <= lost_after_s:
+            raise ValueError(f"need 0 < stale_after_s <= lost_after_s, got {stale_after_s}, {lost_after_s}")
+        self.stale_after_s = stale_after_s
+        self.lost_after_s = lost_after_s
+        self.backoff_initial_s = backoff_initial_s
+        self.backoff_max_s = backoff_max_s
+        self.clock = ClockMapping()
+        self._poses = LatestPoses()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._state = TrackerState.STOPPED
+        self._reason = "not started"
+        self._last_frame_number: int | None = None
+        self.frames = 0
+        self.malformed = 0
+        self.frames_missed = 0
+        self.out_of_order = 0
+        self.reconnects = 0
+        self.internal_errors = 0
+        self.last_decode_error = ""
+        self._last_arrival_ns: int | None = None
+        self._last_latency_ns: int | None = None
+
+    # -- Tracker protocol ----------------------------------------------------------------------
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._set_state(TrackerState.CONNECTING, "starting")
+        self._thread = threading.Thread(target=self._run, name=f"{self.kind}-receiver", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout=5)
+            if thread.is_alive():  # pragma: no cover - would be a bug in a driver's loop
+                log.error("%s receiver thread did not stop within 5 s", self.kind)
+        self._set_state(TrackerState.STOPPED, "stopped by the user")
+        self._poses.close_subscriptions()
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def latest(self, rigid_body_id: int) -> PoseSample | None:
+        return self._poses.latest(rigid_body_id)
+
+    def latest_all(self) -> dict[int, PoseSample]:
+        return self._poses.latest_all()
+
+    def add_callback(self, callback: Callable[[PoseSample], None]) -> None:
+        self._poses.add_callback(callback)
+
+    def remove_callback(self, callback: Callable[[PoseSample], None]) -> None:
+        self._poses.remove_callback(callback)
+
+    def subscribe(self, maxlen: int = 4096) -> SampleSubscription:
+        return self._poses.subscribe(maxlen)
+
+    def status(self) -> TrackerStatus:
+        state, reason = self._state, self._reason
+        last = self._last_arrival_ns
+        if state == TrackerState.STREAMING and last is not None:
+            age_s = (time.monotonic_ns() - last) / 1e9
+            if age_s > self.stale_after_s:
+                state, reason = TrackerState.STALE, f"no frame for {age_s * 1e3:.0f} ms"
+        return TrackerStatus(
+            state=state,
+            reason=reason,
+            frames=self.frames,
+            malformed=self.malformed,
+            frames_missed=self.frames_missed,
+            out_of_order=self.out_of_order,
+            reconnects=self.reconnects,
+            last_arrival_ns=last,
+            latency_ns=self._last_latency_ns,
+            clock_offset_ns=self.clock.offset_ns,
+            details=self._details(),
+        )
+
+    # -- for subclasses ------------------------------------------------------------------------
+
+    def _session(self) -> None:
+        raise NotImplementedError
+
+    def _close_transport(self) -> None:
+        """Release whatever `_session` opened (called after every session, even on error)."""
+
+    def _details(self) -> dict:
+        return {"clock_method": self.clock.method, "internal_errors": self.internal_errors,
+                "last_decode_error": self.last_decode_error, "callback_errors": self._poses.callback_errors}
+
+    def _set_state(self, state: TrackerState, reason: str = "") -> None:
+        self._state, self._reason = state, reason
+
+    def _count_malformed(self, exc: Exception) -> None:
+        self.malformed += 1
+        self.last_decode_error = str(exc)
+
+    def _count_internal_error(self, exc: Exception) -> None:
+        # A bug in our own decoding must not kill the receiver, but it must be visible.
+        self.internal_errors += 1
+        self.last_decode_error = f"internal {type(exc).__name__}: {exc}"
+        log.exception("%s: unexpected error while handling input", self.kind)
+
+    def _accept_frame_number(self, frame_number: int) -> bool:
+        """Count gaps; reject frames older than the newest published one (UDP reordering)."""
+        last = self._last_frame_number
+        if last is not None:
+            if frame_number <= last and last - frame_number < _RESTART_JUMP:
+                self.out_of_order += 1
+                return False
+            if frame_number > last + 1:
+                self.frames_missed += frame_number - last - 1
+        self._last_frame_number = frame_number
+        return True
+
+    def _publish_frame(self, samples: list[PoseSample], arrival_ns: int) -> None:
+        self.frames += 1
+        self._last_arrival_ns = arrival_ns
+        if samples:
+            self._last_latency_ns = samples[0].latency_ns
+        if self._state != TrackerState.STREAMING:
+            self._set_state(TrackerState.STREAMING, "")
+        self._poses.publish(samples)
+
+    def _check_alive(self, since_ns: int, what: str) -> None:
+        """Raise LinkLost when nothing arrived for `lost_after_s` since `since_ns`."""
+        age_s = (time.monotonic_ns() - since_ns) / 1e9
+        if age_s > self.lost_after_s:
+            raise LinkLost(f"no {what} for {age_s:.2f} s (lost after {self.lost_after_s} s)")
+
+    # -- the receiver thread -------------------------------------------------------------------
+
+    def _run(self) -> None:
+        backoff = self.backoff_initial_s
+        while not self._stop.is_set():
+            frames_before = self.frames
+            try:
+                self._set_state(TrackerState.CONNECTING, "connecting")
+                self._session()
+                reason = "session ended"
+            except (TrackerError, OSError) as exc:
+                reason = f"{type(exc).__name__}: {exc}" if not isinstance(exc, TrackerError) else str(exc)
+            except Exception as exc:  # a driver bug: report it, keep trying
+                log.exception("%s session failed", self.kind)
+                reason = f"internal error {type(exc).__name__}: {exc}"
+            finally:
+                try:
+                    self._close_transport()
+                except Exception:  # pragma: no cover
+                    log.exception("%s: closing the transport failed", self.kind)
+            if self._stop.is_set():
+                break
+            if self.frames > frames_before:
+                backoff = self.backoff_initial_s  # that session worked: retry quickly
+            self.reconnects += 1
+            self._set_state(TrackerState.LOST, f"{reason}; reconnecting in {backoff:.2f} s")
+            self._stop.wait(backoff)
+            backoff = min(backoff * 2, self.backoff_max_s)

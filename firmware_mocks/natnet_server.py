@@ -1,0 +1,498 @@
+"""An emulated OptiTrack Motive NatNet server on loopback, streaming a simulated `World`.
+
+Device side of the wire, written from the NatNet description in `../shared/protocols.md`
+(never from `drivers/`): it answers connect, keep-alive, server info, model definitions,
+discovery and echo requests on the command port, and streams frames of data at a fixed rate,
+either to the multicast group (default) or to every unicast client that keeps itself alive.
+
+Timing is modelled like Motive's: camera frame k is exposed at a fixed rate; its frame carries
+the mid-exposure, data-received and transmit stamps on the server's own high-resolution clock
+(`clock_hz` ticks/s, with an origin unrelated to the host's), and it is sent `latency_ms`
+(+ uniform jitter) after mid-exposure. The pose in frame k is the world's true pose at that
+mid-exposure instant; `mid_exposure_host_ns(k)` gives the instant on the host clock so tests
+can check a client's timestamps.
+
+Faults to inject: tracking dropouts (tracked flag off), marker noise, truncated and corrupted
+datagrams, and a stalled stream (`stall(seconds)`).
+"""
+
+from __future__ import annotations
+
+import collections
+import select
+import socket
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from firmware_mocks.world import World
+
+__all__ = ["FrameContent", "NatNetServer", "NatNetServerConfig", "encode_frame", "encode_model_definitions"]
+
+# message ids, from the protocol description
+CONNECT, SERVER_INFO, REQUEST, RESPONSE, REQUEST_MODEL_DEF, MODEL_DEF = 0, 1, 2, 3, 4, 5
+FRAME_OF_DATA, DISCONNECT, KEEP_ALIVE, ECHO_REQUEST, ECHO_RESPONSE, DISCOVERY = 7, 9, 10, 12, 13, 14
+UNRECOGNIZED_REQUEST = 100
+
+_SUPPORTED = {(3, 0), (3, 1), (4, 0), (4, 1), (4, 2)}
+
+
+def _version_tuple(version: str | tuple) -> tuple[int, int]:
+    if isinstance(version, str):
+        major, _, minor = version.partition(".")
+        v = (int(major), int(minor or 0))
+    else:
+        v = (int(version[0]), int(version[1]))
+    if v not in _SUPPORTED:
+        raise ValueError(f"mock NatNet server: version {v[0]}.{v[1]} not emulated (3.0, 3.1, 4.0, 4.1, 4.2)")
+    return v
+
+
+def _message(msg_id: int, payload: bytes) -> bytes:
+    return struct.pack("<HH", msg_id, len(payload)) + payload
+
+
+def _cstr(text: str) -> bytes:
+    return text.encode("utf-8") + b"\0"
+
+
+# ----------------------------------------------------------------------------- encoding
+
+
+@dataclass
+class FrameContent:
+    """Everything a frame of data carries, in wire order."""
+
+    frame_number: int
+    marker_sets: list[tuple[str, np.ndarray]] = field(default_factory=list)  # name, (k, 3)
+    unlabeled_markers: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    # (id, (x, y, z), (qx, qy, qz, qw), mean error, params)
+    rigid_bodies: list[tuple] = field(default_factory=list)
+    skeletons: list[tuple[int, list[tuple]]] = field(default_factory=list)
+    assets: list[tuple[int, list[tuple], list[tuple]]] = field(default_factory=list)  # 4.1+
+    # (id, (x, y, z), size, params, residual)
+    labeled_markers: list[tuple] = field(default_factory=list)
+    force_plates: list[tuple[int, list[np.ndarray]]] = field(default_factory=list)
+    devices: list[tuple[int, list[np.ndarray]]] = field(default_factory=list)
+    timecode: int = 0
+    timecode_subframe: int = 0
+    timestamp_s: float = 0.0
+    stamp_mid_exposure: int = 0
+    stamp_data_received: int = 0
+    stamp_transmit: int = 0
+    precision_timestamp: tuple[int, int] = (0, 0)
+    params: int = 0
+
+
+def _rigid_body_record(rb: tuple) -> bytes:
+    rb_id, pos, quat, err, params = rb
+    return struct.pack("<i3f4ffh", rb_id, *pos, *quat, err, params)
+
+
+def _marker_record(m: tuple) -> bytes:
+    m_id, pos, size, params, residual = m
+    return struct.pack("<i3ffhf", m_id, *pos, size, params, residual)
+
+
+def _section(count: int, body: bytes, sized: bool) -> bytes:
+    """count, [byte count if 4.1+], records."""
+    return struct.pack("<i", count) + (struct.pack("<i", len(body)) if sized else b"") + body
+
+
+def _channel_items(items: list[tuple[int, list[np.ndarray]]]) -> bytes:
+    out = bytearray()
+    for item_id, channels in items:
+        out += struct.pack("<ii", item_id, len(channels))
+        for values in channels:
+            v = np.asarray(values, "<f4").reshape(-1)
+            out += struct.pack("<i", len(v)) + v.tobytes()
+    return bytes(out)
+
+
+def encode_frame(content: FrameContent, version: str | tuple) -> bytes:
+    """A complete frame-of-data datagram (header included) for NatNet `version`."""
+    v = _version_tuple(version)
+    sized = v >= (4, 1)
+    c = content
+    out = bytearray(struct.pack("<i", c.frame_number))
+    body = b"".join(
+        _cstr(name) + struct.pack("<i", len(m)) + np.asarray(m, "<f4").reshape(-1, 3).tobytes() for name, m in c.marker_sets
+    )
+    out += _section(len(c.marker_sets), body, sized)
+    unl = np.asarray(c.unlabeled_markers, "<f4").reshape(-1, 3)
+    out += _section(len(unl), unl.tobytes(), sized)
+    out += _section(len(c.rigid_bodies), b"".join(map(_rigid_body_record, c.rigid_bodies)), sized)
+    body = b"".join(
+        struct.pack("<ii", sk_id, len(rbs)) + b"".join(map(_rigid_body_record, rbs)) for sk_id, rbs in c.skeletons
+    )
+    out += _section(len(c.skeletons), body, sized)
+    if sized:
+        body = b"".join(
+            struct.pack("<ii", a_id, len(rbs))
+            + b"".join(map(_rigid_body_record, rbs))
+            + struct.pack("<i", len(mks))
+            + b"".join(map(_marker_record, mks))
+            for a_id, rbs, mks in c.assets
+        )
+        out += _section(len(c.assets), body, sized)
+    out += _section(len(c.labeled_markers), b"".join(map(_marker_record, c.labeled_markers)), sized)
+    out += _section(len(c.force_plates), _channel_items(c.force_plates), sized)
+    out += _section(len(c.devices), _channel_items(c.devices), sized)
+    out += struct.pack(
+        "<IIdQQQ", c.timecode, c.timecode_subframe, c.timestamp_s, c.stamp_mid_exposure, c.stamp_data_received, c.stamp_transmit
+    )
+    if sized:
+        out += struct.pack("<II", *c.precision_timestamp)
+    out += struct.pack("<hi", c.params, 0)  # frame params, end-of-data tag
+    return _message(FRAME_OF_DATA, bytes(out))
+
+
+def encode_model_definitions(world: World, version: str | tuple) -> bytes:
+    """Model definitions datagram: a marker set and a rigid body per world object."""
+    v = _version_tuple(version)
+    datasets: list[tuple[int, bytes]] = []
+    for obj in world.objects.values():
+        names = [f"Marker{i + 1}" for i in range(len(obj.markers))]
+        datasets.append((0, _cstr(obj.name) + struct.pack("<i", len(names)) + b"".join(map(_cstr, names))))
+        rb = _cstr(obj.name) + struct.pack("<ii3f", obj.rigid_body_id, -1, 0.0, 0.0, 0.0)
+        if v >= (4, 2):
+            rb += struct.pack("<4f", 0.0, 0.0, 0.0, 1.0)
+        rb += struct.pack("<i", len(obj.markers)) + np.asarray(obj.markers, "<f4").tobytes()
+        rb += struct.pack(f"<{len(obj.markers)}i", *range(1, len(obj.markers) + 1))
+        if v >= (4, 0):
+            rb += b"".join(map(_cstr, names))
+        datasets.append((1, rb))
+    out = bytearray(struct.pack("<i", len(datasets)))
+    for dtype, body in datasets:
+        out += struct.pack("<i", dtype) + (struct.pack("<i", len(body)) if v >= (4, 1) else b"") + body
+    return _message(MODEL_DEF, bytes(out))
+
+
+# ----------------------------------------------------------------------------- the server
+
+
+@dataclass
+class NatNetServerConfig:
+    version: str = "4.1"
+    rate_hz: float = 360.0
+    latency_ms: float = 4.5  # camera mid-exposure to transmit
+    jitter_ms: float = 0.0  # extra delay, uniform in [0, jitter)
+    software_latency_ms: float = 0.9  # camera data received to transmit (part of latency_ms)
+    unicast: bool = False
+    interface: str = "127.0.0.1"
+    command_port: int = 1510  # 0: pick a free port (see `NatNetServer.command_port`)
+    data_port: int = 1511
+    multicast_group: str = "239.255.42.99"
+    clock_hz: int = 10_000_000
+    server_uptime_s: float = 5000.0  # the server clock's reading when the mock starts
+    dropout_prob: float = 0.0  # per body per frame: tracked flag off
+    marker_noise_m: float = 0.0  # std dev of marker position noise
+    truncate_prob: float = 0.0  # per frame
+    corrupt_prob: float = 0.0  # per frame
+    client_timeout_s: float = 5.0  # unicast clients without a keep-alive for this long are dropped
+    seed: int = 0
+    app_name: str = "Motive"
+
+
+class NatNetServer:
+    """Run with `start()` / `stop()` or as a context manager. One thread serves commands and
+    paces frames; nothing it holds grows without bound."""
+
+    def __init__(self, world: World, config: NatNetServerConfig | None = None):
+        self.world = world
+        self.config = cfg = config or NatNetServerConfig()
+        self.version = _version_tuple(cfg.version)
+        if cfg.rate_hz <= 0:
+            raise ValueError(f"rate_hz must be positive, got {cfg.rate_hz}")
+        if cfg.software_latency_ms > cfg.latency_ms:
+            raise ValueError("software_latency_ms cannot exceed latency_ms")
+        self._rng = np.random.default_rng(cfg.seed)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._clients: dict[tuple[str, int], int] = {}  # unicast address -> last seen (host ns)
+        self._stall_until_ns = 0
+        self._truth: collections.OrderedDict[int, float] = collections.OrderedDict()
+        self.frames_sent = 0
+        self.frames_skipped = 0  # frames never sent (stall or the server fell behind)
+        self.faults: collections.Counter[str] = collections.Counter()
+        self.commands: collections.Counter[int] = collections.Counter()
+        self.bad_commands = 0
+
+        self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._cmd.bind((cfg.interface, cfg.command_port))
+        self.command_port = self._cmd.getsockname()[1]
+        self._mcast: socket.socket | None = None
+        if not cfg.unicast:
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(cfg.interface))
+            s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+            s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
+            self._mcast = s
+        self._zero_ns = time.monotonic_ns() - int(cfg.server_uptime_s * 1e9)
+
+    # -- clock ---------------------------------------------------------------------------------
+
+    def ticks(self, host_ns: int) -> int:
+        """Server clock reading at host monotonic time `host_ns`."""
+        return (host_ns - self._zero_ns) * self.config.clock_hz // 1_000_000_000
+
+    @property
+    def clock_origin_host_ns(self) -> int:
+        """Host monotonic time at which the server clock read 0: host_ns = origin + ticks / clock_hz."""
+        return self._zero_ns
+
+    def ticks_to_host_ns(self, ticks: int) -> float:
+        return self._zero_ns + ticks * 1e9 / self.config.clock_hz
+
+    def mid_exposure_host_ns(self, frame_number: int) -> float | None:
+        """Host time (ns) that frame `frame_number` describes; None if not (or no longer) logged."""
+        with self._lock:
+            return self._truth.get(frame_number)
+
+    # -- control -------------------------------------------------------------------------------
+
+    def start(self) -> "NatNetServer":
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="natnet-mock", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+        self._cmd.close()
+        if self._mcast is not None:
+            self._mcast.close()
+
+    def __enter__(self) -> "NatNetServer":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def stall(self, seconds: float) -> None:
+        """Send no frames for `seconds` (frame numbers keep counting, like a network stall)."""
+        self._stall_until_ns = time.monotonic_ns() + int(seconds * 1e9)
+
+    def resume(self) -> None:
+        """End a stall now."""
+        self._stall_until_ns = 0
+
+    @property
+    def clients(self) -> list[tuple[str, int]]:
+        with self._lock:
+            return list(self._clients)
+
+    # -- loop ----------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        cfg = self.config
+        period_ticks = cfg.clock_hz / cfg.rate_hz
+        period_ns = 1e9 / cfg.rate_hz
+        first_mid = self.ticks(time.monotonic_ns()) + int(period_ticks)
+        latency_ns = int(cfg.latency_ms * 1e6)
+        k = 0
+        pending = None  # frame k, encoded ahead of its send time; only the transmit stamp is left
+        next_send = 0.0
+        while not self._stop.is_set():
+            if pending is None:
+                mid = first_mid + int(round(k * period_ticks))
+                mid_host = self.ticks_to_host_ns(mid)
+                jitter_ns = self._rng.uniform(0, cfg.jitter_ms * 1e6) if cfg.jitter_ms > 0 else 0.0
+                next_send = mid_host + latency_ns + jitter_ns
+                behind = time.monotonic_ns() - next_send
+                if behind > 50e6:  # more than 50 ms behind (host overloaded): skip ahead
+                    skip = int(behind / period_ns)
+                    self.frames_skipped += skip
+                    k += skip
+                    continue
+                pending = (k + 1, mid_host, self._encode_pending(k + 1, mid, mid_host))
+            now = time.monotonic_ns()
+            wait_s = min(0.02, max(0.0, (next_send - now) / 1e9))
+            if select.select([self._cmd], [], [], wait_s)[0]:
+                self._serve_commands()
+            if time.monotonic_ns() < next_send:
+                continue
+            frame_number, mid_host, datagram = pending
+            pending = None
+            k += 1
+            if time.monotonic_ns() < self._stall_until_ns:
+                self.frames_skipped += 1
+                continue
+            self._send_frame(frame_number, mid_host, datagram)
+
+    def _serve_commands(self) -> None:
+        for _ in range(64):  # bounded: never starve the frame pacing
+            try:
+                data, addr = self._cmd.recvfrom(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return
+            self._handle_command(data, addr)
+            r, _, _ = select.select([self._cmd], [], [], 0)
+            if not r:
+                return
+
+    def _handle_command(self, data: bytes, addr: tuple[str, int]) -> None:
+        if len(data) < 4:
+            self.bad_commands += 1
+            return
+        msg_id, size = struct.unpack_from("<HH", data)
+        if size != len(data) - 4:
+            self.bad_commands += 1
+            return
+        self.commands[msg_id] += 1
+        payload = data[4:]
+        now = time.monotonic_ns()
+        if msg_id in (CONNECT, KEEP_ALIVE) and self.config.unicast:
+            with self._lock:
+                self._clients[addr] = now
+        if msg_id in (CONNECT, DISCOVERY):
+            self._reply(addr, _message(SERVER_INFO, self._server_info()))
+        elif msg_id == REQUEST_MODEL_DEF:
+            self._reply(addr, encode_model_definitions(self.world, self.version))
+        elif msg_id == ECHO_REQUEST and len(payload) == 8:
+            (client_time,) = struct.unpack("<Q", payload)
+            self._reply(addr, _message(ECHO_RESPONSE, struct.pack("<QQ", client_time, self.ticks(time.monotonic_ns()))))
+        elif msg_id == DISCONNECT:
+            with self._lock:
+                self._clients.pop(addr, None)
+        elif msg_id == KEEP_ALIVE:
+            pass
+        else:
+            self._reply(addr, _message(UNRECOGNIZED_REQUEST, b""))
+
+    def _reply(self, addr, datagram: bytes) -> None:
+        try:
+            self._cmd.sendto(datagram, addr)
+        except OSError:
+            pass
+
+    def _server_info(self) -> bytes:
+        cfg = self.config
+        app_version = {(3, 0): (2, 1), (3, 1): (2, 2), (4, 0): (3, 0), (4, 1): (3, 1), (4, 2): (3, 2)}[self.version]
+        return (
+            cfg.app_name.encode()[:255].ljust(256, b"\0")
+            + bytes((*app_version, 0, 0))
+            + bytes((*self.version, 0, 0))
+            + struct.pack("<QHB", cfg.clock_hz, cfg.data_port, 0 if cfg.unicast else 1)
+            + socket.inet_aton(cfg.multicast_group)
+        )
+
+    # -- frames --------------------------------------------------------------------------------
+
+    def build_frame(self, frame_number: int, mid_ticks: int, mid_host_ns: float) -> FrameContent:
+        """The frame describing the world at `mid_host_ns` (transmit stamp filled at send time)."""
+        cfg = self.config
+        t = mid_host_ns / 1e9
+        rbs, labeled, marker_sets, all_markers = [], [], [], []
+        for obj in self.world.objects.values():
+            rot, pos = self.world.pose(obj.rigid_body_id, t)
+            ideal = obj.markers @ rot.T + pos
+            noise = self._rng.normal(0.0, cfg.marker_noise_m, ideal.shape) if cfg.marker_noise_m > 0 else 0.0
+            markers = ideal + noise
+            residuals = np.linalg.norm(markers - ideal, axis=1)
+            tracked = not (cfg.dropout_prob > 0 and self._rng.random() < cfg.dropout_prob)
+            if tracked:
+                quat = _matrix_to_quat_xyzw(rot)
+                rbs.append((obj.rigid_body_id, tuple(pos), tuple(quat), float(residuals.mean()), 1))
+                for i, (m, res) in enumerate(zip(markers, residuals)):
+                    labeled.append(((obj.rigid_body_id << 16) | (i + 1), tuple(m), 0.014, 0, float(res)))
+            else:  # Motive reports an untracked body with the tracked bit clear and no pose
+                rbs.append((obj.rigid_body_id, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), 0.0, 0))
+                markers = np.zeros((0, 3))
+            marker_sets.append((obj.name, markers))
+            all_markers.append(markers)
+        marker_sets.append(("all", np.concatenate(all_markers) if all_markers else np.zeros((0, 3))))
+        latency_rx = int((cfg.latency_ms - cfg.software_latency_ms) * 1e-3 * cfg.clock_hz)
+        host_s = mid_host_ns / 1e9
+        return FrameContent(
+            frame_number=frame_number,
+            marker_sets=marker_sets,
+            rigid_bodies=rbs,
+            labeled_markers=labeled,
+            timestamp_s=frame_number / cfg.rate_hz,
+            stamp_mid_exposure=mid_ticks,
+            stamp_data_received=mid_ticks + latency_rx,
+            precision_timestamp=(int(host_s), int((host_s % 1.0) * 2**32)),
+        )
+
+    def _encode_pending(self, frame_number: int, mid_ticks: int, mid_host_ns: float) -> bytearray:
+        return bytearray(encode_frame(self.build_frame(frame_number, mid_ticks, mid_host_ns), self.version))
+
+    def _send_frame(self, frame_number: int, mid_host_ns: float, datagram: bytearray) -> None:
+        with self._lock:
+            self._truth[frame_number] = mid_host_ns
+            while len(self._truth) > 50_000:
+                self._truth.popitem(last=False)
+            if self.config.unicast:
+                cutoff = time.monotonic_ns() - int(self.config.client_timeout_s * 1e9)
+                for addr in [a for a, seen in self._clients.items() if seen < cutoff]:
+                    del self._clients[addr]
+                targets = list(self._clients)
+            else:
+                targets = [(self.config.multicast_group, self.config.data_port)]
+        sock = self._cmd if self.config.unicast else self._mcast
+        # The transmit stamp sits at a fixed distance from the end of the frame:
+        # ... transmit u64, [precision timestamp u32 u32 (4.1+)], params i16, end-of-data i32.
+        tail = 2 + 4 + (8 if self.version >= (4, 1) else 0)
+        struct.pack_into("<Q", datagram, len(datagram) - tail - 8, self.ticks(time.monotonic_ns()))
+        datagram = self._inject_fault(bytes(datagram))
+        for addr in targets:
+            try:
+                sock.sendto(datagram, addr)
+            except OSError:
+                pass
+        self.frames_sent += 1
+
+    def _inject_fault(self, datagram: bytes) -> bytes:
+        cfg = self.config
+        roll = self._rng.random()
+        if roll < cfg.truncate_prob:
+            self.faults["truncated"] += 1
+            cut = int(self._rng.integers(1, len(datagram)))
+            short = bytearray(datagram[:cut])
+            if cut >= 4 and self._rng.random() < 0.5:  # also fix the header: the frame parser must notice
+                struct.pack_into("<H", short, 2, cut - 4)
+            return bytes(short)
+        if roll < cfg.truncate_prob + cfg.corrupt_prob:
+            self.faults["corrupted"] += 1
+            buf = bytearray(datagram)
+            kind = int(self._rng.integers(0, 3))
+            if kind == 0:  # end-of-data tag not zero
+                struct.pack_into("<i", buf, len(buf) - 4, int(self._rng.integers(1, 2**31 - 1)))
+            elif kind == 1:  # trailing junk, header updated to cover it
+                buf += bytes(self._rng.integers(0, 256, 3, dtype=np.uint8))
+                struct.pack_into("<H", buf, 2, len(buf) - 4)
+            else:  # marker-set count far beyond the datagram
+                struct.pack_into("<i", buf, 8, 0x7FFF0000)
+            return bytes(buf)
+        return datagram
+
+
+def _matrix_to_quat_xyzw(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method, w >= 0)."""
+    m = np.asarray(r, float)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q

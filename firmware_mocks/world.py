@@ -1,0 +1,240 @@
+"""A simulated world: rigid bodies on scripted trajectories whose true pose is known at any time.
+
+The emulated trackers sample this world, so a test can compare what a driver reports against
+the truth at the time the driver says the pose describes. Time is in seconds on whatever clock
+the caller uses (the mocks use the host's monotonic clock); each world has an `epoch_s` that
+is subtracted first, so trajectories start at t = 0.
+
+Poses are object→world: rotation (3, 3) and translation (3,) in metres, Y up (Motive's default).
+Every trajectory is vectorised over time: `pose(t)` takes a scalar or an (n,) array.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation, Slerp
+
+__all__ = [
+    "TRAJECTORY_NAMES",
+    "Circular",
+    "Linear",
+    "RecordedPath",
+    "RotateWhileOscillating",
+    "Static",
+    "Trajectory",
+    "World",
+    "WorldObject",
+    "make_trajectory",
+]
+
+_Y = np.array([0.0, 1.0, 0.0])
+
+
+def _times(t: ArrayLike) -> tuple[np.ndarray, bool]:
+    arr = np.asarray(t, dtype=np.float64)
+    return arr.reshape(-1), arr.ndim == 0
+
+
+def _squeeze(rot: np.ndarray, pos: np.ndarray, scalar: bool) -> tuple[np.ndarray, np.ndarray]:
+    return (rot[0], pos[0]) if scalar else (rot, pos)
+
+
+class Trajectory:
+    """Base: `pose(t)` → rotations (n, 3, 3), translations (n, 3) (no leading axis for scalar t)."""
+
+    def pose(self, t: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        ts, scalar = _times(t)
+        rot, pos = self._pose(ts)
+        return _squeeze(rot, pos, scalar)
+
+    def _pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+
+@dataclass
+class Static(Trajectory):
+    translation: ArrayLike = (0.0, 1.0, 0.0)
+    rotation: ArrayLike = field(default_factory=lambda: np.eye(3))
+
+    def _pose(self, t):
+        n = len(t)
+        return np.broadcast_to(np.asarray(self.rotation, float), (n, 3, 3)).copy(), np.tile(
+            np.asarray(self.translation, float), (n, 1)
+        )
+
+
+@dataclass
+class Linear(Trajectory):
+    """Constant velocity, fixed orientation."""
+
+    start: ArrayLike = (-0.5, 1.0, 0.0)
+    velocity: ArrayLike = (0.1, 0.0, 0.0)  # m/s
+
+    def _pose(self, t):
+        pos = np.asarray(self.start, float) + t[:, None] * np.asarray(self.velocity, float)
+        return np.tile(np.eye(3), (len(t), 1, 1)), pos
+
+
+@dataclass
+class Circular(Trajectory):
+    """Horizontal circle about a vertical (Y) axis; the body turns to face along its path."""
+
+    center: ArrayLike = (0.0, 1.0, 0.0)
+    radius: float = 0.3
+    period_s: float = 2.0
+
+    def _pose(self, t):
+        angle = 2 * np.pi * t / self.period_s
+        pos = np.asarray(self.center, float) + self.radius * np.stack(
+            [np.cos(angle), np.zeros_like(angle), -np.sin(angle)], axis=1
+        )
+        return Rotation.from_rotvec(angle[:, None] * _Y).as_matrix(), pos
+
+
+@dataclass
+class RotateWhileOscillating(Trajectory):
+    """The paper's dynamic scene: the object spins about its vertical axis while it moves back
+    and forth (sinusoidally) along a horizontal direction."""
+
+    center: ArrayLike = (0.0, 1.0, 0.0)
+    direction: ArrayLike = (1.0, 0.0, 0.0)
+    amplitude_m: float = 0.15
+    oscillation_hz: float = 0.5
+    spin_rad_s: float = np.pi / 2
+
+    def _pose(self, t):
+        d = np.asarray(self.direction, float)
+        d = d / np.linalg.norm(d)
+        offset = self.amplitude_m * np.sin(2 * np.pi * self.oscillation_hz * t)
+        pos = np.asarray(self.center, float) + offset[:, None] * d
+        return Rotation.from_rotvec((self.spin_rad_s * t)[:, None] * _Y).as_matrix(), pos
+
+
+class RecordedPath(Trajectory):
+    """A recorded path: positions interpolated linearly, rotations by slerp; held at the ends,
+    or repeated when `loop` is set."""
+
+    def __init__(self, times_s: ArrayLike, positions: ArrayLike, quaternions_xyzw: ArrayLike, loop: bool = False):
+        self.times = np.asarray(times_s, dtype=np.float64).reshape(-1)
+        self.positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        quats = np.asarray(quaternions_xyzw, dtype=np.float64).reshape(-1, 4)
+        n = len(self.times)
+        if n < 2 or len(self.positions) != n or len(quats) != n:
+            raise ValueError(
+                f"recorded path: need >= 2 samples with matching lengths, got {n} times, "
+                f"{len(self.positions)} positions, {len(quats)} quaternions"
+            )
+        if np.any(np.diff(self.times) <= 0):
+            raise ValueError("recorded path: times must increase strictly")
+        self.rotations = Rotation.from_quat(quats)
+        self._slerp = Slerp(self.times, self.rotations)
+        self.loop = loop
+
+    @classmethod
+    def from_csv(cls, path: str | Path, loop: bool = False) -> "RecordedPath":
+        """CSV with a header row `t,x,y,z,qx,qy,qz,qw` (seconds, metres, unit quaternion)."""
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        try:
+            a = np.array([[float(r[k]) for k in ("t", "x", "y", "z", "qx", "qy", "qz", "qw")] for r in rows])
+        except (KeyError, ValueError) as exc:
+            raise ValueError(f"{path}: expected columns t,x,y,z,qx,qy,qz,qw with numbers ({exc})") from None
+        return cls(a[:, 0], a[:, 1:4], a[:, 4:8], loop=loop)
+
+    def _pose(self, t):
+        t0, t1 = self.times[0], self.times[-1]
+        tt = t0 + np.mod(t - t0, t1 - t0) if self.loop else np.clip(t, t0, t1)
+        pos = np.stack([np.interp(tt, self.times, self.positions[:, k]) for k in range(3)], axis=1)
+        return self._slerp(tt).as_matrix(), pos
+
+
+def _demo_recording() -> RecordedPath:
+    """A figure-eight 'recording' sampled at 120 Hz, standing in for a captured path."""
+    t = np.arange(0, 4.0 + 1e-9, 1 / 120)
+    pos = np.stack([0.25 * np.sin(2 * np.pi * t / 4), 1.0 + 0.05 * np.sin(4 * np.pi * t / 4), 0.15 * np.sin(4 * np.pi * t / 4)], 1)
+    quats = Rotation.from_euler("yx", np.stack([0.8 * np.sin(2 * np.pi * t / 4), 0.3 * np.cos(2 * np.pi * t / 4)], 1)).as_quat()
+    return RecordedPath(t, pos, quats, loop=True)
+
+
+TRAJECTORY_NAMES = ("static", "linear", "circular", "rotate-oscillate", "recorded")
+
+
+def make_trajectory(name: str) -> Trajectory:
+    """A trajectory by CLI name, with default parameters."""
+    factories = {
+        "static": Static,
+        "linear": Linear,
+        "circular": Circular,
+        "rotate-oscillate": RotateWhileOscillating,
+        "recorded": _demo_recording,
+    }
+    if name not in factories:
+        raise ValueError(f"unknown trajectory {name!r}; choose one of {', '.join(TRAJECTORY_NAMES)}")
+    return factories[name]()
+
+
+def default_markers(seed: int) -> np.ndarray:
+    """(4, 3) asymmetric marker layout in the body frame (metres), distinct per body."""
+    rng = np.random.default_rng(seed)
+    base = np.array([[0.05, 0.0, 0.0], [-0.04, 0.0, 0.03], [0.0, 0.03, -0.05], [-0.02, 0.06, 0.02]])
+    return base + rng.uniform(-0.01, 0.01, base.shape)
+
+
+@dataclass
+class WorldObject:
+    rigid_body_id: int
+    name: str
+    trajectory: Trajectory
+    markers: np.ndarray  # (k, 3) body frame, metres
+
+
+class World:
+    """Rigid bodies on trajectories; `epoch_s` is subtracted from every query time."""
+
+    def __init__(self, objects: list[WorldObject] | None = None, epoch_s: float = 0.0):
+        self.objects: dict[int, WorldObject] = {}
+        self.epoch_s = float(epoch_s)
+        for obj in objects or []:
+            self.objects[obj.rigid_body_id] = obj
+
+    def add(self, rigid_body_id: int, name: str, trajectory: Trajectory, markers: ArrayLike | None = None) -> WorldObject:
+        if rigid_body_id in self.objects:
+            raise ValueError(f"rigid body id {rigid_body_id} is already in the world")
+        m = default_markers(rigid_body_id) if markers is None else np.asarray(markers, float).reshape(-1, 3)
+        obj = WorldObject(int(rigid_body_id), name, trajectory, m)
+        self.objects[obj.rigid_body_id] = obj
+        return obj
+
+    @classmethod
+    def demo(cls, trajectory: str = "rotate-oscillate", epoch_s: float = 0.0, count: int = 1) -> "World":
+        """`count` bodies (ids 1, 2, …) on the named trajectory, spaced 0.5 m apart along Z."""
+        world = cls(epoch_s=epoch_s)
+        for i in range(count):
+            traj = make_trajectory(trajectory)
+            if i:
+                traj = _Shifted(traj, np.array([0.0, 0.0, 0.5 * i]))
+            world.add(i + 1, f"{trajectory}_{i + 1}", traj)
+        return world
+
+    def pose(self, rigid_body_id: int, t_s: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """True (rotation, translation) of one body at time(s) `t_s`."""
+        return self.objects[rigid_body_id].trajectory.pose(np.asarray(t_s, np.float64) - self.epoch_s)
+
+    def markers(self, rigid_body_id: int, t_s: float) -> np.ndarray:
+        """(k, 3) world positions of a body's markers at time `t_s`."""
+        rot, pos = self.pose(rigid_body_id, t_s)
+        return self.objects[rigid_body_id].markers @ rot.T + pos
+
+
+class _Shifted(Trajectory):
+    def __init__(self, inner: Trajectory, shift: np.ndarray):
+        self.inner, self.shift = inner, shift
+
+    def _pose(self, t):
+        rot, pos = self.inner._pose(t)
+        return rot, pos + self.shift

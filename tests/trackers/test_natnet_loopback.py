@@ -1,0 +1,179 @@
+"""NatNet driver ↔ emulated Motive over real loopback sockets (unicast and multicast)."""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from dpmhw.tracking import TrackerState, wait_for
+from drivers.natnet import NatNetClient
+from firmware_mocks.natnet_server import NatNetServer, NatNetServerConfig
+from firmware_mocks.world import World
+
+LATENCY_MS = 4.5
+VERSIONS = ["3.0", "3.1", "4.0", "4.1", "4.2"]
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def natnet_pair(version="4.1", unicast=False, trajectory="rotate-oscillate", bodies=2, client_kw=None, **server_kw):
+    world = World.demo(trajectory, epoch_s=time.monotonic(), count=bodies)
+    cfg = NatNetServerConfig(
+        version=version, unicast=unicast, command_port=0, data_port=free_udp_port(), latency_ms=LATENCY_MS, **server_kw
+    )
+    with NatNetServer(world, cfg) as server:
+        client = NatNetClient(command_port=server.command_port, **(client_kw or {}))
+        try:
+            client.start()
+            yield world, server, client
+        finally:
+            client.stop()
+
+
+def check_against_truth(samples, world, server, pose_tol=2e-6, time_tol_ns=0.5e6):
+    """Every valid sample equals the world's true pose at the frame's true mid-exposure, and its
+    stamp is that mid-exposure on the host clock within `time_tol_ns`."""
+    checked = 0
+    for s in samples:
+        truth_ns = server.mid_exposure_host_ns(s.frame_number)
+        assert truth_ns is not None, f"frame {s.frame_number} was never sent"
+        assert abs(s.t_exposure_ns - truth_ns) < time_tol_ns, (s.frame_number, s.t_exposure_ns - truth_ns)
+        if not s.valid:
+            continue
+        rot, pos = world.pose(s.rigid_body_id, truth_ns / 1e9)
+        np.testing.assert_allclose(s.translation, pos, atol=pose_tol)
+        np.testing.assert_allclose(s.rotation, rot, atol=pose_tol)
+        checked += 1
+    return checked
+
+
+@pytest.mark.parametrize("unicast", [False, True], ids=["multicast", "unicast"])
+@pytest.mark.parametrize("version", VERSIONS)
+def test_round_trip_poses_times_latency_and_offset(version, unicast):
+    with natnet_pair(version, unicast) as (world, server, client):
+        with client.subscribe(maxlen=10_000) as sub:
+            assert wait_for(lambda: client.status().frames >= 150, 20), client.status()
+            samples = sub.drain()
+        status = client.status()
+        assert status.state == TrackerState.STREAMING
+        assert status.malformed == 0 and client.internal_errors == 0
+        assert client.version == tuple(int(x) for x in version.split("."))
+        assert client.rigid_body_names() == {1: "rotate-oscillate_1", 2: "rotate-oscillate_2"}
+        assert {s.rigid_body_id for s in samples} == {1, 2}
+        assert check_against_truth(samples, world, server) == len(samples) >= 2 * 140
+        # clock offset: host = server-clock time + offset; the mock's true offset is its origin
+        assert abs(status.clock_offset_ns - server.clock_origin_host_ns) < 0.5e6
+        # latency: the server never sends before mid-exposure + latency, and usually right then
+        latencies_ms = np.array([s.latency_ns for s in samples]) / 1e6
+        assert latencies_ms.min() == pytest.approx(LATENCY_MS, abs=0.5)
+        assert client.system_latency_s * 1e3 >= LATENCY_MS - 1e-3
+        frames = sorted({s.frame_number for s in samples})
+        assert frames == list(range(frames[0], frames[0] + len(frames))) or status.frames_missed > 0
+
+
+def test_latest_is_newest_per_body_and_callbacks_fire():
+    got = []
+    with natnet_pair("4.1", bodies=3) as (world, server, client):
+        client.add_callback(got.append)
+        assert wait_for(lambda: len(client.latest_all()) == 3 and len(got) >= 60, 10)
+        newest = client.latest(2)
+        assert newest.rigid_body_id == 2 and newest.valid
+        assert client.latest(99) is None
+        later = newest
+        assert wait_for(lambda: client.latest(2).frame_number > newest.frame_number, 5)
+        later = client.latest(2)
+        assert later.t_exposure_ns > newest.t_exposure_ns
+        assert check_against_truth(got[:60], world, server) == 60
+
+
+def settle(client, quiet_s=0.15, timeout_s=5.0):
+    """Wait until the client's counters stop moving (the stream is stalled)."""
+    deadline = time.monotonic() + timeout_s
+    last, since = None, time.monotonic()
+    while time.monotonic() < deadline:
+        now = (client.status().frames, client.status().malformed)
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since > quiet_s:
+            return now
+        time.sleep(0.01)
+    raise AssertionError("client counters never settled")
+
+
+@pytest.mark.parametrize("version", ["3.0", "4.1"])
+def test_injected_faults_are_counted_and_never_published(version):
+    with natnet_pair(version, seed=7) as (world, server, client):
+        assert wait_for(lambda: client.status().frames >= 10, 10)
+        server.stall(60)
+        frames0, malformed0 = settle(client)
+        sent0 = server.frames_sent
+        assert malformed0 == 0
+        with client.subscribe(maxlen=10_000) as sub:
+            server.config.truncate_prob = server.config.corrupt_prob = 0.1
+            server.resume()
+            assert wait_for(lambda: sum(server.faults.values()) >= 30, 20)
+            server.stall(60)
+            frames1, malformed1 = settle(client)
+            samples = sub.drain()
+        sent = server.frames_sent - sent0
+        assert server.faults["truncated"] > 0 and server.faults["corrupted"] > 0
+        assert malformed1 - malformed0 == sum(server.faults.values())
+        assert frames1 - frames0 == sent - sum(server.faults.values())
+        assert client.internal_errors == 0
+        assert check_against_truth(samples, world, server) == len(samples) > 0
+
+
+def test_dropouts_arrive_invalid_with_nan_rotation():
+    with natnet_pair("4.1", bodies=1, dropout_prob=0.3, marker_noise_m=0.001, seed=3) as (world, server, client):
+        with client.subscribe(maxlen=10_000) as sub:
+            assert wait_for(lambda: client.status().frames >= 100, 10)
+            samples = sub.drain()
+    invalid = [s for s in samples if not s.valid]
+    valid = [s for s in samples if s.valid]
+    assert invalid and valid
+    assert all(np.isnan(s.rotation).all() for s in invalid)
+    check_against_truth(samples, world, server)
+    errors = np.array([s.mean_marker_error for s in valid])
+    assert 0.0005 < np.median(errors) < 0.003  # mean |noise| of a 1 mm Gaussian in 3-D ≈ 1.6 mm
+
+
+def test_stalled_stream_goes_stale_then_lost_then_recovers():
+    client_kw = dict(stale_after_s=0.05, lost_after_s=0.3, backoff_initial_s=0.05, backoff_max_s=0.2)
+    with natnet_pair("4.1", unicast=True, client_kw=client_kw) as (world, server, client):
+        assert wait_for(lambda: client.status().state == TrackerState.STREAMING, 10)
+        server.stall(1.0)
+        assert wait_for(lambda: client.status().state == TrackerState.STALE, 5), client.status()
+        assert "no frame" in client.status().reason
+        assert wait_for(lambda: client.status().state == TrackerState.LOST, 5), client.status()
+        assert "no frame of data" in client.status().reason
+        frames_before = client.status().frames
+        assert wait_for(lambda: client.status().frames > frames_before + 20, 10), client.status()
+        status = client.status()
+        assert status.state == TrackerState.STREAMING
+        assert status.reconnects >= 1
+        assert status.frames_missed > 0  # the frames the stall swallowed
+
+
+def test_no_server_is_reported_lost_with_an_actionable_reason():
+    client = NatNetClient(command_port=free_udp_port(), connect_timeout_s=0.2, backoff_initial_s=0.05)
+    with client:
+        assert wait_for(lambda: client.status().state == TrackerState.LOST, 5)
+        assert "no server info from 127.0.0.1" in client.status().reason
+    assert client.status().state == TrackerState.STOPPED
+
+
+def test_explicit_version_mismatch_is_counted_not_published():
+    # the client insists on 4.1 while the server streams 3.0: every frame fails validation
+    with natnet_pair("3.0", unicast=True, client_kw=dict(natnet_version="4.1")) as (world, server, client):
+        assert wait_for(lambda: client.status().malformed >= 20, 10)
+        assert client.status().frames == 0 and client.latest_all() == {}
+        assert "end-of-data" in client.last_decode_error or "bytes" in client.last_decode_error
