@@ -1,0 +1,37 @@
+"""`dpmhw projector …` and `dpmhw devices` against the emulated controller."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from dpmhw.cli import _register, app
+
+
+def _run(*args):
+    _register()
+    return CliRunner().invoke(app, list(args))
+
+
+def test_devices_lists_the_mocked_projector_with_firmware_and_status():
+    result = _run("devices", "--mock")
+    assert result.exit_code == 0, result.output
+    assert "serial=EMU0001" in result.output and "firmware=5.3.0" in result.output
+    assert "dmd=DLP6500" in result.output and "faults=none" in result.output
+
+
+def test_projector_list_json_and_status():
+    result = _run("projector", "list", "--mock", "--json")
+    assert result.exit_code == 0, result.output
+    (row,) = json.loads(result.output)
+    assert row["serial"] == "EMU0001" and row["display_mode"] == "VIDEO" and row["idle"] is False
+    result = _run("projector", "status", "--mock")
+    assert result.exit_code == 0 and json.loads(result.output)["firmware"] == "5.3.0"
+
+
+def test_projector_blank_and_missing_serial():
+    result = _run("projector", "blank", "--mock")
+    assert result.exit_code == 0 and "dark (idle)" in result.output
+    result = _run("projector", "status", "--mock", "--serial", "NOPE")
+    assert result.exit_code == 1 and "NOPE" in result.output
