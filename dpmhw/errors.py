@@ -18,3 +18,12 @@ class SceneError(DpmhwError, ValueError):
 
 class RenderError(DpmhwError, RuntimeError):
     """The renderer met something it cannot handle (a bug or a broken scene)."""
+
+
+class CalibrationError(DpmhwError, ValueError):
+    """A calibration input (capture folder, calibration file) or view set cannot be used."""
+
+    def __init__(self, source: str, field: str, message: str):
+        self.source = source
+        self.field = field
+        super().__init__(f"{source}: {field}: {message}")

@@ -43,13 +43,19 @@ class PinholeCamera:
         other = object.__new__(PinholeCamera)
         other.__dict__.update(self.__dict__)
         other.pose = pose
+        other._rays_key = None
         return other
 
     def generate_rays(self) -> tuple[np.ndarray, np.ndarray]:
-        """Primary rays through every pixel centre: origins (n, 3), directions (n, 3), float32, row-major."""
-        d = self._dirs_cam @ self.pose.R.T.astype(np.float32)
-        o = np.broadcast_to(self.pose.t.astype(np.float32), d.shape)
-        return o, d
+        """Primary rays through every pixel centre: origins (n, 3), directions (n, 3), float32,
+        row-major. Cached per pose: a projector rarely moves between frames."""
+        key = (self.pose.R.tobytes(), self.pose.t.tobytes())
+        if getattr(self, "_rays_key", None) != key:
+            d = self._dirs_cam @ self.pose.R.T.astype(np.float32)
+            o = np.ascontiguousarray(np.broadcast_to(self.pose.t.astype(np.float32), d.shape))
+            o.flags.writeable = d.flags.writeable = False
+            self._rays, self._rays_key = (o, d), key
+        return self._rays
 
     def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """points : (n, 3) world → pixels (n, 2) float64 and in_front (n,) bool (z > 0)."""

@@ -44,8 +44,11 @@ class SceneGeometry:
                 vn.append(corner)
                 offset += len(tri)
             self.tri_offsets[i] = unique[id(mesh)]
-        self.tri_v0, self.tri_e1, self.tri_e2, self.tri_ng = (np.ascontiguousarray(np.concatenate(a), f32) for a in (v0, e1, e2, ng))
-        self.tri_n = np.ascontiguousarray(np.concatenate(vn), f32)
+        count = offset
+        self.tri = np.zeros((count, 24), f32)  # see kernels.shade for the row layout
+        for col, parts in ((0, v0), (3, e1), (6, e2), (9, ng)):
+            self.tri[:, col : col + 3] = np.concatenate(parts)
+        self.tri[:, 12:21] = np.concatenate(vn).reshape(count, 9)
         self.triangle_count = sum(len(o.mesh.faces) for o in objects)
 
         self.obj_albedo = np.array([o.albedo for o in objects], f32)

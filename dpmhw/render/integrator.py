@@ -138,7 +138,7 @@ class PathIntegrator:
             kernels.shade(
                 depth, self.max_bounces, self.mis_last, key, pixel, np.ascontiguousarray(rd, f32),
                 hits.t, hits.obj, hits.prim, hits.u, hits.v, beta, kd, prev_pdf, prev_n,
-                g.tri_v0, g.tri_e1, g.tri_e2, g.tri_ng, g.tri_n,
+                g.tri,
                 R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
                 g.light_prim, g.light_obj, g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd,
                 film["emit"], film["diff"], film["spec"], nonfinite,

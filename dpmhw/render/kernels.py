@@ -96,13 +96,13 @@ def _max_abs3(x, y, z):
 
 
 @nb.njit(inline="always", **_jit)
-def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, alb, spec, alpha, p_spec):
+def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, ar, ag, ab, sr, sg, sb, alpha, p_spec):
     """Diffuse and specular BSDF values (fd0..2, fs0..2) and the lobe-mixture pdf of wi."""
     cos_o = _dot(wo0, wo1, wo2, n0, n1, n2)
     cos_i = _dot(wi0, wi1, wi2, n0, n1, n2)
-    fd0 = alb[0] * (1.0 - spec[0]) * INV_PI
-    fd1 = alb[1] * (1.0 - spec[1]) * INV_PI
-    fd2 = alb[2] * (1.0 - spec[2]) * INV_PI
+    fd0 = ar * (1.0 - sr) * INV_PI
+    fd1 = ag * (1.0 - sg) * INV_PI
+    fd2 = ab * (1.0 - sb) * INV_PI
     fs0 = fs1 = fs2 = 0.0
     pdf = (1.0 - p_spec) * cos_i * INV_PI
     if p_spec > 0.0:
@@ -115,7 +115,7 @@ def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, alb, spec, alpha, p_spe
                 d = _ggx_d(cos_h, a2)
                 g1o = _ggx_g1(cos_o, a2)
                 common = d * g1o * _ggx_g1(cos_i, a2) / (4.0 * cos_o * cos_i)
-                fs0, fs1, fs2 = spec[0] * common, spec[1] * common, spec[2] * common
+                fs0, fs1, fs2 = sr * common, sg * common, sb * common
                 pdf += p_spec * g1o * d / (4.0 * cos_o)
     return fd0, fd1, fd2, fs0, fs1, fs2, pdf
 
@@ -124,7 +124,7 @@ def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, alb, spec, alpha, p_spe
 def shade(
     depth, max_bounces, mis_last, key, pixel, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v,
     beta, kd, prev_pdf, prev_n,
-    tri_v0, tri_e1, tri_e2, tri_ng, tri_n,
+    tri,
     obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
     light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
     film_emit, film_diff, film_spec, nonfinite,
@@ -134,6 +134,8 @@ def shade(
 ):
     """One wavefront step over the active paths (see module doc).
 
+    `tri` : (F, 24) float32 rows of v0, e1 = v1 − v0, e2 = v2 − v0, unit geometric normal and the
+    three corner shading normals, all in model space: one hit touches two cache lines.
     Writes the film at each path's pixel; a shadow ray per path (sh_o, sh_d, sh_tmax, with its
     diffuse and specular contributions in sh_c[:, 0:3] and sh_c[:, 3:6], added if unoccluded);
     and the continuation (nx_o, nx_d, alive, with beta, kd, prev_pdf, prev_n updated in place)."""
@@ -153,10 +155,8 @@ def shade(
             kdr, kdg, kdb = 1.0, 1.0, 1.0
         else:
             kdr, kdg, kdb = kd[k, 0], kd[k, 1], kd[k, 2]
-        tri = 0
+        tri_i = 0
         u = v = 0.0
-        R = obj_R[0]
-        em = obj_emit[0]
         g0 = g1 = g2 = 0.0
         le0 = le1 = le2 = 0.0  # radiance arriving along this ray from a light, MIS-weighted
         if ob < 0:  # escaped: the constant environment
@@ -172,25 +172,23 @@ def shade(
                     w = pb * pb / (pb * pb + pl * pl)
                     le0, le1, le2 = background[0] * w, background[1] * w, background[2] * w
         else:
-            tri = hit_prim[k]
+            tri_i = hit_prim[k]
             u, v = hit_u[k], hit_v[k]
-            R = obj_R[ob]
-            g0 = R[0, 0] * tri_ng[tri, 0] + R[0, 1] * tri_ng[tri, 1] + R[0, 2] * tri_ng[tri, 2]
-            g1 = R[1, 0] * tri_ng[tri, 0] + R[1, 1] * tri_ng[tri, 1] + R[1, 2] * tri_ng[tri, 2]
-            g2 = R[2, 0] * tri_ng[tri, 0] + R[2, 1] * tri_ng[tri, 1] + R[2, 2] * tri_ng[tri, 2]
-            em = obj_emit[ob]
-            if (em[0] > 0.0 or em[1] > 0.0 or em[2] > 0.0) and _dot(g0, g1, g2, d0, d1, d2) < 0.0:
+            g0 = obj_R[ob, 0, 0] * tri[tri_i, 9] + obj_R[ob, 0, 1] * tri[tri_i, 10] + obj_R[ob, 0, 2] * tri[tri_i, 11]
+            g1 = obj_R[ob, 1, 0] * tri[tri_i, 9] + obj_R[ob, 1, 1] * tri[tri_i, 10] + obj_R[ob, 1, 2] * tri[tri_i, 11]
+            g2 = obj_R[ob, 2, 0] * tri[tri_i, 9] + obj_R[ob, 2, 1] * tri[tri_i, 10] + obj_R[ob, 2, 2] * tri[tri_i, 11]
+            if (obj_emit[ob, 0] > 0.0 or obj_emit[ob, 1] > 0.0 or obj_emit[ob, 2] > 0.0) and _dot(g0, g1, g2, d0, d1, d2) < 0.0:
                 if depth == 0:
                     if not use_viewer:
-                        film_emit[pix, 0] += em[0]
-                        film_emit[pix, 1] += em[1]
-                        film_emit[pix, 2] += em[2]
+                        film_emit[pix, 0] += obj_emit[ob, 0]
+                        film_emit[pix, 1] += obj_emit[ob, 1]
+                        film_emit[pix, 2] += obj_emit[ob, 2]
                 else:
                     t = hit_t[k]
                     pl = p_area * obj_pdfA[ob] * t * t / max(-_dot(g0, g1, g2, d0, d1, d2), 1e-12)
                     pb = prev_pdf[k]
                     w = pb * pb / (pb * pb + pl * pl)
-                    le0, le1, le2 = em[0] * w, em[1] * w, em[2] * w
+                    le0, le1, le2 = obj_emit[ob, 0] * w, obj_emit[ob, 1] * w, obj_emit[ob, 2] * w
         if depth > 0 and (le0 > 0.0 or le1 > 0.0 or le2 > 0.0):
             c0, c1, c2 = b0 * le0, b1 * le1, b2 * le2
             if math.isfinite(c0 + c1 + c2):
@@ -206,19 +204,18 @@ def shade(
             continue  # escaped, or the extra ray that only looked for emitters (mis_last)
         # ---- surface interaction: hit point from barycentrics in model space, then to world ----
         w0 = 1.0 - u - v
-        pm0 = tri_v0[tri, 0] + u * tri_e1[tri, 0] + v * tri_e2[tri, 0]
-        pm1 = tri_v0[tri, 1] + u * tri_e1[tri, 1] + v * tri_e2[tri, 1]
-        pm2 = tri_v0[tri, 2] + u * tri_e1[tri, 2] + v * tri_e2[tri, 2]
-        T = obj_t[ob]
-        p0 = R[0, 0] * pm0 + R[0, 1] * pm1 + R[0, 2] * pm2 + T[0]
-        p1 = R[1, 0] * pm0 + R[1, 1] * pm1 + R[1, 2] * pm2 + T[1]
-        p2 = R[2, 0] * pm0 + R[2, 1] * pm1 + R[2, 2] * pm2 + T[2]
-        sm0 = w0 * tri_n[tri, 0, 0] + u * tri_n[tri, 1, 0] + v * tri_n[tri, 2, 0]
-        sm1 = w0 * tri_n[tri, 0, 1] + u * tri_n[tri, 1, 1] + v * tri_n[tri, 2, 1]
-        sm2 = w0 * tri_n[tri, 0, 2] + u * tri_n[tri, 1, 2] + v * tri_n[tri, 2, 2]
-        s0 = R[0, 0] * sm0 + R[0, 1] * sm1 + R[0, 2] * sm2
-        s1 = R[1, 0] * sm0 + R[1, 1] * sm1 + R[1, 2] * sm2
-        s2 = R[2, 0] * sm0 + R[2, 1] * sm1 + R[2, 2] * sm2
+        pm0 = tri[tri_i, 0] + u * tri[tri_i, 3] + v * tri[tri_i, 6]
+        pm1 = tri[tri_i, 1] + u * tri[tri_i, 4] + v * tri[tri_i, 7]
+        pm2 = tri[tri_i, 2] + u * tri[tri_i, 5] + v * tri[tri_i, 8]
+        p0 = obj_R[ob, 0, 0] * pm0 + obj_R[ob, 0, 1] * pm1 + obj_R[ob, 0, 2] * pm2 + obj_t[ob, 0]
+        p1 = obj_R[ob, 1, 0] * pm0 + obj_R[ob, 1, 1] * pm1 + obj_R[ob, 1, 2] * pm2 + obj_t[ob, 1]
+        p2 = obj_R[ob, 2, 0] * pm0 + obj_R[ob, 2, 1] * pm1 + obj_R[ob, 2, 2] * pm2 + obj_t[ob, 2]
+        sm0 = w0 * tri[tri_i, 12] + u * tri[tri_i, 15] + v * tri[tri_i, 18]
+        sm1 = w0 * tri[tri_i, 13] + u * tri[tri_i, 16] + v * tri[tri_i, 19]
+        sm2 = w0 * tri[tri_i, 14] + u * tri[tri_i, 17] + v * tri[tri_i, 20]
+        s0 = obj_R[ob, 0, 0] * sm0 + obj_R[ob, 0, 1] * sm1 + obj_R[ob, 0, 2] * sm2
+        s1 = obj_R[ob, 1, 0] * sm0 + obj_R[ob, 1, 1] * sm1 + obj_R[ob, 1, 2] * sm2
+        s2 = obj_R[ob, 2, 0] * sm0 + obj_R[ob, 2, 1] * sm1 + obj_R[ob, 2, 2] * sm2
         sl = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
         if sl > 1e-12:
             s0, s1, s2 = s0 / sl, s1 / sl, s2 / sl
@@ -235,14 +232,12 @@ def shade(
             g0, g1, g2, s0, s1, s2 = -g0, -g1, -g2, -s0, -s1, -s2
         if _dot(s0, s1, s2, wo0, wo1, wo2) <= 1e-6:
             s0, s1, s2 = g0, g1, g2
-        alb = obj_alb[ob]
-        spec = obj_spec[ob]
         alpha = obj_alpha[ob]
         if depth == 0:
-            if use_viewer and front and (em[0] > 0.0 or em[1] > 0.0 or em[2] > 0.0):
-                film_emit[pix, 0] += em[0]
-                film_emit[pix, 1] += em[1]
-                film_emit[pix, 2] += em[2]
+            if use_viewer and front and (obj_emit[ob, 0] > 0.0 or obj_emit[ob, 1] > 0.0 or obj_emit[ob, 2] > 0.0):
+                film_emit[pix, 0] += obj_emit[ob, 0]
+                film_emit[pix, 1] += obj_emit[ob, 1]
+                film_emit[pix, 2] += obj_emit[ob, 2]
             if write_gbuffer:
                 gb_id[pix] = ob
                 gb_model[pix, 0], gb_model[pix, 1], gb_model[pix, 2] = pm0, pm1, pm2
@@ -250,11 +245,11 @@ def shade(
                 gb_normal[pix, 0], gb_normal[pix, 1], gb_normal[pix, 2] = s0, s1, s2
                 gb_depth[pix] = hit_t[k] * _dot(d0, d1, d2, cam_fwd[0], cam_fwd[1], cam_fwd[2])
                 for c in range(3):
-                    gb_alb[pix, c] = alb[c]
-                    gb_spec[pix, c] = spec[c]
+                    gb_alb[pix, c] = obj_alb[ob, c]
+                    gb_spec[pix, c] = obj_spec[ob, c]
                 gb_rough[pix] = math.sqrt(alpha)
-        wd = _lum(alb[0] * (1.0 - spec[0]), alb[1] * (1.0 - spec[1]), alb[2] * (1.0 - spec[2]))
-        ws = _lum(spec[0], spec[1], spec[2])
+        wd = _lum(obj_alb[ob, 0] * (1.0 - obj_spec[ob, 0]), obj_alb[ob, 1] * (1.0 - obj_spec[ob, 1]), obj_alb[ob, 2] * (1.0 - obj_spec[ob, 2]))
+        ws = _lum(obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2])
         if wd + ws <= 0.0:
             continue  # black surface: nothing is reflected
         p_spec = ws / (wd + ws)
@@ -291,29 +286,26 @@ def shade(
             lob = light_obj[lo]
             su = math.sqrt(u1)
             bb1, bb2 = u2 * su, 1.0 - su
-            lm0 = tri_v0[lt, 0] + bb1 * tri_e1[lt, 0] + bb2 * tri_e2[lt, 0]
-            lm1 = tri_v0[lt, 1] + bb1 * tri_e1[lt, 1] + bb2 * tri_e2[lt, 1]
-            lm2 = tri_v0[lt, 2] + bb1 * tri_e1[lt, 2] + bb2 * tri_e2[lt, 2]
-            LR = obj_R[lob]
-            LT = obj_t[lob]
-            q0 = LR[0, 0] * lm0 + LR[0, 1] * lm1 + LR[0, 2] * lm2 + LT[0] - o0
-            q1 = LR[1, 0] * lm0 + LR[1, 1] * lm1 + LR[1, 2] * lm2 + LT[1] - o1
-            q2 = LR[2, 0] * lm0 + LR[2, 1] * lm1 + LR[2, 2] * lm2 + LT[2] - o2
+            lm0 = tri[lt, 0] + bb1 * tri[lt, 3] + bb2 * tri[lt, 6]
+            lm1 = tri[lt, 1] + bb1 * tri[lt, 4] + bb2 * tri[lt, 7]
+            lm2 = tri[lt, 2] + bb1 * tri[lt, 5] + bb2 * tri[lt, 8]
+            q0 = obj_R[lob, 0, 0] * lm0 + obj_R[lob, 0, 1] * lm1 + obj_R[lob, 0, 2] * lm2 + obj_t[lob, 0] - o0
+            q1 = obj_R[lob, 1, 0] * lm0 + obj_R[lob, 1, 1] * lm1 + obj_R[lob, 1, 2] * lm2 + obj_t[lob, 1] - o1
+            q2 = obj_R[lob, 2, 0] * lm0 + obj_R[lob, 2, 1] * lm1 + obj_R[lob, 2, 2] * lm2 + obj_t[lob, 2] - o2
             dist = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
             if dist > 1e-20:
                 wi0, wi1, wi2 = q0 / dist, q1 / dist, q2 / dist
-                ln0 = LR[0, 0] * tri_ng[lt, 0] + LR[0, 1] * tri_ng[lt, 1] + LR[0, 2] * tri_ng[lt, 2]
-                ln1 = LR[1, 0] * tri_ng[lt, 0] + LR[1, 1] * tri_ng[lt, 1] + LR[1, 2] * tri_ng[lt, 2]
-                ln2 = LR[2, 0] * tri_ng[lt, 0] + LR[2, 1] * tri_ng[lt, 1] + LR[2, 2] * tri_ng[lt, 2]
+                ln0 = obj_R[lob, 0, 0] * tri[lt, 9] + obj_R[lob, 0, 1] * tri[lt, 10] + obj_R[lob, 0, 2] * tri[lt, 11]
+                ln1 = obj_R[lob, 1, 0] * tri[lt, 9] + obj_R[lob, 1, 1] * tri[lt, 10] + obj_R[lob, 1, 2] * tri[lt, 11]
+                ln2 = obj_R[lob, 2, 0] * tri[lt, 9] + obj_R[lob, 2, 1] * tri[lt, 10] + obj_R[lob, 2, 2] * tri[lt, 11]
                 cos_l = -_dot(ln0, ln1, ln2, wi0, wi1, wi2)
                 if cos_l > 0.0:
                     pdf_l = p_area * obj_pdfA[lob] * dist * dist / cos_l
-                    le = obj_emit[lob]
-                    li0, li1, li2 = le[0], le[1], le[2]
+                    li0, li1, li2 = obj_emit[lob, 0], obj_emit[lob, 1], obj_emit[lob, 2]
                     tmax = dist * (1.0 - SHADOW_SHORTEN)
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if pdf_l > 0.0 and cos_i > 0.0 and _dot(wi0, wi1, wi2, g0, g1, g2) > 0.0:
-            fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, alb, spec, alpha, p_spec)
+            fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec)
             w = 1.0
             if continues or mis_last:
                 w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
@@ -383,7 +375,7 @@ def shade(
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if cos_i <= 0.0 or _dot(wi0, wi1, wi2, g0, g1, g2) <= 0.0:
             continue
-        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, alb, spec, alpha, p_spec)
+        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec)
         if not pdf_b > 0.0:
             continue
         f0, f1, f2 = fd0 + fs0, fd1 + fs1, fd2 + fs2

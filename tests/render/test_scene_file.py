@@ -1,0 +1,108 @@
+"""Scene files: what users write by hand must fail with the file and the field named."""
+
+import math
+import textwrap
+
+import numpy as np
+import pytest
+
+from dpmhw.errors import SceneError
+from dpmhw.scene_file import BUILTIN_SCENES, load_scene
+
+GOOD = """
+[render]
+width = 16
+height = 12
+
+[camera]
+fx = 10.0
+fy = 10.0
+cx = 8.0
+cy = 3.0
+position = [0.0, 0.0, 2.0]
+look_at = [0.0, 0.0, 0.0]
+
+[[objects]]
+name = "light"
+shape = "quad"
+size = [1.0, 1.0]
+emission = [1.0, 1.0, 1.0]
+"""
+
+
+def write(tmp_path, text):
+    path = tmp_path / "scene.toml"
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def test_good_scene_loads_with_defaults(tmp_path):
+    scene = load_scene(write(tmp_path, GOOD))
+    assert scene.render.max_bounces == 1
+    assert scene.render.fps == 947.0
+    np.testing.assert_array_equal(scene.viewer_position, [0, 0, 2])
+    assert scene.camera.K[1, 2] == 3.0  # the principal point is whatever the file says
+
+
+@pytest.mark.parametrize(
+    "edit, field, words",
+    [
+        (lambda s: s.replace("width = 16\n", ""), "render.width", "missing"),
+        (lambda s: s.replace("width = 16", 'width = "16"'), "render.width", "integer"),
+        (lambda s: s.replace('shape = "quad"', 'shape = "torus"'), "objects[0].shape", "quad, box, sphere, mesh"),
+        (lambda s: s.replace('shape = "quad"', 'shape = "mesh"\nmesh = "nowhere.obj"'), "objects[0].mesh", "not found"),
+        (lambda s: s + "albedo = [-0.1, 0.5, 0.5]\n", "objects[0].albedo", "[0.0, 1.0]"),
+        (lambda s: s.replace("emission = [1.0, 1.0, 1.0]", "emission = [nan, 1.0, 1.0]"), "objects[0].emission", "finite"),
+        (lambda s: s.replace("fx = 10.0", "fx = -10.0"), "camera.fx", "(0"),
+        (lambda s: s + "albdo = 0.5\n", "objects[0].albdo", "unknown field"),
+        (lambda s: s.replace("look_at = [0.0, 0.0, 0.0]", "look_at = [0.0, 0.0, 2.0]"), "camera.look_at", "undefined"),
+        (lambda s: s.replace("emission = [1.0, 1.0, 1.0]", ""), "objects", "no light"),
+        (lambda s: s + "rotation = [0.0, 0.0, 0.0, 0.0]\n", "objects[0].rotation", "zero length"),
+        (lambda s: s + "motion = { oscillate_period_s = 0.0 }\n", "objects[0].motion.oscillate_period_s", "(0.0"),
+        (lambda s: s.replace("[render]", "[render\n"), "(syntax)", "TOML"),
+    ],
+    ids=["missing", "wrong-type", "unknown-shape", "missing-mesh", "negative-albedo", "emission-nan", "bad-fx",
+         "typo", "degenerate-view", "no-light", "zero-quaternion", "zero-period", "syntax"],
+)
+def test_bad_scene_names_file_and_field(tmp_path, edit, field, words):
+    path = write(tmp_path, edit(textwrap.dedent(GOOD)))
+    with pytest.raises(SceneError) as info:
+        load_scene(path)
+    message = str(info.value)
+    assert str(path) in message
+    assert info.value.field == field
+    assert words in message
+
+
+def test_missing_scene_file_lists_builtins(tmp_path):
+    with pytest.raises(SceneError, match="paper-static"):
+        load_scene(tmp_path / "nope.toml")
+
+
+def test_builtin_scenes_load_and_use_the_real_bunny_when_present(monkeypatch):
+    for name in BUILTIN_SCENES:
+        scene = load_scene(name)
+        assert scene.render.width == 1024 and scene.render.height == 768
+        bunnies = [o for o in scene.objects if o.shape == "mesh"]
+        assert bunnies and all(len(o.mesh.faces) > 60_000 for o in bunnies)
+    assert load_scene("paper-dynamic").objects[3].is_dynamic
+    assert load_scene("dpm-bunny").objects[0].rigid_body == 1
+
+
+def test_builtin_scene_falls_back_to_procedural_bunny(monkeypatch, caplog):
+    import dpmhw.scene_file as sf
+
+    monkeypatch.setattr(sf, "find_bunny", lambda: None)
+    scene = load_scene("dpm-bunny")
+    assert any("procedural bunny" in note for note in scene.notes)
+    mesh = scene.objects[0].mesh
+    assert 50_000 < len(mesh.faces) < 100_000
+    extent = mesh.vertices.max(0) - mesh.vertices.min(0)
+    assert 0.15 < extent.max() < 0.35  # bunny-sized after the scene's scale of 1.3
+
+
+def test_quaternion_and_euler_agree(tmp_path):
+    a = load_scene(write(tmp_path, GOOD + "rotation = [0.0, 90.0, 0.0]\n"))
+    b = load_scene(write(tmp_path, GOOD + f"rotation = [0.0, {math.sin(math.pi / 4)}, 0.0, {math.cos(math.pi / 4)}]\n"))
+    np.testing.assert_allclose(a.objects[0].pose.R, b.objects[0].pose.R, atol=1e-12)
+    np.testing.assert_allclose(a.objects[0].pose.R @ [1, 0, 0], [0, 0, -1], atol=1e-12)
