@@ -95,6 +95,19 @@ def test_gray_codes_full_size_round_trip(width, height, clock, gray):
         assert emu.model.dark  # leaving the block blanked the projector
 
 
+def test_pattern_groups_get_their_own_images(clock, gray):
+    """Column and row codes packed apart: two small images instead of one incompressible one."""
+    with usb_emulation(clock=clock) as emu:
+        with DLPC900.open(sleep=clock.sleep) as dlp:
+            cols, rows = gray(1920, 1080), gray(1920, 1080, vertical=False)
+            images = dlp.upload_patterns([cols, rows], exposure_us=5000)
+            assert len(images) == 2 and all(i.compression == 2 and i.payload_size < 20_000 for i in images)
+            both = np.concatenate([cols, rows])
+            for k in range(len(both)):
+                assert np.array_equal(emu.model.dmd_pattern(k).astype(bool), both[k]), k
+            assert (emu.model.lut[11].image_index, emu.model.lut[11].bit_position) == (1, 0)
+
+
 def test_random_patterns_full_hd_round_trip(clock):
     rng = np.random.default_rng(7)
     pats = rng.random((24, 1080, 1920)) < 0.5
@@ -167,8 +180,9 @@ def test_idle_park_standby_wake(dlp, emu):
     dlp.set_idle(False)
     assert not emu.model.idle
     dlp.park()
-    assert emu.model.parked and dlp.main_status().dmd_parked
+    assert emu.model.parked and dlp.main_status().dmd_parked and emu.model.dark
     dlp.unpark()
+    assert not emu.model.parked and not dlp.main_status().dmd_parked
     dlp.standby()
     assert emu.model.standby and dlp.in_standby()
     with pytest.raises(DLPC900DeviceError) as err:
