@@ -852,7 +852,16 @@ class DLPC900:
 
     # ---- summary ---------------------------------------------------------------------------
     def status(self) -> dict:
-        """Everything an operator checks first, as plain data (for the CLI and the server)."""
+        """Everything an operator checks first, as plain data (for the CLI and the server).
+
+        In standby the controller answers only status reads, so the rest is reported as None.
+        """
+        if self.in_standby():
+            hs, main = self.hardware_status(), self.main_status()
+            return {"serial": self.serial, "firmware": None, "api": None, "dmd": None, "tag": None,
+                    "display_mode": None, "standby": True, "idle": None,
+                    "sequencer_running": main.sequencer_running, "parked": main.dmd_parked,
+                    "hardware_faults": hs.faults, "memory_test_passed": self.system_status().memory_test_passed}
         fw = self.firmware_version()
         hw = self.hardware_config()
         hs = self.hardware_status()

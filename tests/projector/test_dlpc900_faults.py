@@ -183,3 +183,39 @@ def test_image_upload_error_is_read_back(dlp, emu):
     with pytest.raises(DLPC900DeviceError) as err:
         dlp.upload_patterns(np.ones((1, 4, 8), bool), exposure_us=200)
     assert err.value.code == 6 and "8x4" in err.value.description
+
+
+def test_long_error_description_spans_reports(dlp, emu):
+    text = "sequencer LUT entry 3 names an image that was never loaded: " * 2  # 122 chars
+    emu.fail_commands(7, opcode=0x1A24, description=text)
+    with pytest.raises(DLPC900DeviceError) as err:
+        dlp.start()
+    assert err.value.description == text[:127]
+    replies = [r for r in emu.raw_in if r[0] == 0xC0 and r[2] == len(text[:127]) + 1]
+    assert replies  # the 0x0101 reply announced all its bytes in the first report
+
+
+def test_reply_claiming_more_data_than_sent_times_out(dlp, emu):
+    emu.fail_commands(6, opcode=0x0B01, description="x" * 57)  # 58 bytes: exactly one report
+    emu.corrupt_replies("length", opcode=0x0101)  # claims 61: the driver waits for a 2nd report
+    with pytest.raises(DLPC900Timeout):
+        dlp.set_led_current(1, 2, 3)
+
+
+def test_permission_denied_points_to_the_udev_rule(emu, monkeypatch):
+    import usb.core
+
+    def denied(dev):
+        raise usb.core.USBError("Access denied (insufficient permissions)", -3, errno.EACCES)
+
+    monkeypatch.setattr(emu.backend, "open_device", denied)
+    with pytest.raises(DLPC900USBError, match="99-dlpc900.rules") as err:
+        DLPC900.open()
+    assert err.value.errno == errno.EACCES
+
+
+def test_status_in_standby_reads_only_what_is_allowed(dlp, emu):
+    dlp.standby()
+    st = dlp.status()
+    assert st["standby"] is True and st["firmware"] is None and st["hardware_faults"] == []
+    assert all(c.error == 0 for c in emu.model.command_log[-4:])
