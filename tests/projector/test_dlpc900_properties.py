@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import struct
 from array import array
 
 import numpy as np
-import pytest
 import usb.core
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.dlpc900_images import encode_image, erle_encode, image_header, pack_patterns
+from drivers.dlpc900_images import encode_image, image_header, pack_patterns
 from drivers.dlpc900_wire import request_reports
 from firmware_mocks.dlpc900_model import ERROR_NAMES, ImageDecodeError, decode_pattern_image
 from firmware_mocks.dlpc900_usb import DLPC900Backend, EmulatedDLPC900
