@@ -107,3 +107,25 @@ def test_raw_garbage_reports_never_crash_the_backend(report):
     assert n == 64
     if buf[0] & 0x20:
         assert dev.model.error_code != 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(text=st.text(alphabet=st.characters(min_codepoint=32, max_codepoint=126), max_size=127),
+       code=st.sampled_from([2, 3, 5, 6, 7, 14, 16, 255]))
+def test_error_replies_of_any_length_reach_the_driver_intact(text, code):
+    """Reply framing, device -> host: 0x0101 answers of 1..128 bytes span one to three reports."""
+    from drivers.dlpc900 import DLPC900, DLPC900DeviceError
+    from firmware_mocks.dlpc900_usb import usb_emulation
+
+    with usb_emulation() as emu:
+        dlp = DLPC900.open(settle_s=0)
+        emu.fail_commands(code, opcode=0x0B01, description=text)
+        try:
+            dlp.set_led_current(1, 2, 3)
+        except DLPC900DeviceError as exc:
+            assert exc.code == code and exc.command == 0x0B01
+            assert exc.description == (text or exc.description)
+        else:
+            raise AssertionError("the injected error was not raised")
+        assert dlp.led_current() == (0x97, 0x78, 0x7D)  # and the link is still in step
+        dlp.close()
