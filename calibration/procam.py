@@ -287,15 +287,9 @@ def calibrate_lens(
     while True:
         if len(names) < options.min_views:
             _check_views(who, names, obj, img, size, options)
-        if release:
-            fixed = int(obj[0].shape[0] and _fixed_point_index(obj[0]))
-            out = cv2.calibrateCameraROExtended(_f32(obj, 3), _f32(img, 2), size, fixed, None, None, flags=flags, criteria=crit)
-            rms, K, dist, rvecs, tvecs, new_obj, std_i, _, _, pve = out
-            new_obj = np.asarray(new_obj, dtype=np.float64).reshape(-1, 3)
-        else:
-            rms, K, dist, rvecs, tvecs, std_i, _, pve = cv2.calibrateCameraExtended(
-                _f32(obj, 3), _f32(img, 2), size, None, None, flags=flags, criteria=crit
-            )
+        rms, K, dist, rvecs, tvecs, std_i, _, pve = cv2.calibrateCameraExtended(
+            _f32(obj, 3), _f32(img, 2), size, None, None, flags=flags, criteria=crit
+        )
         errs = np.asarray(pve, dtype=np.float64).ravel()
         med = float(np.median(errs))
         thr = max(options.outlier_factor * med, med + options.outlier_floor_px)
@@ -354,8 +348,10 @@ def calibrate_lens(
 
 
 def _fixed_point_index(obj: np.ndarray) -> int:
-    """calibrateCameraRO's second fixed point: the object point farthest from point 0."""
-    return int(np.argmax(np.linalg.norm(obj - obj[0], axis=1)))
+    """calibrateCameraRO's second fixed point (it must be in 1 .. n-2; OpenCV recommends the
+    board's top-right corner): the point farthest from both the first and the last point."""
+    d = np.linalg.norm(obj - obj[0], axis=1) + np.linalg.norm(obj - obj[-1], axis=1)
+    return int(1 + np.argmax(d[1:-1]))
 
 
 def _plane_deviation(pts: np.ndarray) -> float:
