@@ -82,7 +82,8 @@ class Linear(Trajectory):
 
 @dataclass
 class Circular(Trajectory):
-    """Horizontal circle about a vertical (Y) axis; the body turns to face along its path."""
+    """Horizontal circle about a vertical (Y) axis, counter-clockwise seen from above; the body
+    turns with it so that its -Z axis points along the path."""
 
     center: ArrayLike = (0.0, 1.0, 0.0)
     radius: float = 0.3

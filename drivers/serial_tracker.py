@@ -1,0 +1,178 @@
+"""Polhemus Liberty / Patriot class trackers over pyserial (RS-232, USB-serial or a pty).
+
+Init sequence: Ctrl-Y reset, flush, `F1` binary output, `U1` centimetres (or `U0` inches),
+`O*,2,7,8,0` (position, quaternion, timestamp, space), Ctrl-V who-am-I (confirms the model from
+the record preamble), then `C` continuous mode. Records are decoded by
+`drivers.polhemus_protocol.RecordParser`, which resynchronises on the preamble after garbage.
+
+Timing: records carry a millisecond timestamp on the device clock but the protocol offers no
+echo, so the device→host offset is the running minimum of arrival minus device time, and the
+device's known output latency (measurement to first byte, `device_latency_s`) is subtracted:
+without it every pose would be stamped late by that latency.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import serial
+
+from dpmhw.tracking import PoseSample, TrackerState, quaternions_xyzw_to_matrices
+from drivers.polhemus_protocol import PoseRecord, PolhemusDecodeError, RecordParser, TextRecord
+from drivers.tracker_base import LinkLost, ReceiverTracker
+
+__all__ = ["PolhemusTracker"]
+
+_UNITS = {"cm": (b"U1\r", 0.01), "inch": (b"U0\r", 0.0254)}
+
+
+class PolhemusTracker(ReceiverTracker):
+    """Poses from a Polhemus-style serial tracker; stations are reported as rigid-body ids.
+
+    port : a device path ("/dev/ttyUSB0", a pty path) or a pyserial URL ("loop://").
+    device_latency_s : measurement-to-output latency of the device (Liberty ≈ 3.5 ms).
+    """
+
+    kind = "polhemus"
+
+    def __init__(
+        self,
+        port: str,
+        *,
+        baudrate: int = 115200,
+        units: str = "cm",
+        device_latency_s: float = 0.0035,
+        reset_wait_s: float = 0.1,
+        init_timeout_s: float = 1.0,
+        stale_after_s: float = 0.1,
+        lost_after_s: float = 1.0,
+        backoff_initial_s: float = 0.1,
+        backoff_max_s: float = 2.0,
+    ):
+        super().__init__(
+            stale_after_s=stale_after_s, lost_after_s=lost_after_s,
+            backoff_initial_s=backoff_initial_s, backoff_max_s=backoff_max_s,
+        )
+        if units not in _UNITS:
+            raise ValueError(f"units must be one of {', '.join(_UNITS)}, got {units!r}")
+        self.port = port
+        self.baudrate = baudrate
+        self.units = units
+        self.device_latency_ns = int(device_latency_s * 1e9)
+        self.reset_wait_s = reset_wait_s
+        self.init_timeout_s = init_timeout_s
+        self.model: str | None = None
+        self.who_am_i = ""
+        self._serial: serial.Serial | None = None
+        self._parser = RecordParser()
+
+    @property
+    def garbage_bytes(self) -> int:
+        return self._parser.garbage_bytes
+
+    def _details(self) -> dict:
+        return {**super()._details(), "model": self.model, "garbage_bytes": self.garbage_bytes}
+
+    # -- records -------------------------------------------------------------------------------
+
+    def process_bytes(self, data: bytes, arrival_ns: int | None = None) -> list[PoseSample]:
+        """Feed bytes read from the port; returns the samples published. Never raises."""
+        arrival_ns = time.monotonic_ns() if arrival_ns is None else arrival_ns
+        published: list[PoseSample] = []
+        try:
+            items = self._parser.feed(data)
+        except Exception as exc:  # pragma: no cover - a parser bug must not kill the receiver
+            self._count_internal_error(exc)
+            return published
+        for item in items:
+            if isinstance(item, PolhemusDecodeError):
+                self._count_malformed(item)
+            elif isinstance(item, TextRecord):
+                self.model, self.who_am_i = item.model, item.text.strip()
+            elif isinstance(item, PoseRecord):
+                sample = self._sample(item, arrival_ns)
+                self._publish_frame([sample], arrival_ns)
+                published.append(sample)
+        return published
+
+    def _sample(self, rec: PoseRecord, arrival_ns: int) -> PoseSample:
+        device_ns = rec.timestamp_ms * 1_000_000
+        self.clock.add_one_way(device_ns, arrival_ns)
+        w, x, y, z = rec.quaternion_wxyz
+        rotation, usable = quaternions_xyzw_to_matrices(np.array([[x, y, z, w]]))
+        scale = _UNITS[self.units][1]
+        return PoseSample(
+            rigid_body_id=rec.station,
+            rotation=rotation[0],
+            translation=rec.position.astype(np.float64) * scale,
+            t_exposure_ns=self.clock.to_host_ns(device_ns) - self.device_latency_ns,
+            t_arrival_ns=arrival_ns,
+            valid=bool(usable[0]) and rec.error == 0,
+            mean_marker_error=0.0,
+            frame_number=rec.timestamp_ms,
+        )
+
+    # -- the session ---------------------------------------------------------------------------
+
+    def _write(self, command: bytes) -> None:
+        self._serial.write(command)
+        self._serial.flush()
+
+    def _close_transport(self) -> None:
+        if self._serial is not None:
+            try:
+                if self._serial.is_open:
+                    self._serial.write(b"P\r")  # leave continuous mode
+            except (serial.SerialException, OSError):
+                pass
+            self._serial.close()
+            self._serial = None
+
+    def _read_available(self) -> bytes:
+        n = max(1, min(self._serial.in_waiting, 4096))
+        return self._serial.read(n)
+
+    def _session(self) -> None:
+        try:
+            self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.02)
+        except (serial.SerialException, OSError) as exc:
+            raise LinkLost(f"cannot open serial port {self.port}: {exc}") from None
+        try:
+            self._initialise()
+            self._stream()
+        except serial.SerialException as exc:
+            raise LinkLost(f"serial port {self.port}: {exc}") from None
+
+    def _initialise(self) -> None:
+        self._write(b"\x19\r")  # Ctrl-Y: reinitialise (stops continuous output)
+        self._stop.wait(self.reset_wait_s)
+        self._serial.reset_input_buffer()
+        self._parser = RecordParser()
+        self._write(b"F1\r")
+        self._write(_UNITS[self.units][0])
+        self._write(b"O*,2,7,8,0\r")
+        self.model = None
+        self._write(b"\x16\r")  # Ctrl-V: who am I
+        deadline = time.monotonic() + self.init_timeout_s
+        while self.model is None:
+            if self._stop.is_set():
+                return
+            if time.monotonic() > deadline:
+                raise LinkLost(
+                    f"no who-am-I reply on {self.port} within {self.init_timeout_s} s "
+                    "(tracker powered, right port and baud rate?)"
+                )
+            self.process_bytes(self._read_available())
+        self._set_state(TrackerState.CONNECTED, f"Polhemus {self.model} on {self.port}")
+        self._write(b"C\r")
+
+    def _stream(self) -> None:
+        started_ns = time.monotonic_ns()
+        frames_at_start = self.frames
+        while not self._stop.is_set():
+            data = self._read_available()
+            if data:
+                self.process_bytes(data, time.monotonic_ns())
+            since = self._last_arrival_ns if self.frames > frames_at_start else started_ns
+            self._check_alive(since, "record")

@@ -1,0 +1,59 @@
+"""`dpmhw mock natnet` / `dpmhw mock serial`: the standalone emulators behind the CLI."""
+
+from __future__ import annotations
+
+import socket
+import threading
+
+from typer.testing import CliRunner
+
+from dpmhw.cli import _register, app
+from dpmhw.tracking import wait_for
+from drivers.natnet import NatNetClient
+
+_register()
+runner = CliRunner()
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_natnet_help_lists_the_documented_options():
+    result = runner.invoke(app, ["mock", "natnet", "--help"])
+    assert result.exit_code == 0
+    for option in ("--rate", "--version", "--unicast", "--interface", "--latency-ms", "--trajectory"):
+        assert option in result.output
+
+
+def test_natnet_rejects_an_unsupported_version():
+    result = runner.invoke(app, ["mock", "natnet", "--version", "2.9", "--command-port", "0", "--duration", "0"])
+    assert result.exit_code == 2
+    assert "2.9 not emulated" in result.output
+
+
+def test_natnet_command_serves_a_real_client():
+    port = free_udp_port()
+    args = ["mock", "natnet", "--unicast", "--version", "4.2", "--rate", "200", "--command-port", str(port),
+            "--trajectory", "circular", "--bodies", "2", "--duration", "3", "--status-every", "0"]
+    results = []
+    thread = threading.Thread(target=lambda: results.append(runner.invoke(app, args)))
+    thread.start()
+    try:
+        client = NatNetClient(command_port=port, connect_timeout_s=0.5, backoff_initial_s=0.05)
+        with client:
+            assert wait_for(lambda: client.status().frames >= 20, 10), client.status()
+            assert client.version == (4, 2)
+            assert client.rigid_body_names() == {1: "circular_1", 2: "circular_2"}
+    finally:
+        thread.join(timeout=10)
+    assert results and results[0].exit_code == 0, results and results[0].output
+    assert "NatNet 4.2 mock on 127.0.0.1" in results[0].output and "stopped after" in results[0].output
+
+
+def test_serial_command_prints_its_port():
+    result = runner.invoke(app, ["mock", "serial", "--model", "PA", "--duration", "0.2"])
+    assert result.exit_code == 0
+    assert "PA serial tracker on /dev/pts/" in result.output

@@ -1,0 +1,190 @@
+"""Polhemus-style serial tracker: record parser properties, and driver ↔ emulator over a real pty."""
+
+from __future__ import annotations
+
+import os
+import struct
+import time
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from dpmhw.tracking import Tracker, TrackerState, wait_for
+from drivers.polhemus_protocol import (
+    POSE_RECORD_BYTES,
+    PolhemusDecodeError,
+    PoseRecord,
+    RecordParser,
+    decode_record,
+)
+from drivers.serial_tracker import PolhemusTracker
+from firmware_mocks.serial_tracker import PolhemusEmulator
+from firmware_mocks.world import World
+
+
+def record_bytes(station=1, pos=(1.0, 2.0, 3.0), quat_wxyz=(1.0, 0.0, 0.0, 0.0), ms=1234, model=b"LY", cmd=b"C", error=0):
+    """A 41-byte binary record, packed by hand from the documented layout."""
+    return (
+        model + bytes([station]) + cmd + bytes([error, 0]) + (33).to_bytes(2, "little")
+        + struct.pack("<3f", *pos) + struct.pack("<4f", *quat_wxyz) + ms.to_bytes(4, "little") + b" "
+    )
+
+
+def test_known_record_decodes_field_by_field():
+    rec = decode_record(record_bytes(station=3, pos=(10.0, -2.5, 0.25), quat_wxyz=(0.0, 0.0, 1.0, 0.0), ms=987654))
+    assert isinstance(rec, PoseRecord) and len(record_bytes()) == POSE_RECORD_BYTES == 41
+    assert (rec.model, rec.station, rec.command, rec.error, rec.timestamp_ms) == ("Liberty", 3, ord("C"), 0, 987654)
+    assert rec.position.tolist() == [10.0, -2.5, 0.25] and rec.quaternion_wxyz.tolist() == [0.0, 0.0, 1.0, 0.0]
+    assert decode_record(record_bytes(model=b"PA")).model == "Patriot"
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (record_bytes()[:-1] + b"X", "space item"),
+        (record_bytes(quat_wxyz=(0.5, 0.0, 0.0, 0.0)), "norm"),
+        (record_bytes(pos=(float("nan"), 0, 0)), "non-finite"),
+        (record_bytes(station=0), "station 0"),
+        (b"XY" + record_bytes()[2:], "preamble"),
+        (record_bytes()[:20], "declares 33"),
+    ],
+)
+def test_malformed_records_raise_the_decode_error(bad, match):
+    with pytest.raises(PolhemusDecodeError, match=match):
+        decode_record(bad)
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.binary(max_size=120))
+def test_decode_record_is_total(data):
+    try:
+        decode_record(data)
+    except PolhemusDecodeError:
+        pass
+
+
+unit_quats = st.tuples(*[st.floats(-1, 1)] * 4).filter(lambda q: np.linalg.norm(q) > 0.1).map(lambda q: tuple(np.array(q) / np.linalg.norm(q)))
+records = st.builds(record_bytes, station=st.integers(1, 16), pos=st.tuples(*[st.floats(-200, 200, width=32)] * 3), quat_wxyz=unit_quats, ms=st.integers(0, 2**32 - 1))
+garbage = st.binary(max_size=20).map(lambda g: bytes(b for b in g if b not in b"LP"))  # no preamble start
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    items=st.lists(st.tuples(garbage, records, st.booleans(), st.integers(1, 40)), min_size=1, max_size=12),
+    chunk=st.integers(1, 60),
+)
+def test_parser_recovers_every_record_through_garbage_truncation_and_chunking(items, chunk):
+    stream = bytearray()
+    expected = []
+    for junk, rec, truncated_before, cut in items:
+        stream += junk
+        if truncated_before:  # a half-written record, as after a reconnect or a dropped byte run
+            stream += rec[:cut]
+        stream += rec
+        expected.append(decode_record(rec).timestamp_ms)
+    parser = RecordParser()
+    out = []
+    for i in range(0, len(stream), chunk):
+        out += parser.feed(bytes(stream[i : i + chunk]))
+        assert parser.pending <= 8 + 512 + chunk
+    got = [r.timestamp_ms for r in out if isinstance(r, PoseRecord)]
+    assert got == expected
+
+
+@settings(max_examples=200, deadline=None)
+@given(chunks=st.lists(st.binary(max_size=200), max_size=10))
+def test_parser_never_raises_and_stays_bounded_on_arbitrary_bytes(chunks):
+    parser = RecordParser()
+    for c in chunks:
+        for item in parser.feed(c):
+            assert isinstance(item, (PoseRecord, PolhemusDecodeError)) or item.command == 0x16
+        assert parser.pending <= 8 + 512 + len(c)
+
+
+# ---------------------------------------------------------------- driver ↔ emulator over a pty
+
+
+def check_against_truth(samples, world, emulator, time_tol_ns=2e6):
+    for s in samples:
+        truth_ns = emulator.device_ms_to_host_ns(s.frame_number)  # frame number = device ms
+        assert abs(s.t_exposure_ns - truth_ns) < time_tol_ns, s.t_exposure_ns - truth_ns
+        if s.valid:
+            rot, pos = world.pose(s.rigid_body_id, truth_ns / 1e9)
+            np.testing.assert_allclose(s.translation, pos, atol=2e-6)
+            np.testing.assert_allclose(s.rotation, rot, atol=2e-6)
+    return len(samples)
+
+
+def settle(tracker, quiet_s=0.15, timeout_s=5.0):
+    deadline = time.monotonic() + timeout_s
+    last, since = None, time.monotonic()
+    while time.monotonic() < deadline:
+        now = (tracker.status().frames, tracker.status().malformed)
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since > quiet_s:
+            return now
+        time.sleep(0.01)
+    raise AssertionError("tracker counters never settled")
+
+
+@pytest.mark.parametrize("units", ["cm", "inch"])
+def test_round_trip_with_garbage_between_records(units):
+    world = World.demo("rotate-oscillate", epoch_s=time.monotonic(), count=2)
+    with PolhemusEmulator(world, garbage_prob=0.2, corrupt_prob=0.05, seed=1) as emu:
+        tracker = PolhemusTracker(emu.port, units=units, reset_wait_s=0.05, device_latency_s=0.0035)
+        assert isinstance(tracker, Tracker)
+        with tracker, tracker.subscribe(maxlen=10_000) as sub:
+            assert wait_for(lambda: tracker.status().frames >= 200 and emu.records_corrupted >= 3, 20), tracker.status()
+            emu.pause_streaming()  # the device stops streaming; let the reader drain
+            # A record right behind a truncated one is decoded once a record's worth of bytes
+            # follows (the parser must first see the truncated one fail): push line noise.
+            emu.inject(bytes(POSE_RECORD_BYTES))
+            frames, malformed = settle(tracker)
+            samples = sub.drain()
+            assert tracker.status().state in (TrackerState.STREAMING, TrackerState.STALE)
+        assert tracker.model == "Liberty" and "Liberty" in tracker.who_am_i
+        assert [c for c in emu.commands][:6] == [b"\x19", b"F1", b"U1" if units == "cm" else b"U0", b"O*,2,7,8,0", b"\x16", b"C"]
+        assert emu.overflows == 0
+        assert frames == emu.records_sent  # every intact record, none lost to resynchronisation
+        assert malformed >= emu.records_corrupted > 0
+        assert tracker.garbage_bytes > 0
+        assert {s.rigid_body_id for s in samples} == {1, 2}
+        assert check_against_truth(samples, world, emu) == len(samples) == frames
+
+
+def test_sensor_errors_arrive_as_invalid_samples():
+    world = World.demo("static", epoch_s=time.monotonic())
+    with PolhemusEmulator(world, model="PA", error_prob=0.5, seed=2) as emu:
+        with PolhemusTracker(emu.port, reset_wait_s=0.05) as tracker, tracker.subscribe() as sub:
+            assert wait_for(lambda: tracker.status().frames >= 40, 10)
+            samples = sub.drain()
+    assert tracker.model == "Patriot"
+    assert any(not s.valid for s in samples) and any(s.valid for s in samples)
+
+
+def test_unplugged_port_is_reported_lost():
+    world = World.demo("static", epoch_s=time.monotonic())
+    emu = PolhemusEmulator(world).start()
+    tracker = PolhemusTracker(emu.port, reset_wait_s=0.05, backoff_initial_s=0.05, backoff_max_s=0.1)
+    with tracker:
+        assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 10)
+        emu.unplug()
+        assert wait_for(lambda: tracker.status().state == TrackerState.LOST, 5), tracker.status()
+        assert emu.port in tracker.status().reason
+        assert not os.path.exists(emu.port) or tracker.status().state == TrackerState.LOST
+    assert tracker.status().state == TrackerState.STOPPED
+
+
+def test_silent_port_fails_the_init_with_an_actionable_reason():
+    master, slave = os.openpty()
+    try:
+        tracker = PolhemusTracker(os.ttyname(slave), reset_wait_s=0.01, init_timeout_s=0.2, backoff_initial_s=0.05)
+        with tracker:
+            assert wait_for(lambda: tracker.status().state == TrackerState.LOST, 5)
+            assert "no who-am-I reply" in tracker.status().reason
+    finally:
+        os.close(master)
+        os.close(slave)

@@ -1,0 +1,153 @@
+"""The simulated world's trajectories and the shared tracking helpers."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from dpmhw.tracking import ClockMapping, LatestPoses, PoseSample, Tracker, quaternions_xyzw_to_matrices
+from drivers.natnet import NatNetClient
+from firmware_mocks.world import (
+    TRAJECTORY_NAMES,
+    Circular,
+    Linear,
+    RecordedPath,
+    RotateWhileOscillating,
+    World,
+    make_trajectory,
+)
+
+
+def is_rotation(r: np.ndarray) -> bool:
+    return np.allclose(r @ np.swapaxes(r, -1, -2), np.eye(3), atol=1e-9) and np.allclose(np.linalg.det(r), 1)
+
+
+@pytest.mark.parametrize("name", TRAJECTORY_NAMES)
+def test_every_trajectory_is_vectorised_and_gives_rotations(name):
+    traj = make_trajectory(name)
+    t = np.linspace(0, 5, 11)
+    rot, pos = traj.pose(t)
+    assert rot.shape == (11, 3, 3) and pos.shape == (11, 3)
+    assert is_rotation(rot)
+    r5, p5 = traj.pose(t[5])  # scalar query agrees with the batch
+    np.testing.assert_allclose(r5, rot[5]) and np.testing.assert_allclose(p5, pos[5])
+
+
+def test_linear_and_circular_follow_their_definitions():
+    rot, pos = Linear(start=(0, 1, 0), velocity=(0.2, 0, -0.1)).pose(np.array([0.0, 2.0]))
+    np.testing.assert_allclose(pos, [[0, 1, 0], [0.4, 1, -0.2]])
+    circ = Circular(center=(0, 1, 0), radius=0.3, period_s=2.0)
+    rot, pos = circ.pose(np.linspace(0, 2, 9))
+    np.testing.assert_allclose(np.linalg.norm(pos - [0, 1, 0], axis=1), 0.3)
+    np.testing.assert_allclose(pos[0], pos[-1], atol=1e-12)  # one full period
+    # the body faces along its path: its -z axis is the unit tangent of the motion
+    angle = np.linspace(0, 2, 9) * np.pi
+    tangent = np.stack([-np.sin(angle), np.zeros(9), -np.cos(angle)], axis=1)
+    np.testing.assert_allclose(-rot[:, :, 2], tangent, atol=1e-12)
+
+
+def test_rotate_while_oscillating_spins_and_moves_back_and_forth():
+    traj = RotateWhileOscillating(center=(0, 1, 0), amplitude_m=0.15, oscillation_hz=0.5, spin_rad_s=np.pi / 2)
+    t = np.linspace(0, 4, 401)
+    rot, pos = traj.pose(t)
+    assert pos[:, 0].max() == pytest.approx(0.15, abs=1e-4) and pos[:, 0].min() == pytest.approx(-0.15, abs=1e-4)
+    np.testing.assert_allclose(pos[:, 1:], np.tile([1, 0], (401, 1)))
+    angle = Rotation.from_matrix(rot[100]).magnitude()
+    assert angle == pytest.approx(np.pi / 2)  # 1 s at pi/2 rad/s
+
+
+def test_recorded_path_interpolates_its_samples_and_holds_the_ends(tmp_path):
+    t = np.array([0.0, 1.0, 2.0])
+    pos = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0]], float)
+    quats = Rotation.from_euler("y", [[0], [90], [180]], degrees=True).as_quat()
+    csv = tmp_path / "path.csv"
+    csv.write_text("t,x,y,z,qx,qy,qz,qw\n" + "\n".join(",".join(map(str, [ti, *p, *q])) for ti, p, q in zip(t, pos, quats)))
+    path = RecordedPath.from_csv(csv)
+    rot, p = path.pose(np.array([0.5, 1.0, 5.0, -1.0]))
+    np.testing.assert_allclose(p, [[0.5, 0, 0], [1, 0, 0], [1, 1, 0], [0, 0, 0]], atol=1e-12)
+    assert Rotation.from_matrix(rot[0]).magnitude() == pytest.approx(np.pi / 4)  # slerp halfway
+    looped = RecordedPath(t, pos, quats, loop=True)
+    np.testing.assert_allclose(looped.pose(2.5)[1], path.pose(0.5)[1])
+    with pytest.raises(ValueError, match="increase"):
+        RecordedPath([0, 0], pos[:2], quats[:2])
+
+
+def test_world_epoch_and_markers():
+    world = World.demo("static", epoch_s=100.0, count=2)
+    rot, pos = world.pose(2, 100.0)
+    np.testing.assert_allclose(pos, [0, 1, 0.5])
+    np.testing.assert_allclose(world.markers(1, 100.0), world.objects[1].markers + [0, 1, 0])
+    with pytest.raises(ValueError, match="already"):
+        world.add(1, "dup", make_trajectory("static"))
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 1e-3))
+def test_quaternion_conversion_matches_scipy(q):
+    rot, usable = quaternions_xyzw_to_matrices(np.array([q]))
+    assert usable.all()
+    np.testing.assert_allclose(rot[0], Rotation.from_quat(q).as_matrix(), atol=1e-12)
+
+
+def test_zero_quaternion_is_unusable_not_identity():
+    rot, usable = quaternions_xyzw_to_matrices(np.array([[0, 0, 0, 0], [0, 0, 0, 1.0]]))
+    assert usable.tolist() == [False, True] and np.isnan(rot[0]).all()
+
+
+def test_clock_mapping_prefers_round_trips_and_takes_the_minimum():
+    clock = ClockMapping(window=8)
+    assert clock.offset_ns is None
+    for delay in (300, 120, 500):  # one-way: offset 1000 plus transit
+        clock.add_one_way(device_ns=10_000, arrival_ns=11_000 + delay)
+    assert clock.offset_ns == 1120 and clock.method == "one-way minimum"
+    clock.add_round_trip(sent_ns=20_000, device_ns=19_500, received_ns=21_000)  # rtt 1000 → offset 1000
+    clock.add_round_trip(sent_ns=30_000, device_ns=29_000, received_ns=32_000)  # rtt 2000, worse
+    assert clock.offset_ns == 1000 and clock.method == "round-trip"
+    assert clock.to_host_ns(5) == 1005
+    for _ in range(20):  # the window forgets old one-way evidence (drift tracking)
+        clock.add_one_way(device_ns=0, arrival_ns=5000)
+    assert min(clock._one_way) == 5000
+
+
+def _sample(i: int, frame: int = 0) -> PoseSample:
+    return PoseSample(i, np.eye(3), np.zeros(3), frame, frame + 1, True, 0.0, frame)
+
+
+def test_subscriptions_are_bounded_and_callback_errors_are_contained():
+    board = LatestPoses()
+    boom = []
+
+    def bad_callback(sample):
+        boom.append(sample)
+        raise RuntimeError("consumer bug")
+
+    board.add_callback(bad_callback)
+    with board.subscribe(maxlen=3) as sub:
+        board.publish([_sample(1, f) for f in range(5)])
+        assert sub.dropped == 2
+        assert [s.frame_number for s in sub.drain()] == [2, 3, 4]
+    board.publish([_sample(2, 9)])  # a closed subscription receives nothing more
+    assert sub.drain() == []
+    assert board.callback_errors == 6 and "consumer bug" in board.last_callback_error
+    assert board.latest(1).frame_number == 4 and set(board.latest_all()) == {1, 2}
+
+
+def test_subscription_iterator_ends_when_closed():
+    board = LatestPoses()
+    sub = board.subscribe()
+    board.publish([_sample(1, 1)])
+    got = []
+    t = threading.Thread(target=lambda: got.extend(sub))
+    t.start()
+    sub.close()
+    t.join(timeout=5)
+    assert not t.is_alive() and [s.frame_number for s in got] == [1]
+
+
+def test_natnet_client_satisfies_the_tracker_protocol():
+    assert isinstance(NatNetClient(), Tracker)
