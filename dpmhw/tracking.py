@@ -71,6 +71,16 @@ class PoseSample:
     mean_marker_error: float = 0.0
     frame_number: int = -1
 
+    def __post_init__(self) -> None:
+        # Samples are shared between threads: make their arrays read-only so no consumer can
+        # change what another one sees.
+        for name, shape in (("rotation", (3, 3)), ("translation", (3,))):
+            arr = np.array(getattr(self, name), dtype=np.float64)
+            if arr.shape != shape:
+                raise ValueError(f"PoseSample.{name}: expected shape {shape}, got {arr.shape}")
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
     @property
     def latency_ns(self) -> int:
         """Exposure-to-arrival latency on the host clock."""

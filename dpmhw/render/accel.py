@@ -12,6 +12,7 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 from embreex import mesh_construction, rtcore_scene
 
@@ -30,6 +31,38 @@ class Hits:
     prim: np.ndarray
     u: np.ndarray
     v: np.ndarray
+
+
+@nb.njit(nogil=True, cache=True)
+def _rays_into_model(o, d, tmax, R, t, centre, radius):
+    """Select the rays that pass within `radius` of `centre` (model space) before `tmax`, and
+    transform those into model space. Returns (index, o_model, d_model, tmax)."""
+    n = o.shape[0]
+    c0 = R[0, 0] * centre[0] + R[0, 1] * centre[1] + R[0, 2] * centre[2] + t[0]
+    c1 = R[1, 0] * centre[0] + R[1, 1] * centre[1] + R[1, 2] * centre[2] + t[1]
+    c2 = R[2, 0] * centre[0] + R[2, 1] * centre[1] + R[2, 2] * centre[2] + t[2]
+    r2 = radius * radius
+    keep = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):
+        q0, q1, q2 = c0 - o[i, 0], c1 - o[i, 1], c2 - o[i, 2]
+        along = q0 * d[i, 0] + q1 * d[i, 1] + q2 * d[i, 2]
+        dist2 = q0 * q0 + q1 * q1 + q2 * q2
+        if dist2 <= r2 or (along > 0.0 and along - radius < tmax[i] and dist2 - along * along <= r2):
+            keep[m] = i
+            m += 1
+    index = keep[:m].copy()
+    om = np.empty((m, 3), np.float32)
+    dm = np.empty((m, 3), np.float32)
+    tm = np.empty(m, np.float32)
+    for j in range(m):
+        i = index[j]
+        p0, p1, p2 = o[i, 0] - t[0], o[i, 1] - t[1], o[i, 2] - t[2]
+        for a in range(3):  # x_model = Rᵀ (x_world − t)
+            om[j, a] = R[0, a] * p0 + R[1, a] * p1 + R[2, a] * p2
+            dm[j, a] = R[0, a] * d[i, 0] + R[1, a] * d[i, 1] + R[2, a] * d[i, 2]
+        tm[j] = tmax[i]
+    return index, om, dm, tm
 
 
 def _embree_scene(vertices_list, faces_list) -> rtcore_scene.EmbreeScene:
@@ -56,11 +89,16 @@ class EmbreeAccel:
         self.dynamic_objects: list[int] = [i for i, o in enumerate(objects) if o.is_dynamic]
         by_mesh: dict[int, rtcore_scene.EmbreeScene] = {}
         self.dynamic_scenes = []
+        self.dynamic_bounds = []  # model-space bounding sphere (centre, radius) of each moving object
         for i in self.dynamic_objects:
             mesh = objects[i].mesh
             if id(mesh) not in by_mesh:  # instances of one mesh share one BVH
                 by_mesh[id(mesh)] = _embree_scene([mesh.vertices], [mesh.faces])
             self.dynamic_scenes.append(by_mesh[id(mesh)])
+            lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+            centre = (lo + hi) / 2
+            radius = np.linalg.norm(mesh.vertices - centre, axis=1).max() * (1 + 1e-4) + 1e-9
+            self.dynamic_bounds.append((centre.astype(np.float32), np.float32(radius)))
 
     def close(self) -> None:
         if self._pool is not None:
@@ -76,36 +114,47 @@ class EmbreeAccel:
         return list(self._pool.map(lambda c: fn(*c), chunks))
 
     # -- queries --------------------------------------------------------------------------------
-    def intersect(self, origins: np.ndarray, directions: np.ndarray, poses_R: np.ndarray, poses_t: np.ndarray) -> Hits:
-        """origins, directions : (n, 3) float32 world space; poses_R (O, 3, 3), poses_t (O, 3): model→world."""
+    def intersect(self, origins: np.ndarray, directions: np.ndarray, poses_R: np.ndarray, poses_t: np.ndarray,
+                  static_hits: Hits | None = None) -> Hits:
+        """origins, directions : (n, 3) float32 world space; poses_R (O, 3, 3), poses_t (O, 3):
+        model→world. `static_hits` (from `intersect_static` on the same rays) skips the static BVH."""
         n = len(origins)
+        start = (static_hits.t, static_hits.obj, static_hits.prim, static_hits.u, static_hits.v) if static_hits else ()
 
-        def run(o, d):
-            m = len(o)
-            t = np.full(m, np.inf, np.float32)
-            obj = np.full(m, -1, np.int32)
-            prim = np.full(m, -1, np.int32)
-            u = np.zeros(m, np.float32)
-            v = np.zeros(m, np.float32)
-            if self.static_scene is not None:
-                res = self.static_scene.run(o, d, output=True)
+        def run(o, d, *prior):
+            t, obj, prim, u, v = (a.copy() for a in prior) if prior else self._trace_static(o, d)
+            for k, scene, (centre, radius) in zip(self.dynamic_objects, self.dynamic_scenes, self.dynamic_bounds):
+                index, om, dm, tm = _rays_into_model(o, d, t, poses_R[k], poses_t[k], centre, radius)
+                if index.size == 0:
+                    continue
+                res = scene.run(om, dm, dists=tm, output=True)
                 hit = res["primID"] >= 0
-                geom = res["geomID"][hit]
-                obj[hit] = self.static_objects[geom]
-                prim[hit] = self.tri_offsets[obj[hit]] + res["primID"][hit]
-                t[hit], u[hit], v[hit] = res["tfar"][hit], res["u"][hit], res["v"][hit]
-            for k, scene in zip(self.dynamic_objects, self.dynamic_scenes):
-                R, tr = poses_R[k].astype(np.float32), poses_t[k].astype(np.float32)
-                om = np.ascontiguousarray((o - tr) @ R)
-                dm = np.ascontiguousarray(d @ R)
-                res = scene.run(om, dm, dists=t.copy(), output=True)
-                hit = res["primID"] >= 0
-                obj[hit] = k
-                prim[hit] = self.tri_offsets[k] + res["primID"][hit]
-                t[hit], u[hit], v[hit] = res["tfar"][hit], res["u"][hit], res["v"][hit]
+                rows = index[hit]
+                obj[rows] = k
+                prim[rows] = self.tri_offsets[k] + res["primID"][hit]
+                t[rows], u[rows], v[rows] = res["tfar"][hit], res["u"][hit], res["v"][hit]
             return t, obj, prim, u, v
 
-        parts = self._map(run, n, origins, directions)
+        return self._gather(self._map(run, n, origins, directions, *start))
+
+    def intersect_static(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
+        """Closest hits among the static objects only (they never move, so this can be cached)."""
+        return self._gather(self._map(self._trace_static, len(origins), origins, directions))
+
+    def _trace_static(self, o, d):
+        if self.static_scene is None:
+            m = len(o)
+            return (np.full(m, np.inf, np.float32), np.full(m, -1, np.int32), np.full(m, -1, np.int32),
+                    np.zeros(m, np.float32), np.zeros(m, np.float32))
+        res = self.static_scene.run(o, d, output=True)
+        hit = res["primID"] >= 0
+        obj = np.where(hit, self.static_objects[res["geomID"]], -1).astype(np.int32)
+        prim = np.where(hit, self.tri_offsets[obj] + res["primID"], -1).astype(np.int32)
+        t = np.where(hit, res["tfar"], np.float32(np.inf))
+        return t, obj, prim, res["u"], res["v"]
+
+    @staticmethod
+    def _gather(parts) -> Hits:
         return Hits(*(np.concatenate(p) if len(parts) > 1 else p[0] for p in zip(*parts)))
 
     def occluded(self, origins, directions, tmax, poses_R, poses_t) -> np.ndarray:
@@ -116,14 +165,11 @@ class EmbreeAccel:
             blocked = np.zeros(len(o), bool)
             if self.static_scene is not None:
                 blocked |= self.static_scene.run(o, d, dists=tm.copy(), query="OCCLUDED") >= 0
-            for k, scene in zip(self.dynamic_objects, self.dynamic_scenes):
-                todo = np.flatnonzero(~blocked)
-                if todo.size == 0:
-                    break
-                R, tr = poses_R[k].astype(np.float32), poses_t[k].astype(np.float32)
-                om = np.ascontiguousarray((o[todo] - tr) @ R)
-                dm = np.ascontiguousarray(d[todo] @ R)
-                blocked[todo] = scene.run(om, dm, dists=np.ascontiguousarray(tm[todo]), query="OCCLUDED") >= 0
+            for k, scene, (centre, radius) in zip(self.dynamic_objects, self.dynamic_scenes, self.dynamic_bounds):
+                # rays already blocked get tmax 0, so the bounding-sphere test drops them
+                index, om, dm, tmk = _rays_into_model(o, d, np.where(blocked, 0, tm), poses_R[k], poses_t[k], centre, radius)
+                if index.size:
+                    blocked[index] |= scene.run(om, dm, dists=tmk, query="OCCLUDED") >= 0
             return blocked
 
         parts = self._map(run, n, origins, directions, np.asarray(tmax, np.float32))

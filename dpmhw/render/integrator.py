@@ -10,7 +10,7 @@ more ray is traced from it so emitters it finds get MIS weights (`mis_last`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -32,10 +32,10 @@ GLOSSY_ROUGHNESS = 0.5  # below this, a specular lobe is sharp enough that NEE a
 class RayCounts:
     """Rays traced in one render call, by query type (for the benchmark)."""
 
-    primary: int = 0
-    intersect: int = 0
-    occluded: int = 0
-    by_depth: list[int] = field(default_factory=list)
+    primary: int = 0  # camera rays (hits on static objects are reused while the camera stays put)
+    primary_static_traced: int = 0  # camera rays traced against the static BVH in this call
+    intersect: int = 0  # continuation rays (closest hit)
+    occluded: int = 0  # shadow rays
 
     @property
     def total(self) -> int:
@@ -56,6 +56,8 @@ class PathIntegrator:
         self.mis_last = bool(mis_last)
         self.use_viewer = not np.allclose(scene.viewer_position, scene.camera.pose.t)
         self.counts = RayCounts()
+        self._static_primary_key = None
+        self._static_primary_hits = None
 
     def close(self) -> None:
         self.geometry.close()
@@ -91,7 +93,7 @@ class PathIntegrator:
         gbuf = _GBuffer(npix)
         nonfinite = np.zeros(npix, np.int32)
         o, d = camera.generate_rays()
-        primary = self.geometry.accel.intersect(o, d, R, T)
+        primary = self.geometry.accel.intersect(o, d, R, T, static_hits=self._static_primary(camera, o, d))
         self.counts.primary = npix
         done = 0
         for p in range(spp):
@@ -112,15 +114,24 @@ class PathIntegrator:
             spp=done, time=float(time), seed=int(seed), nonfinite_samples=int(nonfinite.sum()),
         )
 
+    def _static_primary(self, camera: PinholeCamera, o, d):
+        """Primary hits on static objects depend only on the camera pose: trace them once per pose."""
+        key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
+        if self._static_primary_key != key:
+            self._static_primary_hits = self.geometry.accel.intersect_static(o, d)
+            self._static_primary_key = key
+            self.counts.primary_static_traced = len(o)
+        return self._static_primary_hits
+
     def _trace_pass(self, key, primary_dirs, primary: Hits, R, T, camera, film, gbuf, nonfinite, write_gbuffer):
         g = self.geometry
         n = len(primary.t)
         pixel = np.arange(n, dtype=np.int32)
         rd, hits = primary_dirs, primary
-        beta = np.ones((n, 3), f32)
-        kd = np.ones((n, 3), f32)
-        prev_pdf = np.zeros(n, f32)
-        prev_n = np.zeros((n, 3), f32)
+        beta = np.empty((n, 3), f32)  # at depth 0 the kernel reads none of these: it starts paths at 1
+        kd = np.empty((n, 3), f32)
+        prev_pdf = np.empty(n, f32)
+        prev_n = np.empty((n, 3), f32)
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
         last_depth = self.max_bounces + (1 if self.mis_last else 0)
@@ -136,7 +147,7 @@ class PathIntegrator:
             nx_d = np.empty((m, 3), f32)
             alive = np.empty(m, np.bool_)
             kernels.shade(
-                depth, self.max_bounces, self.mis_last, key, pixel, np.ascontiguousarray(rd, f32),
+                depth, self.max_bounces, self.mis_last, key, pixel, rd,
                 hits.t, hits.obj, hits.prim, hits.u, hits.v, beta, kd, prev_pdf, prev_n,
                 g.tri,
                 R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
@@ -147,16 +158,16 @@ class PathIntegrator:
             )
             shadow = np.flatnonzero(sh_valid)
             if shadow.size:
-                blocked = g.accel.occluded(sh_o[shadow], sh_d[shadow], sh_tmax[shadow], R, T)
+                s_pix, s_o, s_d, s_tmax, s_c = kernels.gather_shadow_rays(shadow, pixel, sh_o, sh_d, sh_tmax, sh_c)
+                blocked = g.accel.occluded(s_o, s_d, s_tmax, R, T)
                 self.counts.occluded += shadow.size
-                kernels.add_unoccluded(pixel[shadow], sh_c[shadow], blocked, film["diff"], film["spec"])
+                kernels.add_unoccluded(s_pix, s_c, blocked, film["diff"], film["spec"])
             if depth >= last_depth:
                 break
             keep = np.flatnonzero(alive)
             if keep.size == 0:
                 break
-            pixel, beta, kd, prev_pdf, prev_n = pixel[keep], beta[keep], kd[keep], prev_pdf[keep], prev_n[keep]
-            origins, rd = nx_o[keep], nx_d[keep]
+            pixel, beta, kd, prev_pdf, prev_n, origins, rd = kernels.gather_paths(keep, pixel, beta, kd, prev_pdf, prev_n, nx_o, nx_d)
             hits = g.accel.intersect(origins, rd, R, T)
             self.counts.intersect += keep.size
             depth += 1

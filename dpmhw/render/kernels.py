@@ -150,10 +150,11 @@ def shade(
         alive[k] = False
         d0, d1, d2 = rd[k, 0], rd[k, 1], rd[k, 2]
         ob = hit_obj[k]
-        b0, b1, b2 = beta[k, 0], beta[k, 1], beta[k, 2]
         if depth == 0:
+            b0 = b1 = b2 = 1.0
             kdr, kdg, kdb = 1.0, 1.0, 1.0
         else:
+            b0, b1, b2 = beta[k, 0], beta[k, 1], beta[k, 2]
             kdr, kdg, kdb = kd[k, 0], kd[k, 1], kd[k, 2]
         tri_i = 0
         u = v = 0.0
@@ -415,3 +416,48 @@ def add_unoccluded(pixel, contrib, blocked, film_diff, film_spec):
             film_spec[p, 0] += contrib[k, 3]
             film_spec[p, 1] += contrib[k, 4]
             film_spec[p, 2] += contrib[k, 5]
+
+
+@nb.njit(parallel=True, **_jit)
+def gather_shadow_rays(index, pixel, sh_o, sh_d, sh_tmax, sh_c):
+    """Compact the valid shadow rays (numpy fancy indexing costs several times more)."""
+    m = index.shape[0]
+    pix = np.empty(m, np.int32)
+    o = np.empty((m, 3), np.float32)
+    d = np.empty((m, 3), np.float32)
+    tmax = np.empty(m, np.float32)
+    c = np.empty((m, 6), np.float32)
+    for j in nb.prange(m):
+        i = index[j]
+        pix[j] = pixel[i]
+        tmax[j] = sh_tmax[i]
+        for a in range(3):
+            o[j, a] = sh_o[i, a]
+            d[j, a] = sh_d[i, a]
+        for a in range(6):
+            c[j, a] = sh_c[i, a]
+    return pix, o, d, tmax, c
+
+
+@nb.njit(parallel=True, **_jit)
+def gather_paths(index, pixel, beta, kd, prev_pdf, prev_n, nx_o, nx_d):
+    """Compact the surviving paths and their continuation rays."""
+    m = index.shape[0]
+    pix = np.empty(m, np.int32)
+    b = np.empty((m, 3), np.float32)
+    k = np.empty((m, 3), np.float32)
+    pdf = np.empty(m, np.float32)
+    pn = np.empty((m, 3), np.float32)
+    o = np.empty((m, 3), np.float32)
+    d = np.empty((m, 3), np.float32)
+    for j in nb.prange(m):
+        i = index[j]
+        pix[j] = pixel[i]
+        pdf[j] = prev_pdf[i]
+        for a in range(3):
+            b[j, a] = beta[i, a]
+            k[j, a] = kd[i, a]
+            pn[j, a] = prev_n[i, a]
+            o[j, a] = nx_o[i, a]
+            d[j, a] = nx_d[i, a]
+    return pix, b, k, pdf, pn, o, d

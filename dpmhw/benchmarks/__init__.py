@@ -1,0 +1,1 @@
+"""Benchmarks behind `dpmhw bench …`: each returns a result dict and prints a table."""
