@@ -208,7 +208,12 @@ def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings)
         f.fail("calibration", f"cannot load {path}: {exc}")
     if (calib.width, calib.height) != (render.width, render.height):
         f.fail("calibration", f"{path} is for {calib.width}×{calib.height}, but [render] asks {render.width}×{render.height}")
-    return CameraSpec(np.asarray(calib.K, float), np.asarray(calib.dist, float).reshape(5), calib.pose)
+    dist = np.zeros(5)
+    coeffs = np.asarray(calib.dist, float).reshape(-1)
+    if coeffs.size > 5 and np.any(coeffs[5:] != 0):
+        f.fail("calibration", f"{path} uses a distortion model with {coeffs.size} terms; the renderer supports k1 k2 p1 p2 k3")
+    dist[: min(5, coeffs.size)] = coeffs[:5]
+    return CameraSpec(np.asarray(calib.K, float), dist, Pose(np.asarray(calib.R, float), np.asarray(calib.t, float)))
 
 
 OBJECT_FIELDS = {

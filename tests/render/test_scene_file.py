@@ -106,3 +106,36 @@ def test_quaternion_and_euler_agree(tmp_path):
     b = load_scene(write(tmp_path, GOOD + f"rotation = [0.0, {math.sin(math.pi / 4)}, 0.0, {math.cos(math.pi / 4)}]\n"))
     np.testing.assert_allclose(a.objects[0].pose.R, b.objects[0].pose.R, atol=1e-12)
     np.testing.assert_allclose(a.objects[0].pose.R @ [1, 0, 0], [0, 0, -1], atol=1e-12)
+
+
+def test_camera_from_calibration_file_drops_into_the_renderer(tmp_path):
+    from dpmhw.projector_calibration import ProjectorCalibration
+    from dpmhw.render.cameras import PinholeCamera
+    from dpmhw.transforms import rotation_from_euler_xyz_deg
+
+    K = np.array([[14.0, 0.0, 8.2], [0.0, 13.9, 11.0], [0.0, 0.0, 1.0]])  # lens shift: cy near the bottom
+    calib = ProjectorCalibration(
+        width=16, height=12, K=K, dist=np.array([0.05, -0.1, 0.001, 0.0, 0.0]),
+        R=rotation_from_euler_xyz_deg([170.0, 10.0, 0.0]), t=np.array([0.1, 0.9, 1.2]), frame="tracker",
+    )
+    calib.save(tmp_path / "projector.json")
+    text = GOOD.replace(
+        "fx = 10.0\nfy = 10.0\ncx = 8.0\ncy = 3.0\nposition = [0.0, 0.0, 2.0]\nlook_at = [0.0, 0.0, 0.0]",
+        'calibration = "projector.json"',
+    )
+    scene = load_scene(write(tmp_path, text))
+    cam = PinholeCamera(scene.camera.K, scene.camera.dist, 16, 12, scene.camera.pose)
+    pts = np.random.default_rng(0).uniform(-0.3, 0.3, (20, 3))
+    np.testing.assert_allclose(cam.project(pts)[0], calib.project(pts), atol=1e-6)
+
+
+def test_calibration_for_another_resolution_is_rejected(tmp_path):
+    from dpmhw.projector_calibration import ProjectorCalibration
+
+    ProjectorCalibration(width=1920, height=1080, K=np.eye(3) * [1000, 1000, 1], dist=np.zeros(5)).save(tmp_path / "p.json")
+    text = GOOD.replace(
+        "fx = 10.0\nfy = 10.0\ncx = 8.0\ncy = 3.0\nposition = [0.0, 0.0, 2.0]\nlook_at = [0.0, 0.0, 0.0]",
+        'calibration = "p.json"',
+    )
+    with pytest.raises(SceneError, match="1920×1080"):
+        load_scene(write(tmp_path, text))
