@@ -160,8 +160,9 @@ def quaternions_xyzw_to_matrices(quaternions: np.ndarray) -> tuple[np.ndarray, n
     rotations : (n, 3, 3) float64; NaN where the quaternion is zero or not finite
     usable : (n,) bool, False where the rotations are NaN
     """
-    q = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)
-    norms = np.linalg.norm(q, axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):  # signalling NaNs from the wire
+        q = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)
+        norms = np.linalg.norm(q, axis=1)
     usable = np.isfinite(norms) & (norms > 1e-6)
     rotations = np.full((q.shape[0], 3, 3), np.nan)
     if usable.any():

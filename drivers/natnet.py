@@ -192,9 +192,11 @@ class NatNetClient(ReceiverTracker):
         rb = frame.rigid_bodies
         if len(rb) == 0:
             return []
-        positions = rb.positions.astype(np.float64)
-        rotations, usable = quaternions_xyzw_to_matrices(rb.quaternions)
-        norms = np.linalg.norm(rb.quaternions.astype(np.float64), axis=1)
+        # Wire floats may be signalling NaNs: widening them must not raise FP warnings.
+        with np.errstate(invalid="ignore", over="ignore"):
+            positions = rb.positions.astype(np.float64)
+            rotations, usable = quaternions_xyzw_to_matrices(rb.quaternions)
+            norms = np.linalg.norm(rb.quaternions.astype(np.float64), axis=1)
         tracked = rb.tracked
         bad = tracked & ~(np.isfinite(positions).all(axis=1) & (np.abs(norms - 1.0) < 1e-3))
         if bad.any():

@@ -8,7 +8,9 @@ the record preamble), then `C` continuous mode. Records are decoded by
 Timing: records carry a millisecond timestamp on the device clock but the protocol offers no
 echo, so the device→host offset is the running minimum of arrival minus device time, and the
 device's known output latency (measurement to first byte, `device_latency_s`) is subtracted:
-without it every pose would be stamped late by that latency.
+without it every pose would be stamped late by that latency. The first `warmup_records` of a
+session only feed that minimum (they are not published): a single delayed record must not set
+the stamps of everything after it.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ class PolhemusTracker(ReceiverTracker):
         device_latency_s: float = 0.0035,
         reset_wait_s: float = 0.1,
         init_timeout_s: float = 1.0,
+        warmup_records: int = 16,
         stale_after_s: float = 0.1,
         lost_after_s: float = 1.0,
         backoff_initial_s: float = 0.1,
@@ -62,6 +65,9 @@ class PolhemusTracker(ReceiverTracker):
         self.device_latency_ns = int(device_latency_s * 1e9)
         self.reset_wait_s = reset_wait_s
         self.init_timeout_s = init_timeout_s
+        self.warmup_records = warmup_records
+        self._warmup_left = warmup_records
+        self.warmup_skipped = 0
         self.model: str | None = None
         self.who_am_i = ""
         self._serial: serial.Serial | None = None
@@ -92,6 +98,10 @@ class PolhemusTracker(ReceiverTracker):
                 self.model, self.who_am_i = item.model, item.text.strip()
             elif isinstance(item, PoseRecord):
                 sample = self._sample(item, arrival_ns)
+                if self._warmup_left > 0:
+                    self._warmup_left -= 1
+                    self.warmup_skipped += 1
+                    continue
                 self._publish_frame([sample], arrival_ns)
                 published.append(sample)
         return published
@@ -149,6 +159,7 @@ class PolhemusTracker(ReceiverTracker):
         self._stop.wait(self.reset_wait_s)
         self._serial.reset_input_buffer()
         self._parser = RecordParser()
+        self._warmup_left = self.warmup_records
         self._write(b"F1\r")
         self._write(_UNITS[self.units][0])
         self._write(b"O*,2,7,8,0\r")

@@ -210,3 +210,41 @@ def test_receiver_never_raises_counts_every_malformed_datagram_and_publishes_non
             assert all(abs(np.linalg.det(s.rotation) - 1) < 1e-6 for s in samples if s.valid)
         if not well_formed:
             assert samples == []
+
+
+def test_frame_gaps_and_reordering_are_detected():
+    from firmware_mocks.natnet_server import FrameContent, encode_frame
+
+    client = primed_client()
+
+    def frame(n):
+        content = FrameContent(
+            frame_number=n,
+            rigid_bodies=[(1, (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0), 0.0, 1)],
+            stamp_mid_exposure=1000 * n,
+            stamp_transmit=1000 * n + 500,
+        )
+        return encode_frame(content, "3.0")
+
+    arrival = 10**12
+    for n in (10, 11, 9, 14):
+        arrival += 3_000_000
+        client.process_datagram(frame(n), arrival)
+    status = client.status()
+    assert status.frames == 3 and status.out_of_order == 1 and status.frames_missed == 2
+    assert client.latest(1).frame_number == 14
+    client.process_datagram(frame(5), arrival + 3_000_000)  # a little back: reordered, dropped
+    client.process_datagram(frame(6000), arrival + 6_000_000)
+    client.process_datagram(frame(2), arrival + 9_000_000)  # far back: the server restarted
+    assert client.latest(1).frame_number == 2 and client.status().out_of_order == 2
+
+
+def test_signalling_nan_in_a_tracked_pose_is_malformed_not_a_crash():
+    """Found by the fuzzer: a float32 sNaN used to raise a cast warning inside the receiver."""
+    client = primed_client()
+    datagram = bytearray(captured("mocapframe_packet_occluded_v3.bin"))
+    y = datagram.index(bytes.fromhex("24de903e"))  # rigid body 7, position y
+    datagram[y + 3] = 0x7F  # 0x7f90de24: a signalling NaN
+    assert client.process_datagram(bytes(datagram), 10**12) == []
+    assert client.status().malformed == 1 and client.internal_errors == 0
+    assert "rigid body 7 is flagged tracked" in client.last_decode_error

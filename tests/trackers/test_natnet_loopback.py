@@ -80,6 +80,28 @@ def test_round_trip_poses_times_latency_and_offset(version, unicast):
         assert frames == list(range(frames[0], frames[0] + len(frames))) or status.frames_missed > 0
 
 
+def test_jittered_stream_still_stamps_mid_exposure():
+    with natnet_pair("4.1", unicast=True, jitter_ms=2.0, seed=5) as (world, server, client):
+        with client.subscribe(maxlen=10_000) as sub:
+            assert wait_for(lambda: client.status().frames >= 150, 20)
+            samples = sub.drain()
+    latencies_ms = np.array([s.latency_ns for s in samples]) / 1e6
+    assert latencies_ms.max() - latencies_ms.min() > 1.0  # the jitter is really there...
+    assert check_against_truth(samples, world, server) == len(samples)  # ...and does not move the stamps
+
+
+def test_unicast_keep_alives_keep_the_stream_flowing():
+    # the server forgets unicast clients silent for 0.3 s; keep-alives every 0.1 s prevent that
+    client_kw = dict(keepalive_interval_s=0.1, lost_after_s=0.5)
+    with natnet_pair("4.1", unicast=True, client_timeout_s=0.3, client_kw=client_kw) as (world, server, client):
+        assert wait_for(lambda: client.status().frames >= 10, 10)
+        time.sleep(1.0)
+        status = client.status()
+        assert status.state == TrackerState.STREAMING and status.reconnects == 0
+        assert server.commands[10] >= 5  # keep-alive is message 10
+        assert server.clients
+
+
 def test_latest_is_newest_per_body_and_callbacks_fire():
     got = []
     with natnet_pair("4.1", bodies=3) as (world, server, client):

@@ -151,3 +151,24 @@ def test_subscription_iterator_ends_when_closed():
 
 def test_natnet_client_satisfies_the_tracker_protocol():
     assert isinstance(NatNetClient(), Tracker)
+
+
+def test_pose_samples_are_read_only_and_shape_checked():
+    s = _sample(1)
+    with pytest.raises(ValueError):
+        s.rotation[0, 0] = 2.0
+    with pytest.raises(ValueError, match="translation"):
+        PoseSample(1, np.eye(3), np.zeros(4), 0, 0, True)
+    np.testing.assert_allclose(s.as_matrix(), np.eye(4))
+
+
+def test_core_and_mocks_do_not_import_drivers():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, dpmhw.tracking, firmware_mocks.world, firmware_mocks.natnet_server, firmware_mocks.serial_tracker;"
+        "bad = [m for m in sys.modules if m == 'drivers' or m.startswith('drivers.')];"
+        "assert not bad, bad"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
