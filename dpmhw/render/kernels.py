@@ -25,7 +25,8 @@ RR_MAX_SURVIVAL = 0.95
 SHADOW_SHORTEN = 1e-4  # relative: stop shadow rays just before the sampled light point
 OFFSET_REL = 3e-5  # origin offset along the geometric normal, relative to coordinate magnitude
 
-_jit = dict(cache=True, error_model="numpy")
+# fastmath without nnan/ninf: the kernels test for non-finite samples and must keep doing so
+_jit = dict(cache=True, error_model="numpy", fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
 
 M1 = np.uint64(0xBF58476D1CE4E5B9)
 M2 = np.uint64(0x94D049BB133111EB)
