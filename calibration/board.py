@@ -125,7 +125,16 @@ def detect(image: np.ndarray, spec: BoardSpec) -> tuple[np.ndarray, np.ndarray] 
     corners, ids, _, _ = detector.detectBoard(gray)
     if ids is None or len(ids) < 6:
         return None
-    return corners.reshape(-1, 2).astype(np.float64), ids.ravel().astype(np.int64)
+    pts = corners.reshape(-1, 2).astype(np.float32)
+    ids = ids.ravel().astype(np.int64)
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    # the window must stay inside the white gap between a corner and the nearest marker
+    gap = 0.5 * (spec.square - spec.marker) / spec.square
+    win = int(np.clip(0.9 * gap * np.median(d.min(axis=1)), 2, 15))
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
+    pts = cv2.cornerSubPix(gray, pts.reshape(-1, 1, 2), (win, win), (-1, -1), crit).reshape(-1, 2)
+    return pts.astype(np.float64), ids
 
 
 def charuco_image(spec: BoardSpec, px_per_square: int = 60) -> np.ndarray:

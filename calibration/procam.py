@@ -41,7 +41,9 @@ class SolveOptions:
     window: int | None = None  # half-size of the local-homography window; None: 0.5 * corner spacing
     ransac_px: float = 1.5  # RANSAC threshold in projector pixels (scaled when bits are dropped)
     min_window_fraction: float = 0.25  # decoded pixels needed in a window
-    min_corner_fraction: float = 0.8  # corners with projector coordinates needed per view
+    min_corner_fraction: float = 0.5  # corners with projector coordinates needed per view (others are dropped)
+    point_outlier_factor: float = 6.0  # a single point is an outlier above factor * RMS ...
+    point_outlier_floor_px: float = 0.5  # ... and above this
     decode: dict = field(default_factory=dict)  # keyword arguments for calibration.decode.decode
 
 
@@ -56,6 +58,7 @@ class Observation:
     image_size: tuple[int, int]
     projector_px: np.ndarray | None = None  # (m, 2), NaN where the local homography failed
     reason: str = ""
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -76,6 +79,7 @@ class LensFit:
     k3_fixed: bool = True
     object_points: np.ndarray | None = None  # released (non-planar) board, if used
     diagnostics: list[str] = field(default_factory=list)
+    kept: dict[str, np.ndarray] = field(default_factory=dict)  # per view: mask of the input points used
 
 
 @dataclass
@@ -90,6 +94,21 @@ class ProcamResult:
     diagnostics: list[str]
     timings: dict[str, float]
     stereo_rejected: dict[str, str] = field(default_factory=dict)
+    stereo_data: dict = field(default_factory=dict)  # names, obj, camera, projector, rvecs, tvecs
+
+    def residuals(self) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+        """Per device, per used view: (observed (m, 2), residual = projected - observed (m, 2))."""
+        d = self.stereo_data
+        out: dict[str, list] = {"camera": [], "projector": []}
+        for o, c, p, rv, tv in zip(d["obj"], d["camera"], d["projector"], d["rvecs"], d["tvecs"]):
+            uc, _ = cv2.projectPoints(o.reshape(-1, 1, 3), rv, tv, self.camera.K, self.camera.dist)
+            Rc = cv2.Rodrigues(np.asarray(rv, dtype=np.float64))[0]
+            r2 = cv2.Rodrigues(self.R @ Rc)[0]
+            t2 = self.R @ np.ravel(tv) + self.T
+            up, _ = cv2.projectPoints(o.reshape(-1, 1, 3), r2, t2, self.projector.K, self.projector.dist)
+            out["camera"].append((c, uc.reshape(-1, 2) - c))
+            out["projector"].append((p, up.reshape(-1, 2) - p))
+        return out
 
     def views_table(self) -> list[dict]:
         rows = []
@@ -146,11 +165,14 @@ def observe(name: str, frames: np.ndarray, board: BoardSpec, projector_size: tup
     if white.dtype != np.uint8:
         white = cv2.normalize(white.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
     size = (frames.shape[2], frames.shape[1])
+    t0 = time.perf_counter()
     found = detect(white, board)
+    t1 = time.perf_counter()
     dec = decode(frames, projector_size[0], projector_size[1], **options.decode)
+    timings = {"detect": t1 - t0, "decode": time.perf_counter() - t1}
     if found is None:
-        return Observation(name, None, None, dec, size, reason="board not found in the white frame")
-    return Observation(name, found[0], found[1], dec, size)
+        return Observation(name, None, None, dec, size, reason="board not found in the white frame", timings=timings)
+    return Observation(name, found[0], found[1], dec, size, timings=timings)
 
 
 def undistortion_grid(K: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -276,6 +298,8 @@ def calibrate_lens(
     """
     options = options or SolveOptions()
     names, obj, img = list(names), list(obj), list(img)
+    masks = [np.ones(len(o), bool) for o in obj]  # points kept, per view, over the input points
+    full_obj, full_img = list(obj), list(img)
     _check_views(who, names, obj, img, size, options)
     fix_k3 = options.fix_k3 if options.fix_k3 is not None else edge_coverage(img, size) < 4
     flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
@@ -291,12 +315,26 @@ def calibrate_lens(
             _f32(obj, 3), _f32(img, 2), size, None, None, flags=flags, criteria=crit
         )
         errs = np.asarray(pve, dtype=np.float64).ravel()
+        # single bad points (a corner next to an occluder): drop them when the rest of the view is fine
+        pthr = max(options.point_outlier_factor * rms, options.point_outlier_floor_px)
+        dropped_points = False
+        for v in range(len(names)):
+            proj, _ = cv2.projectPoints(obj[v].reshape(-1, 1, 3), rvecs[v], tvecs[v], K, dist)
+            res = np.linalg.norm(proj.reshape(-1, 2) - img[v], axis=1)
+            bad = res > pthr
+            if bad.any() and bad.mean() <= 0.25 and (~bad).sum() >= 6:
+                idx = np.nonzero(masks[v])[0]
+                masks[v][idx[bad]] = False
+                obj[v], img[v] = full_obj[v][masks[v]], full_img[v][masks[v]]
+                dropped_points = True
+        if dropped_points:
+            continue
         med = float(np.median(errs))
         thr = max(options.outlier_factor * med, med + options.outlier_floor_px)
         worst = int(np.argmax(errs))
         if errs[worst] > thr and len(names) > options.min_views:
             rejected[names[worst]] = f"reprojection RMS {errs[worst]:.2f} px > {thr:.2f} px (median of views {med:.2f} px)"
-            for lst in (names, obj, img):
+            for lst in (names, obj, img, masks, full_obj, full_img):
                 lst.pop(worst)
             continue
         if (
@@ -335,7 +373,7 @@ def calibrate_lens(
     fit = LensFit(
         size[0], size[1], K, np.asarray(dist, dtype=np.float64).ravel()[:5], float(rms), names,
         {n: float(e) for n, e in zip(names, errs)}, std, [np.ravel(r) for r in rvecs], [np.ravel(t) for t in tvecs],
-        rejected, bool(fix_k3), new_obj if release else None, diagnostics,
+        rejected, bool(fix_k3), new_obj if release else None, diagnostics, dict(zip(names, masks)),
     )
     rel = max(std["fx"] / K[0, 0], std["fy"] / K[1, 1])
     if not np.isfinite(rel) or rel > options.max_rel_std:
@@ -395,6 +433,10 @@ def calibrate_procam(
     p_names, p_obj, p_img, c_img = [], [], [], []
     for name in cam.names:
         o = by_name[name]
+        keep_c = cam.kept[name]
+        if not keep_c.all():
+            o.reason = f"{int((~keep_c).sum())} corner(s) dropped as outliers"
+            o.camera_px, o.ids = o.camera_px[keep_c], o.ids[keep_c]
         spacing = _corner_spacing(o.camera_px, board, o.ids)
         win = options.window or int(np.clip(round(0.5 * spacing), 6, 40))
         proj, _ = projector_corners(o.decoded, o.camera_px, grid, cam.K, cam.dist, window=win,
@@ -402,7 +444,7 @@ def calibrate_procam(
         o.projector_px = proj
         ok = np.isfinite(proj).all(axis=1)
         ok &= (proj[:, 0] > -0.5) & (proj[:, 0] < projector_size[0] - 0.5) & (proj[:, 1] > -0.5) & (proj[:, 1] < projector_size[1] - 0.5)
-        if ok.mean() < options.min_corner_fraction:
+        if ok.mean() < options.min_corner_fraction or ok.sum() < 6:
             o.reason = (
                 f"only {ok.sum()} of {len(ok)} corners have projector coordinates (decoded {o.decoded.valid_fraction:.0%} "
                 "of pixels): check the projector lights the whole board and the exposure"
@@ -422,9 +464,9 @@ def calibrate_procam(
     t0 = time.perf_counter()
     keep = [i for i, n in enumerate(p_names) if n in proj_fit.per_view]
     s_names = [p_names[i] for i in keep]
-    s_obj = [p_obj[i] for i in keep]
-    s_cam = [c_img[i] for i in keep]
-    s_proj = [p_img[i] for i in keep]
+    s_obj = [p_obj[i][proj_fit.kept[p_names[i]]] for i in keep]
+    s_cam = [c_img[i][proj_fit.kept[p_names[i]]] for i in keep]
+    s_proj = [p_img[i][proj_fit.kept[p_names[i]]] for i in keep]
     stereo_rejected: dict[str, str] = {}
     R0, T0 = _initial_extrinsics(cam, proj_fit, s_names)
     flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_USE_EXTRINSIC_GUESS
@@ -452,7 +494,10 @@ def calibrate_procam(
     cam.K, cam.dist = Kc, np.ravel(dc)[:5]
     proj_fit.K, proj_fit.dist = Kp, np.ravel(dp)[:5]
     per_view = {n: (float(a), float(b)) for n, (a, b) in zip(s_names, pve)}
-    return ProcamResult(cam, proj_fit, R, np.ravel(T), float(s_rms), per_view, observations, diagnostics, timings, stereo_rejected)
+    data = {"names": s_names, "obj": s_obj, "camera": s_cam, "projector": s_proj,
+            "rvecs": [np.ravel(r) for r in out[9]], "tvecs": [np.ravel(t) for t in out[10]]}
+    return ProcamResult(cam, proj_fit, R, np.ravel(T), float(s_rms), per_view, observations, diagnostics, timings,
+                        stereo_rejected, data)
 
 
 def _corner_spacing(px: np.ndarray, board: BoardSpec, ids: np.ndarray) -> float:

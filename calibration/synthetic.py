@@ -208,7 +208,9 @@ class SyntheticRig:
         return out
 
     def _albedo(self, bx: np.ndarray, by: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
-        """Chessboard reflectance, box-filtered over each sample's footprint."""
+        """Chessboard reflectance, box-filtered over each sample's footprint (ChArUco: texture)."""
+        if self.board.kind == "charuco":
+            return self._charuco_albedo(bx, by, grid)
         s = self.board.square
         wx = _footprint(bx, grid) / s
         wy = _footprint(by, grid) / s
@@ -227,6 +229,22 @@ class SyntheticRig:
         m = 0.8 * s
         on = (bx >= -s - m) & (bx <= cols * s + m) & (by >= -s - m) & (by <= rows * s + m)
         a = self.white_albedo + (self.black_albedo - self.white_albedo) * np.where(in_sq, dark, 0.0)
+        return np.where(on, a, 0.0)
+
+    def _charuco_albedo(self, bx: np.ndarray, by: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
+        """ChArUco print (OpenCV's own board image) sampled bilinearly from a prefiltered texture."""
+        s = self.board.square
+        fp = float(np.median(np.maximum(_footprint(bx, grid), _footprint(by, grid))))
+        ppm = 8.0 / max(fp, 1e-5)  # ~8 texels per sample footprint
+        ppm = round(ppm * s) / s  # whole texels per square
+        tex = _charuco_texture(self.board, ppm, 0.4 * ppm * fp)
+        tx = (bx * ppm - 0.5).astype(np.float32).reshape(grid)
+        ty = (by * ppm - 0.5).astype(np.float32).reshape(grid)
+        val = cv2.remap(tex, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0).ravel()
+        cols, rows = self.board.cols, self.board.rows
+        m = 0.8 * s
+        on = (bx >= -m) & (bx <= cols * s + m) & (by >= -m) & (by <= rows * s + m)
+        a = self.black_albedo + (self.white_albedo - self.black_albedo) * val.astype(np.float64)
         return np.where(on, a, 0.0)
 
     def _camera_response(self, rad: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -356,6 +374,14 @@ def make_rig(
         raise RuntimeError(f"could only place {len(views)} of {n_views} board poses in both fields of view")
     rig.views = views
     return rig
+
+
+def _charuco_texture(board: BoardSpec, ppm: float, blur: float) -> np.ndarray:
+    from calibration.board import charuco_image
+
+    px_per_square = int(round(board.square * ppm))
+    tex = charuco_image(board, px_per_square).astype(np.float32) / 255.0
+    return cv2.GaussianBlur(tex, (0, 0), blur) if blur > 0 else tex
 
 
 def _footprint(v: np.ndarray, grid: tuple[int, int]) -> np.ndarray:

@@ -104,3 +104,27 @@ def test_flat_board_is_not_flagged():
     names, obj, img = _white_frame_views(rig)
     fit = calibrate_lens("camera", names, obj, img, (640, 480), allow_release=True)
     assert fit.diagnostics == [] and fit.object_points is None
+
+
+def test_charuco_partial_views_calibrate():
+    """ChArUco: views where an occluder hides part of the board still contribute their visible corners."""
+    from calibration.board import BoardSpec
+
+    spec = BoardSpec(cols=7, rows=5, square=0.04, kind="charuco", marker=0.03, dictionary="DICT_4X4_50")
+    rig = make_rig(seed=12, n_views=8, supersample=1, board=spec)
+    obs = []
+    for i in range(len(rig.views)):
+        frames = rig.render_view(i)
+        if i % 3 == 0:
+            c = rig.corners_camera(i)
+            cut = int(np.percentile(c[:, 0], 40))
+            frames[:, :, :cut] = frames[1, :, :cut]  # an occluder in front of the left part
+        obs.append(observe(f"pose_{i:03d}", frames, spec, PROJECTOR))
+    partial = [o for i, o in enumerate(obs) if i % 3 == 0]
+    assert all(6 <= len(o.ids) < 20 for o in partial)  # of 24 inner corners
+    r = calibrate_procam(obs, spec, PROJECTOR)
+    assert len(r.stereo_per_view) == 8
+    assert abs(r.projector.K[0, 0] / rig.projector.K[0, 0] - 1) < 0.002
+    assert abs(r.projector.K[1, 2] - rig.projector.K[1, 2]) < 2.0
+    assert r.stereo_rms < 0.2
+    assert rotation_error_deg(r.R, rig.R_pc) < 0.05 and np.linalg.norm(r.T - rig.t_pc) < 0.5e-3
