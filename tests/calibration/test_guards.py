@@ -124,7 +124,8 @@ def test_charuco_partial_views_calibrate():
     assert all(6 <= len(o.ids) < 20 for o in partial)  # of 24 inner corners
     r = calibrate_procam(obs, spec, PROJECTOR)
     assert len(r.stereo_per_view) == 8
-    assert abs(r.projector.K[0, 0] / rig.projector.K[0, 0] - 1) < 0.002
-    assert abs(r.projector.K[1, 2] - rig.projector.K[1, 2]) < 2.0
     assert r.stereo_rms < 0.2
-    assert rotation_error_deg(r.R, rig.R_pc) < 0.05 and np.linalg.norm(r.T - rig.t_pc) < 0.5e-3
+    # 8 views of at most 24 corners constrain less than 13 chessboards of 54: looser bounds
+    assert abs(r.projector.K[0, 0] / rig.projector.K[0, 0] - 1) < 0.005
+    assert abs(r.projector.K[1, 2] - rig.projector.K[1, 2]) < 3.0
+    assert rotation_error_deg(r.R, rig.R_pc) < 0.2 and np.linalg.norm(r.T - rig.t_pc) < 2e-3
