@@ -6,6 +6,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from dpmhw.errors import CalibrationError, DpmhwError
 from dpmhw.projector_calibration import CalibrationFileError, LensModel, ProjectorCalibration, load_projector_calibration
@@ -98,6 +100,32 @@ def test_nan_in_a_matrix(tmp_path):
     p.write_text(text)
     with pytest.raises(CalibrationFileError, match=r"nan\.json: projector\.K: contains NaN"):
         load_projector_calibration(p)
+
+
+_json = st.recursive(
+    st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats(allow_nan=False) | st.text(max_size=5),
+    lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=5), c, max_size=4),
+    max_leaves=12,
+)
+_FIELDS = [("projector", "K"), ("projector", "dist"), ("projector", "width"), ("world_from_projector", "R"),
+           ("world_from_projector", "t"), ("world_from_projector", "frame"), ("camera", "K"), (None, "views"), (None, "camera")]
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(field=st.sampled_from(_FIELDS), value=_json)
+def test_loader_is_total(tmp_path, field, value):
+    """Any value in any field either loads or raises CalibrationFileError naming a field."""
+    doc = _cal().to_dict()
+    outer, inner = field
+    (doc if outer is None else doc[outer])[inner] = value
+    p = tmp_path / "fuzz.json"
+    p.write_text(json.dumps(doc))
+    try:
+        cal = load_projector_calibration(p)
+    except CalibrationFileError as exc:
+        assert exc.source == str(p) and exc.field
+    else:
+        assert cal.K.shape == (3, 3) and cal.R.shape == (3, 3) and cal.dist.shape == (5,)
 
 
 def test_missing_and_corrupt_files(tmp_path):

@@ -44,6 +44,15 @@ def test_fronto_parallel_views_are_degenerate():
     assert "tilted" in str(info.value) and info.value.field == "views"
 
 
+def test_k3_is_freed_only_when_points_reach_the_image_corners():
+    from calibration.procam import edge_coverage
+
+    centre = [np.random.default_rng(0).uniform([200, 150], [440, 330], (100, 2))]
+    corners = centre + [np.array([[5.0, 5.0], [635.0, 5.0], [5.0, 475.0], [635.0, 475.0]])]
+    assert edge_coverage(centre, (640, 480)) == 0
+    assert edge_coverage(corners, (640, 480)) == 4
+
+
 def test_corrupted_view_is_rejected_and_results_stay_within_tolerance(world):
     """The board was bumped between the white frame and the patterns of one pose."""
     rig = world.rig
