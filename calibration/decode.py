@@ -79,7 +79,7 @@ def decode(
     stack = _as_stack(images)
     if stack.shape[0] != ps.count:
         raise ValueError(f"expected {ps.count} frames for a {width}x{height} projector, got {stack.shape[0]}")
-    white, black = stack[0], stack[1]
+    white, black = stack[0].astype(np.float32), stack[1].astype(np.float32)
     rng = white - black
     lit = (rng > shadow_threshold) & (rng > min_relative_range * np.maximum(white, 1e-6))
     safe_rng = np.where(lit, rng, 1.0)
@@ -87,7 +87,9 @@ def decode(
     out = {}
     ambiguous = np.zeros(white.shape, np.int16)
     for axis, nb, size in (("x", ps.col_bits, width), ("y", ps.row_bits, height)):
-        diffs = [stack[ps.index(axis, k)] - stack[ps.index(axis, k, True)] for k in range(nb)]
+        diffs = [
+            stack[ps.index(axis, k)].astype(np.float32) - stack[ps.index(axis, k, True)].astype(np.float32) for k in range(nb)
+        ]
         contrast = [float(np.median(np.abs(d[lit]) / safe_rng[lit])) if lit.any() else 0.0 for d in diffs]
         used = nb
         if adapt:
@@ -123,5 +125,5 @@ def _as_stack(images: np.ndarray | list[np.ndarray]) -> np.ndarray:
                 raise ValueError(f"frame {i} has shape {f.shape}, frame 0 has {shape}")
         stack = np.stack(frames)
         if stack.ndim == 4:
-            stack = stack.mean(axis=3)
-    return stack.astype(np.float32)
+            stack = stack.mean(axis=3, dtype=np.float32)
+    return stack  # converted to float32 one frame at a time
