@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -135,8 +136,7 @@ class ProjectorCalibration:
         fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
         try:
             with os.fdopen(fd, "w") as fh:
-                json.dump(doc, fh, indent=2)
-                fh.write("\n")
+                fh.write(_dumps(doc))
                 fh.flush()
                 os.fsync(fh.fileno())
             os.replace(tmp, path)
@@ -256,6 +256,15 @@ def _rotation(d: dict, name: str, src: str) -> np.ndarray:
     return R
 
 
+_NUMBER_LIST = re.compile(r"\[\s+((?:-?[0-9.eE+-]+,\s+)*-?[0-9.eE+-]+)\s+\]")
+
+
+def _dumps(doc: dict) -> str:
+    """Indented JSON with each innermost list of numbers on one line (matrices stay readable)."""
+    text = json.dumps(doc, indent=2, allow_nan=False)
+    return _NUMBER_LIST.sub(lambda m: "[" + " ".join(m.group(1).split()) + "]", text) + "\n"
+
+
 def _jsonable(x: Any) -> Any:
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
@@ -263,8 +272,8 @@ def _jsonable(x: Any) -> Any:
         return [_jsonable(v) for v in x]
     if isinstance(x, np.ndarray):
         return x.tolist()
-    if isinstance(x, (np.floating,)):
-        return float(x)
+    if isinstance(x, np.floating):
+        x = float(x)
     if isinstance(x, (np.integer,)):
         return int(x)
     if isinstance(x, (np.bool_,)):
