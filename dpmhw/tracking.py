@@ -181,52 +181,71 @@ def quaternions_xyzw_to_matrices(quaternions: np.ndarray) -> tuple[np.ndarray, n
     return rotations, usable
 
 
+class _SlidingMinimum:
+    """Minimum of `key` over the last `window_ns` of host time, O(1) amortised (monotonic deque)."""
+
+    def __init__(self, window_ns: int):
+        self.window_ns = window_ns
+        self._items: deque[tuple[int, int, int]] = deque()  # (host time, key, value), keys increasing
+
+    def push(self, t_ns: int, key: int, value: int) -> None:
+        while self._items and self._items[-1][1] >= key:
+            self._items.pop()
+        self._items.append((t_ns, key, value))
+        while self._items[0][0] < t_ns - self.window_ns:
+            self._items.popleft()
+
+    def best(self) -> int | None:
+        return self._items[0][2] if self._items else None
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
 class ClockMapping:
     """Maps a device clock (ns since some device epoch) to the host monotonic clock.
 
-    Two kinds of evidence, both bounded in memory:
+    Two kinds of evidence, each kept over a sliding window of host time (`window_s`) so that a
+    device clock drifting against the host's is followed (50 ppm over 2 s is 0.1 ms):
 
     - one-way: a message stamped `device_ns` by the device just before sending arrived at
       `arrival_ns`; `arrival - device` over-estimates the offset by the transit delay, so the
-      minimum over a sliding window tends to offset + smallest transit (a running minimum);
+      minimum over the window tends to offset + smallest transit (a running minimum);
     - round trip (Cristian): the host sent at `t0`, the device stamped `device_ns` and the reply
       arrived at `t1`; the offset is `(t0 + t1) / 2 - device_ns` within half the round trip.
       The round trip with the smallest duration in the window wins.
 
     Round trips are preferred when present: they are unbiased, the one-way minimum is biased by
-    the fastest transit. Windows let a slowly drifting device clock be followed.
+    the fastest transit.
     """
 
-    def __init__(self, window: int = 512):
-        self._one_way: deque[int] = deque(maxlen=window)
-        self._round_trips: deque[tuple[int, int]] = deque(maxlen=max(8, window // 8))
+    def __init__(self, window_s: float = 2.0):
+        window_ns = int(window_s * 1e9)
+        self._one_way = _SlidingMinimum(window_ns)
+        self._round_trips = _SlidingMinimum(window_ns)
         self._lock = threading.Lock()
 
     def add_one_way(self, device_ns: int, arrival_ns: int) -> None:
         with self._lock:
-            self._one_way.append(arrival_ns - device_ns)
+            self._one_way.push(arrival_ns, arrival_ns - device_ns, arrival_ns - device_ns)
 
     def add_round_trip(self, sent_ns: int, device_ns: int, received_ns: int) -> None:
         if received_ns < sent_ns:
             return  # not a round trip on a monotonic clock: ignore rather than corrupt
         with self._lock:
-            rtt = received_ns - sent_ns
-            self._round_trips.append((rtt, (sent_ns + received_ns) // 2 - device_ns))
+            self._round_trips.push(received_ns, received_ns - sent_ns, (sent_ns + received_ns) // 2 - device_ns)
 
     @property
     def offset_ns(self) -> int | None:
         """host_ns = device_ns + offset_ns; None until some evidence arrived."""
         with self._lock:
-            if self._round_trips:
-                return min(self._round_trips)[1]
-            if self._one_way:
-                return min(self._one_way)
-            return None
+            best = self._round_trips.best()
+            return best if best is not None else self._one_way.best()
 
     @property
     def method(self) -> str:
         with self._lock:
-            return "round-trip" if self._round_trips else ("one-way minimum" if self._one_way else "none")
+            return "round-trip" if len(self._round_trips) else ("one-way minimum" if len(self._one_way) else "none")
 
     def to_host_ns(self, device_ns: int) -> int | None:
         offset = self.offset_ns

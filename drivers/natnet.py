@@ -23,7 +23,7 @@ from collections import deque
 
 import numpy as np
 
-from dpmhw.tracking import PoseSample, TrackerError, TrackerState, quaternions_xyzw_to_matrices
+from dpmhw.tracking import ClockMapping, PoseSample, TrackerError, TrackerState, quaternions_xyzw_to_matrices
 from drivers.natnet_protocol import (
     MessageId,
     ModelDefinitions,
@@ -56,6 +56,8 @@ class NatNetClient(ReceiverTracker):
         command socket and to join the multicast group on the right NIC).
     multicast : None follows what the server announces in its server info.
     natnet_version : force a bitstream version (e.g. "4.1"); None uses the server's.
+    clock_window_s : how long clock-offset evidence is kept; shorter follows a drifting server
+        clock more closely (error <= drift x window), longer rides out network hiccups.
     """
 
     kind = "natnet"
@@ -72,7 +74,8 @@ class NatNetClient(ReceiverTracker):
         natnet_version: str | None = None,
         connect_timeout_s: float = 1.0,
         keepalive_interval_s: float = 1.0,
-        echo_interval_s: float = 0.5,
+        echo_interval_s: float = 0.25,
+        clock_window_s: float = 2.0,
         stale_after_s: float = 0.1,
         lost_after_s: float = 1.0,
         backoff_initial_s: float = 0.1,
@@ -90,6 +93,7 @@ class NatNetClient(ReceiverTracker):
         self.multicast_group = multicast_group
         self.forced_version = parse_version(natnet_version) if natnet_version else None
         self.version: tuple[int, int] | None = self.forced_version
+        self.clock = ClockMapping(window_s=clock_window_s)
         self.connect_timeout_s = connect_timeout_s
         self.keepalive_interval_s = keepalive_interval_s
         self.echo_interval_s = echo_interval_s

@@ -189,6 +189,7 @@ class NatNetServerConfig:
     multicast_group: str = "239.255.42.99"
     clock_hz: int = 10_000_000
     server_uptime_s: float = 5000.0  # the server clock's reading when the mock starts
+    clock_drift_ppm: float = 0.0  # the server clock runs this much fast against the host's
     dropout_prob: float = 0.0  # per body per frame: tracked flag off
     marker_noise_m: float = 0.0  # std dev of marker position noise
     truncate_prob: float = 0.0  # per frame
@@ -234,20 +235,24 @@ class NatNetServer:
             s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
             self._mcast = s
         self._zero_ns = time.monotonic_ns() - int(cfg.server_uptime_s * 1e9)
+        self._ticks_per_ns = cfg.clock_hz * (1 + cfg.clock_drift_ppm * 1e-6) / 1e9
 
     # -- clock ---------------------------------------------------------------------------------
 
     def ticks(self, host_ns: int) -> int:
         """Server clock reading at host monotonic time `host_ns`."""
-        return (host_ns - self._zero_ns) * self.config.clock_hz // 1_000_000_000
+        if self.config.clock_drift_ppm == 0:
+            return (host_ns - self._zero_ns) * self.config.clock_hz // 1_000_000_000
+        return int((host_ns - self._zero_ns) * self._ticks_per_ns)
 
     @property
     def clock_origin_host_ns(self) -> int:
-        """Host monotonic time at which the server clock read 0: host_ns = origin + ticks / clock_hz."""
+        """Host monotonic time at which the server clock read 0: without drift,
+        host_ns = origin + ticks * 1e9 / clock_hz."""
         return self._zero_ns
 
     def ticks_to_host_ns(self, ticks: int) -> float:
-        return self._zero_ns + ticks * 1e9 / self.config.clock_hz
+        return self._zero_ns + ticks / self._ticks_per_ns
 
     def mid_exposure_host_ns(self, frame_number: int) -> float | None:
         """Host time (ns) that frame `frame_number` describes; None if not (or no longer) logged."""

@@ -37,7 +37,7 @@ def test_natnet_rejects_an_unsupported_version():
 def test_natnet_command_serves_a_real_client():
     port = free_udp_port()
     args = ["mock", "natnet", "--unicast", "--version", "4.2", "--rate", "200", "--command-port", str(port),
-            "--trajectory", "circular", "--bodies", "2", "--duration", "3", "--status-every", "0"]
+            "--trajectory", "circular", "--bodies", "2", "--duration", "1.5", "--status-every", "0"]
     results = []
     thread = threading.Thread(target=lambda: results.append(runner.invoke(app, args)))
     thread.start()

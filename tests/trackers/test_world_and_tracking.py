@@ -100,8 +100,8 @@ def test_zero_quaternion_is_unusable_not_identity():
 
 
 def test_clock_mapping_prefers_round_trips_and_takes_the_minimum():
-    clock = ClockMapping(window=8)
-    assert clock.offset_ns is None
+    clock = ClockMapping(window_s=1.0)
+    assert clock.offset_ns is None and clock.to_host_ns(0) is None
     for delay in (300, 120, 500):  # one-way: offset 1000 plus transit
         clock.add_one_way(device_ns=10_000, arrival_ns=11_000 + delay)
     assert clock.offset_ns == 1120 and clock.method == "one-way minimum"
@@ -109,9 +109,18 @@ def test_clock_mapping_prefers_round_trips_and_takes_the_minimum():
     clock.add_round_trip(sent_ns=30_000, device_ns=29_000, received_ns=32_000)  # rtt 2000, worse
     assert clock.offset_ns == 1000 and clock.method == "round-trip"
     assert clock.to_host_ns(5) == 1005
-    for _ in range(20):  # the window forgets old one-way evidence (drift tracking)
-        clock.add_one_way(device_ns=0, arrival_ns=5000)
-    assert min(clock._one_way) == 5000
+
+
+def test_clock_mapping_forgets_evidence_older_than_its_window():
+    """A drifting device clock: old minima must not pin the offset."""
+    clock = ClockMapping(window_s=1.0)
+    clock.add_one_way(device_ns=0, arrival_ns=1_000)  # offset 1000 at host t = 1 µs
+    later = 3 * 10**9
+    clock.add_one_way(device_ns=later - 5_000, arrival_ns=later)  # offset now 5000
+    assert clock.offset_ns == 5_000
+    clock.add_round_trip(sent_ns=10, device_ns=0, received_ns=20)  # tiny rtt, but long ago...
+    clock.add_round_trip(sent_ns=later, device_ns=later - 7_000 + 500, received_ns=later + 1_000)
+    assert clock.offset_ns == 7_000  # ...so the recent, slower round trip wins
 
 
 def _sample(i: int, frame: int = 0) -> PoseSample:
