@@ -1,0 +1,265 @@
+"""Session configuration: one TOML file, validated with pydantic, every field overridable.
+
+A lab operator edits the file and overrides single fields from the command line
+(`--set render.spp=2`). Any mistake raises `SessionConfigError` naming the file, the dotted
+field path, what was expected and what was given; unknown fields are errors too (a typo must
+not pass silently as a default).
+
+`LiveSettings` is the subset the operator may change while the loop runs (over HTTP): the loop
+applies a validated change on its next frame.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from dpmhw.errors import DpmhwError
+
+__all__ = [
+    "REUSE_MODES",
+    "SessionConfig",
+    "SessionConfigError",
+    "LiveSettings",
+    "load_session_config",
+    "parse_overrides",
+    "format_validation_error",
+]
+
+REUSE_MODES = ("off", "ema", "reproject")
+
+
+class SessionConfigError(DpmhwError, ValueError):
+    """The session configuration is invalid; the message lists every bad field."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class SceneSection(_Section):
+    source: str = Field("dpm-bunny", description="built-in scene name or a scene TOML path (relative to the config)")
+    mesh: str = Field("", description="optional mesh file replacing builtin:bunny")
+    calibration: str = Field("", description="projector calibration file; replaces the scene's camera")
+
+
+class RenderSection(_Section):
+    width: int = Field(256, ge=0, le=16384, description="render width in pixels; 0 keeps the scene's")
+    height: int = Field(192, ge=0, le=16384, description="render height in pixels; 0 keeps the scene's")
+    spp: int = Field(1, ge=1, le=64)
+    threads: int = Field(2, ge=1, le=256)
+    exposure: float = Field(1.0, gt=0.0, le=1e4)
+    seed: int = Field(0, ge=0)
+    target_fps: float = Field(30.0, gt=0.0, le=10000.0, description="a frame slower than 1/target_fps is a deadline miss")
+
+    @model_validator(mode="after")
+    def _both_or_neither(self) -> "RenderSection":
+        if (self.width == 0) != (self.height == 0):
+            raise ValueError("render.width and render.height must both be 0 (the scene's size) or both be set")
+        return self
+
+
+class ReuseSection(_Section):
+    mode: Literal["off", "ema", "reproject"] = "ema"
+    alpha: float = Field(0.2, gt=0.0, le=1.0, description="weight of the new frame, in (0, 1]")
+    split_screen: bool = Field(False, description="left half with reuse, right half without (for comparison)")
+
+
+class PredictionSection(_Section):
+    enabled: bool = True
+    history: int = Field(4, ge=2, le=64, description="recent samples used to estimate the velocities")
+    display_latency_ms: float = Field(0.0, ge=0.0, le=1000.0, description="present() to photons (the projector's own delay)")
+    max_horizon_ms: float = Field(150.0, gt=0.0, le=2000.0, description="never extrapolate further than this")
+
+
+class Binding(_Section):
+    rigid_body: int = Field(ge=0)
+    object: str = Field(min_length=1, description="scene object name")
+
+
+class TrackerSection(_Section):
+    kind: Literal["natnet", "serial"] = "natnet"
+    server: str = "127.0.0.1"
+    command_port: int = Field(1510, ge=0, le=65535)
+    local_interface: str = "127.0.0.1"
+    port: str = Field("", description="serial port (kind = serial): a device path or a pyserial URL")
+    baudrate: int = Field(115200, gt=0)
+
+
+class ProjectorSection(_Section):
+    kind: Literal["dlpc900", "none"] = "dlpc900"
+    serial: str = ""
+    timeout_ms: int = Field(500, ge=10, le=60000)
+    poll_interval_s: float = Field(0.25, gt=0.0, le=60.0, description="how often device health is read")
+    reconnect_attempts: int = Field(2, ge=1, le=100)
+
+
+class SinkSection(_Section):
+    kind: Literal["window", "file", "recording", "none"] = "window"
+    path: str = Field("", description="output path (kind = file)")
+    display: int = Field(0, ge=0)
+
+
+class SafetySection(_Section):
+    stale_after_ms: float = Field(50.0, gt=0.0, le=10000.0, description="tracking older than this blanks the output")
+    holdoff_s: float = Field(0.5, ge=0.0, le=600.0, description="a cause must be gone this long before projection resumes")
+    resume: Literal["auto", "manual"] = Field("auto", description="manual: resume only on an explicit request")
+    watchdog_s: float = Field(1.0, gt=0.0, le=600.0, description="a loop iteration longer than this is a stall")
+
+
+class MetricsSection(_Section):
+    window: int = Field(512, ge=8, le=1_000_000, description="frames kept in each rolling window")
+
+
+class ApiSection(_Section):
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = Field(8765, ge=0, le=65535)
+    token: str = Field("", description="bearer token for mutating endpoints; DPMHW_API_TOKEN overrides")
+
+
+class RecordingSection(_Section):
+    enabled: bool = False
+    path: str = Field("sessions", description="parent folder; each session gets its own subfolder")
+    frame_every: int = Field(30, ge=1, description="keep every Nth presented frame as PNG")
+
+
+class MockSection(_Section):
+    trajectory: Literal["static", "linear", "rotate-oscillate"] = "rotate-oscillate"
+    rate_hz: float = Field(360.0, gt=0.0, le=10000.0)
+    latency_ms: float = Field(4.5, ge=0.0, le=1000.0)
+    speed: float = Field(1.0, gt=0.0, le=100.0, description="scales every velocity of the trajectory")
+
+
+class SessionConfig(_Section):
+    """Everything one projection session needs; see docs/session.md for each field."""
+
+    scene: SceneSection = SceneSection()
+    render: RenderSection = RenderSection()
+    reuse: ReuseSection = ReuseSection()
+    prediction: PredictionSection = PredictionSection()
+    bindings: list[Binding] = Field(default_factory=list, description="empty: every scene object with a rigid_body")
+    tracker: TrackerSection = TrackerSection()
+    projector: ProjectorSection = ProjectorSection()
+    sink: SinkSection = SinkSection()
+    safety: SafetySection = SafetySection()
+    metrics: MetricsSection = MetricsSection()
+    api: ApiSection = ApiSection()
+    recording: RecordingSection = RecordingSection()
+    mock: MockSection = MockSection()
+    base_dir: str = Field("", description="folder relative paths are resolved against (the config's folder)")
+
+    @field_validator("bindings")
+    @classmethod
+    def _unique_bodies(cls, bindings: list[Binding]) -> list[Binding]:
+        seen: set[str] = set()
+        for b in bindings:
+            if b.object in seen:
+                raise ValueError(f"object {b.object!r} is bound twice")
+            seen.add(b.object)
+        return bindings
+
+    def resolve(self, path: str) -> Path:
+        p = Path(path).expanduser()
+        return p if p.is_absolute() or not self.base_dir else Path(self.base_dir) / p
+
+    def api_token(self) -> str:
+        """The bearer token: DPMHW_API_TOKEN wins over the file (keeps secrets out of files)."""
+        return os.environ.get("DPMHW_API_TOKEN", "") or self.api.token
+
+    def live_settings(self) -> "LiveSettings":
+        return LiveSettings(
+            alpha=self.reuse.alpha, reuse_mode=self.reuse.mode, spp=self.render.spp,
+            split_screen=self.reuse.split_screen, prediction=self.prediction.enabled,
+        )
+
+
+class LiveSettings(BaseModel):
+    """What the operator may change while the loop runs; immutable, so a snapshot is safe to share."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    alpha: float = Field(0.2, gt=0.0, le=1.0, description="reuse weight of the new frame, in (0, 1]")
+    reuse_mode: Literal["off", "ema", "reproject"] = "ema"
+    spp: int = Field(1, ge=1, le=64, description="samples per pixel per frame")
+    split_screen: bool = False
+    prediction: bool = True
+
+
+def format_validation_error(source: str, exc: ValidationError) -> str:
+    """One line per bad field: `source: a.b[0].c: what was expected (got value)`."""
+    lines = []
+    for err in exc.errors():
+        path = ""
+        for part in err["loc"]:
+            path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
+        got = err.get("input")
+        shown = "" if isinstance(got, (dict, list)) or got is None else f" (got {got!r})"
+        lines.append(f"{source}: {path or '(top level)'}: {err['msg']}{shown}")
+    return "\n".join(lines)
+
+
+def _parse_value(text: str) -> Any:
+    """A command-line value as TOML (numbers, booleans, strings in quotes, lists); bare words are strings."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def parse_overrides(items: list[str]) -> dict:
+    """`["render.spp=2", "api.port=0"]` → nested dict. Raises SessionConfigError on a malformed item."""
+    out: dict = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key or any(not part for part in key.split(".")):
+            raise SessionConfigError(f"--set {item!r}: expected section.field=value, e.g. render.spp=2")
+        node = out
+        parts = key.split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise SessionConfigError(f"--set {item!r}: {part} is set both as a value and as a section")
+        node[parts[-1]] = _parse_value(value.strip())
+    return out
+
+
+def _merge(base: dict, over: dict) -> dict:
+    merged = dict(base)
+    for k, v in over.items():
+        merged[k] = _merge(merged[k], v) if isinstance(v, dict) and isinstance(merged.get(k), dict) else v
+    return merged
+
+
+def load_session_config(path: str | Path | None = None, overrides: list[str] | dict | None = None) -> SessionConfig:
+    """Read a session TOML file (None: all defaults) and apply command-line overrides.
+
+    Raises SessionConfigError naming the file and every bad field.
+    """
+    data: dict = {}
+    source = "(defaults)"
+    base_dir = ""
+    if path is not None:
+        p = Path(path)
+        source = str(p)
+        if not p.is_file():
+            raise SessionConfigError(f"{p}: no such session config file")
+        try:
+            data = tomllib.loads(p.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise SessionConfigError(f"{p}: not valid TOML: {exc}") from None
+        base_dir = str(p.parent.resolve())
+    if overrides:
+        over = parse_overrides(overrides) if isinstance(overrides, list) else overrides
+        data = _merge(data, over)
+        source += " + command line" if path is not None else ""
+    data.setdefault("base_dir", base_dir)
+    try:
+        return SessionConfig.model_validate(data)
+    except ValidationError as exc:
+        raise SessionConfigError(format_validation_error(source, exc)) from None

@@ -1,0 +1,107 @@
+"""Pose prediction: extrapolate each rigid body to the instant its frame will be on the object.
+
+A tracker sample describes the body at mid-exposure; by the time the frame rendered from it is
+lit, the body has moved on for the whole motion-to-photon latency. The predictor assumes
+constant linear and angular velocity over that horizon (on SE(3): translation moves along a
+line, rotation turns about a fixed world axis at a fixed rate), estimated from the last few
+valid samples:
+
+    v = least-squares slope of translation over time       ω = log(R_new · R_oldᵀ) / (t_new − t_old)
+    t(t*) = t_new + v·Δ                                     R(t*) = exp(ω·Δ) · R_new,   Δ = t* − t_new
+
+Least squares on the positions averages marker noise; the rotation rate uses the end points of
+the window (noise in a rotation is smaller relative to its rate at tracker rates).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from dpmhw.tracking import PoseSample
+from dpmhw.transforms import Pose
+
+__all__ = ["BodyMotion", "PosePredictor", "extrapolate"]
+
+
+@dataclass(frozen=True)
+class BodyMotion:
+    """Newest pose of one body and its estimated velocities (world frame)."""
+
+    pose: Pose
+    t_ns: int  # host monotonic time the pose describes
+    velocity: np.ndarray  # (3,) m/s
+    angular_velocity: np.ndarray  # (3,) rad/s, world frame (rotation vector rate)
+
+
+def extrapolate(motion: BodyMotion, t_target_ns: int) -> Pose:
+    """Pose at `t_target_ns` under constant linear and angular velocity."""
+    dt = (t_target_ns - motion.t_ns) * 1e-9
+    R = Rotation.from_rotvec(motion.angular_velocity * dt).as_matrix() @ motion.pose.R
+    return Pose(R, motion.pose.t + motion.velocity * dt)
+
+
+def estimate_motion(samples: list[PoseSample]) -> BodyMotion:
+    """Velocities from `samples` (valid, oldest first); zero velocity from a single sample."""
+    newest = samples[-1]
+    pose = Pose(np.array(newest.rotation), np.array(newest.translation))
+    if len(samples) < 2:
+        return BodyMotion(pose, newest.t_exposure_ns, np.zeros(3), np.zeros(3))
+    t = np.array([s.t_exposure_ns for s in samples], dtype=np.float64) * 1e-9
+    t -= t.mean()
+    p = np.stack([s.translation for s in samples])
+    velocity = (t @ (p - p.mean(axis=0))) / (t @ t)
+    oldest = samples[0]
+    span = (newest.t_exposure_ns - oldest.t_exposure_ns) * 1e-9
+    turn = Rotation.from_matrix(newest.rotation @ oldest.rotation.T).as_rotvec()
+    return BodyMotion(pose, newest.t_exposure_ns, velocity, turn / span)
+
+
+class PosePredictor:
+    """Keeps the last `history` valid samples of each body and predicts poses to a target time.
+
+    Fed from the loop (`observe` the tracker's latest sample every frame; duplicates are
+    ignored), so it needs no thread of its own. `max_horizon_s` caps extrapolation: a stale
+    sample is not projected far into the future (safety blanks long before that anyway).
+    """
+
+    def __init__(self, history: int = 4, max_horizon_s: float = 0.15):
+        if history < 2:
+            raise ValueError(f"prediction history must be >= 2 samples, got {history}")
+        self.history = history
+        self.max_horizon_ns = int(max_horizon_s * 1e9)
+        self._samples: dict[int, deque[PoseSample]] = {}
+
+    def observe(self, sample: PoseSample) -> None:
+        """Add a sample if it is valid and newer than the last one kept for its body."""
+        if not sample.valid or not np.all(np.isfinite(sample.rotation)):
+            return
+        kept = self._samples.setdefault(sample.rigid_body_id, deque(maxlen=self.history))
+        if kept and sample.t_exposure_ns <= kept[-1].t_exposure_ns:
+            return
+        kept.append(sample)
+
+    def reset(self) -> None:
+        """Forget every body's history (after a jump, or on operator request)."""
+        self._samples.clear()
+
+    def motion(self, rigid_body_id: int) -> BodyMotion | None:
+        kept = self._samples.get(rigid_body_id)
+        return estimate_motion(list(kept)) if kept else None
+
+    def predict(self, rigid_body_id: int, t_target_ns: int, enabled: bool = True) -> tuple[Pose, int] | None:
+        """(pose at `t_target_ns`, horizon in ns actually used), or None with no sample yet.
+
+        With `enabled` False the newest measured pose is returned unchanged (horizon 0), which
+        is the baseline prediction is compared against.
+        """
+        motion = self.motion(rigid_body_id)
+        if motion is None:
+            return None
+        if not enabled:
+            return motion.pose, 0
+        horizon = min(max(t_target_ns - motion.t_ns, 0), self.max_horizon_ns)
+        return extrapolate(motion, motion.t_ns + horizon), horizon
