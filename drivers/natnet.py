@@ -177,7 +177,7 @@ class NatNetClient(ReceiverTracker):
                 f"frame {frame.frame_number}: camera mid-exposure stamp {frame.stamp_mid_exposure} is not "
                 f"positive and before the transmit stamp {frame.stamp_transmit}"
             )
-        samples = self._samples(frame, arrival_ns)  # validates before anything is counted
+        bodies = self._check_bodies(frame)  # validates before anything is counted
         self.clock.add_one_way(self._ticks_to_ns(frame.stamp_transmit), arrival_ns)
         if frame.models_changed:
             self._want_models = True
@@ -185,17 +185,26 @@ class NatNetClient(ReceiverTracker):
             return []
         self.system_latency_s = frame.system_latency_s(self.clock_hz)
         mid_host = self.clock.to_host_ns(self._ticks_to_ns(frame.stamp_mid_exposure))
+        rb = frame.rigid_bodies
+        positions, rotations, valid = bodies
         samples = [
-            PoseSample(s.rigid_body_id, s.rotation, s.translation, mid_host, arrival_ns, s.valid, s.mean_marker_error, s.frame_number)
-            for s in samples
+            PoseSample(
+                int(rb.ids[i]), rotations[i], positions[i], mid_host, arrival_ns, bool(valid[i]),
+                float(rb.mean_errors[i]), frame.frame_number,
+            )
+            for i in range(len(rb))
         ]
         self._publish_frame(samples, arrival_ns)
         return samples
 
-    def _samples(self, frame: MocapFrame, arrival_ns: int) -> list[PoseSample]:
+    @staticmethod
+    def _check_bodies(frame: MocapFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(positions (n, 3), rotations (n, 3, 3), valid (n,)) of the frame's rigid bodies.
+
+        A body flagged tracked must carry a finite position and a unit quaternion; otherwise the
+        frame is malformed (a pose we cannot trust is worse than none).
+        """
         rb = frame.rigid_bodies
-        if len(rb) == 0:
-            return []
         # Wire floats may be signalling NaNs: widening them must not raise FP warnings.
         with np.errstate(invalid="ignore", over="ignore"):
             positions = rb.positions.astype(np.float64)
@@ -209,14 +218,7 @@ class NatNetClient(ReceiverTracker):
                 f"frame {frame.frame_number}: rigid body {int(rb.ids[i])} is flagged tracked but its pose is not "
                 f"valid (position {positions[i].tolist()}, quaternion norm {norms[i]:.4g})"
             )
-        valid = tracked & usable
-        return [
-            PoseSample(
-                int(rb.ids[i]), rotations[i], positions[i], 0, arrival_ns, bool(valid[i]),
-                float(rb.mean_errors[i]), frame.frame_number,
-            )
-            for i in range(len(rb))
-        ]
+        return positions, rotations, tracked & usable
 
     # -- the session ---------------------------------------------------------------------------
 

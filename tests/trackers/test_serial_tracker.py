@@ -190,3 +190,22 @@ def test_silent_port_fails_the_init_with_an_actionable_reason():
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_silent_device_is_lost_then_reinitialised():
+    world = World.demo("circular", epoch_s=time.monotonic())
+    with PolhemusEmulator(world) as emu:
+        tracker = PolhemusTracker(
+            emu.port, reset_wait_s=0.02, stale_after_s=0.05, lost_after_s=0.3, backoff_initial_s=0.05, backoff_max_s=0.1
+        )
+        with tracker:
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 10)
+            emu.pause_streaming()  # the device stops talking, the port stays
+            assert wait_for(lambda: tracker.status().state == TrackerState.STALE, 5)
+            assert wait_for(lambda: tracker.status().state == TrackerState.LOST, 5)
+            assert "no record for" in tracker.status().reason
+            frames = tracker.status().frames
+            # the driver reopens the port and runs the init sequence again, which restarts the stream
+            assert wait_for(lambda: tracker.status().frames > frames + 20, 10), tracker.status()
+            assert tracker.status().state == TrackerState.STREAMING and tracker.status().reconnects >= 1
+        assert list(emu.commands).count(b"C") >= 2 and list(emu.commands).count(b"\x19") >= 2
