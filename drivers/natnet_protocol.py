@@ -571,8 +571,10 @@ def decode_model_definitions(payload: bytes | memoryview, version: tuple[int, in
             sk_id = r.i32(f"skeleton {name!r} id")
             k = r.count(f"skeleton {name!r} rigid body count", 1)
             skeletons[sk_id] = (name, tuple(_rigid_body_description(r, version) for _ in range(k)))
-        elif sized and dtype not in (3, 4, 5, 6):
-            r.pos = start + size  # a newer dataset type: its byte count lets us step over it
+        elif sized:
+            # 4.1+: step over datasets we do not use by their byte count (robust to layouts we
+            # do not parse, including dataset types newer than this code)
+            r.pos = start + size
             others.append(OtherDescription(dtype, ""))
         else:
             others.append(_skip_other(r, dtype, version))

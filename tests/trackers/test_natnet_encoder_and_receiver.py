@@ -248,3 +248,18 @@ def test_signalling_nan_in_a_tracked_pose_is_malformed_not_a_crash():
     assert client.process_datagram(bytes(datagram), 10**12) == []
     assert client.status().malformed == 1 and client.internal_errors == 0
     assert "rigid body 7 is flagged tracked" in client.last_decode_error
+
+
+def test_unknown_dataset_types_are_skipped_by_byte_count_from_4_1_and_rejected_before():
+    world = World.demo("static", count=1)
+    for version, ok in (((4, 1), True), ((3, 0), False)):
+        _, payload = split_message(encode_model_definitions(world, version))
+        count = int.from_bytes(payload[:4], "little")
+        extra = (9).to_bytes(4, "little") + ((3).to_bytes(4, "little") + b"abc" if ok else b"abc\0")
+        payload = (count + 1).to_bytes(4, "little") + extra + bytes(payload[4:])
+        if ok:
+            defs = decode_model_definitions(payload, version)
+            assert defs.rigid_body_names() == {1: "static_1"} and defs.others[0].type == 9
+        else:
+            with pytest.raises(NatNetDecodeError, match="dataset type"):
+                decode_model_definitions(payload, version)
