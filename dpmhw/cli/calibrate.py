@@ -217,6 +217,7 @@ def synth(
     blur: Annotated[float, typer.Option("--blur", help="Optical blur sigma in camera pixels.")] = 0.7,
     bow: Annotated[float, typer.Option("--bow", help="Board sag in metres (0 = flat).")] = 0.0,
     supersample: Annotated[int, typer.Option("--supersample", min=1, max=4)] = 2,
+    tracker_noise_mm: Annotated[float, typer.Option("--tracker-noise", help="Noise (sigma, mm) on the tracked board positions in tracker_poses.json.")] = 0.2,
     solve: Annotated[bool, typer.Option("--solve", help="Then run procam + tracker on it and print errors against the truth.")] = False,
 ) -> None:
     """Generate a synthetic capture with known truth (camera, projector with lens shift, board poses)."""
@@ -227,7 +228,7 @@ def synth(
     t0 = time.perf_counter()
     rig = make_rig(seed, views, camera_size=(cw, ch), projector_size=(pw, ph), projector_cy=projector_cy,
                    noise_sigma=noise, blur_sigma=blur, bow=bow, supersample=supersample)
-    rig.write(out, tracker_noise=0.0002)
+    rig.write(out, tracker_noise=tracker_noise_mm / 1000.0)
     typer.echo(f"wrote {views} poses x {rig.patterns.count} frames ({cw}x{ch} camera, {pw}x{ph} projector) to {out} "
                f"in {time.perf_counter() - t0:.1f} s")
     if solve:
