@@ -165,8 +165,9 @@ def _demo_recording() -> RecordedPath:
 TRAJECTORY_NAMES = ("static", "linear", "circular", "rotate-oscillate", "recorded")
 
 
-def make_trajectory(name: str) -> Trajectory:
-    """A trajectory by CLI name, with default parameters."""
+def make_trajectory(name: str, speed: float = 1.0) -> Trajectory:
+    """A trajectory by CLI name, with default parameters; `speed` scales every velocity
+    (linear and angular) by running the trajectory's clock faster."""
     factories = {
         "static": Static,
         "linear": Linear,
@@ -176,7 +177,10 @@ def make_trajectory(name: str) -> Trajectory:
     }
     if name not in factories:
         raise ValueError(f"unknown trajectory {name!r}; choose one of {', '.join(TRAJECTORY_NAMES)}")
-    return factories[name]()
+    if not speed > 0:
+        raise ValueError(f"trajectory speed must be positive, got {speed}")
+    traj = factories[name]()
+    return traj if speed == 1.0 else _TimeScaled(traj, speed)
 
 
 def default_markers(seed: int) -> np.ndarray:
@@ -212,11 +216,11 @@ class World:
         return obj
 
     @classmethod
-    def demo(cls, trajectory: str = "rotate-oscillate", epoch_s: float = 0.0, count: int = 1) -> "World":
+    def demo(cls, trajectory: str = "rotate-oscillate", epoch_s: float = 0.0, count: int = 1, speed: float = 1.0) -> "World":
         """`count` bodies (ids 1, 2, …) on the named trajectory, spaced 0.5 m apart along Z."""
         world = cls(epoch_s=epoch_s)
         for i in range(count):
-            traj = make_trajectory(trajectory)
+            traj = make_trajectory(trajectory, speed)
             if i:
                 traj = _Shifted(traj, np.array([0.0, 0.0, 0.5 * i]))
             world.add(i + 1, f"{trajectory}_{i + 1}", traj)
@@ -239,3 +243,11 @@ class _Shifted(Trajectory):
     def _pose(self, t):
         rot, pos = self.inner._pose(t)
         return rot, pos + self.shift
+
+
+class _TimeScaled(Trajectory):
+    def __init__(self, inner: Trajectory, speed: float):
+        self.inner, self.speed = inner, speed
+
+    def _pose(self, t):
+        return self.inner._pose(t * self.speed)

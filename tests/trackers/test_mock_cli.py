@@ -57,3 +57,28 @@ def test_serial_command_prints_its_port():
     result = runner.invoke(app, ["mock", "serial", "--model", "PA", "--duration", "0.2"])
     assert result.exit_code == 0
     assert "PA serial tracker on /dev/pts/" in result.output
+
+
+def test_natnet_command_runs_until_interrupted():
+    import signal
+    import subprocess
+    import sys
+
+    port = free_udp_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "from dpmhw.cli import main; main()", "mock", "natnet", "--unicast",
+         "--command-port", str(port), "--status-every", "0"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    try:
+        client = NatNetClient(command_port=port, connect_timeout_s=0.5, backoff_initial_s=0.1)
+        with client:
+            assert wait_for(lambda: client.status().frames >= 20, 30), client.status()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, out
+    assert "interrupted, stopping" in out and "stopped after" in out

@@ -209,3 +209,26 @@ def test_silent_device_is_lost_then_reinitialised():
             assert wait_for(lambda: tracker.status().frames > frames + 20, 10), tracker.status()
             assert tracker.status().state == TrackerState.STREAMING and tracker.status().reconnects >= 1
         assert list(emu.commands).count(b"C") >= 2 and list(emu.commands).count(b"\x19") >= 2
+
+
+def test_port_that_disappears_and_comes_back_is_reconnected(tmp_path):
+    """Like a USB-serial adapter unplugged and replugged: the device path is a stable symlink."""
+    link = tmp_path / "ttyTRACKER"
+    world = World.demo("linear", epoch_s=time.monotonic())
+    first = PolhemusEmulator(world).start()
+    os.symlink(first.port, link)
+    tracker = PolhemusTracker(str(link), reset_wait_s=0.02, lost_after_s=0.3, backoff_initial_s=0.05, backoff_max_s=0.2)
+    try:
+        with tracker:
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 10)
+            first.unplug()
+            assert wait_for(lambda: "cannot open serial port" in tracker.status().reason, 5), tracker.status()
+            assert tracker.status().state == TrackerState.LOST
+            with PolhemusEmulator(world, model="PA") as second:
+                tmp = tmp_path / "new"
+                os.symlink(second.port, tmp)
+                os.replace(tmp, link)  # the device is back (here: at a new pty behind the same name)
+                assert wait_for(lambda: tracker.model == "Patriot" and tracker.status().state == TrackerState.STREAMING, 10)
+                assert tracker.status().reconnects >= 2
+    finally:
+        first.close()

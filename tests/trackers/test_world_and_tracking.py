@@ -77,6 +77,14 @@ def test_recorded_path_interpolates_its_samples_and_holds_the_ends(tmp_path):
         RecordedPath([0, 0], pos[:2], quats[:2])
 
 
+def test_speed_scales_every_velocity():
+    slow, fast = make_trajectory("rotate-oscillate"), make_trajectory("rotate-oscillate", speed=2.0)
+    for a, b in zip(slow.pose(1.0), fast.pose(0.5)):
+        np.testing.assert_allclose(a, b)
+    with pytest.raises(ValueError, match="positive"):
+        make_trajectory("linear", speed=0)
+
+
 def test_world_epoch_and_markers():
     world = World.demo("static", epoch_s=100.0, count=2)
     rot, pos = world.pose(2, 100.0)
