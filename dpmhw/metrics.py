@@ -1,0 +1,75 @@
+"""Image error against a reference, on the post-processed uint8 frames a projector would show.
+
+PSNR
+    10 · log10(255² / MSE), MSE over every pixel and all three channels of the uint8 images
+    (∞ for identical images).
+SSIM
+    Wang, Bovik, Sheikh & Simoncelli 2004 ("ssim_index.m"): on the luma
+    Y' = 0.2989 R' + 0.5870 G' + 0.1140 B' of the 8-bit sRGB images (MATLAB's rgb2gray, the
+    conversion the reference implementation is used with), data range 255, an 11×11 circular
+    Gaussian window with σ = 1.5, K1 = 0.01, K2 = 0.03, population (not sample) covariances;
+    the mean of the SSIM map. Computed with scikit-image's ``structural_similarity(...,
+    gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=255)``, whose
+    mean excludes a 5-pixel border (the window half-width).
+Equivalent spp
+    The spp at which plain path tracing would reach a given PSNR, linearly interpolated in
+    (log2 spp, PSNR) on the measured plain-spp curve; beyond the curve's ends it extrapolates the
+    end segment and says so.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+LUMA = np.array([0.2989, 0.5870, 0.1140])
+
+
+def _check(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a, b = np.asarray(a), np.asarray(b)
+    if a.shape != b.shape:
+        raise ValueError(f"image shapes differ: {a.shape} vs {b.shape}")
+    if a.dtype != np.uint8 or b.dtype != np.uint8:
+        raise ValueError(f"expected uint8 post-processed images, got {a.dtype} and {b.dtype}")
+    return a, b
+
+
+def psnr(image: np.ndarray, reference: np.ndarray) -> float:
+    """PSNR in dB of two uint8 images (any shape), peak 255."""
+    a, b = _check(image, reference)
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return float("inf") if mse == 0 else 10.0 * np.log10(255.0**2 / mse)
+
+
+def luma(image_u8: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 → (H, W) float64 Y' in [0, 255] (Rec. 601 weights, as MATLAB rgb2gray)."""
+    return np.asarray(image_u8, dtype=np.float64) @ LUMA
+
+
+def ssim(image: np.ndarray, reference: np.ndarray) -> float:
+    """Mean SSIM (Wang et al. 2004 parameters, on luma) of two (H, W, 3) uint8 images."""
+    from skimage.metrics import structural_similarity
+
+    a, b = _check(image, reference)
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(f"expected (H, W, 3) images, got {a.shape}")
+    if min(a.shape[:2]) < 11:
+        raise ValueError(f"SSIM needs images of at least 11×11 pixels (the window), got {a.shape[1]}×{a.shape[0]}")
+    return float(structural_similarity(luma(a), luma(b), gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=255.0))
+
+
+def equivalent_spp(spp: list[float], psnr_db: list[float], target_db: float) -> tuple[float, bool]:
+    """spp at which the plain curve (spp, psnr_db) reaches target_db, and whether that needed
+    extrapolation past the measured range. The curve is sorted by spp and must rise with it."""
+    s = np.asarray(spp, dtype=np.float64)
+    p = np.asarray(psnr_db, dtype=np.float64)
+    order = np.argsort(s)
+    s, p = np.log2(s[order]), p[order]
+    if len(s) < 2:
+        raise ValueError("need at least two points on the spp curve")
+    if np.any(np.diff(p) <= 0):
+        raise ValueError(f"the PSNR curve does not rise with spp: {p.round(3).tolist()}")
+    if p[0] <= target_db <= p[-1]:
+        return float(2 ** np.interp(target_db, p, s)), False
+    i = 0 if target_db < p[0] else len(s) - 2
+    slope = (s[i + 1] - s[i]) / (p[i + 1] - p[i])
+    return float(2 ** (s[i] + slope * (target_db - p[i]))), True
