@@ -217,6 +217,7 @@ class NatNetServer:
         self._lock = threading.Lock()
         self._clients: dict[tuple[str, int], int] = {}  # unicast address -> last seen (host ns)
         self._stall_until_ns = 0
+        self._models_changed = False
         self._truth: collections.OrderedDict[int, float] = collections.OrderedDict()
         self.frames_sent = 0
         self.frames_skipped = 0  # frames never sent (stall or the server fell behind)
@@ -225,15 +226,20 @@ class NatNetServer:
         self.bad_commands = 0
 
         self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._cmd.bind((cfg.interface, cfg.command_port))
-        self.command_port = self._cmd.getsockname()[1]
         self._mcast: socket.socket | None = None
-        if not cfg.unicast:
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(cfg.interface))
-            s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
-            s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
-            self._mcast = s
+        try:
+            self._cmd.bind((cfg.interface, cfg.command_port))
+            self.command_port = self._cmd.getsockname()[1]
+            if not cfg.unicast:
+                self._mcast = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                self._mcast.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(cfg.interface))
+                self._mcast.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+                self._mcast.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
+        except OSError:
+            self._cmd.close()
+            if self._mcast is not None:
+                self._mcast.close()
+            raise
         self._zero_ns = time.monotonic_ns() - int(cfg.server_uptime_s * 1e9)
         self._ticks_per_ns = cfg.clock_hz * (1 + cfg.clock_drift_ppm * 1e-6) / 1e9
 
@@ -285,6 +291,13 @@ class NatNetServer:
     def stall(self, seconds: float) -> None:
         """Send no frames for `seconds` (frame numbers keep counting, like a network stall)."""
         self._stall_until_ns = time.monotonic_ns() + int(seconds * 1e9)
+
+    def add_body(self, rigid_body_id: int, name: str, trajectory) -> None:
+        """Add a rigid body while streaming, as when an asset is created in Motive: the next
+        frame flags the tracked-model list as changed, so clients re-request model definitions."""
+        with self._lock:
+            self.world.add(rigid_body_id, name, trajectory)
+            self._models_changed = True
 
     def resume(self) -> None:
         """End a stall now."""
@@ -399,7 +412,10 @@ class NatNetServer:
         cfg = self.config
         t = mid_host_ns / 1e9
         rbs, labeled, marker_sets, all_markers = [], [], [], []
-        for obj in self.world.objects.values():
+        with self._lock:
+            objects = list(self.world.objects.values())
+            params, self._models_changed = (2 if self._models_changed else 0), False
+        for obj in objects:
             rot, pos = self.world.pose(obj.rigid_body_id, t)
             ideal = obj.markers @ rot.T + pos
             noise = self._rng.normal(0.0, cfg.marker_noise_m, ideal.shape) if cfg.marker_noise_m > 0 else 0.0
@@ -428,6 +444,7 @@ class NatNetServer:
             stamp_mid_exposure=mid_ticks,
             stamp_data_received=mid_ticks + latency_rx,
             precision_timestamp=(int(host_s), int((host_s % 1.0) * 2**32)),
+            params=params,  # bit 1: tracked-model list changed
         )
 
     def _encode_pending(self, frame_number: int, mid_ticks: int, mid_host_ns: float) -> bytearray:

@@ -82,3 +82,11 @@ def test_natnet_command_runs_until_interrupted():
             proc.communicate()
     assert proc.returncode == 0, out
     assert "interrupted, stopping" in out and "stopped after" in out
+
+
+def test_natnet_command_reports_a_busy_port():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as busy:
+        busy.bind(("127.0.0.1", 0))
+        port = busy.getsockname()[1]
+        result = runner.invoke(app, ["mock", "natnet", "--command-port", str(port), "--duration", "0"])
+    assert result.exit_code == 2 and "Address already in use" in result.output

@@ -115,6 +115,21 @@ def test_unicast_keep_alives_keep_the_stream_flowing():
         assert server.clients
 
 
+def test_model_changes_are_picked_up_while_streaming():
+    from firmware_mocks.world import make_trajectory
+
+    with natnet_pair("4.2", bodies=1) as (world, server, client):
+        assert wait_for(lambda: client.rigid_body_names() == {1: "rotate-oscillate_1"}, 10)
+        assert client.rigid_body_id("rotate-oscillate_1") == 1
+        with pytest.raises(KeyError, match="no rigid body named 'bunny'"):
+            client.rigid_body_id("bunny")
+        server.add_body(7, "bunny", make_trajectory("circular"))
+        assert wait_for(lambda: client.rigid_body_names().get(7) == "bunny", 10)
+        assert wait_for(lambda: client.latest(7) is not None, 10)
+        assert client.rigid_body_id("bunny") == 7
+        assert check_against_truth([client.latest(7)], world, server) == 1
+
+
 def test_latest_is_newest_per_body_and_callbacks_fire():
     got = []
     with natnet_pair("4.1", bodies=3) as (world, server, client):
