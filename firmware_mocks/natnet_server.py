@@ -219,7 +219,7 @@ class NatNetServer:
         self._stall_until_ns = 0
         self._models_changed = False
         self._truth: collections.OrderedDict[int, float] = collections.OrderedDict()
-        self.frames_sent = 0
+        self.frames_sent = 0  # frames put on the wire (to the group, or to at least one client)
         self.frames_skipped = 0  # frames never sent (stall or the server fell behind)
         self.faults: collections.Counter[str] = collections.Counter()
         self.commands: collections.Counter[int] = collections.Counter()
@@ -462,6 +462,8 @@ class NatNetServer:
                 targets = list(self._clients)
             else:
                 targets = [(self.config.multicast_group, self.config.data_port)]
+        if not targets:
+            return  # unicast without clients: nothing goes on the wire
         sock = self._cmd if self.config.unicast else self._mcast
         # The transmit stamp sits at a fixed distance from the end of the frame:
         # ... transmit u64, [precision timestamp u32 u32 (4.1+)], params i16, end-of-data i32.

@@ -66,7 +66,7 @@ def natnet(
     mode = "unicast" if unicast else f"multicast {group}:{data_port}"
     typer.echo(
         f"NatNet {version} mock on {interface}:{server.command_port} ({mode}), {rate:g} Hz, "
-        f"latency {latency_ms:g} ms, {bodies} body/bodies on '{trajectory}'"
+        f"latency {latency_ms:g} ms, {bodies} rigid bod{'y' if bodies == 1 else 'ies'} on '{trajectory}'"
     )
     with server:
         _run_until(
