@@ -34,6 +34,7 @@ class PolhemusTracker(ReceiverTracker):
 
     port : a device path ("/dev/ttyUSB0", a pty path) or a pyserial URL ("loop://").
     device_latency_s : measurement-to-output latency of the device (Liberty ≈ 3.5 ms).
+    reset_wait_s : time the device needs to reinitialise after Ctrl-Y (seconds on real units).
     """
 
     kind = "polhemus"
@@ -45,7 +46,7 @@ class PolhemusTracker(ReceiverTracker):
         baudrate: int = 115200,
         units: str = "cm",
         device_latency_s: float = 0.0035,
-        reset_wait_s: float = 0.1,
+        reset_wait_s: float = 2.0,
         init_timeout_s: float = 1.0,
         warmup_records: int = 16,
         stale_after_s: float = 0.1,
