@@ -1,4 +1,5 @@
-"""`dpmhw render`: render one frame of a scene to .npy (float32 linear) or .png (sRGB)."""
+"""`dpmhw render`: render one frame of a scene to .npy (float32 linear) or .png (sRGB), or, with
+`--frames K`, K frames of its timeline at 1 spp each through temporal reuse."""
 
 from __future__ import annotations
 
@@ -17,15 +18,23 @@ from dpmhw.cli import app
 def render(
     scene: Annotated[str, typer.Argument(help="Scene file (TOML) or built-in name: paper-static, paper-dynamic, dpm-bunny.")] = "paper-static",
     out: Annotated[Path, typer.Option("--out", "-o", help=".npy = float32 (H, W, 3) linear radiance; .png = sRGB.")] = Path("frame.png"),
-    spp: Annotated[int, typer.Option(min=1, help="Samples (passes) per pixel.")] = 16,
+    spp: Annotated[Optional[int], typer.Option(min=1, help="Samples (passes) per pixel [default: 16; 1 per frame with --frames].")] = None,
     seed: Annotated[int, typer.Option(min=0, help="Same seed, same image, bit for bit.")] = 0,
     frame: Annotated[Optional[int], typer.Option(min=0, help="Frame index on the scene's timeline (t = frame / fps).")] = None,
     time: Annotated[Optional[float], typer.Option(help="Time in seconds on the scene's timeline.")] = None,
     exposure: Annotated[float, typer.Option(min=0.0, help="Exposure multiplier for .png output.")] = 1.0,
     mesh: Annotated[Optional[Path], typer.Option(help="Mesh to use for built-in scenes' bunny.")] = None,
     threads: Annotated[int, typer.Option(min=1, help="Threads for Embree queries.")] = 2,
+    frames: Annotated[Optional[int], typer.Option(min=1, help="Render K frames of the timeline (frame k: seed S+k, t = (F+k)/fps) through temporal reuse.")] = None,
+    reuse: Annotated[str, typer.Option(help="With --frames: off | same-pixel (paper's method 2) | motion (method 1).")] = "same-pixel",
+    alpha: Annotated[float, typer.Option(help="With --frames: EMA weight of the new frame, in (0, 1].")] = 0.2,
+    warmup: Annotated[bool, typer.Option("--warmup", help="With --frames: α_eff = max(α, 1/n) after each reset.")] = False,
+    split_screen: Annotated[bool, typer.Option("--split-screen", help="With --frames: left half plain, right half reused.")] = False,
+    out_dir: Annotated[Optional[Path], typer.Option(help="With --frames: write every frame here as frame_00000<suffix of --out>.")] = None,
+    tonemap: Annotated[str, typer.Option(help="Tone-mapping operator for .png output: clip | reinhard.")] = "clip",
 ) -> None:
-    """Render one frame. Ctrl-C stops after the current pass and still writes the finished passes."""
+    """Render one frame, or K frames through temporal reuse. Ctrl-C stops after the current pass
+    (or frame) and still writes what is finished."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     from dpmhw.errors import DpmhwError
@@ -36,6 +45,21 @@ def render(
         raise typer.BadParameter("give --frame or --time, not both")
     if out.suffix.lower() not in (".npy", ".png"):
         raise typer.BadParameter(f"--out must end in .npy or .png, got {out.name}")
+    from dpmhw.postprocess import TONEMAPS
+
+    if tonemap not in TONEMAPS:
+        raise typer.BadParameter(f"--tonemap must be one of {', '.join(TONEMAPS)}, got {tonemap!r}")
+    if frames is not None:
+        from dpmhw.reuse import ReuseError, ReuseSettings
+
+        try:
+            settings = ReuseSettings(alpha, reuse, warmup, split_screen)
+        except ReuseError as exc:
+            typer.secho(f"error: {exc}", fg="red", err=True)
+            raise typer.Exit(2)
+    elif out_dir is not None or split_screen or warmup:
+        raise typer.BadParameter("--out-dir, --split-screen and --warmup need --frames")
+    spp = spp if spp is not None else (1 if frames is not None else 16)
     try:
         sc = load_scene(scene, mesh_override=mesh)
     except DpmhwError as exc:
@@ -44,6 +68,9 @@ def render(
     for note in sc.notes:
         typer.secho(f"note: {note}", fg="yellow", err=True)
     t = time if time is not None else (frame or 0) / sc.render.fps
+    if frames is not None:
+        _render_sequence(scene, sc, out, out_dir, t * sc.render.fps, frames, spp, seed, settings, exposure, tonemap, threads)
+        return
     stop = {"requested": False}
 
     def on_sigint(signum, _frame):
@@ -68,7 +95,7 @@ def render(
     finally:
         signal.signal(signal.SIGINT, previous)
     elapsed = _time.perf_counter() - started
-    _write(out, result, exposure)
+    _write(out, result.radiance, exposure)
     meta = {
         "scene": str(scene), "spp": result.spp, "spp_requested": spp, "seed": seed, "time": t,
         "width": sc.render.width, "height": sc.render.height, "max_bounces": sc.render.max_bounces,
@@ -80,15 +107,73 @@ def render(
         typer.secho(f"warning: {result.nonfinite_samples} non-finite samples were dropped (a renderer bug; please report)", fg="red", err=True)
 
 
-def _write(out: Path, frame, exposure: float) -> None:
+def _write(out: Path, radiance, exposure: float, tonemap: str = "clip") -> None:
     import numpy as np
 
-    from dpmhw.postprocess import to_srgb8, write_png
+    from dpmhw.postprocess import postprocess, write_png
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".partial" + out.suffix)
     if out.suffix.lower() == ".npy":
-        np.save(tmp, frame.radiance.astype(np.float32))
+        np.save(tmp, radiance.astype(np.float32))
     else:
-        write_png(tmp, to_srgb8(frame.radiance, exposure))
+        write_png(tmp, postprocess(radiance, exposure, tonemap))
     tmp.replace(out)  # never leave a half-written reference behind
+
+
+def _render_sequence(scene_arg, sc, out: Path, out_dir, start_frame: float, frames: int, spp: int, seed: int, settings,
+                     exposure: float, tonemap: str, threads: int) -> None:
+    """K frames at `spp` each (seed S+k) through one TemporalReuse; the last output goes to
+    `out`, every output to `out_dir` if given. Ctrl-C stops after the current frame."""
+    import numpy as np
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
+
+    from dpmhw.render.integrator import PathIntegrator
+    from dpmhw.reuse import TemporalReuse
+    from dpmhw.sequence import run_sequence
+
+    stop = {"requested": False}
+
+    def on_sigint(signum, _frame):
+        if stop["requested"]:
+            raise KeyboardInterrupt
+        stop["requested"] = True
+        typer.secho("\nstopping after this frame (Ctrl-C again to abort)…", fg="yellow", err=True)
+
+    reuser = TemporalReuse(sc.render.width, sc.render.height, settings.alpha, settings.mode, settings.warmup, settings.split_screen)
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    started = _time.perf_counter()
+    render_ms, reuse_ms, nonfinite, last = [], [], 0, None
+    try:
+        with PathIntegrator(sc, threads=threads) as integrator, Progress(
+            "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+            TimeRemainingColumn(), transient=True,
+        ) as bar:
+            task = bar.add_task(f"{frames} frames {sc.render.width}×{sc.render.height}, reuse {settings.label}", total=frames)
+            for step in run_sequence(integrator, sc, frames, [reuser], seed=seed, start_frame=start_frame, spp=spp,
+                                     should_stop=lambda: stop["requested"]):
+                last = step
+                render_ms.append(step.render_ms)
+                reuse_ms.append(step.reuse_ms[0])
+                nonfinite += step.frame.nonfinite_samples
+                if out_dir is not None:
+                    _write(Path(out_dir) / f"frame_{step.index:05d}{out.suffix.lower()}", step.outputs[0], exposure, tonemap)
+                bar.update(task, completed=step.index + 1)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    elapsed = _time.perf_counter() - started
+    _write(out, last.outputs[0], exposure, tonemap)
+    meta = {
+        "scene": str(scene_arg), "frames": len(render_ms), "frames_requested": frames, "spp_per_frame": spp, "seed": seed,
+        "seeds": [seed, seed + len(render_ms) - 1], "start_frame": start_frame, "time": last.time, "fps": sc.render.fps,
+        "reuse": settings.mode, "alpha": settings.alpha, "warmup": settings.warmup, "split_screen": settings.split_screen,
+        "width": sc.render.width, "height": sc.render.height, "max_bounces": sc.render.max_bounces,
+        "render_ms_median": float(np.median(render_ms)), "reuse_ms_median": float(np.median(reuse_ms)),
+        "nonfinite_samples": nonfinite, "nonfinite_reuse_inputs": reuser.nonfinite_total,
+        "seconds": round(elapsed, 3), "notes": sc.notes, "out_dir": None if out_dir is None else str(out_dir),
+    }
+    out.with_name(out.name + ".json").write_text(json.dumps(meta, indent=2))
+    typer.echo(f"wrote {out} (frame {len(render_ms)}/{frames}, reuse {settings.label}, t = {last.time:.6f} s, "
+               f"render {meta['render_ms_median']:.1f} ms + reuse {meta['reuse_ms_median']:.1f} ms per frame, {elapsed:.1f} s)")
+    if nonfinite:
+        typer.secho(f"warning: {nonfinite} non-finite samples were dropped (a renderer bug; please report)", fg="red", err=True)
