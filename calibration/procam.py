@@ -57,8 +57,9 @@ class Observation:
     decoded: Decoded | None
     image_size: tuple[int, int]
     projector_px: np.ndarray | None = None  # (m, 2), NaN where the local homography failed
-    reason: str = ""
+    reason: str = ""  # why the view is unusable, if it is
     timings: dict[str, float] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)  # what was dropped from a usable view
 
 
 @dataclass
@@ -111,24 +112,22 @@ class ProcamResult:
         return out
 
     def views_table(self) -> list[dict]:
+        """One row per pose: used or not, per-device RMS, and why (not) used."""
         rows = []
         for ob in self.observations:
             n = ob.name
             used = n in self.stereo_per_view
-            reason = ob.reason or self.camera.rejected.get(n) or self.projector.rejected.get(n) or self.stereo_rejected.get(n) or ""
-            if reason and n in self.camera.rejected:
-                reason = "camera: " + reason
-            elif reason and n in self.projector.rejected:
-                reason = "projector: " + reason
-            elif reason and n in self.stereo_rejected:
-                reason = "stereo: " + reason
+            why = [ob.reason] if ob.reason else []
+            for who, rej in (("camera", self.camera.rejected), ("projector", self.projector.rejected), ("stereo", self.stereo_rejected)):
+                if n in rej:
+                    why.append(f"{who}: {rej[n]}")
             rows.append({
                 "name": n,
                 "used": used,
                 "camera_rms_px": self.camera.per_view.get(n),
                 "projector_rms_px": self.projector.per_view.get(n),
                 "stereo_rms_px": list(self.stereo_per_view[n]) if used else None,
-                "reason": reason,
+                "reason": "; ".join(why + ob.notes),
             })
         return rows
 
@@ -417,6 +416,8 @@ def calibrate_procam(
         raise DegenerateViewsError("capture", "image size", f"poses have different camera image sizes: {sorted(sizes)}")
     cam_size = good[0].image_size
     board_obj = board.object_points()
+    for o in good:  # this run's findings only
+        o.reason, o.notes, o.projector_px = "", [], None
 
     t0 = time.perf_counter()
     cam = calibrate_lens(
@@ -435,15 +436,17 @@ def calibrate_procam(
         o = by_name[name]
         keep_c = cam.kept[name]
         if not keep_c.all():
-            o.reason = f"{int((~keep_c).sum())} corner(s) dropped as outliers"
-            o.camera_px, o.ids = o.camera_px[keep_c], o.ids[keep_c]
-        spacing = _corner_spacing(o.camera_px, board, o.ids)
+            o.notes.append(f"{int((~keep_c).sum())} corner(s) dropped as camera outliers")
+        spacing = corner_spacing(o.camera_px, board, o.ids)
         win = options.window or int(np.clip(round(0.5 * spacing), 6, 40))
         proj, _ = projector_corners(o.decoded, o.camera_px, grid, cam.K, cam.dist, window=win,
                                     ransac_px=options.ransac_px, min_fraction=options.min_window_fraction)
         o.projector_px = proj
         ok = np.isfinite(proj).all(axis=1)
         ok &= (proj[:, 0] > -0.5) & (proj[:, 0] < projector_size[0] - 0.5) & (proj[:, 1] > -0.5) & (proj[:, 1] < projector_size[1] - 0.5)
+        if (~ok & keep_c).any():
+            o.notes.append(f"{int((~ok & keep_c).sum())} corner(s) without projector coordinates")
+        ok &= keep_c
         if ok.mean() < options.min_corner_fraction or ok.sum() < 6:
             o.reason = (
                 f"only {ok.sum()} of {len(ok)} corners have projector coordinates (decoded {o.decoded.valid_fraction:.0%} "
@@ -500,7 +503,7 @@ def calibrate_procam(
                         stereo_rejected, data)
 
 
-def _corner_spacing(px: np.ndarray, board: BoardSpec, ids: np.ndarray) -> float:
+def corner_spacing(px: np.ndarray, board: BoardSpec, ids: np.ndarray) -> float:
     obj = board.object_points()[ids]
     d_obj = np.linalg.norm(obj[:, None, :2] - obj[None, :, :2], axis=2)
     near = np.isclose(d_obj, board.square)

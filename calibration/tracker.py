@@ -25,7 +25,7 @@ import numpy as np
 
 from calibration.board import BoardSpec
 from calibration.errors import CaptureError, DegenerateViewsError
-from calibration.procam import Observation, projector_corners, undistortion_grid, _corner_spacing
+from calibration.procam import Observation, corner_spacing, projector_corners, undistortion_grid
 
 UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
 
@@ -165,7 +165,7 @@ def projector_pose_from_tracked_board(
             continue
         if grid is None:
             grid = undistortion_grid(cam.K, cam.dist, o.image_size)
-        win = int(np.clip(round(0.5 * _corner_spacing(o.camera_px, board, o.ids)), 6, 40))
+        win = int(np.clip(round(0.5 * corner_spacing(o.camera_px, board, o.ids)), 6, 40))
         px, _ = projector_corners(o.decoded, o.camera_px, grid, cam.K, cam.dist, window=win)
         R, t = world_from_board[o.name]
         P.append(obj[o.ids] @ R.T + t)
