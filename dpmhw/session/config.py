@@ -30,7 +30,7 @@ __all__ = [
     "format_validation_error",
 ]
 
-REUSE_MODES = ("off", "ema", "reproject")
+REUSE_MODES = ("off", "same-pixel", "motion")  # dpmhw.reuse.MODES
 
 
 class SessionConfigError(DpmhwError, ValueError):
@@ -64,9 +64,10 @@ class RenderSection(_Section):
 
 
 class ReuseSection(_Section):
-    mode: Literal["off", "ema", "reproject"] = "ema"
-    alpha: float = Field(0.2, gt=0.0, le=1.0, description="weight of the new frame, in (0, 1]")
-    split_screen: bool = Field(False, description="left half with reuse, right half without (for comparison)")
+    mode: Literal["off", "same-pixel", "motion"] = Field("motion", description="motion: reproject through the object's motion")
+    alpha: float = Field(0.2, gt=0.0, le=1.0, description="weight of the new frame, in (0, 1]; 1 = no reuse")
+    split_screen: bool = Field(False, description="left half plain, right half with reuse (for comparison)")
+    warmup: bool = Field(False, description="running mean for the first 1/alpha frames after a reset")
 
 
 class PredictionSection(_Section):
@@ -184,7 +185,7 @@ class LiveSettings(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     alpha: float = Field(0.2, gt=0.0, le=1.0, description="reuse weight of the new frame, in (0, 1]")
-    reuse_mode: Literal["off", "ema", "reproject"] = "ema"
+    reuse_mode: Literal["off", "same-pixel", "motion"] = "motion"
     spp: int = Field(1, ge=1, le=64, description="samples per pixel per frame")
     split_screen: bool = False
     prediction: bool = True

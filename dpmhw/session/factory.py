@@ -1,0 +1,265 @@
+"""Build a session's parts from its config: scene, renderer, tracker, projector, sink, mock rig.
+
+The only place in `dpmhw` that reaches into `drivers/` and `firmware_mocks/`, always inside a
+function, by the names a config gives (the core never imports them at module level).
+
+`mock=True` starts the firmware mocks on loopback — a NatNet server streaming a simulated world
+(the bound bodies move around their scene positions), an emulated DLPC900 behind pyusb — and
+an in-memory sink, then connects the *real* drivers to them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from dpmhw.errors import DpmhwError
+from dpmhw.scene_file import Scene, load_scene
+from dpmhw.session.config import SessionConfig, SessionConfigError
+from dpmhw.session.loop import SessionLoop, SessionParts
+
+__all__ = ["DLPC900Control", "MockRig", "build_session", "open_session_parts", "prepare_scene", "resolve_bindings"]
+
+log = logging.getLogger(__name__)
+
+
+def scale_to(scene: Scene, width: int, height: int) -> Scene:
+    """The same scene rendered at another size: intrinsics scaled about pixel centres, so a
+    point lands on the same place of the picture (lens shift kept)."""
+    r = scene.render
+    if (width, height) == (r.width, r.height):
+        return scene
+    sx, sy = width / r.width, height / r.height
+    K = np.array(scene.camera.K, dtype=float)
+    K[0, 0] *= sx
+    K[1, 1] *= sy
+    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return dataclasses.replace(scene, render=dataclasses.replace(r, width=width, height=height),
+                               camera=dataclasses.replace(scene.camera, K=K))
+
+
+def prepare_scene(config: SessionConfig) -> Scene:
+    """Load the scene, apply the calibration file and the render-size override."""
+    sc = config.scene
+    source = sc.source
+    from dpmhw.scene_file import BUILTIN_SCENES
+
+    if source not in BUILTIN_SCENES:
+        source = str(config.resolve(source))
+    scene = load_scene(source, mesh_override=config.resolve(sc.mesh) if sc.mesh else None)
+    if sc.calibration:
+        from dpmhw.projector_calibration import load_projector_calibration
+        from dpmhw.scene_file import CameraSpec
+        from dpmhw.transforms import Pose
+
+        path = config.resolve(sc.calibration)
+        try:
+            calib = load_projector_calibration(path)
+        except Exception as exc:
+            raise SessionConfigError(f"scene.calibration: cannot load {path}: {exc}") from None
+        dist = np.zeros(5)
+        coeffs = np.asarray(calib.dist, float).reshape(-1)[:5]
+        dist[: coeffs.size] = coeffs
+        camera = CameraSpec(np.asarray(calib.K, float), dist, Pose(np.asarray(calib.R, float), np.asarray(calib.t, float)))
+        scene = dataclasses.replace(scene, camera=camera,
+                                    render=dataclasses.replace(scene.render, width=calib.width, height=calib.height))
+    r = config.render
+    if r.width and r.height:
+        scene = scale_to(scene, r.width, r.height)
+    return scene
+
+
+def resolve_bindings(config: SessionConfig, scene: Scene) -> dict[int, int]:
+    """scene object index -> rigid body id; the config's list, else each object's `rigid_body`."""
+    names = [o.name for o in scene.objects]
+    if config.bindings:
+        out = {}
+        for i, b in enumerate(config.bindings):
+            if b.object not in names:
+                raise SessionConfigError(f"bindings[{i}].object: no object named {b.object!r} in scene "
+                                         f"{scene.source} (objects: {', '.join(names)})")
+            out[names.index(b.object)] = b.rigid_body
+        return out
+    out = {i: o.rigid_body for i, o in enumerate(scene.objects) if o.rigid_body is not None}
+    if not out:
+        raise SessionConfigError(f"bindings: scene {scene.source} has no object with a rigid_body; "
+                                 "add [[bindings]] rigid_body = N, object = \"name\"")
+    return out
+
+
+class DLPC900Control:
+    """`ProjectorControl` over the DLPC900 driver: video mode, dark = idle (read back)."""
+
+    def __init__(self, dlp: Any):
+        self.dlp = dlp
+
+    @classmethod
+    def open(cls, config: SessionConfig, settle_s: float = 0.3) -> "DLPC900Control":
+        from drivers.dlpc900 import DLPC900, DisplayMode
+
+        p = config.projector
+        dlp = DLPC900.open(p.serial or None, timeout_ms=p.timeout_ms, settle_s=settle_s,
+                           reconnect_attempts=p.reconnect_attempts, reconnect_backoff_s=0.05)
+        try:
+            if dlp.in_standby():
+                dlp.wake()
+            dlp.set_display_mode(DisplayMode.VIDEO)
+            dlp.blank()
+        except Exception:
+            dlp.close()
+            raise
+        return cls(dlp)
+
+    def blank(self) -> str:
+        return self.dlp.blank().method
+
+    def unblank(self) -> None:
+        if self.dlp.in_standby():
+            self.dlp.wake()
+        self.dlp.set_idle(False)
+
+    def health(self) -> dict:
+        status = self.dlp.status()
+        if status.get("hardware_faults"):
+            raise DpmhwError(f"DLPC900 {status.get('serial')} reports hardware faults: {', '.join(status['hardware_faults'])}")
+        return status
+
+    def reconnect(self) -> None:
+        self.dlp.reconnect(restore=True)
+
+    def close(self) -> None:
+        self.dlp.close()
+
+
+@dataclass
+class MockRig:
+    """The firmware mocks a `--mock` session runs against, for tests and benchmarks."""
+
+    world: Any  # firmware_mocks.world.World (ground truth)
+    natnet: Any  # firmware_mocks.natnet_server.NatNetServer
+    projector: Any  # firmware_mocks.dlpc900_usb.EmulatedDLPC900
+    stack: contextlib.ExitStack
+
+
+def mock_trajectory(name: str, base_t: np.ndarray, speed: float):
+    """A world trajectory around an object's scene position (so it stays in the projector's view)."""
+    from firmware_mocks.world import Linear, RotateWhileOscillating, Static
+
+    if name == "static":
+        return Static(translation=tuple(base_t))
+    if name == "linear":
+        # back and forth is not linear; start left of the base and cross it (0.3 m in 3 s at speed 1)
+        return Linear(start=tuple(base_t - np.array([0.15, 0.0, 0.0])), velocity=(0.1 * speed, 0.0, 0.0))
+    return RotateWhileOscillating(center=tuple(base_t), amplitude_m=0.08, oscillation_hz=0.5 * speed,
+                                  spin_rad_s=np.pi / 2 * speed)
+
+
+def start_mock_rig(config: SessionConfig, scene: Scene, bindings: dict[int, int]) -> tuple[MockRig, dict]:
+    """Start the mocks; returns the rig and config overrides pointing the drivers at them."""
+    from firmware_mocks.dlpc900_usb import usb_emulation
+    from firmware_mocks.natnet_server import NatNetServer, NatNetServerConfig
+    from firmware_mocks.world import World
+
+    stack = contextlib.ExitStack()
+    try:
+        world = World(epoch_s=time.monotonic())
+        for index, body in bindings.items():
+            base = scene.objects[index].pose.t
+            world.add(body, scene.objects[index].name, mock_trajectory(config.mock.trajectory, base, config.mock.speed))
+        m = config.mock
+        server = NatNetServer(world, NatNetServerConfig(
+            unicast=True, command_port=0, interface="127.0.0.1", rate_hz=m.rate_hz, latency_ms=m.latency_ms,
+            software_latency_ms=min(0.9, m.latency_ms)))
+        stack.callback(server.stop)
+        server.start()
+        device = stack.enter_context(usb_emulation())
+    except BaseException:
+        stack.close()
+        raise
+    return MockRig(world, server, device, stack), {"command_port": server.command_port}
+
+
+def open_tracker(config: SessionConfig, command_port: int | None = None):
+    t = config.tracker
+    stale_s = config.safety.stale_after_ms / 1e3
+    if t.kind == "natnet":
+        from drivers.natnet import NatNetClient
+
+        return NatNetClient(t.server, command_port=command_port or t.command_port, local_interface=t.local_interface,
+                            stale_after_s=stale_s, lost_after_s=max(1.0, stale_s))
+    from drivers.serial_tracker import SerialTracker
+
+    if not t.port:
+        raise SessionConfigError("tracker.port: a serial tracker needs a port (e.g. /dev/ttyUSB0)")
+    return SerialTracker(t.port, baudrate=t.baudrate, stale_after_s=stale_s, lost_after_s=max(1.0, stale_s))
+
+
+def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):
+    kind = config.sink.kind
+    if mock and kind == "window":
+        kind = "recording"  # a fresh machine has no projector display
+    from drivers.frame_sinks import make_sink
+
+    if kind == "none" or kind == "recording":
+        return make_sink("recording", shape=shape, max_frames=8)
+    if kind == "file":
+        if not config.sink.path:
+            raise SessionConfigError("sink.path: a file sink needs a path (a folder for PNGs or a video file)")
+        return make_sink("file", path=str(config.resolve(config.sink.path)), fps=config.render.target_fps)
+    return make_sink("window", display=config.sink.display, size=(shape[1], shape[0]))
+
+
+def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: Any = None) -> SessionParts:
+    """Open every part the config names (mocks first with `mock`); closes what it opened on error."""
+    scene = prepare_scene(config)
+    bindings = resolve_bindings(config, scene)
+    closers: list = []
+    rig = None
+    try:
+        command_port = None
+        if mock:
+            rig, over = start_mock_rig(config, scene, bindings)
+            closers.append(rig.stack.close)
+            command_port = over["command_port"]
+        if renderer is None:
+            from dpmhw.render.integrator import PathIntegrator
+
+            renderer = PathIntegrator(scene, threads=config.render.threads)
+        if hasattr(renderer, "close"):
+            closers.append(renderer.close)
+        projector = None
+        if config.projector.kind == "dlpc900":
+            projector = DLPC900Control.open(config)
+            closers.append(projector.close)
+        sink = open_sink(config, mock, (renderer.height, renderer.width))
+        closers.append(sink.close)
+        tracker = open_tracker(config, command_port)
+        tracker.start()
+        closers.append(tracker.stop)
+        recorder = None
+        if config.recording.enabled:
+            from dpmhw.session.recording import SessionRecorder
+
+            recorder = SessionRecorder.create(config.resolve(config.recording.path), config)
+    except BaseException:
+        for close in reversed(closers):
+            try:
+                close()
+            except Exception:
+                log.exception("cleanup after a failed start")
+        raise
+    # the loop closes tracker, sink, renderer and projector itself; the rig last
+    return SessionParts(scene, renderer, tracker, sink, bindings, projector, recorder, rig,
+                        closers=[rig.stack.close] if rig is not None else [])
+
+
+def build_session(config: SessionConfig, *, mock: bool = False, renderer: Any = None, frame_log: int = 0) -> SessionLoop:
+    """A ready-to-start loop over freshly opened parts."""
+    return SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer), frame_log=frame_log)

@@ -1,0 +1,513 @@
+"""The real-time loop: latest pose → prediction → render → reuse → post → present, with safety.
+
+One thread runs the frames; a watchdog thread blanks the projector if that thread stalls; a
+health thread reads device status (USB reads can block) so the loop never waits on them. The
+loop publishes immutable snapshots (status, latest frame); readers (the HTTP service) only swap
+references under a short lock, and setting changes are validated by the caller and queued for
+the next frame — nothing a reader does can slow a frame down.
+
+Safety (see `safety.py`): tracking invalid or older than `stale_after_ms`, a tracker link lost,
+a projector or sink error, a render exception or a stalled loop make the output dark — a black
+frame to the sink and the projector idled (read back) — and the status says why.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from dpmhw.frame_sink import FrameSink
+from dpmhw.postprocess import to_srgb8
+from dpmhw.scene_file import Scene
+from dpmhw.session.config import LiveSettings, SessionConfig
+from dpmhw.session.metrics import LoopMetrics
+from dpmhw.session.prediction import PosePredictor
+from dpmhw.session.reuse_stage import ReuseStage
+from dpmhw.session.safety import SafetyMonitor, SessionState
+from dpmhw.tracking import Tracker, TrackerState
+from dpmhw.transforms import Pose
+
+__all__ = ["FrameRecord", "LatestFrame", "ProjectorControl", "Renderer", "SessionLoop", "SessionParts", "SettingsError"]
+
+log = logging.getLogger(__name__)
+
+
+class SettingsError(ValueError):
+    """A live-settings change was refused; the message says which setting and why."""
+
+
+class Renderer(Protocol):
+    width: int
+    height: int
+
+    def render(self, time: float = 0.0, seed: int = 0, spp: int = 1, poses: list[Pose] | None = None, **kw) -> Any: ...
+
+
+class ProjectorControl(Protocol):
+    """The loop's view of a projector's control link (the DLPC900 over USB, or nothing)."""
+
+    def blank(self) -> str:
+        """Make it dark and verify by read-back; returns how (e.g. "idle"). Raises on failure."""
+
+    def unblank(self) -> None:
+        """Let the video input reach the mirrors again."""
+
+    def health(self) -> dict:
+        """Status flags as plain data; raises when the device is unreachable or reports faults."""
+
+    def reconnect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass
+class SessionParts:
+    """Everything the loop drives, already opened; `closers` run last, in reverse order."""
+
+    scene: Scene
+    renderer: Renderer
+    tracker: Tracker
+    sink: FrameSink
+    bindings: dict[int, int]  # scene object index -> rigid body id
+    projector: ProjectorControl | None = None
+    recorder: Any = None  # dpmhw.session.recording.SessionRecorder
+    mock: Any = None  # the mock rig (world, servers, emulated devices) in --mock sessions
+    closers: list[Callable[[], None]] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """What one presented frame was made from (for tests, the benchmark and recording)."""
+
+    number: int
+    t_start_ns: int
+    t_present_ns: int
+    t_target_ns: int
+    poses: dict  # rigid body id -> Pose used (predicted or measured)
+    sample_t_ns: dict  # rigid body id -> t_exposure_ns of the sample used
+    sample_age_s: float  # oldest sample's age when the frame started
+    settings: LiveSettings
+    stages_s: dict
+
+
+@dataclass(frozen=True)
+class LatestFrame:
+    number: int
+    t_present_ns: int
+    image: np.ndarray  # (H, W, 3) uint8, read-only
+    settings: LiveSettings
+    blank: bool
+
+
+class SessionLoop:
+    """Runs one projection session. `start()`, then `stop()` (idempotent) for a verified dark end."""
+
+    def __init__(self, config: SessionConfig, parts: SessionParts, *, frame_log: int = 0,
+                 clock: Callable[[], int] = time.monotonic_ns):
+        self.config = config
+        self.parts = parts
+        self.clock = clock
+        s = config.safety
+        self.stale_ns = int(s.stale_after_ms * 1e6)
+        self.watchdog_ns = int(s.watchdog_s * 1e9)
+        self.safety = SafetyMonitor(s.holdoff_s, s.resume, clock)
+        self.metrics = LoopMetrics(config.metrics.window, 1.0 / config.render.target_fps)
+        self.predictor = PosePredictor(config.prediction.history, config.prediction.max_horizon_ms / 1e3)
+        self.reuse = ReuseStage(parts.renderer.width, parts.renderer.height, config.reuse.warmup)
+        self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
+        self.frame_log: list[FrameRecord] | None = [] if frame_log else None
+        self._frame_log_max = frame_log
+        self._settings = config.live_settings()
+        self._accepted = self._settings
+        self._pending: LiveSettings | None = None
+        self._reset_requested = False
+        self._lock = threading.Lock()  # guards the published references and the queue only
+        self._output_lock = threading.Lock()  # serialises going dark / going live
+        self._output_on = False
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._heartbeat_ns = clock()
+        self._in_frame_since: int | None = None
+        self._status: MappingProxyType = MappingProxyType({})
+        self._latest: LatestFrame | None = None
+        self._projector_health: MappingProxyType = MappingProxyType({"kind": "none"} if parts.projector is None else {})
+        self._last_blank = ""
+        self._frame_number = 0
+        self._t0_ns = clock()
+        self._ever_streamed = False
+        self._stopped = False
+        self.final_blank: str | None = None
+        self._publish(force=True)
+
+    # ---- lifecycle -------------------------------------------------------------------------
+    def start(self) -> "SessionLoop":
+        self._go_dark("starting: dark until tracking and devices are ready")
+        for name, target in (("session-loop", self._run), ("session-watchdog", self._watchdog),
+                             ("session-health", self._health)):
+            t = threading.Thread(target=target, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
+        return self
+
+    def stop(self, reason: str = "stopped by request", timeout_s: float = 10.0) -> str | None:
+        """Stop every thread, leave the projector dark (read back) and close every part.
+
+        Returns how the projector was blanked (None without a projector); safe to call twice.
+        """
+        if self._stopped:
+            return self.final_blank
+        self._stopped = True
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=timeout_s)
+            if t.is_alive():
+                log.error("%s did not stop within %.0f s", t.name, timeout_s)
+        self._threads.clear()
+        self._go_dark(reason, force=True)
+        self.final_blank = self._last_blank
+        self.safety.mark_stopped(f"{reason}; projector dark ({self._last_blank or 'no projector'})")
+        self._publish(force=True)
+        p = self.parts
+        for name, close in (("recorder", getattr(p.recorder, "close", None)), ("tracker", p.tracker.stop),
+                            ("sink", p.sink.close), ("renderer", getattr(p.renderer, "close", None)),
+                            ("projector", getattr(p.projector, "close", None))):
+            if close is None:
+                continue
+            try:
+                close()
+            except Exception:
+                log.exception("closing the %s failed", name)
+        for close in reversed(p.closers):
+            try:
+                close()
+            except Exception:
+                log.exception("closing a session part failed")
+        return self.final_blank
+
+    def __enter__(self) -> "SessionLoop":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        return bool(self._threads) and not self._stop.is_set()
+
+    # ---- the API side (any thread; never waits on the loop) --------------------------------
+    def status(self) -> dict:
+        """Latest published snapshot merged with the current safety state."""
+        with self._lock:
+            snap = self._status
+        view = self.safety.view()
+        out = dict(snap)
+        out.update(state=view.state.value, reason=view.reason, output_on=view.output_on,
+                   causes=[{"name": c.name, "kind": c.kind, "reason": c.reason,
+                            "since_s": round((self.clock() - c.since_ns) / 1e9, 3)} for c in view.causes],
+                   faults=view.activations, heartbeat_age_s=round((self.clock() - self._heartbeat_ns) / 1e9, 3))
+        return out
+
+    def settings(self) -> LiveSettings:
+        with self._lock:
+            return self._accepted
+
+    def update_settings(self, patch: dict) -> LiveSettings:
+        """Validate `patch` against the accepted settings and queue it for the next frame."""
+        from pydantic import ValidationError
+
+        with self._lock:
+            base = self._accepted
+        try:
+            new = LiveSettings.model_validate({**base.model_dump(), **patch})
+        except ValidationError as exc:
+            raise SettingsError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+        with self._lock:
+            self._accepted = new
+            self._pending = new
+        return new
+
+    def blank(self) -> None:
+        self.safety.operator_blank()
+
+    def resume(self) -> tuple[bool, str]:
+        return self.safety.request_resume()
+
+    def reset_history(self) -> None:
+        with self._lock:
+            self._reset_requested = True
+
+    def latest_frame(self) -> LatestFrame | None:
+        with self._lock:
+            return self._latest
+
+    def ready(self) -> bool:
+        """Serving frames (or deliberately dark) with a live loop thread."""
+        return self.running and self.safety.view().state in (SessionState.RUNNING, SessionState.BLANKED)
+
+    # ---- the loop thread -------------------------------------------------------------------
+    def _run(self) -> None:
+        poll_s = 0.005
+        while not self._stop.is_set():
+            self._heartbeat_ns = self.clock()
+            try:
+                presented = self._iteration()
+            except Exception as exc:  # a bug in the loop itself: dark, visible, keep going
+                log.exception("session loop iteration failed")
+                self.safety.update("loop", True, f"internal error {type(exc).__name__}: {exc}", "fault")
+                presented = False
+            self._heartbeat_ns = self.clock()
+            self._publish()
+            if not presented:
+                self._stop.wait(poll_s)
+
+    def _apply_queued(self) -> LiveSettings:
+        with self._lock:
+            pending, self._pending = self._pending, None
+            reset, self._reset_requested = self._reset_requested, False
+        if pending is not None:
+            self._settings = pending
+        if reset:
+            self.reuse.reset()
+            self.predictor.reset()
+            self.metrics.count("history_resets")
+        return self._settings
+
+    def _check_tracking(self, now: int) -> tuple[dict, float] | None:
+        """Feed the predictor; report tracking causes. Returns (samples, oldest age) or None."""
+        tracker = self.parts.tracker
+        status = tracker.status()
+        if status.state in (TrackerState.STREAMING, TrackerState.STALE):
+            self._ever_streamed = True
+            self.safety.update("tracker", False)
+        elif self._ever_streamed and status.state != TrackerState.STOPPED:
+            self.safety.update("tracker", True, f"tracker link {status.state.value}: {status.reason}", "fault")
+        samples = {}
+        problems = []
+        for body in sorted(set(self.parts.bindings.values())):
+            s = tracker.latest(body)
+            if s is None:
+                problems.append(f"rigid body {body}: no sample yet (tracker {status.state.value})")
+                continue
+            self.predictor.observe(s)
+            age = now - s.t_exposure_ns
+            if not s.valid:
+                problems.append(f"rigid body {body}: not tracked in tracker frame {s.frame_number}")
+            elif age > self.stale_ns:
+                problems.append(f"rigid body {body}: newest sample is {age / 1e6:.0f} ms old "
+                                f"(limit {self.stale_ns / 1e6:g} ms)")
+            samples[body] = s
+        self.safety.update("tracking", bool(problems), "; ".join(problems), "blank")
+        if problems:
+            return None
+        oldest = min((s.t_exposure_ns for s in samples.values()), default=now)
+        return samples, (now - oldest) / 1e9
+
+    def _iteration(self) -> bool:
+        settings = self._apply_queued()
+        t_start = self.clock()
+        self._in_frame_since = t_start
+        stages: dict[str, float] = {}
+        tracking = self._check_tracking(t_start)
+        if tracking is None:
+            self._sync_output()
+            return False
+        samples, age_s = tracking
+        stages["tracker_age"] = age_s
+        # predict to the instant this frame will be lit: now + measured pipeline + display delay
+        t_target = t_start + int(self.metrics.expected_pipeline_s() * 1e9) + self.display_latency_ns
+        scene_time = (t_start - self._t0_ns) / 1e9
+        poses = self.parts.scene.object_poses(scene_time)
+        used: dict[int, Pose] = {}
+        horizon_ns = 0
+        for index, body in self.parts.bindings.items():
+            predicted = self.predictor.predict(body, t_target, enabled=settings.prediction)
+            if predicted is None:  # no valid sample kept yet (only invalid ones arrived)
+                self._sync_output()
+                return False
+            poses[index], horizon_ns = predicted
+            used[body] = predicted[0]
+        t1 = self.clock()
+        stages["predict"] = (t1 - t_start) / 1e9
+        try:
+            frame = self.parts.renderer.render(time=scene_time, seed=self._frame_number, spp=settings.spp, poses=poses)
+            self.safety.update("render", False)
+        except Exception as exc:
+            self.metrics.count("render_errors")
+            self.safety.update("render", True, f"render failed: {type(exc).__name__}: {exc}", "fault")
+            self._sync_output()
+            return False
+        t2 = self.clock()
+        stages["render"] = (t2 - t1) / 1e9
+        try:
+            radiance = self.reuse.apply(frame, settings.reuse_mode, settings.alpha, settings.split_screen,
+                                        poses=poses, camera=getattr(self.parts.renderer, "camera", None))
+        except Exception as exc:
+            self.metrics.count("reuse_errors")
+            self.safety.update("render", True, f"temporal reuse failed: {type(exc).__name__}: {exc}", "fault")
+            self._sync_output()
+            return False
+        t3 = self.clock()
+        stages["reuse"] = (t3 - t2) / 1e9
+        try:
+            image = to_srgb8(radiance, self.config.render.exposure)
+        except ValueError as exc:
+            self.safety.update("render", True, f"post-processing refused the frame: {exc}", "fault")
+            self._sync_output()
+            return False
+        image.setflags(write=False)
+        t4 = self.clock()
+        stages["post"] = (t4 - t3) / 1e9
+        if not self._sync_output():
+            self.metrics.count("frames_withheld")  # rendered while dark (keeps causes observable)
+            return False
+        try:
+            t_present = self.parts.sink.present(image, t_target)
+            self.safety.update("sink", False)
+        except Exception as exc:
+            self.metrics.count("present_errors")
+            self.safety.update("sink", True, f"present failed: {type(exc).__name__}: {exc}", "fault")
+            self._sync_output()
+            return False
+        t5 = self.clock()
+        stages["present"] = (t5 - t4) / 1e9
+        stages["frame"] = (t5 - t_start) / 1e9
+        self.safety.mark_started()
+        self._frame_number += 1
+        latency_s = (t_present + self.display_latency_ns - min(s.t_exposure_ns for s in samples.values())) / 1e9
+        self.metrics.record_frame(stages, t_present, latency_s, horizon_ns / 1e9)
+        with self._lock:
+            self._latest = LatestFrame(self._frame_number, t_present, image, settings, blank=False)
+        record = FrameRecord(self._frame_number, t_start, t_present, t_target, used,
+                             {b: s.t_exposure_ns for b, s in samples.items()}, age_s, settings, stages)
+        if self.frame_log is not None:
+            self.frame_log.append(record)
+            if len(self.frame_log) > self._frame_log_max:
+                del self.frame_log[0]
+        if self.parts.recorder is not None:
+            self.parts.recorder.frame(record, image)
+        return True
+
+    # ---- output on / off -------------------------------------------------------------------
+    def _sync_output(self) -> bool:
+        """Make the output match the safety decision; returns whether frames may be presented."""
+        allowed = self.safety.output_allowed()
+        if allowed and not self._output_on:
+            self._go_live()
+        elif not allowed and self._output_on:
+            self._go_dark(self.safety.view().reason)
+        return self._output_on
+
+    def _go_live(self) -> None:
+        with self._output_lock:
+            if self._output_on:
+                return
+            if self.parts.projector is not None:
+                try:
+                    self.parts.projector.unblank()
+                except Exception as exc:
+                    self.safety.update("projector", True, f"cannot light the projector: {type(exc).__name__}: {exc}", "fault")
+                    return
+            self.reuse.reset()  # history from before the dark spell describes another moment
+            self._output_on = True
+            self.metrics.count("resumes")
+
+    def _go_dark(self, reason: str, force: bool = False, from_watchdog: bool = False) -> None:
+        """Black frame to the sink (not from the watchdog: the stuck loop may be inside the sink)
+        and the projector idled with read-back. Failures become a fault, never an exception."""
+        with self._output_lock:
+            if not self._output_on and not force and self._last_blank:
+                return
+            self._output_on = False
+            self.metrics.count("blanks")
+            log.warning("projection dark: %s", reason)
+            if not from_watchdog:
+                black = np.zeros((self.parts.renderer.height, self.parts.renderer.width, 3), np.uint8)
+                black.setflags(write=False)
+                try:
+                    t = self.parts.sink.present(black, self.clock())
+                    with self._lock:
+                        self._latest = LatestFrame(self._frame_number, t, black, self._settings, blank=True)
+                except Exception as exc:
+                    self.safety.update("sink", True, f"cannot present a black frame: {type(exc).__name__}: {exc}", "fault")
+            if self.parts.projector is None:
+                self._last_blank = "no projector"
+                return
+            try:
+                self._last_blank = self.parts.projector.blank()
+            except Exception as exc:
+                self._last_blank = f"FAILED: {exc}"
+                self.safety.update("projector_blank", True, f"cannot confirm the projector is dark: {exc}", "fault")
+            else:
+                self.safety.update("projector_blank", False)
+
+    # ---- watchdog and device health ---------------------------------------------------------
+    def _watchdog(self) -> None:
+        period = min(self.watchdog_ns / 4e9, 0.1)
+        while not self._stop.wait(period):
+            age = self.clock() - self._heartbeat_ns
+            if age > self.watchdog_ns:
+                if not self.safety.active("watchdog"):
+                    self.metrics.count("watchdog_trips")
+                self.safety.update("watchdog", True, f"loop stalled: no iteration finished for {age / 1e9:.1f} s "
+                                                     f"(limit {self.watchdog_ns / 1e9:g} s)", "fault")
+                if self._output_on:
+                    self._go_dark("watchdog: loop stalled", from_watchdog=True)
+            else:
+                self.safety.update("watchdog", False)
+
+    def _health(self) -> None:
+        projector = self.parts.projector
+        interval = self.config.projector.poll_interval_s
+        while not self._stop.is_set():
+            if projector is not None:
+                try:
+                    health = projector.health()
+                    self._projector_health = MappingProxyType({**health, "error": None})
+                    self.safety.update("projector", False)
+                    if self.safety.active("projector_blank"):  # a blank failed: retry until it is confirmed
+                        self._go_dark("retrying a failed blank", force=True, from_watchdog=True)
+                except Exception as exc:
+                    reason = f"{type(exc).__name__}: {exc}"
+                    self._projector_health = MappingProxyType({"error": reason})
+                    self.safety.update("projector", True, reason, "fault")
+                    try:
+                        projector.reconnect()
+                    except Exception as rexc:
+                        log.info("projector reconnect failed: %s", rexc)
+            self._stop.wait(interval)
+
+    # ---- snapshots -------------------------------------------------------------------------
+    def _publish(self, force: bool = False) -> None:
+        """Replace the status snapshot (at most every 50 ms unless forced): the API only reads it."""
+        now = self.clock()
+        if not force and now - getattr(self, "_published_ns", 0) < 50_000_000:
+            return
+        self._published_ns = now
+        tracker_status = self.parts.tracker.status()
+        tracker = {
+            "kind": getattr(self.parts.tracker, "kind", type(self.parts.tracker).__name__),
+            "state": tracker_status.state.value, "reason": tracker_status.reason,
+            "frames": tracker_status.frames, "malformed": tracker_status.malformed,
+            "latency_ms": None if tracker_status.latency_ns is None else round(tracker_status.latency_ns / 1e6, 3),
+            "stale": self.safety.active("tracking"),
+        }
+        with self._lock:
+            accepted, applied = self._accepted, self._settings
+        snap = {
+            "frame_number": self._frame_number,
+            "uptime_s": round((now - self._t0_ns) / 1e9, 3),
+            **self.metrics.summary(),
+            "settings": accepted.model_dump(),
+            "settings_applied": applied.model_dump(),
+            "devices": {"tracker": tracker, "projector": dict(self._projector_health),
+                        "last_blank": self._last_blank},
+            "render_size": [self.parts.renderer.width, self.parts.renderer.height],
+        }
+        with self._lock:
+            self._status = MappingProxyType(snap)

@@ -1,0 +1,139 @@
+"""Rolling loop metrics: per-stage timings, fps, motion-to-photon latency, deadline misses.
+
+Everything is kept in fixed-size ring buffers (the last `window` frames), so a session that runs
+for days uses the same memory as one that runs for a minute. Histograms for Prometheus are
+cumulative since start, as Prometheus expects. Only the loop thread writes; `summary()` returns
+plain data the loop publishes as an immutable snapshot.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+
+__all__ = ["STAGES", "Histogram", "LoopMetrics", "RollingWindow"]
+
+# tracker_age: newest sample's age when the frame started; frame: the whole iteration
+STAGES = ("tracker_age", "predict", "render", "reuse", "post", "present", "frame")
+LATENCY_BUCKETS_S = (0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0)
+FRAME_BUCKETS_S = (0.002, 0.005, 0.01, 0.02, 0.033, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0)
+
+
+class RollingWindow:
+    """The last `size` values of a series in a numpy ring buffer."""
+
+    def __init__(self, size: int):
+        if size < 1:
+            raise ValueError(f"window size must be >= 1, got {size}")
+        self._buf = np.zeros(size, np.float64)
+        self._n = 0  # values ever added
+
+    def add(self, value: float) -> None:
+        self._buf[self._n % len(self._buf)] = value
+        self._n += 1
+
+    def values(self) -> np.ndarray:
+        """Values in the window, oldest first."""
+        size = len(self._buf)
+        if self._n <= size:
+            return self._buf[: self._n].copy()
+        start = self._n % size
+        return np.concatenate([self._buf[start:], self._buf[:start]])
+
+    def __len__(self) -> int:
+        return min(self._n, len(self._buf))
+
+    def percentiles(self, qs=(50, 95, 99)) -> list[float | None]:
+        v = self._buf[: len(self)]
+        if not len(v):
+            return [None] * len(qs)
+        return [float(x) for x in np.percentile(v, qs)]
+
+    def mean(self) -> float | None:
+        return float(self._buf[: len(self)].mean()) if len(self) else None
+
+
+class Histogram:
+    """Cumulative Prometheus-style histogram (counts per upper bound, sum, count)."""
+
+    def __init__(self, bounds: tuple[float, ...]):
+        self.bounds = np.asarray(bounds, np.float64)
+        self.counts = np.zeros(len(bounds), np.int64)  # non-cumulative per bucket; +Inf = count
+        self.total = 0.0
+        self.count = 0
+
+    def observe(self, value: float) -> None:
+        i = int(np.searchsorted(self.bounds, value, side="left"))
+        if i < len(self.counts):
+            self.counts[i] += 1
+        self.total += value
+        self.count += 1
+
+    def as_dict(self) -> dict:
+        return {"buckets": [(float(b), int(c)) for b, c in zip(self.bounds, np.cumsum(self.counts))],
+                "sum": self.total, "count": self.count}
+
+
+class LoopMetrics:
+    """Written by the loop thread once per frame; `summary()` is a plain-data copy."""
+
+    def __init__(self, window: int = 512, deadline_s: float = 1 / 30):
+        self.window = window
+        self.deadline_s = deadline_s
+        self.stages = {name: RollingWindow(window) for name in STAGES}
+        self.latency = RollingWindow(window)  # motion-to-photon, seconds
+        self.present_times = RollingWindow(window)  # monotonic seconds of each presented frame
+        self.horizon = RollingWindow(window)  # prediction horizon used, seconds
+        self.latency_hist = Histogram(LATENCY_BUCKETS_S)
+        self.frame_hist = Histogram(FRAME_BUCKETS_S)
+        self.counters: Counter[str] = Counter()
+
+    def record_frame(self, stages_s: dict[str, float], t_present_ns: int, latency_s: float, horizon_s: float) -> None:
+        """One presented frame: stage durations (seconds), when it was presented, its latency."""
+        for name, value in stages_s.items():
+            self.stages[name].add(value)
+        frame_s = stages_s.get("frame", 0.0)
+        self.frame_hist.observe(frame_s)
+        self.latency.add(latency_s)
+        self.latency_hist.observe(latency_s)
+        self.horizon.add(horizon_s)
+        self.present_times.add(t_present_ns * 1e-9)
+        self.counters["frames_presented"] += 1
+        if frame_s > self.deadline_s:
+            self.counters["deadline_misses"] += 1
+
+    def count(self, name: str, n: int = 1) -> None:
+        self.counters[name] += n
+
+    def fps(self) -> float:
+        t = self.present_times.values()
+        if len(t) < 2 or t[-1] <= t[0]:
+            return 0.0
+        return (len(t) - 1) / (t[-1] - t[0])
+
+    def expected_pipeline_s(self) -> float:
+        """Median time from frame start to present over the window (the prediction look-ahead)."""
+        frames = self.stages["frame"]
+        return float(np.median(frames.values())) if len(frames) else 0.0
+
+    def summary(self) -> dict:
+        stages = {}
+        for name, w in self.stages.items():
+            p50, p95, p99 = w.percentiles()
+            stages[name] = {"mean_ms": _ms(w.mean()), "p50_ms": _ms(p50), "p95_ms": _ms(p95), "p99_ms": _ms(p99)}
+        p50, p95, p99 = self.latency.percentiles()
+        return {
+            "fps": round(self.fps(), 3),
+            "window_frames": len(self.latency),
+            "latency_ms": {"p50": _ms(p50), "p95": _ms(p95), "p99": _ms(p99)},
+            "prediction_horizon_ms": {"mean": _ms(self.horizon.mean())},
+            "stages_ms": stages,
+            "deadline_s": self.deadline_s,
+            "counters": dict(self.counters),
+            "histograms": {"latency_seconds": self.latency_hist.as_dict(), "frame_seconds": self.frame_hist.as_dict()},
+        }
+
+
+def _ms(seconds: float | None) -> float | None:
+    return None if seconds is None else round(seconds * 1e3, 3)

@@ -1,0 +1,169 @@
+"""The loop's safety behaviour with in-process doubles: every cause blanks, status says why, recovery."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from dpmhw.session.loop import SettingsError
+from dpmhw.tracking import TrackerState, wait_for
+
+
+def state(loop):
+    return loop.status()["state"]
+
+
+def presented(loop):
+    return loop.status()["frame_number"]
+
+
+def test_frames_flow_and_none_is_made_from_stale_tracking(make_loop):
+    loop = make_loop().start()
+    assert wait_for(lambda: presented(loop) >= 20, 20), loop.status()
+    st = loop.status()
+    assert st["state"] == "running" and st["output_on"] and st["fps"] > 0
+    assert st["latency_ms"]["p50"] is not None and set(st["stages_ms"]) >= {"render", "reuse", "post", "present"}
+    assert all(r.sample_age_s <= 0.060 for r in loop.frame_log)
+    assert loop.parts.projector.calls[:2] == ["blank", "unblank"]
+    assert len(loop.parts.sink.frames) > 0 and loop.parts.sink.frames[-1].frame.shape == (24, 32, 3)
+
+
+def test_invalid_tracking_blanks_then_resumes_after_holdoff(make_loop):
+    loop = make_loop().start()
+    tracker, projector = loop.parts.tracker, loop.parts.projector
+    assert wait_for(lambda: state(loop) == "running", 20)
+    tracker.valid = False
+    assert wait_for(lambda: state(loop) == "blanked", 10)
+    assert "not tracked" in loop.status()["reason"]
+    assert wait_for(lambda: loop.latest_frame() is not None and loop.latest_frame().blank, 5)
+    assert not loop.latest_frame().image.any()  # the audience sees black
+    assert projector.dark and projector.calls[-1] == "blank"
+    tracker.valid = True
+    assert wait_for(lambda: state(loop) == "running" and not loop.latest_frame().blank, 10), loop.status()
+    assert projector.calls[-1] == "unblank" and not projector.dark, (projector.calls, loop.status()["causes"], loop.status()["faults"])
+
+
+def test_stale_tracking_blanks(make_loop):
+    loop = make_loop().start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    loop.parts.tracker.streaming = False
+    assert wait_for(lambda: state(loop) == "blanked", 10)
+    assert "ms old" in loop.status()["reason"]
+    assert all(r.sample_age_s <= 0.060 for r in loop.frame_log)
+    loop.parts.tracker.streaming = True
+    assert wait_for(lambda: state(loop) == "running", 10)
+
+
+def test_lost_tracker_link_is_a_fault(make_loop):
+    loop = make_loop().start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    loop.parts.tracker.state = TrackerState.LOST
+    loop.parts.tracker.streaming = False
+    assert wait_for(lambda: state(loop) == "fault", 10)
+    assert "tracker link lost" in loop.status()["reason"]
+
+
+def test_render_exception_is_a_fault_and_recovers(make_loop):
+    loop = make_loop().start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    loop.parts.renderer.fail = RuntimeError("embree exploded")
+    assert wait_for(lambda: state(loop) == "fault", 10)
+    assert "render failed: RuntimeError: embree exploded" in loop.status()["reason"]
+    assert loop.parts.projector.dark
+    loop.parts.renderer.fail = None
+    assert wait_for(lambda: state(loop) == "running", 10)
+    assert loop.status()["counters"]["render_errors"] >= 1
+
+
+def test_projector_fault_blanks_and_recovers(make_loop):
+    loop = make_loop().start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    loop.parts.projector.fail_health = True
+    assert wait_for(lambda: state(loop) == "fault", 10)
+    assert "device unplugged" in loop.status()["reason"]
+    assert wait_for(lambda: loop.status()["devices"]["projector"].get("error"), 5)
+    loop.parts.projector.fail_health = False
+    assert wait_for(lambda: state(loop) == "running", 10)
+
+
+def test_watchdog_blanks_a_stuck_loop_and_status_still_answers(make_loop):
+    loop = make_loop().start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    renderer = loop.parts.renderer
+    renderer.block.clear()  # the next render hangs
+    assert wait_for(lambda: state(loop) == "fault", 10)
+    st = loop.status()
+    assert "loop stalled" in st["reason"] and st["heartbeat_age_s"] >= 0.5
+    assert loop.parts.projector.dark and loop.parts.projector.calls[-1] == "blank"
+    renderer.block.set()
+    assert wait_for(lambda: state(loop) == "running", 10), loop.status()
+    assert loop.status()["counters"]["watchdog_trips"] == 1
+
+
+def test_settings_are_validated_and_applied_on_the_next_frame(make_loop):
+    loop = make_loop().start()
+    assert wait_for(lambda: presented(loop) >= 3, 20)
+    with pytest.raises(SettingsError, match="alpha"):
+        loop.update_settings({"alpha": 0})
+    with pytest.raises(SettingsError, match="spp"):
+        loop.update_settings({"spp": "many"})
+    with pytest.raises(SettingsError, match="reuse_mode"):
+        loop.update_settings({"reuse_mode": "magic"})
+    new = loop.update_settings({"alpha": 1.0, "prediction": False})
+    assert loop.settings() == new and new.alpha == 1.0
+    assert wait_for(lambda: loop.frame_log[-1].settings.alpha == 1.0, 10)
+    first = next(r for r in loop.frame_log if r.settings.alpha == 1.0)
+    assert all(r.settings.alpha == 1.0 for r in loop.frame_log if r.number > first.number)
+    assert first.settings.prediction is False
+
+
+def test_reuse_alpha_changes_the_output(make_loop):
+    """alpha = 1 shows each noisy frame as is; a small alpha averages frames, so the picture is calmer."""
+    loop = make_loop(["render.exposure=1.0"]).start()
+    sink = loop.parts.sink
+
+    def noise_after(alpha):
+        loop.update_settings({"alpha": alpha})
+        assert wait_for(lambda: loop.frame_log and loop.frame_log[-1].settings.alpha == alpha, 20)
+        start = loop.frame_log[-1].number
+        assert wait_for(lambda: loop.frame_log[-1].number >= start + 40, 20)
+        frames = [f.frame.astype(float) for f in sink.frames[-4:]]
+        return np.mean([np.abs(np.diff(f, axis=1)).mean() for f in frames])
+
+    noisy, calm = noise_after(1.0), noise_after(0.1)
+    assert calm < 0.5 * noisy, (calm, noisy)
+
+
+def test_operator_blank_resume_and_reset(make_loop):
+    loop = make_loop().start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    loop.blank()
+    assert wait_for(lambda: state(loop) == "blanked", 10)
+    assert "operator" in loop.status()["reason"]
+    loop.reset_history()
+    ok, _ = loop.resume()
+    assert ok and wait_for(lambda: state(loop) == "running", 10)
+    assert loop.status()["counters"]["history_resets"] == 1
+
+
+def test_stop_leaves_the_projector_dark_and_closes_everything(make_loop):
+    loop = make_loop().start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    assert loop.stop() == "idle"
+    st = loop.status()
+    assert st["state"] == "stopped" and "projector dark (idle)" in st["reason"]
+    assert loop.parts.projector.calls[-2:] == ["blank", "close"]
+    assert loop.parts.tracker.stopped and loop.parts.sink.closed
+    assert not [t for t in threading.enumerate() if t.name.startswith("session-")]
+    assert loop.stop() == "idle"  # idempotent
+
+
+def test_failed_blank_is_a_fault_not_a_crash(make_loop):
+    loop = make_loop().start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    loop.parts.projector.fail_blank = True
+    loop.blank()
+    assert wait_for(lambda: state(loop) == "fault", 10)
+    assert "cannot confirm the projector is dark" in loop.status()["reason"]

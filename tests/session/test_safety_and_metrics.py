@@ -1,0 +1,110 @@
+"""Safety bookkeeping (fake clock) and rolling metrics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dpmhw.session.metrics import Histogram, LoopMetrics, RollingWindow
+from dpmhw.session.safety import SafetyMonitor, SessionState
+
+
+class Clock:
+    def __init__(self):
+        self.t = 0
+
+    def __call__(self):
+        return self.t
+
+    def advance(self, s):
+        self.t += int(s * 1e9)
+
+
+def test_cause_blanks_and_projection_resumes_only_after_holdoff():
+    clock = Clock()
+    s = SafetyMonitor(holdoff_s=0.5, clock=clock)
+    assert s.view().state == SessionState.STARTING and s.output_allowed()
+    s.mark_started()
+    assert s.view().state == SessionState.RUNNING
+    s.update("tracking", True, "rigid body 1 not tracked")
+    v = s.view()
+    assert (v.state, v.output_on) == (SessionState.BLANKED, False) and "not tracked" in v.reason
+    clock.advance(2)
+    s.update("tracking", False)
+    clock.advance(0.4)
+    assert not s.output_allowed() and "holding off" in s.view().reason
+    s.update("tracking", True, "again")  # flicker restarts the hold-off
+    clock.advance(0.1)
+    s.update("tracking", False)
+    clock.advance(0.45)
+    assert not s.output_allowed()
+    clock.advance(0.1)
+    assert s.output_allowed() and s.view().state == SessionState.RUNNING
+    assert s.view().activations == {"tracking": 2}
+
+
+def test_fault_wins_over_blank_in_the_state_and_resume_is_refused_while_active():
+    s = SafetyMonitor(holdoff_s=0.0, clock=Clock())
+    s.mark_started()
+    s.update("tracking", True, "stale")
+    s.update("projector", True, "unplugged", "fault")
+    v = s.view()
+    assert v.state == SessionState.FAULT and v.reason == "projector: unplugged"
+    ok, why = s.request_resume()
+    assert not ok and "projector: unplugged" in why
+
+
+def test_manual_mode_and_operator_blank_need_explicit_resume():
+    clock = Clock()
+    s = SafetyMonitor(holdoff_s=0.0, resume="manual", clock=clock)
+    s.mark_started()
+    s.update("render", True, "boom", "fault")
+    s.update("render", False)
+    clock.advance(10)
+    assert not s.output_allowed() and "explicit resume" in s.view().reason
+    assert s.request_resume()[0] and s.output_allowed()
+    auto = SafetyMonitor(holdoff_s=0.0, clock=clock)
+    auto.mark_started()
+    auto.operator_blank()
+    clock.advance(10)
+    assert auto.view().state == SessionState.BLANKED and "operator" in auto.view().reason
+    assert auto.request_resume()[0] and auto.output_allowed()
+    auto.mark_stopped("bye")
+    assert auto.view().state == SessionState.STOPPED and not auto.output_allowed()
+
+
+def test_bad_safety_arguments():
+    with pytest.raises(ValueError):
+        SafetyMonitor(holdoff_s=-1)
+    with pytest.raises(ValueError):
+        SafetyMonitor(resume="sometimes")
+
+
+def test_rolling_window_keeps_only_the_last_values():
+    w = RollingWindow(4)
+    assert w.percentiles() == [None, None, None] and w.mean() is None
+    for v in range(10):
+        w.add(v)
+    np.testing.assert_array_equal(w.values(), [6, 7, 8, 9])
+    assert len(w) == 4 and w.percentiles((50,)) == [7.5]
+
+
+def test_histogram_is_cumulative_like_prometheus():
+    h = Histogram((0.01, 0.1))
+    for v in (0.005, 0.01, 0.05, 3.0):
+        h.observe(v)
+    assert h.as_dict() == {"buckets": [(0.01, 2), (0.1, 3)], "sum": pytest.approx(3.065), "count": 4}
+
+
+def test_loop_metrics_fps_latency_and_deadline_misses():
+    m = LoopMetrics(window=8, deadline_s=0.02)
+    for k in range(20):
+        frame_s = 0.03 if k % 2 else 0.01
+        m.record_frame({"render": frame_s * 0.9, "frame": frame_s}, t_present_ns=int(k * 0.05e9),
+                       latency_s=0.04, horizon_s=0.03)
+    s = m.summary()
+    assert s["fps"] == pytest.approx(20.0)
+    assert s["latency_ms"]["p50"] == pytest.approx(40.0)
+    assert s["counters"] == {"frames_presented": 20, "deadline_misses": 10}
+    assert s["window_frames"] == 8
+    assert m.expected_pipeline_s() == pytest.approx(0.02)
