@@ -192,10 +192,11 @@ class ReceiverTracker:
 
     def _run(self) -> None:
         backoff = self.backoff_initial_s
+        last_failure = ""
         while not self._stop.is_set():
             frames_before = self.frames
             try:
-                self._set_state(TrackerState.CONNECTING, "connecting")
+                self._set_state(TrackerState.CONNECTING, f"reconnecting; last failure: {last_failure}" if last_failure else "connecting")
                 self._session()
                 reason = "session ended"
             except (TrackerError, OSError) as exc:
@@ -213,6 +214,7 @@ class ReceiverTracker:
             if self.frames > frames_before:
                 backoff = self.backoff_initial_s  # that session worked: retry quickly
             self.reconnects += 1
+            last_failure = reason
             self._set_state(TrackerState.LOST, f"{reason}; reconnecting in {backoff:.2f} s")
             self._stop.wait(backoff)
             backoff = min(backoff * 2, self.backoff_max_s)

@@ -63,8 +63,8 @@ def test_round_trip_poses_times_latency_and_offset(version, unicast):
         with client.subscribe(maxlen=10_000) as sub:
             assert wait_for(lambda: client.status().frames >= 150, 20), client.status()
             samples = sub.drain()
+        assert wait_for(lambda: client.status().state == TrackerState.STREAMING, 5)
         status = client.status()
-        assert status.state == TrackerState.STREAMING
         assert status.malformed == 0 and client.internal_errors == 0
         assert client.version == tuple(int(x) for x in version.split("."))
         assert client.rigid_body_names() == {1: "rotate-oscillate_1", 2: "rotate-oscillate_2"}
@@ -109,8 +109,8 @@ def test_unicast_keep_alives_keep_the_stream_flowing():
     with natnet_pair("4.1", unicast=True, client_timeout_s=0.2, client_kw=client_kw) as (world, server, client):
         assert wait_for(lambda: client.status().frames >= 10, 10)
         time.sleep(0.6)
-        status = client.status()
-        assert status.state == TrackerState.STREAMING and status.reconnects == 0
+        assert wait_for(lambda: client.status().state == TrackerState.STREAMING, 5)
+        assert client.status().reconnects == 0
         assert server.commands[10] >= 5  # keep-alive is message 10
         assert server.clients
 
@@ -201,14 +201,12 @@ def test_stalled_stream_goes_stale_then_lost_then_recovers():
     with natnet_pair("4.1", unicast=True, client_kw=client_kw) as (world, server, client):
         assert wait_for(lambda: client.status().state == TrackerState.STREAMING, 10)
         server.stall(1.0)
-        assert wait_for(lambda: client.status().state == TrackerState.STALE, 5), client.status()
-        assert "no frame" in client.status().reason
-        assert wait_for(lambda: client.status().state == TrackerState.LOST, 5), client.status()
-        assert "no frame of data" in client.status().reason
+        assert wait_for(lambda: (s := client.status()).state == TrackerState.STALE and "no frame for" in s.reason, 5)
+        assert wait_for(lambda: (s := client.status()).state == TrackerState.LOST and "no frame of data" in s.reason, 5)
         frames_before = client.status().frames
         assert wait_for(lambda: client.status().frames > frames_before + 20, 10), client.status()
+        assert wait_for(lambda: client.status().state == TrackerState.STREAMING, 5)
         status = client.status()
-        assert status.state == TrackerState.STREAMING
         assert status.reconnects >= 1
         assert status.frames_missed > 0  # the frames the stall swallowed
 
@@ -216,8 +214,7 @@ def test_stalled_stream_goes_stale_then_lost_then_recovers():
 def test_no_server_is_reported_lost_with_an_actionable_reason():
     client = NatNetClient(command_port=free_udp_port(), connect_timeout_s=0.2, backoff_initial_s=0.05)
     with client:
-        assert wait_for(lambda: client.status().state == TrackerState.LOST, 5)
-        assert "no server info from 127.0.0.1" in client.status().reason
+        assert wait_for(lambda: (s := client.status()).state == TrackerState.LOST and "no server info from 127.0.0.1" in s.reason, 5)
     assert client.status().state == TrackerState.STOPPED
 
 
