@@ -21,7 +21,6 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 import cv2
 import numpy as np
@@ -29,6 +28,7 @@ import numpy as np
 from calibration.board import BoardSpec
 from calibration.errors import CaptureError
 from calibration.patterns import PatternSet
+from dpmhw.frame_sink import FrameSink
 
 FORMAT = "dpmhw.capture"
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg", ".pgm")
@@ -56,6 +56,14 @@ def write_capture_meta(root: Path, width: int, height: int, board: BoardSpec) ->
 
 def open_capture(root: str | Path) -> CaptureMeta:
     """Read ``capture.json`` and list the pose folders; errors name the file and field."""
+    meta = read_capture_meta(root)
+    if not meta.poses:
+        raise CaptureError(str(meta.root), "(folder)", "no pose folders (expected pose_000/, pose_001/, ...)")
+    return meta
+
+
+def read_capture_meta(root: str | Path) -> CaptureMeta:
+    """Like :func:`open_capture` but a folder without poses yet is fine (live capture)."""
     root = Path(root)
     meta = root / "capture.json"
     if not root.is_dir():
@@ -84,9 +92,7 @@ def open_capture(root: str | Path) -> CaptureMeta:
         board = BoardSpec(**b)
     except (TypeError, ValueError) as exc:
         raise CaptureError(str(meta), "board", str(exc)) from None
-    poses = sorted(p for p in root.iterdir() if p.is_dir())
-    if not poses:
-        raise CaptureError(str(root), "(folder)", "no pose folders (expected pose_000/, pose_001/, ...)")
+    poses = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(("_", ".")))
     return CaptureMeta(root, size[0], size[1], board, poses)
 
 
@@ -125,12 +131,6 @@ def iter_poses(meta: CaptureMeta) -> Iterator[tuple[str, np.ndarray]]:
         yield pose.name, load_pose(meta, pose)
 
 
-class FrameSink(Protocol):
-    """Anything that can show a projector frame (the drivers' display window, a DLPC900...)."""
-
-    def present(self, frame: np.ndarray) -> None: ...
-
-
 def capture_live(
     sink: FrameSink,
     out_dir: str | Path,
@@ -146,8 +146,10 @@ def capture_live(
 ) -> Path:
     """Show every pattern through ``sink`` and grab a camera frame for each (one board pose).
 
-    Thin glue over ``cv2.VideoCapture``: after presenting a pattern it waits ``settle_s`` and
-    discards ``discard`` buffered frames so the grab shows the new pattern.
+    ``sink`` is a :class:`dpmhw.frame_sink.FrameSink` (e.g. ``drivers.frame_sinks.WindowSink``
+    on the projector's display).  Thin glue over ``cv2.VideoCapture``: after presenting a
+    pattern it waits ``settle_s`` and discards ``discard`` buffered frames so the grab shows
+    the new pattern.  ``camera`` is a device index, a URL or an image-sequence pattern.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -161,7 +163,7 @@ def capture_live(
     try:
         frames = PatternSet(width, height).generate()
         for i, pat in enumerate(frames):
-            sink.present(cv2.cvtColor(pat, cv2.COLOR_GRAY2RGB))
+            sink.present(cv2.cvtColor(pat, cv2.COLOR_GRAY2RGB), time.monotonic_ns())
             time.sleep(settle_s)
             for _ in range(discard):
                 cap.grab()

@@ -78,6 +78,52 @@ def decode(
         typer.echo(f"wrote {out}")
 
 
+@calibrate_app.command()
+def capture(
+    out: Annotated[Path, typer.Argument(help="Capture folder (created; capture.json written on first use).")],
+    pose: Annotated[str, typer.Option("--pose", help="Name of this board pose's folder, e.g. pose_003.")],
+    size: Annotated[Optional[str], typer.Option("--size", help="Projector resolution WxH (default: from capture.json).")] = None,
+    board: Annotated[str, typer.Option("--board", help="Chessboard inner corners COLSxROWS.")] = "9x6",
+    square: Annotated[float, typer.Option("--square", help="Square side in metres.")] = 0.03,
+    camera: Annotated[str, typer.Option("--camera", help="cv2.VideoCapture source: device index, URL or image sequence.")] = "0",
+    sink: Annotated[str, typer.Option("--sink", help="Frame sink: window (projector display), file or recording.")] = "window",
+    display: Annotated[int, typer.Option("--display", help="Display index of the projector (window sink).")] = 1,
+    settle: Annotated[float, typer.Option("--settle", help="Seconds to wait after each pattern.")] = 0.15,
+    discard: Annotated[int, typer.Option("--discard", min=0, help="Buffered camera frames to drop before each grab.")] = 2,
+) -> None:
+    """Live capture of one board pose: show each pattern on the projector, grab the camera."""
+    from calibration.board import BoardSpec
+    from calibration.capture import capture_live, read_capture_meta
+    from calibration.patterns import PatternSet
+    from dpmhw.errors import CalibrationError
+
+    try:
+        if (out / "capture.json").exists():  # later poses: the folder's projector and board win
+            meta = read_capture_meta(out)
+            w, h, spec = meta.projector_width, meta.projector_height, meta.board
+            if size is not None and _size(size, "--size") != (w, h):
+                raise typer.BadParameter(f"--size {size} differs from {out / 'capture.json'} ({w}x{h})")
+        else:
+            if size is None:
+                raise typer.BadParameter("--size is needed for a new capture folder")
+            w, h = _size(size, "--size")
+            cols, rows = _size(board, "--board")
+            spec = BoardSpec(cols, rows, square)
+        from drivers.frame_sinks import make_sink
+
+        kwargs = {"window": {"display": display, "size": (w, h)}, "file": {"path": out / "_shown"}, "recording": {"shape": (h, w)}}
+        frame_sink = make_sink(sink, **kwargs.get(sink, {}))
+        try:
+            with typer.progressbar(length=PatternSet(w, h).count, label=pose) as bar:
+                capture_live(frame_sink, out, pose, w, h, spec, camera=int(camera) if camera.isdigit() else camera,
+                             settle_s=settle, discard=discard, progress=lambda i, n: bar.update(1))
+        finally:
+            frame_sink.close()
+    except CalibrationError as exc:
+        _fail(exc)
+    typer.echo(f"captured {out / pose}")
+
+
 def _observe_capture(capture: Path, options):
     from calibration.capture import iter_poses, open_capture
     from calibration.procam import observe
