@@ -24,7 +24,7 @@ from dpmhw.tracking import PoseSample, TrackerState, quaternions_xyzw_to_matrice
 from drivers.polhemus_protocol import PoseRecord, PolhemusDecodeError, RecordParser, TextRecord
 from drivers.tracker_base import LinkLost, ReceiverTracker
 
-__all__ = ["PolhemusTracker"]
+__all__ = ["PolhemusTracker", "SerialTracker"]
 
 _UNITS = {"cm": (b"U1\r", 0.01), "inch": (b"U0\r", 0.0254)}
 
@@ -188,3 +188,6 @@ class PolhemusTracker(ReceiverTracker):
                 self.process_bytes(data, time.monotonic_ns())
             since = self._last_arrival_ns if self.frames > frames_at_start else started_ns
             self._check_alive(since, "record")
+
+
+SerialTracker = PolhemusTracker  # the generic name the session's `tracker.kind = "serial"` maps to
