@@ -16,6 +16,7 @@ the stamps of everything after it.
 from __future__ import annotations
 
 import time
+from collections import deque
 
 import numpy as np
 import serial
@@ -73,6 +74,8 @@ class PolhemusTracker(ReceiverTracker):
         self.who_am_i = ""
         self._serial: serial.Serial | None = None
         self._parser = RecordParser()
+        self._last_ms: dict[int, int] = {}
+        self._intervals: dict[int, deque[int]] = {}
 
     @property
     def garbage_bytes(self) -> int:
@@ -98,6 +101,7 @@ class PolhemusTracker(ReceiverTracker):
             elif isinstance(item, TextRecord):
                 self.model, self.who_am_i = item.model, item.text.strip()
             elif isinstance(item, PoseRecord):
+                self._count_gap(item.station, item.timestamp_ms)
                 sample = self._sample(item, arrival_ns)
                 if self._warmup_left > 0:
                     self._warmup_left -= 1
@@ -106,6 +110,22 @@ class PolhemusTracker(ReceiverTracker):
                 self._publish_frame([sample], arrival_ns)
                 published.append(sample)
         return published
+
+    def _count_gap(self, station: int, ms: int) -> None:
+        """Records carry no frame counter: a gap is an interval well above the station's
+        usual one (median of the recent intervals), counted in whole missing records."""
+        last = self._last_ms.get(station)
+        self._last_ms[station] = ms
+        if last is None or ms <= last:  # first record, or the device clock restarted
+            return
+        dt = ms - last
+        intervals = self._intervals.setdefault(station, deque(maxlen=16))
+        if len(intervals) >= 4:
+            period = float(np.median(intervals))
+            if dt > 1.5 * period:
+                self.frames_missed += int(round(dt / period)) - 1
+                return
+        intervals.append(dt)
 
     def _sample(self, rec: PoseRecord, arrival_ns: int) -> PoseSample:
         device_ns = rec.timestamp_ms * 1_000_000

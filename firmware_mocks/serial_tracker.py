@@ -82,6 +82,7 @@ class PolhemusEmulator:
         self.records_sent = 0  # intact pose records written
         self.sent_log: collections.deque[tuple[int, int]] = collections.deque(maxlen=100_000)  # (station, ms)
         self.records_corrupted = 0
+        self.records_skipped = 0  # never produced because the host fell behind
         self.garbage_bytes = 0
         self.overflows = 0  # records dropped because nobody read the port
         self._reset()
@@ -275,7 +276,9 @@ class PolhemusEmulator:
             if send_at is not None and self.continuous and first_ms is not None and time.monotonic_ns() >= send_at:
                 behind_ms = self.device_ms(time.monotonic_ns() - self.latency_ns) - ms
                 if behind_ms > 50:  # overloaded host: skip ahead instead of bursting
-                    j += int(behind_ms / period_ms)
+                    skip = int(behind_ms / period_ms)
+                    self.records_skipped += skip * len(self.stations)
+                    j += skip
                     continue
                 self._emit_all(ms, ord("C"))
                 j += 1

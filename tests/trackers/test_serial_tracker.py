@@ -152,6 +152,11 @@ def test_round_trip_with_garbage_between_records(units):
         assert tracker.warmup_skipped == 16  # records that only set up the clock mapping
         assert frames + tracker.warmup_skipped == sent  # every intact record, none lost to resynchronisation
         assert malformed > 0 and emu.records_corrupted > 0  # (a 1-byte stub is mere garbage, not a record)
+        # every corrupted record is a gap in its station's timestamps (bar the first few, while
+        # the usual interval is being learnt, and any the emulator skipped on an overloaded host)
+        stations = len(emu.stations)
+        missed = tracker.status().frames_missed
+        assert emu.records_corrupted - 6 * stations <= missed <= emu.records_corrupted + emu.records_skipped
         assert tracker.garbage_bytes > 0
         assert {s.rigid_body_id for s in samples} == {1, 2}
         assert check_against_truth(samples, world, emu) == len(samples) == frames
@@ -231,3 +236,14 @@ def test_port_that_disappears_and_comes_back_is_reconnected(tmp_path):
                 assert tracker.status().reconnects >= 2
     finally:
         first.close()
+
+
+def test_gaps_in_record_timestamps_count_as_missed_records():
+    tracker = PolhemusTracker("loop://", warmup_records=0)
+    stream = b"".join(record_bytes(station=1, ms=ms) for ms in (0, 4, 8, 13, 17, 21, 25, 33, 45, 50))
+    samples = tracker.process_bytes(stream, arrival_ns=10**9)
+    assert len(samples) == 10 and tracker.status().frames == 10
+    assert tracker.status().frames_missed == 3  # 29, then 37 and 41
+    assert [s.frame_number for s in samples][-1] == 50
+    # units: the driver asked for centimetres, so 1, 2, 3 cm are metres 0.01, 0.02, 0.03
+    np.testing.assert_allclose(samples[0].translation, [0.01, 0.02, 0.03], atol=1e-9)
