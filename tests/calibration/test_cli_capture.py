@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import cv2
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -34,6 +35,10 @@ def test_synth_solve_writes_files_and_reports_against_truth(synth_run):
     for name in ("capture.json", "truth.json", "tracker_poses.json", "calib.json", "calib_tracker.json", "report.png"):
         assert (out / name).is_file(), name
     assert len(list((out / "pose_000").glob("*.png"))) == 38
+    report = cv2.imread(str(out / "report.png"))
+    assert report.shape[1] == 1200
+    for bgr in ((200, 120, 30), (30, 120, 230)):  # camera and projector bars/residuals are drawn
+        assert (np.abs(report.astype(int) - bgr).sum(axis=2) < 10).sum() > 200
     assert "against ground truth" in result.output and "held-out projector reprojection" in result.output
     assert "time per stage" in result.output
     cal = load_projector_calibration(out / "calib.json")
