@@ -43,6 +43,9 @@ def natnet(
     group: Annotated[str, typer.Option(help="Multicast group.")] = "239.255.42.99",
     dropout: Annotated[float, typer.Option(help="Probability per body per frame of a tracking dropout.")] = 0.0,
     marker_noise_mm: Annotated[float, typer.Option(help="Std dev of marker noise, millimetres.")] = 0.0,
+    truncate_prob: Annotated[float, typer.Option(help="Fault injection: probability per frame of a truncated datagram.")] = 0.0,
+    corrupt_prob: Annotated[float, typer.Option(help="Fault injection: probability per frame of a corrupted datagram.")] = 0.0,
+    clock_drift_ppm: Annotated[float, typer.Option(help="The server clock runs this many ppm fast.")] = 0.0,
     seed: Annotated[int, typer.Option(help="Seed of every random choice.")] = 0,
     duration: Annotated[Optional[float], typer.Option(help="Stop after this many seconds (default: until Ctrl-C).")] = None,
     status_every: Annotated[float, typer.Option(help="Print a status line every N seconds (0: never).")] = 5.0,
@@ -57,6 +60,7 @@ def natnet(
             version=version, rate_hz=rate, latency_ms=latency_ms, jitter_ms=jitter_ms, unicast=unicast,
             interface=interface, command_port=command_port, data_port=data_port, multicast_group=group,
             dropout_prob=dropout, marker_noise_m=marker_noise_mm / 1000, seed=seed,
+            truncate_prob=truncate_prob, corrupt_prob=corrupt_prob, clock_drift_ppm=clock_drift_ppm,
             software_latency_ms=min(0.9, latency_ms),
         )
         server = NatNetServer(world, cfg)
@@ -71,7 +75,10 @@ def natnet(
     with server:
         _run_until(
             duration,
-            lambda: typer.echo(f"frames sent {server.frames_sent}, skipped {server.frames_skipped}, clients {len(server.clients)}"),
+            lambda: typer.echo(
+                f"frames sent {server.frames_sent}, skipped {server.frames_skipped}, "
+                f"faults {dict(server.faults) or 0}, clients {len(server.clients)}"
+            ),
             status_every,
         )
     typer.echo(f"stopped after {server.frames_sent} frames")

@@ -37,7 +37,8 @@ def test_natnet_rejects_an_unsupported_version():
 def test_natnet_command_serves_a_real_client():
     port = free_udp_port()
     args = ["mock", "natnet", "--unicast", "--version", "4.2", "--rate", "200", "--command-port", str(port),
-            "--trajectory", "circular", "--bodies", "2", "--duration", "1.5", "--status-every", "0"]
+            "--trajectory", "circular", "--bodies", "2", "--duration", "1.5", "--status-every", "0",
+            "--truncate-prob", "0.2", "--seed", "3"]
     results = []
     thread = threading.Thread(target=lambda: results.append(runner.invoke(app, args)))
     thread.start()
@@ -47,6 +48,7 @@ def test_natnet_command_serves_a_real_client():
             assert wait_for(lambda: client.status().frames >= 20, 10), client.status()
             assert client.version == (4, 2)
             assert client.rigid_body_names() == {1: "circular_1", 2: "circular_2"}
+            assert wait_for(lambda: client.status().malformed >= 3, 10)  # the injected truncations
     finally:
         thread.join(timeout=10)
     assert results and results[0].exit_code == 0, results and results[0].output
