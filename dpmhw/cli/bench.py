@@ -28,3 +28,53 @@ def bench_render(
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(result, indent=2))
         typer.echo(f"wrote {json_path}")
+
+
+@bench_app.command("quality")
+def bench_quality(
+    quick: Annotated[bool, typer.Option("--quick", help="Quarter resolution (256×192), fewer frames, 256-spp dynamic references: a few minutes.")] = False,
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="Write the results as JSON here.")] = None,
+    out_dir: Annotated[Path, typer.Option(help="Plots (PNG) and image strips go here.")] = Path("bench-quality"),
+    cache_dir: Annotated[Optional[Path], typer.Option(help="Reference cache [default: $DPMHW_CACHE/references or ~/.cache/dpmhw/references].")] = None,
+    part: Annotated[str, typer.Option(help="static | dynamic | all")] = "all",
+    scale: Annotated[Optional[float], typer.Option(min=0.01, max=1.0, help="Override the resolution scale.")] = None,
+    ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Override the static reference spp.")] = None,
+    dynamic_ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Override the dynamic references' spp.")] = None,
+    threads: Annotated[int, typer.Option(min=1)] = 2,
+) -> None:
+    """Speed against error: PSNR/SSIM against converged references for plain path tracing and
+    temporal reuse (static table vs the paper's Table 1, dynamic per-frame error), with costs."""
+    import dataclasses
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
+
+    from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
+
+    if part not in ("static", "dynamic", "all"):
+        raise typer.BadParameter(f"--part must be static, dynamic or all, got {part!r}")
+    cfg = QualityConfig.quick() if quick else QualityConfig()
+    changes = dict(threads=threads, parts=("static", "dynamic") if part == "all" else (part,))
+    if scale is not None:
+        changes["scale"] = scale
+    if ref_spp is not None:
+        changes["ref_spp"] = ref_spp
+    if dynamic_ref_spp is not None:
+        changes["dynamic_ref_spp"] = dynamic_ref_spp
+    cfg = dataclasses.replace(cfg, **changes)
+    with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TimeRemainingColumn(), transient=True) as bar:
+        tasks: dict[str, int] = {}
+
+        def progress(desc: str, done: int, total: int) -> None:
+            if desc not in tasks:
+                tasks[desc] = bar.add_task(desc, total=total)
+            bar.update(tasks[desc], completed=done)
+
+        result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=progress)
+    typer.echo(format_table(result))
+    for f in result.get("files", []):
+        typer.echo(f"wrote {f}")
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(result, indent=2))
+        typer.echo(f"wrote {json_path}")

@@ -1,0 +1,479 @@
+"""`dpmhw bench quality`: speed against error for plain path tracing and temporal reuse.
+
+Every image is compared with a converged reference *after* post-processing (exposure 1, clip,
+sRGB, uint8: what the projector would show) with PSNR and SSIM as defined in dpmhw.metrics.
+
+Static scene (paper-static): plain path tracing at n spp (several seeds each); 1-spp frames of
+the timeline (frame k: seed k) through same-pixel reuse at each α (and motion mode at α = 0.2,
+which must equal it on a static scene) after 10/α_min frames, metrics averaged over the last
+frames; the equivalent spp of each reuse row on the plain curve; PSNR against frame index for
+every α with and without warm-up (the slow start a fixed α has).
+
+Dynamic scene (paper-dynamic): the same motion on a 947-fps timeline (the paper's projector)
+and a 60-fps one; per sampled frame, error of plain 1 spp and of every mode × α × warm-up,
+over the whole image and over the moving objects only (where lag and ghosting live), each
+against its own reference at that time.
+
+References are rendered once and cached on disk (`cache_dir`), keyed by a digest of the scene's
+content (resolution, camera, meshes, materials, motion), time, spp, seed and a digest of the
+renderer's source, with the parameters that made them stored beside them.
+
+Costs per row: ms per frame for render, reuse, post-processing and their total, medians over
+the frames of the run (plain n-spp rows: over their repeats). The machine may be shared:
+medians, not means, and the JSON records the load average at the start and the end.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import platform
+import time as _time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from dpmhw import __version__
+from dpmhw.metrics import equivalent_spp, psnr, ssim
+from dpmhw.postprocess import postprocess
+from dpmhw.render.integrator import PathIntegrator
+from dpmhw.reuse import TemporalReuse
+from dpmhw.scene_file import Scene, load_scene
+from dpmhw.sequence import run_sequence, scaled_scene, with_fps
+
+REFERENCE_SEED = 1_000_003  # far from the sequence seeds 0, 1, 2, …: independent noise
+PLAIN_SEED = 500_000
+
+
+@dataclass
+class QualityConfig:
+    scale: float = 1.0
+    static_scene: str = "paper-static"
+    dynamic_scene: str = "paper-dynamic"
+    ref_spp: int = 1000
+    dynamic_ref_spp: int = 1000
+    static_spp: tuple[int, ...] = (1, 2, 4, 8, 16, 20, 32, 40)
+    spp_repeats: int = 3
+    alphas: tuple[float, ...] = (0.05, 0.1, 0.2)
+    static_frames: int = 0  # 0 → ceil(10 / min α) + eval_frames
+    eval_frames: int = 6  # static: metrics averaged over this many last frames
+    dynamic_fps: tuple[float, ...] = (947.0, 60.0)
+    dynamic_eval_times: tuple[float, ...] = (0.2, 0.3, 0.4, 0.5)
+    dynamic_history_s: float = 0.1  # the 947-fps run starts this long before the first eval (≥ 10/α frames)
+    modes: tuple[str, ...] = ("same-pixel", "motion")
+    threads: int = 2
+    parts: tuple[str, ...] = ("static", "dynamic")
+
+    @classmethod
+    def quick(cls) -> "QualityConfig":
+        return cls(scale=0.25, ref_spp=1000, dynamic_ref_spp=256, static_spp=(1, 2, 4, 8, 16, 20, 32, 40), spp_repeats=3,
+                   eval_frames=4, dynamic_eval_times=(0.2, 0.35, 0.5), dynamic_history_s=0.08)
+
+
+# ----------------------------------------------------------------------------------------------
+# references
+
+
+def scene_digest(scene: Scene) -> str:
+    """sha256 over everything that changes the image: render settings, camera, objects."""
+    h = hashlib.sha256()
+
+    def put(*items):
+        for x in items:
+            h.update(np.ascontiguousarray(np.asarray(x, dtype=np.float64)).tobytes() if not isinstance(x, str) else x.encode())
+
+    r = scene.render
+    put(str((r.width, r.height, r.max_bounces)), r.background)
+    put(scene.camera.K, scene.camera.dist, scene.camera.pose.R, scene.camera.pose.t, scene.viewer_position)
+    for o in scene.objects:
+        put(o.name, o.shape, o.mesh.vertices, o.mesh.faces.astype(np.float64), o.pose.R, o.pose.t, o.albedo, o.specular,
+            float(o.roughness), o.emission, repr(o.motion), repr(o.rigid_body))
+        if o.mesh.vertex_normals is not None:
+            put(o.mesh.vertex_normals)
+    return h.hexdigest()
+
+
+def renderer_digest() -> str:
+    """sha256 of dpmhw/render/*.py: a renderer change invalidates cached references."""
+    h = hashlib.sha256(__version__.encode())
+    for p in sorted((Path(__file__).resolve().parents[1] / "render").glob("*.py")):
+        h.update(p.name.encode() + p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def default_cache_dir() -> Path:
+    return Path(os.environ.get("DPMHW_CACHE", Path.home() / ".cache" / "dpmhw")) / "references"
+
+
+class ReferenceCache:
+    def __init__(self, cache_dir: Path | None = None, threads: int = 2, progress: Callable | None = None):
+        self.dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+        self.threads = threads
+        self.progress = progress  # progress(description, done, total)
+        self.renderer = renderer_digest()
+        self.rendered = 0
+        self.hits = 0
+
+    def get(self, scene: Scene, scene_name: str, time: float, spp: int, seed: int = REFERENCE_SEED, integrator=None) -> dict:
+        """{"radiance": (H, W, 3) float32, "object_id": (H, W) int32} of a converged render."""
+        key_fields = dict(scene=scene_digest(scene), time=repr(float(time)), spp=int(spp), seed=int(seed), renderer=self.renderer)
+        key = hashlib.sha256(json.dumps(key_fields, sort_keys=True).encode()).hexdigest()[:24]
+        path = self.dir / f"{key}.npz"
+        if path.exists():
+            self.hits += 1
+            with np.load(path) as data:
+                return {"radiance": data["radiance"], "object_id": data["object_id"]}
+        desc = f"reference {scene_name} t={time:.4f}s {scene.render.width}×{scene.render.height} {spp} spp"
+        own = integrator is None
+        integ = PathIntegrator(scene, threads=self.threads) if own else integrator
+        try:
+            started = _time.perf_counter()
+            frame = integ.render(time=time, seed=seed, spp=spp,
+                                 progress=(lambda d, t: self.progress(desc, d, t)) if self.progress else None)
+        finally:
+            if own:
+                integ.close()
+        self.dir.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.stem + ".partial.npz")
+        np.savez(tmp, radiance=frame.radiance.astype(np.float32), object_id=frame.object_id)
+        tmp.replace(path)
+        meta = dict(key_fields, scene_name=scene_name, width=scene.render.width, height=scene.render.height,
+                    max_bounces=scene.render.max_bounces, seconds=round(_time.perf_counter() - started, 1),
+                    nonfinite_samples=frame.nonfinite_samples, dpmhw=__version__,
+                    equivalent_command=f"dpmhw render {scene_name} --spp {spp} --seed {seed} --time {time!r} --out ref.npy"
+                    + ("" if scene.render.width == 1024 else f"  (at {scene.render.width}×{scene.render.height})"))
+        path.with_suffix(".json").write_text(json.dumps(meta, indent=2))
+        self.rendered += 1
+        return {"radiance": frame.radiance, "object_id": frame.object_id}
+
+
+# ----------------------------------------------------------------------------------------------
+# measurement helpers
+
+
+def _post(radiance) -> tuple[np.ndarray, float]:
+    t0 = _time.perf_counter()
+    img = postprocess(radiance)
+    return img, (_time.perf_counter() - t0) * 1e3
+
+
+def _med(xs) -> float:
+    return float(np.median(xs)) if len(xs) else float("nan")
+
+
+def _row(label: str, kind: str, psnrs, ssims, render_ms, reuse_ms, post_ms, **extra) -> dict:
+    r = dict(label=label, kind=kind, psnr=float(np.mean(psnrs)), ssim=float(np.mean(ssims)), psnr_samples=[float(p) for p in psnrs],
+             render_ms=_med(render_ms), reuse_ms=_med(reuse_ms) if reuse_ms else 0.0, post_ms=_med(post_ms))
+    r["total_ms"] = r["render_ms"] + r["reuse_ms"] + r["post_ms"]
+    r.update(extra)
+    return r
+
+
+def _masked_psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
+    if not mask.any():
+        return float("nan")
+    return psnr(img[mask], ref[mask])
+
+
+# ----------------------------------------------------------------------------------------------
+# static
+
+
+def run_static(cfg: QualityConfig, cache: ReferenceCache, progress: Callable, images: dict) -> dict:
+    scene = scaled_scene(load_scene(cfg.static_scene), cfg.scale)
+    H, W = scene.render.height, scene.render.width
+    rows = []
+    with PathIntegrator(scene, threads=cfg.threads) as integ:
+        integ.render(spp=1, seed=0)  # JIT, static-hit cache
+        ref = cache.get(scene, cfg.static_scene, 0.0, cfg.ref_spp, integrator=integ)
+        ref8 = postprocess(ref["radiance"])
+        images["reference"] = ref8
+        # plain n spp
+        total = len(cfg.static_spp) * cfg.spp_repeats
+        done = 0
+        for n in cfg.static_spp:
+            ps, ss, rms, pms = [], [], [], []
+            for rep in range(cfg.spp_repeats):
+                t0 = _time.perf_counter()
+                f = integ.render(time=0.0, seed=PLAIN_SEED + 1000 * n + rep, spp=n)
+                rms.append((_time.perf_counter() - t0) * 1e3)
+                img, pm = _post(f.radiance)
+                pms.append(pm)
+                ps.append(psnr(img, ref8))
+                ss.append(ssim(img, ref8))
+                if rep == 0 and n in (1, 9, 8):
+                    images[f"{n} spp"] = img
+                done += 1
+                progress(f"static: plain spp {n}", done, total)
+            rows.append(_row(f"{n} spp", "plain", ps, ss, rms, [], pms, spp=n))
+        if 9 not in cfg.static_spp:  # the paper's comparison image
+            images["9 spp"] = postprocess(integ.render(time=0.0, seed=PLAIN_SEED + 9000, spp=9).radiance)
+        # reuse
+        configs = [(a, "same-pixel", False) for a in cfg.alphas] + [(a, "same-pixel", True) for a in cfg.alphas]
+        if "motion" in cfg.modes:
+            configs.append((max(cfg.alphas), "motion", False))
+        reusers = [TemporalReuse(W, H, a, m, w) for a, m, w in configs]
+        strip_alpha = min(cfg.alphas, key=lambda a: abs(a - 0.2))  # the paper's comparison
+        n_frames = cfg.static_frames or math.ceil(10 / min(cfg.alphas)) + cfg.eval_frames
+        checkpoints = sorted({k for k in np.unique(np.round(np.geomspace(1, n_frames, 24)).astype(int) - 1)} | set(range(n_frames - cfg.eval_frames, n_frames)))
+        curve = {i: [] for i in range(len(configs))}
+        curve_plain = []
+        stats = {i: dict(ps=[], ss=[], reuse=[], post=[]) for i in range(len(configs))}
+        render_ms, plain_post = [], []
+        for step in run_sequence(integ, scene, n_frames, reusers, seed=0):
+            render_ms.append(step.render_ms)
+            k = step.index
+            last = k >= n_frames - cfg.eval_frames
+            if k in checkpoints:
+                p_img, pm = _post(step.frame.radiance)
+                plain_post.append(pm)
+                curve_plain.append((k + 1, psnr(p_img, ref8)))
+            for i, out in enumerate(step.outputs):
+                stats[i]["reuse"].append(step.reuse_ms[i])
+                if k in checkpoints:
+                    img, pm = _post(out)
+                    stats[i]["post"].append(pm)
+                    curve[i].append((k + 1, psnr(img, ref8)))
+                    if last:
+                        stats[i]["ps"].append(curve[i][-1][1])
+                        stats[i]["ss"].append(ssim(img, ref8))
+                        if configs[i] == (strip_alpha, "same-pixel", False) and k == n_frames - 1:
+                            images["reuse"] = img
+            progress("static: 1-spp timeline through reuse", k + 1, n_frames)
+    plain = [r for r in rows if r["kind"] == "plain"]
+    spp_axis, psnr_axis = [r["spp"] for r in plain], [r["psnr"] for r in plain]
+    ssim_axis = [r["ssim"] for r in plain]
+    for i, (a, m, w) in enumerate(configs):
+        s = stats[i]
+        label = f"1 spp + {m} α={a:g}" + (" +warmup" if w else "")
+        row = _row(label, "reuse", s["ps"], s["ss"], render_ms, s["reuse"], s["post"], alpha=a, mode=m, warmup=w,
+                   frames=n_frames, predicted_spp=(2 - a) / a)
+        try:
+            row["equivalent_spp"], row["equivalent_spp_extrapolated"] = equivalent_spp(spp_axis, psnr_axis, row["psnr"])
+        except ValueError as exc:
+            row["equivalent_spp"], row["equivalent_spp_extrapolated"] = float("nan"), str(exc)
+        row["ssim_equivalent_spp"] = float(2 ** np.interp(row["ssim"], ssim_axis, np.log2(spp_axis))) if np.all(np.diff(ssim_axis) > 0) else float("nan")
+        rows.append(row)
+    one = next(r for r in plain if r["spp"] == 1)
+    for r in rows:
+        r["gain_db_over_1spp"] = r["psnr"] - one["psnr"]
+    return dict(scene=cfg.static_scene, width=W, height=H, ref_spp=cfg.ref_spp, frames=n_frames, eval_frames=cfg.eval_frames,
+                rows=rows, convergence=dict(plain=curve_plain, **{reusers[i].settings.label: curve[i] for i in curve}))
+
+
+# ----------------------------------------------------------------------------------------------
+# dynamic
+
+
+def run_dynamic(cfg: QualityConfig, cache: ReferenceCache, progress: Callable, images: dict) -> dict:
+    base = scaled_scene(load_scene(cfg.dynamic_scene), cfg.scale)
+    H, W = base.render.height, base.render.width
+    moving_ids = np.array([i for i, o in enumerate(base.objects) if o.is_dynamic], np.int32)
+    timelines = []
+    configs = [(m, a, w) for m in cfg.modes for a in cfg.alphas for w in (False, True)]
+    t_first, t_last = min(cfg.dynamic_eval_times), max(cfg.dynamic_eval_times)
+    for fps in cfg.dynamic_fps:
+        scene = with_fps(base, fps)
+        # start early enough for the slowest α to reach steady state, but no earlier than t = 0
+        start_frame = max(0, math.floor((t_first - cfg.dynamic_history_s) * fps)) if fps >= 200 else 0
+        end_frame = math.ceil(t_last * fps)
+        eval_frames = sorted({int(round(t * fps)) for t in cfg.dynamic_eval_times})
+        n_frames = end_frame - start_frame + 1
+        reusers = [TemporalReuse(W, H, a, m, w) for m, a, w in configs]
+        series = {i: dict(ps=[], ps_moving=[], ss=[], reuse=[], post=[]) for i in range(len(configs))}
+        plain = dict(ps=[], ps_moving=[], ss=[], post=[])
+        render_ms = []
+        with PathIntegrator(scene, threads=cfg.threads) as integ:
+            integ.render(spp=1, seed=0)
+            refs = {}
+            for j, fk in enumerate(eval_frames):
+                refs[fk] = cache.get(scene, cfg.dynamic_scene, fk / fps, cfg.dynamic_ref_spp, integrator=integ)
+            for step in run_sequence(integ, scene, n_frames, reusers, seed=0, start_frame=start_frame):
+                fk = start_frame + step.index
+                render_ms.append(step.render_ms)
+                for i in range(len(configs)):
+                    series[i]["reuse"].append(step.reuse_ms[i])
+                if fk in refs:
+                    ref8 = postprocess(refs[fk]["radiance"])
+                    moving = np.isin(refs[fk]["object_id"], moving_ids) | np.isin(step.frame.object_id, moving_ids)
+                    img, pm = _post(step.frame.radiance)
+                    plain["post"].append(pm)
+                    plain["ps"].append(psnr(img, ref8))
+                    plain["ps_moving"].append(_masked_psnr(img, ref8, moving))
+                    plain["ss"].append(ssim(img, ref8))
+                    last = fk == eval_frames[-1]
+                    if last:
+                        images.setdefault("dynamic", {})[f"{fps:g} fps"] = {"reference": ref8, "1 spp": img}
+                    for i, out in enumerate(step.outputs):
+                        img, pm = _post(out)
+                        s = series[i]
+                        s["post"].append(pm)
+                        s["ps"].append(psnr(img, ref8))
+                        s["ps_moving"].append(_masked_psnr(img, ref8, moving))
+                        s["ss"].append(ssim(img, ref8))
+                        m, a, w = configs[i]
+                        if last and a == min(cfg.alphas) and not w:
+                            images["dynamic"][f"{fps:g} fps"][f"{m} α={a:g}"] = img
+                progress(f"dynamic {fps:g} fps: timeline through {len(configs)} reuse settings", step.index + 1, n_frames)
+        rows = [_row("1 spp", "plain", plain["ps"], plain["ss"], render_ms, [], plain["post"], psnr_moving=plain["ps_moving"])]
+        for i, (m, a, w) in enumerate(configs):
+            s = series[i]
+            rows.append(_row(f"1 spp + {m} α={a:g}" + (" +warmup" if w else ""), "reuse", s["ps"], s["ss"], render_ms, s["reuse"],
+                             s["post"], mode=m, alpha=a, warmup=w, psnr_moving=s["ps_moving"]))
+        for r in rows:
+            r["psnr_moving_mean"] = float(np.nanmean(r["psnr_moving"]))
+        timelines.append(dict(fps=fps, start_frame=start_frame, frames=n_frames, eval_frames=eval_frames,
+                              eval_times=[fk / fps for fk in eval_frames], rows=rows))
+    return dict(scene=cfg.dynamic_scene, width=W, height=H, ref_spp=cfg.dynamic_ref_spp, timelines=timelines)
+
+
+# ----------------------------------------------------------------------------------------------
+# report
+
+
+PAPER_TABLE1 = [("1 spp", 22.29, 0.61), ("1 spp + temporal reuse (α = 0.2)", 31.66, 0.79), ("9 spp", 31.67, 0.79)]
+
+
+def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path | None = None, progress: Callable | None = None) -> dict:
+    progress = progress or (lambda desc, done, total: None)
+    cache = ReferenceCache(cache_dir, threads=cfg.threads, progress=progress)
+    started = _time.perf_counter()
+    load0 = os.getloadavg()
+    images: dict = {}
+    result = dict(config=asdict(cfg), dpmhw=__version__, renderer=cache.renderer,
+                  machine=dict(cpus=os.cpu_count(), python=platform.python_version(), processor=platform.processor() or platform.machine()),
+                  metrics="PSNR on uint8 sRGB (exposure 1, clip), all channels; SSIM Wang et al. 2004 on Rec.601 luma, 11×11 Gaussian σ=1.5, K1=0.01, K2=0.03, data range 255",
+                  paper_table1=[dict(label=l, psnr=p, ssim=s) for l, p, s in PAPER_TABLE1])
+    if "static" in cfg.parts:
+        result["static"] = run_static(cfg, cache, progress, images)
+    if "dynamic" in cfg.parts:
+        result["dynamic"] = run_dynamic(cfg, cache, progress, images)
+    result["references"] = dict(cache_dir=str(cache.dir), rendered=cache.rendered, cache_hits=cache.hits)
+    result["seconds"] = round(_time.perf_counter() - started, 1)
+    result["loadavg_start_end"] = [list(load0), list(os.getloadavg())]
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        result["files"] = write_figures(result, images, out_dir)
+    return result
+
+
+def write_figures(result: dict, images: dict, out_dir: Path) -> list[str]:
+    from dpmhw.postprocess import write_png
+
+    files = []
+    if "static" in result:
+        names = ["reference", "1 spp", "reuse", "9 spp"]  # reuse: same-pixel at the α nearest 0.2
+        strip = np.concatenate([images[n] for n in names if n in images], axis=1)
+        write_png(out_dir / "static_strip.png", strip)
+        files.append(str(out_dir / "static_strip.png"))
+    for fps_label, imgs in images.get("dynamic", {}).items():
+        ref = imgs["reference"].astype(np.int16)
+        tiles = list(imgs.values())
+        errs = [np.clip(np.abs(im.astype(np.int16) - ref) * 4, 0, 255).astype(np.uint8) for im in tiles[1:]]
+        grid = np.concatenate([np.concatenate(tiles, axis=1), np.concatenate([np.zeros_like(tiles[0])] + errs, axis=1)], axis=0)
+        p = out_dir / f"dynamic_strip_{fps_label.replace(' ', '')}.png"
+        write_png(p, grid)
+        files.append(str(p))
+    files += _plots(result, out_dir)
+    return files
+
+
+def _plots(result: dict, out_dir: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = []
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    if "static" in result:
+        rows = result["static"]["rows"]
+        plain = [r for r in rows if r["kind"] == "plain"]
+        ax.plot([r["total_ms"] for r in plain], [r["psnr"] for r in plain], "o-", color="k", label="static: plain n spp")
+        for r in plain:
+            ax.annotate(f"{r['spp']}", (r["total_ms"], r["psnr"]), textcoords="offset points", xytext=(4, -10), fontsize=7)
+        for r in rows:
+            if r["kind"] == "reuse":
+                ax.plot(r["total_ms"], r["psnr"], "s" if not r["warmup"] else "D", label=f"static: {r['label']}")
+    for tl in result.get("dynamic", {}).get("timelines", []):
+        for r in tl["rows"]:
+            if r["kind"] == "plain" or (r["alpha"] == 0.1 and not r["warmup"]):
+                ax.plot(r["total_ms"], r["psnr"], "^" if tl["fps"] > 100 else "v", label=f"dynamic {tl['fps']:g} fps: {r['label']}")
+    ax.set_xscale("log")
+    ax.set_xlabel("ms per frame (render + reuse + post, medians; shared 2-core CPU)")
+    ax.set_ylabel("PSNR (dB) against the reference")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=6, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(out_dir / "speed_vs_psnr.png", dpi=130)
+    plt.close(fig)
+    files.append(str(out_dir / "speed_vs_psnr.png"))
+    if "static" in result:
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+        for label, pts in result["static"]["convergence"].items():
+            if pts:
+                k, p = zip(*pts)
+                ax.plot(k, p, "--" if "warmup" in label else "-", label=label)
+        ax.set_xscale("log")
+        ax.set_xlabel("frames since start")
+        ax.set_ylabel("PSNR (dB)")
+        ax.set_title("static scene: convergence of reuse, with and without warm-up")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out_dir / "static_convergence.png", dpi=130)
+        plt.close(fig)
+        files.append(str(out_dir / "static_convergence.png"))
+    tls = result.get("dynamic", {}).get("timelines", [])
+    if tls:
+        fig, axes = plt.subplots(1, len(tls), figsize=(6 * len(tls), 4.5), squeeze=False)
+        for ax, tl in zip(axes[0], tls):
+            for r in tl["rows"]:
+                if r["kind"] == "plain" or not r["warmup"]:
+                    ax.plot(tl["eval_times"], r["psnr_moving"], "o-" if r["kind"] == "plain" else ("-" if r["mode"] == "motion" else "--"), label=r["label"])
+            ax.set_title(f"paper-dynamic, {tl['fps']:g} fps: PSNR on the moving bunnies")
+            ax.set_xlabel("time (s)")
+            ax.set_ylabel("PSNR (dB)")
+            ax.grid(True, alpha=0.3)
+            ax.legend(fontsize=6)
+        fig.tight_layout()
+        fig.savefig(out_dir / "dynamic_psnr_over_time.png", dpi=130)
+        plt.close(fig)
+        files.append(str(out_dir / "dynamic_psnr_over_time.png"))
+    return files
+
+
+def format_table(result: dict) -> str:
+    lines = []
+    if "static" in result:
+        s = result["static"]
+        lines.append(f"static: {s['scene']} {s['width']}×{s['height']}, reference {s['ref_spp']} spp, reuse after {s['frames']} frames "
+                     f"(metrics: mean of the last {s['eval_frames']})")
+        lines.append(f"{'configuration':34s} {'PSNR':>7s} {'ΔdB':>6s} {'SSIM':>6s} {'eq.spp':>7s} {'pred.':>6s} {'render':>8s} {'reuse':>7s} {'post':>6s} {'total':>8s}")
+        for r in s["rows"]:
+            eq = f"{r['equivalent_spp']:7.1f}" + ("*" if r.get("equivalent_spp_extrapolated") is True else " ") if "equivalent_spp" in r else " " * 8
+            pred = f"{r['predicted_spp']:6.0f}" if "predicted_spp" in r else " " * 6
+            lines.append(f"{r['label']:34s} {r['psnr']:7.2f} {r['gain_db_over_1spp']:6.2f} {r['ssim']:6.3f} {eq}{pred} "
+                         f"{r['render_ms']:8.1f} {r['reuse_ms']:7.2f} {r['post_ms']:6.1f} {r['total_ms']:8.1f}")
+        lines.append("  (ms per frame, medians; * = extrapolated beyond the measured spp curve)")
+        lines.append("paper Table 1 (1024×768, 1000-spp reference): " + "; ".join(f"{l}: {p} dB / {q}" for l, p, q in PAPER_TABLE1))
+        lines.append("")
+    for tl in result.get("dynamic", {}).get("timelines", []):
+        d = result["dynamic"]
+        lines.append(f"dynamic: {d['scene']} {d['width']}×{d['height']} at {tl['fps']:g} fps, frames {tl['start_frame']}…"
+                     f"{tl['start_frame'] + tl['frames'] - 1}, references ({d['ref_spp']} spp) at t = "
+                     + ", ".join(f"{t:.3f}" for t in tl["eval_times"]) + " s")
+        lines.append(f"{'configuration':34s} {'PSNR per eval time (whole image)':>34s} {'moving':>7s} {'SSIM':>6s} {'reuse':>7s} {'total':>8s}")
+        for r in tl["rows"]:
+            per = " ".join(f"{p:6.2f}" for p in r["psnr_samples"])
+            lines.append(f"{r['label']:34s} {per:>34s} {r['psnr_moving_mean']:7.2f} {r['ssim']:6.3f} {r['reuse_ms']:7.2f} {r['total_ms']:8.1f}")
+        lines.append("")
+    lines.append(f"references: {result['references']['rendered']} rendered, {result['references']['cache_hits']} from cache "
+                 f"({result['references']['cache_dir']}); {result['seconds']} s; load average start/end "
+                 f"{result['loadavg_start_end'][0][0]:.1f}/{result['loadavg_start_end'][1][0]:.1f}")
+    return "\n".join(lines)

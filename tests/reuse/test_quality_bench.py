@@ -1,0 +1,66 @@
+"""`dpmhw bench quality` end to end at a tiny size: structure, caching, figures."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from dpmhw.benchmarks.quality import QualityConfig, ReferenceCache, format_table, run_quality, scene_digest
+from dpmhw.scene_file import load_scene
+from dpmhw.sequence import scaled_scene
+
+TINY = dataclasses.replace(
+    QualityConfig.quick(), scale=1 / 32, ref_spp=24, dynamic_ref_spp=8, static_spp=(1, 2, 4, 8), spp_repeats=1, alphas=(0.5, 0.25),
+    eval_frames=2, dynamic_fps=(947.0, 60.0), dynamic_eval_times=(0.02, 0.04), dynamic_history_s=0.01,
+)
+
+
+def test_quality_report_runs_caches_references_and_writes_figures(tmp_path):
+    cache = tmp_path / "cache"
+    result = run_quality(TINY, cache_dir=cache, out_dir=tmp_path / "figs")
+    static = result["static"]
+    assert (static["width"], static["height"]) == (32, 24)
+    plain = [r for r in static["rows"] if r["kind"] == "plain"]
+    reuse = {r["label"]: r for r in static["rows"] if r["kind"] == "reuse"}
+    assert [r["spp"] for r in plain] == [1, 2, 4, 8]
+    assert plain[-1]["psnr"] > plain[0]["psnr"] + 3  # more samples, less error
+    r = reuse["1 spp + same-pixel α=0.25"]
+    assert r["psnr"] > plain[0]["psnr"] and r["equivalent_spp"] > 2 and r["predicted_spp"] == 7
+    # on a static scene motion mode is same-pixel mode, bit for bit
+    assert reuse["1 spp + motion α=0.5"]["psnr"] == reuse["1 spp + same-pixel α=0.5"]["psnr"]
+    for row in static["rows"]:
+        assert row["total_ms"] == pytest.approx(row["render_ms"] + row["reuse_ms"] + row["post_ms"])
+    tl = {t["fps"]: t for t in result["dynamic"]["timelines"]}
+    assert tl[947.0]["eval_frames"] == [19, 38] and tl[60.0]["eval_frames"] == [1, 2]
+    assert len(tl[947.0]["rows"]) == 1 + 2 * 2 * 2  # plain + modes × alphas × warm-up
+    assert all(len(r["psnr_samples"]) == 2 for r in tl[947.0]["rows"])
+    refs = result["references"]
+    assert refs["rendered"] == 1 + 2 + 2 and refs["cache_hits"] == 0
+    meta = [json.loads(p.read_text()) for p in cache.glob("*.json")]
+    assert {m["spp"] for m in meta} == {24, 8} and all("equivalent_command" in m for m in meta)
+    names = {p.name for p in (tmp_path / "figs").iterdir()}
+    assert {"static_strip.png", "speed_vs_psnr.png", "static_convergence.png", "dynamic_psnr_over_time.png"} <= names
+    import cv2
+
+    assert cv2.imread(str(tmp_path / "figs" / "static_strip.png")).shape == (24, 4 * 32, 3)
+    text = format_table(result)
+    assert "Table 1" in text and "eq.spp" in text
+    json.dumps(result)  # serialisable
+    again = run_quality(dataclasses.replace(TINY, parts=("static",)), cache_dir=cache)
+    assert again["references"] == dict(cache_dir=str(cache), rendered=0, cache_hits=1)
+    np.testing.assert_equal(again["static"]["rows"][0]["psnr"], static["rows"][0]["psnr"])  # deterministic
+
+
+def test_reference_key_changes_with_what_changes_the_image(tmp_path):
+    scene = scaled_scene(load_scene("paper-static"), 1 / 64)
+    assert scene_digest(scene) == scene_digest(scaled_scene(load_scene("paper-static"), 1 / 64))
+    assert scene_digest(scene) != scene_digest(scaled_scene(load_scene("paper-static"), 1 / 32))
+    assert scene_digest(scene) != scene_digest(scaled_scene(load_scene("paper-dynamic"), 1 / 64))
+    cache = ReferenceCache(tmp_path)
+    a = cache.get(scene, "paper-static", 0.0, 2)
+    b = cache.get(scene, "paper-static", 0.0, 2)
+    c = cache.get(scene, "paper-static", 0.0, 3)
+    assert cache.rendered == 2 and cache.hits == 1
+    np.testing.assert_array_equal(a["radiance"], b["radiance"])
+    assert not np.array_equal(a["radiance"], c["radiance"])
