@@ -25,7 +25,7 @@ def test_frames_flow_and_none_is_made_from_stale_tracking(make_loop):
     st = loop.status()
     assert st["state"] == "running" and st["output_on"] and st["fps"] > 0
     assert st["latency_ms"]["p50"] is not None and set(st["stages_ms"]) >= {"render", "reuse", "post", "present"}
-    assert all(r.sample_age_s <= 0.060 for r in loop.frame_log)
+    assert all(r.sample_age_s <= 0.200 for r in loop.frame_log)
     assert loop.parts.projector.calls[:2] == ["blank", "unblank"]
     assert len(loop.parts.sink.frames) > 0 and loop.parts.sink.frames[-1].frame.shape == (24, 32, 3)
 
@@ -51,7 +51,7 @@ def test_stale_tracking_blanks(make_loop):
     loop.parts.tracker.streaming = False
     assert wait_for(lambda: state(loop) == "blanked", 10)
     assert "ms old" in loop.status()["reason"]
-    assert all(r.sample_age_s <= 0.060 for r in loop.frame_log)
+    assert all(r.sample_age_s <= 0.200 for r in loop.frame_log)
     loop.parts.tracker.streaming = True
     assert wait_for(lambda: state(loop) == "running", 10)
 
@@ -95,7 +95,7 @@ def test_watchdog_blanks_a_stuck_loop_and_status_still_answers(make_loop):
     renderer.block.clear()  # the next render hangs
     assert wait_for(lambda: state(loop) == "fault", 10)
     st = loop.status()
-    assert "loop stalled" in st["reason"] and st["heartbeat_age_s"] >= 0.5
+    assert "loop stalled" in st["reason"] and st["heartbeat_age_s"] >= 1.0
     assert loop.parts.projector.dark and loop.parts.projector.calls[-1] == "blank"
     renderer.block.set()
     assert wait_for(lambda: state(loop) == "running", 10), loop.status()

@@ -1,0 +1,133 @@
+"""In-process doubles of a session's parts, for tests of the loop and the service.
+
+They implement the same protocols as the real parts (Tracker, ProjectorControl, a renderer)
+with switches a test flips to inject each fault. The end-to-end tests use the real drivers
+against the firmware mocks instead.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+
+from dpmhw.tracking import LatestPoses, PoseSample, TrackerState, TrackerStatus
+
+__all__ = ["FakeProjector", "FakeTracker", "FlatRenderer", "fake_session"]
+
+
+class FakeTracker:
+    """Publishes a sample of body 1 on demand or continuously from a thread (a test controls validity)."""
+
+    kind = "fake"
+
+    def __init__(self):
+        self.poses = LatestPoses()
+        self.state = TrackerState.STREAMING
+        self.valid = True
+        self.streaming = True
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self.stopped = False
+
+    def _run(self):
+        k = 0
+        while not self._stop.wait(0.003):
+            if not self.streaming:
+                continue
+            now = time.monotonic_ns()
+            rot = np.eye(3) if self.valid else np.full((3, 3), np.nan)
+            self.poses.publish([PoseSample(1, rot, np.array([0.01 * np.sin(k / 50), 0.0, 0.0]), now - 4_500_000,
+                                           now, self.valid, frame_number=k)])
+            k += 1
+
+    def start(self):
+        self._thread.start()
+
+    def stop(self):
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(5)
+        self.stopped = True
+
+    def latest(self, body):
+        return self.poses.latest(body)
+
+    def latest_all(self):
+        return self.poses.latest_all()
+
+    def status(self):
+        return TrackerStatus(self.state, "" if self.state == TrackerState.STREAMING else "test says so")
+
+
+class FakeProjector:
+    def __init__(self):
+        self.calls: list[str] = []
+        self.fail_health = False
+        self.fail_blank = False
+        self.dark = True
+
+    def blank(self):
+        self.calls.append("blank")
+        if self.fail_blank:
+            raise RuntimeError("blank read-back failed")
+        self.dark = True
+        return "idle"
+
+    def unblank(self):
+        self.calls.append("unblank")
+        self.dark = False
+
+    def health(self):
+        if self.fail_health:
+            raise RuntimeError("device unplugged")
+        return {"idle": self.dark}
+
+    def reconnect(self):
+        if self.fail_health:
+            raise RuntimeError("still unplugged")
+
+    def close(self):
+        self.calls.append("close")
+
+
+class FlatRenderer:
+    """Radiance = constant plus noise where the object is: cheap, and reuse changes its output."""
+
+    def __init__(self, width=32, height=24):
+        self.width, self.height = width, height
+        self.block = threading.Event()
+        self.block.set()
+        self.fail: Exception | None = None
+        self.calls = 0
+
+    def render(self, time=0.0, seed=0, spp=1, poses=None, **kw):
+        self.calls += 1
+        self.block.wait(30)
+        if self.fail is not None:
+            raise self.fail
+        rng = np.random.default_rng(seed)
+        ids = np.zeros((self.height, self.width), np.int32)
+        radiance = (0.2 + 0.2 * rng.random((self.height, self.width, 3))).astype(np.float32)
+        return SimpleNamespace(radiance=radiance, object_id=ids, model_position=np.zeros_like(radiance))
+
+
+
+
+def fake_session(overrides=(), renderer=None, projector=True, tracker=None, frame_log=2000):
+    """A SessionLoop (not started) over the doubles and an in-memory sink, 32×24 dpm-bunny."""
+    from drivers.frame_sinks import RecordingSink
+    from dpmhw.scene_file import load_scene
+    from dpmhw.session.config import load_session_config
+    from dpmhw.session.factory import resolve_bindings, scale_to
+    from dpmhw.session.loop import SessionLoop, SessionParts
+
+    scene = scale_to(load_scene("dpm-bunny"), 32, 24)
+    cfg = load_session_config(overrides=["safety.holdoff_s=0.1", "safety.stale_after_ms=200", "safety.watchdog_s=1.0",
+                                         "projector.poll_interval_s=0.02", "reuse.mode=same-pixel", *overrides])
+    parts = SessionParts(scene, renderer or FlatRenderer(), tracker or FakeTracker(), RecordingSink(max_frames=50),
+                         resolve_bindings(cfg, scene), FakeProjector() if projector else None)
+    parts.tracker.start()
+    return SessionLoop(cfg, parts, frame_log=frame_log)

@@ -1,0 +1,1 @@
+"""One router per concern: status/health/metrics/frame, settings, session control."""
