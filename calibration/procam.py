@@ -338,7 +338,7 @@ def calibrate_lens(
             continue
         if (
             not release
-            and allow_release is not False
+            and allow_release
             and options.release_object is not False
             and len({len(o) for o in obj}) == 1
             and (options.release_object or rms > options.flatness_rms_px)
