@@ -63,7 +63,7 @@ class QualityConfig:
     eval_frames: int = 6  # static: metrics averaged over this many last frames
     dynamic_fps: tuple[float, ...] = (947.0, 60.0)
     dynamic_eval_times: tuple[float, ...] = (0.2, 0.3, 0.4, 0.5)
-    dynamic_history_s: float = 0.1  # the 947-fps run starts this long before the first eval (≥ 10/α frames)
+    dynamic_history_frames: int = 0  # frames rendered before the first eval time; 0 → ceil(8 / min α) (steady state)
     modes: tuple[str, ...] = ("same-pixel", "motion")
     threads: int = 2
     parts: tuple[str, ...] = ("static", "dynamic")
@@ -71,7 +71,7 @@ class QualityConfig:
     @classmethod
     def quick(cls) -> "QualityConfig":
         return cls(scale=0.25, ref_spp=1000, dynamic_ref_spp=256, static_spp=(1, 2, 4, 8, 16, 20, 32, 40), spp_repeats=3,
-                   eval_frames=4, dynamic_eval_times=(0.2, 0.35, 0.5), dynamic_history_s=0.08)
+                   eval_frames=4, dynamic_eval_times=(0.2, 0.35, 0.5))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -275,13 +275,15 @@ def run_dynamic(cfg: QualityConfig, cache: ReferenceCache, progress: Callable, i
     moving_ids = np.array([i for i, o in enumerate(base.objects) if o.is_dynamic], np.int32)
     timelines = []
     configs = [(m, a, w) for m in cfg.modes for a in cfg.alphas for w in (False, True)]
-    t_first, t_last = min(cfg.dynamic_eval_times), max(cfg.dynamic_eval_times)
     for fps in cfg.dynamic_fps:
         scene = with_fps(base, fps)
-        # start early enough for the slowest α to reach steady state, but no earlier than t = 0
-        start_frame = max(0, math.floor((t_first - cfg.dynamic_history_s) * fps)) if fps >= 200 else 0
-        end_frame = math.ceil(t_last * fps)
+        # both timelines start early enough (in frames) for the slowest α to reach steady state, so
+        # that the error at the eval times is lag, not the slow start; the scripted motion is
+        # defined for t < 0 too
         eval_frames = sorted({int(round(t * fps)) for t in cfg.dynamic_eval_times})
+        history = cfg.dynamic_history_frames or math.ceil(8 / min(cfg.alphas))
+        start_frame = eval_frames[0] - history
+        end_frame = eval_frames[-1]
         n_frames = end_frame - start_frame + 1
         reusers = [TemporalReuse(W, H, a, m, w) for m, a, w in configs]
         series = {i: dict(ps=[], ps_moving=[], ss=[], reuse=[], post=[]) for i in range(len(configs))}

@@ -12,7 +12,7 @@ from dpmhw.sequence import scaled_scene
 
 TINY = dataclasses.replace(
     QualityConfig.quick(), scale=1 / 32, ref_spp=24, dynamic_ref_spp=8, static_spp=(1, 2, 4, 8), spp_repeats=1, alphas=(0.5, 0.25),
-    eval_frames=2, dynamic_fps=(947.0, 60.0), dynamic_eval_times=(0.02, 0.04), dynamic_history_s=0.01,
+    eval_frames=2, dynamic_fps=(947.0, 60.0), dynamic_eval_times=(0.02, 0.04),
 )
 
 
@@ -33,6 +33,8 @@ def test_quality_report_runs_caches_references_and_writes_figures(tmp_path):
         assert row["total_ms"] == pytest.approx(row["render_ms"] + row["reuse_ms"] + row["post_ms"])
     tl = {t["fps"]: t for t in result["dynamic"]["timelines"]}
     assert tl[947.0]["eval_frames"] == [19, 38] and tl[60.0]["eval_frames"] == [1, 2]
+    # steady state before the first eval: 8 / min α = 32 frames of history, on both timelines
+    assert tl[947.0]["start_frame"] == 19 - 32 and tl[60.0]["start_frame"] == 1 - 32 and tl[60.0]["frames"] == 34
     assert len(tl[947.0]["rows"]) == 1 + 2 * 2 * 2  # plain + modes × alphas × warm-up
     assert all(len(r["psnr_samples"]) == 2 for r in tl[947.0]["rows"])
     refs = result["references"]
