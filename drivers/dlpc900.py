@@ -15,13 +15,14 @@ restores the configuration this object has set.
 
 from __future__ import annotations
 
+import contextlib
 import errno as _errno
 import logging
 import struct
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import usb.core
@@ -149,7 +150,10 @@ class DLPC900:
         self._seq = 0
         self._lock = threading.RLock()
         self._in_error_read = False
-        self._restoring = False
+        # Set while a multi-command exchange runs (a restore, a sequence upload): a disconnect
+        # then surfaces to that exchange, which starts over, instead of retrying one command
+        # against a controller that lost the state the earlier commands had set up.
+        self._no_command_retry = False
         self.configured = _Configured()
         self._attach(device)
         self.serial = serial if serial is not None else _serial_of(device)
@@ -240,7 +244,7 @@ class DLPC900:
         try:
             return self._transact(cmd, data, read=read, reply=reply)
         except DLPC900Disconnected:
-            if not self.auto_reconnect or self._restoring:
+            if not self.auto_reconnect or self._no_command_retry:
                 raise
             log.warning("DLPC900 disconnected during command 0x%04X; reconnecting", cmd)
             self.reconnect()
@@ -441,13 +445,17 @@ class DLPC900:
                     entries.append((len(entries), timing, len(images), j * timing.bit_depth))
                 images.append(encode_image(pack_patterns(chunk, timing.bit_depth)))
         seq = _Sequence(images, entries, repeat)
+        # A retried single command cannot continue an upload the power-cycled controller forgot
+        # (image data without its load init): after an unplug the whole sequence is sent again.
         try:
-            self._send_sequence(seq, start)
+            with self._whole_exchange():
+                self._send_sequence(seq, start)
         except DLPC900Disconnected:
             if not self.auto_reconnect:
                 raise
             self.reconnect()
-            self._send_sequence(seq, start)
+            with self._whole_exchange():
+                self._send_sequence(seq, start)
         return images
 
     def _send_sequence(self, seq: _Sequence, start: bool) -> None:
@@ -570,7 +578,9 @@ class DLPC900:
         If the device was unplugged, one reconnect is tried first (without restoring state).
         Raises DLPC900SafetyError when darkness cannot be confirmed.
         """
-        with self._lock:
+        # Blanking must be quick: with auto_reconnect a lost link is not to be met with a full
+        # restore (re-uploading images takes seconds) before going dark, so retries are ours here.
+        with self._lock, self._whole_exchange():
             try:
                 return self._blank()
             except DLPC900Disconnected:
@@ -633,11 +643,17 @@ class DLPC900:
             raise DLPC900Disconnected(f"DLPC900: not back after {self.reconnect_attempts} attempts: {last}",
                                       _errno.ENODEV) from last
         if restore:
-            self._restoring = True
-            try:
+            with self._whole_exchange():
                 self._restore(resume)
-            finally:
-                self._restoring = False
+
+    @contextlib.contextmanager
+    def _whole_exchange(self) -> Iterator[None]:
+        """Suspend the per-command reconnect-and-retry of `transact` (see `_no_command_retry`)."""
+        saved, self._no_command_retry = self._no_command_retry, True
+        try:
+            yield
+        finally:
+            self._no_command_retry = saved
 
     def _restore(self, resume: bool) -> None:
         c = replace(self.configured, trigger_out=dict(self.configured.trigger_out))

@@ -152,6 +152,48 @@ def test_auto_reconnect_retries_the_command(emu, clock):
     dlp.close()
 
 
+def _unplug_at(emu, opcode: int, nth: int):
+    """Unplug and replug (power cycle) `emu` right after the `nth` report carrying `opcode`."""
+    receive, seen = emu.receive, []
+
+    def hooked(report):
+        receive(report)
+        if len(report) >= 6 and int.from_bytes(report[4:6], "little") == opcode:
+            seen.append(opcode)
+            if len(seen) == nth:
+                emu.unplug()
+                emu.replug(power_cycle=True)
+
+    emu.receive = hooked
+
+
+@pytest.mark.parametrize("opcode, nth", [(0x1A2B, 2), (0x1A34, 3), (0x1A2A, 1)], ids=["image-data", "lut", "load-init"])
+def test_auto_reconnect_during_upload_sends_the_whole_sequence_again(emu, clock, opcode, nth):
+    """A power-cycled controller forgot the half-sent upload: retrying only the interrupted
+    command (image data without its load init) used to end in a device error."""
+    emu.model.width, emu.model.height = 64, 8
+    pats = np.random.default_rng(3).random((30, 8, 64)) < 0.5
+    with DLPC900.open(sleep=clock.sleep, auto_reconnect=True) as dlp:
+        _unplug_at(emu, opcode, nth)
+        dlp.upload_patterns(pats, exposure_us=500, start=True)
+        assert emu.generation == 1 and emu.model.sequencer == "running"
+        for k in range(len(pats)):
+            assert np.array_equal(emu.model.dmd_pattern(k).astype(bool), pats[k]), k
+    assert emu.model.dark
+
+
+def test_auto_reconnect_blank_goes_dark_without_restoring_first(emu, clock):
+    emu.model.width, emu.model.height = 16, 4
+    with DLPC900.open(sleep=clock.sleep, auto_reconnect=True) as dlp:
+        _lit(dlp, emu)
+        emu.unplug()
+        emu.replug(power_cycle=False)  # the controller kept showing the sequence
+        n = len(emu.model.command_log)
+        dlp.blank()
+        assert emu.model.dark
+        assert not [c for c in emu.model.command_log[n:] if c.opcode in (0x1A2A, 0x1A2B, 0x1A34)]
+
+
 def test_blank_after_unplug_and_replug_leaves_the_mock_dark(dlp, emu):
     _lit(dlp, emu)
     emu.unplug()
