@@ -36,6 +36,8 @@ class PolhemusTracker(ReceiverTracker):
     port : a device path ("/dev/ttyUSB0", a pty path) or a pyserial URL ("loop://").
     device_latency_s : measurement-to-output latency of the device (Liberty ≈ 3.5 ms).
     reset_wait_s : time the device needs to reinitialise after Ctrl-Y (seconds on real units).
+    write_timeout_s : longest a command write may block (a wedged adapter or a device that stops
+        reading would otherwise hang the receiver thread for good, and `stop()` with it).
     """
 
     kind = "polhemus"
@@ -49,6 +51,7 @@ class PolhemusTracker(ReceiverTracker):
         device_latency_s: float = 0.0035,
         reset_wait_s: float = 2.0,
         init_timeout_s: float = 1.0,
+        write_timeout_s: float = 1.0,
         warmup_records: int = 16,
         stale_after_s: float = 0.1,
         lost_after_s: float = 1.0,
@@ -67,6 +70,7 @@ class PolhemusTracker(ReceiverTracker):
         self.device_latency_ns = int(device_latency_s * 1e9)
         self.reset_wait_s = reset_wait_s
         self.init_timeout_s = init_timeout_s
+        self.write_timeout_s = write_timeout_s
         self.warmup_records = warmup_records
         self._warmup_left = warmup_records
         self.warmup_skipped = 0
@@ -166,7 +170,9 @@ class PolhemusTracker(ReceiverTracker):
 
     def _session(self) -> None:
         try:
-            self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.02)
+            self._serial = serial.serial_for_url(
+                self.port, baudrate=self.baudrate, timeout=0.02, write_timeout=self.write_timeout_s
+            )
         except (serial.SerialException, OSError) as exc:
             raise LinkLost(f"cannot open serial port {self.port}: {exc}") from None
         try:

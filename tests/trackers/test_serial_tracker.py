@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import select
 import struct
 import time
+import tty
 
 import numpy as np
 import pytest
@@ -182,6 +185,34 @@ def test_unplugged_port_is_reported_lost():
         assert wait_for(lambda: (s := tracker.status()).state == TrackerState.LOST and emu.port in s.reason, 5)
         assert not os.path.exists(emu.port) or tracker.status().state == TrackerState.LOST
     assert tracker.status().state == TrackerState.STOPPED
+
+
+def test_device_that_stops_reading_cannot_hang_the_receiver():
+    """A full output queue (nobody reads the other end) used to block a command write forever:
+    the receiver thread never came back, and `stop()` gave up on it after 5 s."""
+    master, slave = os.openpty()
+    try:
+        tty.setraw(slave)
+        os.set_blocking(slave, False)
+        tracker = PolhemusTracker(os.ttyname(slave), reset_wait_s=1.0, write_timeout_s=0.1, backoff_initial_s=0.05)
+        tracker.start()
+        thread = tracker._thread
+        seen = b""
+        while b"\x19\r" not in seen:  # the tracker sent its reset and now waits reset_wait_s...
+            if select.select([master], [], [], 5)[0] == []:
+                raise AssertionError("the tracker never sent its reset")
+            seen += os.read(master, 64)
+        for chunk in (4096, 1):  # ...while the queue towards the device fills up to the last byte
+            with contextlib.suppress(BlockingIOError):
+                while True:
+                    os.write(slave, bytes(chunk))
+        assert wait_for(lambda: "Write timeout" in tracker.status().reason, 5), tracker.status()
+        assert tracker.status().state in (TrackerState.LOST, TrackerState.CONNECTING)
+        tracker.stop()
+        assert not thread.is_alive()
+    finally:
+        os.close(master)
+        os.close(slave)
 
 
 def test_silent_port_fails_the_init_with_an_actionable_reason():
