@@ -23,10 +23,13 @@ __all__ = ["build_app"]
 
 
 def build_app(runtime: Runtime | None = None, *, token: str | None = None,
-              start: Callable[[], Runtime] | None = None) -> FastAPI:
+              start: Callable[[], Runtime] | None = None,
+              stopped: Callable[[Runtime], None] | None = None) -> FastAPI:
     """The service over `runtime`, or over the one `start()` returns at startup.
 
     token : bearer token for mutating routes; None reads DPMHW_API_TOKEN (no token: they all 401).
+    stopped : called with the runtime after the app stopped it (e.g. to print the final status:
+        uvicorn re-raises SIGTERM after shutdown, so code after `server.run()` may never run).
     """
     if (runtime is None) == (start is None):
         raise ValueError("build_app: pass exactly one of runtime= or start=")
@@ -41,6 +44,8 @@ def build_app(runtime: Runtime | None = None, *, token: str | None = None,
             if start is not None:
                 owned, app.state.runtime = app.state.runtime, None
                 owned.stop()
+                if stopped is not None:
+                    stopped(owned)
 
     app = FastAPI(title="dpmhw session", version=__version__, lifespan=lifespan,
                   description="Status, settings and control of a dynamic projection mapping session.")

@@ -155,8 +155,8 @@ def mock_trajectory(name: str, base_t: np.ndarray, speed: float):
     if name == "static":
         return Static(translation=tuple(base_t))
     if name == "linear":
-        # back and forth is not linear; start left of the base and cross it (0.3 m in 3 s at speed 1)
-        return Linear(start=tuple(base_t - np.array([0.15, 0.0, 0.0])), velocity=(0.1 * speed, 0.0, 0.0))
+        # starts 0.2 m left of the base and crosses it at 0.08 m/s: in view for about 5 s at speed 1
+        return Linear(start=tuple(base_t - np.array([0.2, 0.0, 0.0])), velocity=(0.08 * speed, 0.0, 0.0))
     return RotateWhileOscillating(center=tuple(base_t), amplitude_m=0.08, oscillation_hz=0.5 * speed,
                                   spin_rad_s=np.pi / 2 * speed)
 

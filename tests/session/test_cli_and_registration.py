@@ -1,0 +1,84 @@
+"""`dpmhw session …` / `dpmhw bench session` on the mocks, and the registration-error measure."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from dpmhw.cli import _register, app
+from dpmhw.render.cameras import PinholeCamera
+from dpmhw.scene_file import load_scene
+from dpmhw.session.registration import registration_error, silhouette
+from dpmhw.transforms import Pose
+
+SMALL = ["--set", "render.width=32", "--set", "render.height=24"]
+
+
+@pytest.fixture(scope="module")
+def runner():
+    _register()
+    return CliRunner()
+
+
+def test_config_command_validates_and_masks_the_token(runner, tmp_path):
+    r = runner.invoke(app, ["session", "config", "--set", "api.token=abc", "--set", "render.spp=3"])
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.output)
+    assert data["render"]["spp"] == 3 and data["api"]["token"] == "***"
+    bad = tmp_path / "s.toml"
+    bad.write_text("[reuse]\nalpha = 2\n")
+    r = runner.invoke(app, ["session", "config", "--config", str(bad)])
+    assert r.exit_code == 2 and "reuse.alpha" in r.output and str(bad) in r.output
+
+
+def test_start_mock_without_api_runs_and_ends_dark(runner):
+    r = runner.invoke(app, ["session", "start", "--mock", "--no-api", "--duration", "3", "--status-every", "0", *SMALL])
+    assert r.exit_code == 0, r.output
+    assert "session started (mock devices)" in r.output and "projector dark (idle)" in r.output
+
+
+def test_start_mock_with_api_on_loopback(runner, monkeypatch):
+    monkeypatch.setenv("DPMHW_API_TOKEN", "cli-token")
+    r = runner.invoke(app, ["session", "start", "--mock", "--port", "0", "--duration", "4", "--status-every", "0", *SMALL])
+    assert r.exit_code == 0, r.output
+    assert "API on http://127.0.0.1:" in r.output and "projector dark (idle)" in r.output
+    assert "this session's token" not in r.output  # the env token is used, not a generated one
+
+
+def test_start_reports_bad_bindings_as_an_error(runner):
+    r = runner.invoke(app, ["session", "start", "--mock", "--no-api", "--duration", "1", *SMALL,
+                            "--set", 'bindings=[{rigid_body = 1, object = "teapot"}]'])
+    assert r.exit_code == 2 and "bindings[0].object" in r.output and "teapot" in r.output
+
+
+def test_registration_error_of_a_known_shift():
+    scene = load_scene("dpm-bunny")
+    cam = PinholeCamera(scene.camera.K, scene.camera.dist, scene.render.width, scene.render.height, scene.camera.pose)
+    obj = scene.objects[0]
+    v, f = obj.mesh.vertices, obj.mesh.faces
+    base = obj.pose
+    mask = silhouette(cam, v, f, base)
+    assert 0.01 < mask.mean() < 0.5
+    same = registration_error(cam, v, f, base, base)
+    assert same.mean_px == 0 and same.max_px == 0 and same.vertex_px == 0
+    # 1 cm sideways at ~1 m with fx = 1500 px is ~15 px on the projector
+    shifted = Pose(base.R, base.t + np.array([0.01, 0.0, 0.0]))
+    err = registration_error(cam, v, f, shifted, base)
+    assert err.vertex_px == pytest.approx(15.0, rel=0.12)
+    assert err.max_px == pytest.approx(15.0, abs=2.0)
+    assert 2.0 < err.mean_px < err.max_px
+
+
+@pytest.mark.slow
+def test_bench_session_command(runner, tmp_path):
+    out = tmp_path / "bench.json"
+    r = runner.invoke(app, ["bench", "session", "--seconds", "1", "--trajectory", "linear", "--api-clients", "2",
+                            "--width", "64", "--height", "48", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    results = json.loads(out.read_text())
+    assert [x["api_clients"] for x in results] == [0, 0, 2]
+    assert all(x["frames"] > 2 and x["registration_px"]["p50"] is not None for x in results)
+    assert "frame-time p99 under 2 API clients" in r.output
