@@ -247,7 +247,8 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
         if config.recording.enabled:
             from dpmhw.session.recording import SessionRecorder
 
-            recorder = SessionRecorder.create(config.resolve(config.recording.path), config)
+            recorder = SessionRecorder.create(config.resolve(config.recording.path), config, tracker)
+            closers.append(recorder.close)
     except BaseException:
         for close in reversed(closers):
             try:
