@@ -117,15 +117,20 @@ class PolhemusTracker(ReceiverTracker):
 
     def _count_gap(self, station: int, ms: int) -> None:
         """Records carry no frame counter: a gap is an interval well above the station's
-        usual one (median of the recent intervals), counted in whole missing records."""
+        usual one, counted in whole missing records.
+
+        The usual interval is the mean of the recent gap-free intervals, not their median:
+        timestamps are whole milliseconds, so at 240 Hz the intervals read 4, 4, 4, 4, 4, 5
+        and a median of 4 would count a one-second dropout as 250 missing records, not 240.
+        """
         last = self._last_ms.get(station)
         self._last_ms[station] = ms
         if last is None or ms <= last:  # first record, or the device clock restarted
             return
         dt = ms - last
-        intervals = self._intervals.setdefault(station, deque(maxlen=16))
+        intervals = self._intervals.setdefault(station, deque(maxlen=256))
         if len(intervals) >= 4:
-            period = float(np.median(intervals))
+            period = sum(intervals) / len(intervals)
             if dt > 1.5 * period:
                 self.frames_missed += int(round(dt / period)) - 1
                 return

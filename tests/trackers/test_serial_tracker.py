@@ -187,6 +187,20 @@ def test_unplugged_port_is_reported_lost():
     assert tracker.status().state == TrackerState.STOPPED
 
 
+def fill_until_blocked(fd: int) -> None:
+    """Write to the non-blocking `fd` until the pty takes no more: the kernel moves queued bytes
+    on to the reader's line discipline in the background, so keep going until a round (with a
+    short wait for room) writes nothing."""
+    while True:
+        written = 0
+        for chunk in (4096, 1):
+            with contextlib.suppress(BlockingIOError):
+                while True:
+                    written += os.write(fd, bytes(chunk))
+        if not written and not select.select([], [fd], [], 0.05)[1]:
+            return
+
+
 def test_device_that_stops_reading_cannot_hang_the_receiver():
     """A full output queue (nobody reads the other end) used to block a command write forever:
     the receiver thread never came back, and `stop()` gave up on it after 5 s."""
@@ -202,10 +216,7 @@ def test_device_that_stops_reading_cannot_hang_the_receiver():
             if select.select([master], [], [], 5)[0] == []:
                 raise AssertionError("the tracker never sent its reset")
             seen += os.read(master, 64)
-        for chunk in (4096, 1):  # ...while the queue towards the device fills up to the last byte
-            with contextlib.suppress(BlockingIOError):
-                while True:
-                    os.write(slave, bytes(chunk))
+        fill_until_blocked(slave)  # ...while the queue towards the device fills up to the last byte
         assert wait_for(lambda: "Write timeout" in tracker.status().reason, 5), tracker.status()
         assert tracker.status().state in (TrackerState.LOST, TrackerState.CONNECTING)
         tracker.stop()
@@ -278,3 +289,13 @@ def test_gaps_in_record_timestamps_count_as_missed_records():
     assert [s.frame_number for s in samples][-1] == 50
     # units: the driver asked for centimetres, so 1, 2, 3 cm are metres 0.01, 0.02, 0.03
     np.testing.assert_allclose(samples[0].translation, [0.01, 0.02, 0.03], atol=1e-9)
+
+
+def test_dropout_at_a_fractional_millisecond_period_counts_the_records_really_missed():
+    """At 240 Hz the whole-millisecond stamps step 4, 4, 4, 4, 4, 5: a gap is measured against
+    the mean interval (4.17 ms), not the median (4 ms, which counted 250 for 240)."""
+    tracker = PolhemusTracker("loop://", warmup_records=0)
+    kept = [*range(0, 300), *range(540, 600)]  # records 300..539 (one second) never arrive
+    stream = b"".join(record_bytes(ms=round(j * 1000 / 240)) for j in kept)
+    assert len(tracker.process_bytes(stream, arrival_ns=10**9)) == len(kept)
+    assert tracker.status().frames_missed == 240
