@@ -35,7 +35,8 @@ def test_every_trajectory_is_vectorised_and_gives_rotations(name):
     assert rot.shape == (11, 3, 3) and pos.shape == (11, 3)
     assert is_rotation(rot)
     r5, p5 = traj.pose(t[5])  # scalar query agrees with the batch
-    np.testing.assert_allclose(r5, rot[5]) and np.testing.assert_allclose(p5, pos[5])
+    np.testing.assert_allclose(r5, rot[5])
+    np.testing.assert_allclose(p5, pos[5])
 
 
 def test_linear_and_circular_follow_their_definitions():
@@ -184,7 +185,8 @@ def test_core_and_mocks_do_not_import_drivers():
     import sys
 
     code = (
-        "import sys, dpmhw.tracking, firmware_mocks.world, firmware_mocks.natnet_server, firmware_mocks.serial_tracker;"
+        "import sys, dpmhw.tracking, dpmhw.frame_sink, firmware_mocks.world, firmware_mocks.natnet_server,"
+        " firmware_mocks.serial_tracker, firmware_mocks.dlpc900_model, firmware_mocks.dlpc900_usb;"
         "bad = [m for m in sys.modules if m == 'drivers' or m.startswith('drivers.')];"
         "assert not bad, bad"
     )
