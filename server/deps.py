@@ -34,7 +34,7 @@ class Runtime(Protocol):
     def ready(self) -> bool: ...
 
 
-def get_runtime(request: Request) -> Runtime:
+async def get_runtime(request: Request) -> Runtime:
     runtime = getattr(request.app.state, "runtime", None)
     if runtime is None:
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, "the session is not running")
@@ -44,7 +44,7 @@ def get_runtime(request: Request) -> Runtime:
 _bearer = HTTPBearer(auto_error=False, description="the session's API token (api.token or DPMHW_API_TOKEN)")
 
 
-def require_token(request: Request,
+async def require_token(request: Request,
                   credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
     """401 unless the request carries `Authorization: Bearer <token>` with the configured token."""
     expected: str = getattr(request.app.state, "token", "") or ""

@@ -199,7 +199,8 @@ def bench_session(
     width: Annotated[int, typer.Option(min=8, help="Render width (the projector is 1024 wide; errors are in its pixels).")] = 256,
     height: Annotated[int, typer.Option(min=6)] = 192,
     spp: Annotated[int, typer.Option(min=1, max=64)] = 1,
-    api_clients: Annotated[int, typer.Option(min=0, max=64, help="Concurrent API clients for the load case (0: skip it).")] = 8,
+    api_clients: Annotated[int, typer.Option(min=0, max=64, help="Concurrent API clients for the load case (0: skip it).")] = 4,
+    api_rate: Annotated[float, typer.Option(min=0.0, max=1000.0, help="Requests per second per API client (0: as fast as possible).")] = 10.0,
     trajectory: Annotated[Optional[list[str]], typer.Option(help="linear, rotate-oscillate (repeatable; default both).")] = None,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
 ) -> None:
@@ -210,7 +211,7 @@ def bench_session(
     for t in trajectories:
         if t not in ("linear", "rotate-oscillate", "static"):
             raise typer.BadParameter(f"--trajectory: expected linear, rotate-oscillate or static, got {t!r}")
-    results = run_bench(trajectories, api_clients=api_clients, seconds=seconds, width=width, height=height, spp=spp,
+    results = run_bench(trajectories, api_clients=api_clients, api_rate_hz=api_rate, seconds=seconds, width=width, height=height, spp=spp,
                         progress=lambda label: typer.echo(f"running {label} …"))
     typer.echo(format_table(results))
     if json_path is not None:

@@ -11,14 +11,14 @@ router = APIRouter(prefix="/settings", tags=["settings"])
 
 
 @router.get("", response_model=SettingsModel, summary="The accepted live settings")
-def get_settings(runtime: RuntimeDep) -> SettingsModel:
+async def get_settings(runtime: RuntimeDep) -> SettingsModel:
     return SettingsModel.model_validate(runtime.settings().model_dump())
 
 
 @router.patch("", response_model=SettingsModel, dependencies=[Depends(require_token)],
               summary="Change some settings; invalid values → 422 with the reason",
               responses={401: {"description": "missing or wrong bearer token"}})
-def patch_settings(patch: SettingsPatch, runtime: RuntimeDep) -> SettingsModel:
+async def patch_settings(patch: SettingsPatch, runtime: RuntimeDep) -> SettingsModel:
     changes = patch.model_dump(exclude_unset=True)
     if any(v is None for v in changes.values()):
         raise HTTPException(422, f"null is not a value for: {', '.join(k for k, v in changes.items() if v is None)}")

@@ -27,7 +27,7 @@ def _jsonable(status: dict) -> dict:
 
 
 @router.get("/status", summary="Session state with its reason, fps, latency, stage timings, devices, settings")
-def get_status(runtime: RuntimeDep) -> JSONResponse:
+async def get_status(runtime: RuntimeDep) -> JSONResponse:
     return JSONResponse(_jsonable(runtime.status()))
 
 
@@ -51,19 +51,19 @@ async def stream_status(request: Request, runtime: RuntimeDep,
 
 
 @router.get("/livez", summary="The service process answers")
-def livez() -> dict:
+async def livez() -> dict:
     return {"live": True}
 
 
 @router.get("/readyz", summary="200 when the loop runs (projecting or deliberately dark), else 503")
-def readyz(runtime: RuntimeDep) -> JSONResponse:
+async def readyz(runtime: RuntimeDep) -> JSONResponse:
     ok = runtime.ready()
     st = runtime.status()
     return JSONResponse({"ready": ok, "state": st.get("state"), "reason": st.get("reason", "")}, status_code=200 if ok else 503)
 
 
 @router.get("/metrics", summary="Prometheus text format", response_class=PlainTextResponse)
-def metrics(runtime: RuntimeDep) -> Response:
+async def metrics(runtime: RuntimeDep) -> Response:
     return Response(render_metrics(runtime.status()), media_type="text/plain; version=0.0.4; charset=utf-8")
 
 
@@ -93,7 +93,7 @@ _png_cache = _PngCache()
 
 @router.get("/frame.png", summary="The latest frame sent to the projector (what the audience sees)",
             responses={200: {"content": {"image/png": {}}}, 404: {"description": "no frame presented yet"}})
-def frame_png(runtime: RuntimeDep) -> Response:
+async def frame_png(runtime: RuntimeDep) -> Response:
     frame = runtime.latest_frame()
     if frame is None:
         raise HTTPException(404, "no frame has been sent to the projector yet")

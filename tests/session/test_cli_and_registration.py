@@ -84,6 +84,8 @@ def test_bench_session_command(runner, tmp_path):
                             "--width", "64", "--height", "48", "--json", str(out)])
     assert r.exit_code == 0, r.output
     results = json.loads(out.read_text())
-    assert [x["api_clients"] for x in results] == [0, 0, 2]
-    assert all(x["frames"] > 2 and x["registration_px"]["p50"] is not None for x in results)
-    assert "frame-time p99 under 2 API clients" in r.output
+    assert [x["prediction"] for x in results["cases"]] == [True, False]
+    assert all(x["frames"] > 2 and x["registration_px"]["p50"] is not None for x in results["cases"])
+    load = results["api_load"]
+    assert load["requests"] > 0 and load["errors"] == 0 and load["loaded_frames"] > 0 and load["unloaded_frames"] > 0
+    assert "API load (2 clients" in r.output
