@@ -11,14 +11,10 @@ from dpmhw.cli import _register, app
 from dpmhw.tracking import wait_for
 from drivers.natnet import NatNetClient
 
+from .conftest import free_udp_port
+
 _register()
 runner = CliRunner()
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_natnet_help_lists_the_documented_options():

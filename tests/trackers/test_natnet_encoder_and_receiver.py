@@ -4,7 +4,6 @@ receiver's handling of random and mutated datagrams (hypothesis)."""
 from __future__ import annotations
 
 import struct
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,15 +21,7 @@ from drivers.natnet_protocol import (
 from firmware_mocks.natnet_server import FrameContent, encode_frame, encode_model_definitions
 from firmware_mocks.world import World
 
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "natnet"
-
-
-def captured(name: str) -> bytes:
-    path = DATA / name
-    if not path.exists():
-        pytest.skip(f"captured NatNet packets not found at {DATA}")
-    return path.read_bytes()
-
+from .conftest import captured
 
 def _rb_tuples(rb):
     return [

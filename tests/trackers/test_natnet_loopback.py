@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import socket
 import time
 
 import numpy as np
@@ -14,14 +13,10 @@ from drivers.natnet import NatNetClient
 from firmware_mocks.natnet_server import NatNetServer, NatNetServerConfig
 from firmware_mocks.world import World
 
+from .conftest import free_udp_port, settle
+
 LATENCY_MS = 4.5
 VERSIONS = ["3.0", "3.1", "4.0", "4.1", "4.2"]
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @contextlib.contextmanager
@@ -143,20 +138,6 @@ def test_latest_is_newest_per_body_and_callbacks_fire():
         later = client.latest(2)
         assert later.t_exposure_ns > newest.t_exposure_ns
         assert check_against_truth(got[:60], world, server) == 60
-
-
-def settle(client, quiet_s=0.15, timeout_s=5.0):
-    """Wait until the client's counters stop moving (the stream is stalled)."""
-    deadline = time.monotonic() + timeout_s
-    last, since = None, time.monotonic()
-    while time.monotonic() < deadline:
-        now = (client.status().frames, client.status().malformed)
-        if now != last:
-            last, since = now, time.monotonic()
-        elif time.monotonic() - since > quiet_s:
-            return now
-        time.sleep(0.01)
-    raise AssertionError("client counters never settled")
 
 
 @pytest.mark.parametrize("version", ["3.0", "4.1"])

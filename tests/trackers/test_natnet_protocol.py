@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -24,15 +22,7 @@ from drivers.natnet_protocol import (
     split_message,
 )
 
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "natnet"
-
-
-def captured(name: str) -> bytes:
-    path = DATA / name
-    if not path.exists():
-        pytest.skip(f"captured NatNet packets not found at {DATA}")
-    return path.read_bytes()
-
+from .conftest import captured
 
 def test_tracked_frame_decodes_to_published_values():
     msg_id, payload = split_message(captured("mocapframe_packet_v3.bin"))

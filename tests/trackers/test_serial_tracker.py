@@ -26,6 +26,8 @@ from drivers.serial_tracker import PolhemusTracker
 from firmware_mocks.serial_tracker import PolhemusEmulator
 from firmware_mocks.world import World
 
+from .conftest import settle
+
 
 def record_bytes(station=1, pos=(1.0, 2.0, 3.0), quat_wxyz=(1.0, 0.0, 0.0, 0.0), ms=1234, model=b"LY", cmd=b"C", error=0):
     """A 41-byte binary record, packed by hand from the documented layout."""
@@ -118,19 +120,6 @@ def check_against_truth(samples, world, emulator, time_tol_ns=2e6):
             np.testing.assert_allclose(s.translation, pos, atol=2e-6)
             np.testing.assert_allclose(s.rotation, rot, atol=2e-6)
     return len(samples)
-
-
-def settle(tracker, quiet_s=0.15, timeout_s=5.0):
-    deadline = time.monotonic() + timeout_s
-    last, since = None, time.monotonic()
-    while time.monotonic() < deadline:
-        now = (tracker.status().frames, tracker.status().malformed)
-        if now != last:
-            last, since = now, time.monotonic()
-        elif time.monotonic() - since > quiet_s:
-            return now
-        time.sleep(0.01)
-    raise AssertionError("tracker counters never settled")
 
 
 @pytest.mark.parametrize("units", ["cm", "inch"])

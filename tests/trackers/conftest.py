@@ -1,0 +1,40 @@
+"""Helpers shared by the tracker tests (imported as `from .conftest import ...`)."""
+
+from __future__ import annotations
+
+import socket
+import time
+from pathlib import Path
+
+import pytest
+
+NATNET_CAPTURES = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "natnet"
+
+
+def captured(name: str) -> bytes:
+    """A real Motive datagram from `../shared/data/natnet/` (the test is skipped without it)."""
+    path = NATNET_CAPTURES / name
+    if not path.exists():
+        pytest.skip(f"captured NatNet packets not found at {NATNET_CAPTURES}")
+    return path.read_bytes()
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def settle(tracker, quiet_s: float = 0.15, timeout_s: float = 5.0) -> tuple[int, int]:
+    """Wait until the tracker's (frames, malformed) counters stop moving (its stream is stalled)."""
+    deadline = time.monotonic() + timeout_s
+    last, since = None, time.monotonic()
+    while time.monotonic() < deadline:
+        status = tracker.status()
+        now = (status.frames, status.malformed)
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since > quiet_s:
+            return now
+        time.sleep(0.01)
+    raise AssertionError(f"{tracker.kind} counters never settled")
