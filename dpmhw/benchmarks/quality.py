@@ -258,6 +258,9 @@ def run_static(cfg: QualityConfig, cache: ReferenceCache, progress: Callable, im
             row["equivalent_spp"], row["equivalent_spp_extrapolated"] = float("nan"), str(exc)
         row["ssim_equivalent_spp"] = float(2 ** np.interp(row["ssim"], ssim_axis, np.log2(spp_axis))) if np.all(np.diff(ssim_axis) > 0) else float("nan")
         rows.append(row)
+    for i, row in enumerate(r for r in rows if r["kind"] == "reuse"):
+        pts = curve[i]  # (frames, PSNR); the first frame within 0.5 dB of the steady state
+        row["frames_to_within_0.5dB"] = next((k for k, p in pts if p >= row["psnr"] - 0.5), None)
     one = next(r for r in plain if r["spp"] == 1)
     for r in rows:
         r["gain_db_over_1spp"] = r["psnr"] - one["psnr"]
@@ -463,6 +466,8 @@ def format_table(result: dict) -> str:
             lines.append(f"{r['label']:34s} {r['psnr']:7.2f} {r['gain_db_over_1spp']:6.2f} {r['ssim']:6.3f} {eq}{pred} "
                          f"{r['render_ms']:8.1f} {r['reuse_ms']:7.2f} {r['post_ms']:6.1f} {r['total_ms']:8.1f}")
         lines.append("  (ms per frame, medians; * = extrapolated beyond the measured spp curve)")
+        lines.append("frames from the start until within 0.5 dB of the steady state: "
+                     + ", ".join(f"{r['label'].replace('1 spp + ', '')}: {r['frames_to_within_0.5dB']}" for r in s["rows"] if r["kind"] == "reuse"))
         lines.append("paper Table 1 (1024×768, 1000-spp reference): " + "; ".join(f"{l}: {p} dB / {q}" for l, p, q in PAPER_TABLE1))
         lines.append("")
     for tl in result.get("dynamic", {}).get("timelines", []):

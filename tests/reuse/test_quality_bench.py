@@ -27,6 +27,11 @@ def test_quality_report_runs_caches_references_and_writes_figures(tmp_path):
     assert plain[-1]["psnr"] > plain[0]["psnr"] + 3  # more samples, less error
     r = reuse["1 spp + same-pixel α=0.25"]
     assert r["psnr"] > plain[0]["psnr"] and r["equivalent_spp"] > 2 and r["predicted_spp"] == 7
+    # warm-up reaches the steady state sooner than a fixed α (the slow start)
+    assert reuse["1 spp + same-pixel α=0.25 +warmup"]["frames_to_within_0.5dB"] <= r["frames_to_within_0.5dB"]
+    conv = static["convergence"]
+    early = lambda label: np.mean([p for k, p in conv[label] if 2 <= k <= 4])  # noqa: E731
+    assert early("same-pixel α=0.25 +warmup") > early("same-pixel α=0.25") + 0.3
     # on a static scene motion mode is same-pixel mode, bit for bit
     assert reuse["1 spp + motion α=0.5"]["psnr"] == reuse["1 spp + same-pixel α=0.5"]["psnr"]
     for row in static["rows"]:
