@@ -57,6 +57,31 @@ RESET_LED_ENABLE = 0x08
 RESET_LED_CURRENT = (0x97, 0x78, 0x7D)
 
 
+class RecentLog(list):
+    """A list for the emulator's records that keeps only the newest entries.
+
+    The mock also runs for whole sessions (`dpmhw run --mock` polls its status every few
+    seconds), so its logs must not grow without bound; tests read them as plain lists. Past
+    `limit` entries the oldest half is dropped at once, which keeps `append` amortised O(1).
+    """
+
+    def __init__(self, limit: int = 100_000):
+        super().__init__()
+        self.limit = limit
+
+    def append(self, item) -> None:
+        super().append(item)
+        self._trim()
+
+    def extend(self, items) -> None:
+        super().extend(items)
+        self._trim()
+
+    def _trim(self) -> None:
+        if len(self) > self.limit:
+            del self[: len(self) - self.limit // 2]
+
+
 class CommandError(Exception):
     """A command the controller rejects; carries the 0x0100 code and 0x0101 text."""
 
@@ -226,8 +251,8 @@ class DLPC900Model:
         self.tag = tag
         self.clock = clock
         self.firmware = firmware  # (major, minor, patch) for application, API, sw config, seq config
-        self.command_log: list[LoggedCommand] = []
-        self.events: list[tuple[int, str]] = []  # (t_ns, what) for sequencer and mode changes
+        self.command_log: RecentLog = RecentLog()  # LoggedCommand per command
+        self.events: RecentLog = RecentLog()  # (t_ns, what) for sequencer and mode changes
         self.trigger_times: list[int] = []  # external trigger-in edges (tests add them)
         self.power_on()
 
@@ -258,7 +283,7 @@ class DLPC900Model:
         self.hw_status = 0x01  # init OK
         self.error_code = 0
         self.error_description = ""
-        self._timeline: list[DisplayedPattern] = []
+        self._timeline: RecentLog = RecentLog()  # DisplayedPattern of finished runs
 
     @property
     def dark(self) -> bool:
@@ -598,7 +623,8 @@ class DLPC900Model:
         return out
 
     def displayed(self, until_ns: int | None = None) -> list[DisplayedPattern]:
-        """Every pattern shown so far (or until `until_ns`), with its start time."""
+        """The patterns shown so far (or until `until_ns`), with their start times: the current
+        run's and, of finished runs, the newest ones `RecentLog` keeps."""
         until = self.clock() if until_ns is None else until_ns
         return self._timeline + (self._run_timeline(until) if self.sequencer == "running" else [])
 

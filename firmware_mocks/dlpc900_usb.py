@@ -25,7 +25,7 @@ from typing import Callable, Iterator
 import usb.backend
 import usb.core
 
-from firmware_mocks.dlpc900_model import ERROR_NAMES, CommandError, DLPC900Model, LoggedCommand
+from firmware_mocks.dlpc900_model import ERROR_NAMES, CommandError, DLPC900Model, LoggedCommand, RecentLog
 
 VID, PID = 0x0451, 0xC900
 EP_OUT, EP_IN = 0x01, 0x81
@@ -86,8 +86,8 @@ class EmulatedDLPC900:
         self._partial: bytearray | None = None
         self._need = 0
         self._in: deque[bytes] = deque()
-        self.raw_out: list[bytes] = []  # every OUT report as received
-        self.raw_in: list[bytes] = []  # every IN report as sent
+        self.raw_out: RecentLog = RecentLog()  # the OUT reports as received (the newest ones)
+        self.raw_in: RecentLog = RecentLog()  # the IN reports as sent (the newest ones)
         self._faults: list[dict] = []
         self._stall = 0
         self.claimed = False

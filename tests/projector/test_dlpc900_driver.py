@@ -270,3 +270,15 @@ def test_not_found_outside_emulation_is_typed():
 class _EmptyBackend(usb.backend.IBackend if hasattr(usb, "backend") else object):
     def enumerate_devices(self):
         return iter(())
+
+
+def test_the_emulators_logs_stay_bounded_over_a_long_session(dlp, emu):
+    """`dpmhw run --mock` polls the emulated projector for as long as the session runs."""
+    logs = (emu.raw_out, emu.raw_in, emu.model.command_log)
+    for log in logs:
+        log.limit = 40
+    for _ in range(100):
+        dlp.status()
+    assert all(20 <= len(log) <= 40 for log in logs)
+    assert emu.model.command_log[-1].opcode == 0x1A0B  # the newest entries are the ones kept
+    assert dlp.status()["firmware"] == "5.3.0"
