@@ -34,9 +34,9 @@ from drivers.dlpc900_types import (
     HardwareStatus, LedEnable, MainStatus, PatternTiming, SystemStatus, TriggerOut, Version,
 )
 from drivers.dlpc900_wire import (
-    ERROR_CODES, FLAG_READ, IMAGE_CHUNK, READ_LENGTH, REPORT, Cmd, DLPC900DeviceError, DLPC900Disconnected,
+    FLAG_READ, IMAGE_CHUNK, READ_LENGTH, REPORT, Cmd, DLPC900DeviceError, DLPC900Disconnected,
     DLPC900Error, DLPC900NotFound, DLPC900ProtocolError, DLPC900SafetyError, DLPC900Timeout, DLPC900USBError,
-    parse_reply_header, request_reports,
+    c_string, parse_reply_header, request_reports,
 )
 
 __all__ = [
@@ -292,10 +292,9 @@ class DLPC900:
             text = self._transact(Cmd.ERROR_DESCRIPTION, b"", read=True, reply=True)
         finally:
             self._in_error_read = False
-        description = text.split(b"\x00", 1)[0].decode("ascii", "replace")
         if code == 0:
             raise DLPC900ProtocolError(f"reply to 0x{cmd:04X} has the error flag but the error code reads 0")
-        raise DLPC900DeviceError(cmd, code, description or ERROR_CODES.get(code, "unknown error"))
+        raise DLPC900DeviceError(cmd, code, c_string(text))
 
     def _read(self, cmd: int) -> bytes:
         return self.transact(cmd, read=True)
@@ -311,8 +310,7 @@ class DLPC900:
         without a reply, such as image data)."""
         code = self._read(Cmd.ERROR_CODE)[0]
         if code:
-            text = self._read(Cmd.ERROR_DESCRIPTION).split(b"\x00", 1)[0].decode("ascii", "replace")
-            raise DLPC900DeviceError(cmd, code, text or ERROR_CODES.get(code, "unknown error"))
+            raise DLPC900DeviceError(cmd, code, c_string(self._read(Cmd.ERROR_DESCRIPTION)))
 
     # ---- identity and status -------------------------------------------------------------
     def firmware_version(self) -> FirmwareVersion:
@@ -320,7 +318,7 @@ class DLPC900:
 
     def hardware_config(self) -> HardwareConfig:
         data = self._read(Cmd.HARDWARE_CONFIG)
-        return HardwareConfig(data[0], data[1:].split(b"\x00", 1)[0].decode("ascii", "replace"))
+        return HardwareConfig(data[0], c_string(data[1:]))
 
     def hardware_status(self) -> HardwareStatus:
         return HardwareStatus.decode(self._read_u8(Cmd.HARDWARE_STATUS))
@@ -333,9 +331,7 @@ class DLPC900:
 
     def error_code(self) -> tuple[int, str]:
         """(code, description) of the last command, as 0x0100 and 0x0101 report them."""
-        code = self._read(Cmd.ERROR_CODE)[0]
-        text = self._read(Cmd.ERROR_DESCRIPTION).split(b"\x00", 1)[0].decode("ascii", "replace")
-        return code, text
+        return self._read(Cmd.ERROR_CODE)[0], c_string(self._read(Cmd.ERROR_DESCRIPTION))
 
     # ---- display mode ------------------------------------------------------------------
     def display_mode(self) -> DisplayMode:
@@ -709,7 +705,7 @@ class DLPC900:
         main = self.main_status()
         return {
             "serial": self.serial, "firmware": str(fw.application), "api": str(fw.api), "dmd": hw.dmd_name,
-            "tag": hw.tag, "display_mode": self.display_mode().name, "standby": self.in_standby(),
+            "tag": hw.tag, "display_mode": self.display_mode().name, "standby": False,
             "idle": self.idle(), "sequencer_running": main.sequencer_running, "parked": main.dmd_parked,
             "hardware_faults": hs.faults, "memory_test_passed": self.system_status().memory_test_passed,
         }

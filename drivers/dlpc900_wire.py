@@ -105,14 +105,20 @@ class DLPC900ProtocolError(DLPC900Error):
 
 
 class DLPC900DeviceError(DLPC900Error):
-    """The controller rejected a command; `code` and `description` come from 0x0100 / 0x0101."""
+    """The controller rejected a command; `code` and `description` come from 0x0100 / 0x0101
+    (an empty description is replaced by the code's name)."""
 
     def __init__(self, command: int, code: int, description: str):
+        name = ERROR_CODES.get(code, "unknown error")
         self.command = command
         self.code = code
-        self.description = description
-        name = ERROR_CODES.get(code, "unknown error")
-        super().__init__(f"DLPC900 rejected command 0x{command:04X}: error {code} ({name}): {description}")
+        self.description = description or name
+        super().__init__(f"DLPC900 rejected command 0x{command:04X}: error {code} ({name}): {self.description}")
+
+
+def c_string(data: bytes) -> str:
+    """The text of a NUL-terminated ASCII field (error description, hardware tag)."""
+    return data.split(b"\x00", 1)[0].decode("ascii", "replace")
 
 
 class DLPC900SafetyError(DLPC900Error):
