@@ -225,6 +225,13 @@ class NatNetClient(ReceiverTracker):
     def _send(self, datagram: bytes) -> None:
         self._cmd.sendto(datagram, (self.server, self.command_port))
 
+    def _send_echo(self) -> int:
+        """Echo request stamped with the host clock; the response is matched by that stamp."""
+        stamp = time.monotonic_ns()
+        self._echoes_sent.append(stamp)
+        self._send(encode_echo_request(stamp))
+        return stamp
+
     def _close_transport(self) -> None:
         for sock in (self._cmd, self._data):
             if sock is not None:
@@ -264,9 +271,7 @@ class NatNetClient(ReceiverTracker):
         deadline = time.monotonic() + timeout_s
         got = 0
         while got < round_trips and time.monotonic() < deadline and not self._stop.is_set():
-            stamp = time.monotonic_ns()
-            self._echoes_sent.append(stamp)
-            self._send(encode_echo_request(stamp))
+            self._send_echo()
             reply_deadline = time.monotonic() + 0.05
             while time.monotonic() < reply_deadline:
                 if not select.select([self._cmd], [], [], 0.01)[0]:
@@ -327,10 +332,7 @@ class NatNetClient(ReceiverTracker):
                 self._send(encode_message(MessageId.KEEP_ALIVE))
                 last_keepalive = now
             if now - last_echo > self.echo_interval_s * 1e9:  # keeps following clock drift
-                stamp = time.monotonic_ns()
-                self._echoes_sent.append(stamp)
-                self._send(encode_echo_request(stamp))
-                last_echo = stamp
+                last_echo = self._send_echo()
             if self._want_models:
                 self._want_models = False
                 self._send(encode_message(MessageId.REQUEST_MODEL_DEF))
