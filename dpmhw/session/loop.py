@@ -91,6 +91,7 @@ class FrameRecord:
     t_target_ns: int
     poses: dict  # rigid body id -> Pose used (predicted or measured)
     sample_t_ns: dict  # rigid body id -> t_exposure_ns of the sample used
+    measured: dict  # rigid body id -> Pose of that sample (what the frame shows without prediction)
     sample_age_s: float  # oldest sample's age when the frame started
     settings: LiveSettings
     stages_s: dict
@@ -135,6 +136,7 @@ class SessionLoop:
         self._heartbeat_ns = clock()
         self._in_frame_since: int | None = None
         self._status: MappingProxyType = MappingProxyType({})
+        self._published_ns = 0
         self._latest: LatestFrame | None = None
         self._projector_health: MappingProxyType = MappingProxyType({"kind": "none"} if parts.projector is None else {})
         self._last_blank = ""
@@ -384,7 +386,9 @@ class SessionLoop:
         with self._lock:
             self._latest = LatestFrame(self._frame_number, t_present, image, settings, blank=False)
         record = FrameRecord(self._frame_number, t_start, t_present, t_target, used,
-                             {b: s.t_exposure_ns for b, s in samples.items()}, age_s, settings, stages)
+                             {b: s.t_exposure_ns for b, s in samples.items()},
+                             {b: Pose(np.array(s.rotation), np.array(s.translation)) for b, s in samples.items()},
+                             age_s, settings, stages)
         if self.frame_log is not None:
             self.frame_log.append(record)
             if len(self.frame_log) > self._frame_log_max:
@@ -486,7 +490,7 @@ class SessionLoop:
     def _publish(self, force: bool = False) -> None:
         """Replace the status snapshot (at most every 50 ms unless forced): the API only reads it."""
         now = self.clock()
-        if not force and now - getattr(self, "_published_ns", 0) < 50_000_000:
+        if not force and now - self._published_ns < 50_000_000:
             return
         self._published_ns = now
         tracker_status = self.parts.tracker.status()
