@@ -64,6 +64,10 @@ def prepare_scene(config: SessionConfig) -> Scene:
             calib = load_projector_calibration(path)
         except Exception as exc:
             raise SessionConfigError(f"scene.calibration: cannot load {path}: {exc}") from None
+        if calib.frame != "tracker":
+            raise SessionConfigError(
+                f"scene.calibration: {path} gives the projector pose in the {calib.frame!r} frame, but tracked poses are "
+                "in the tracker's frame; calibrate with the tracker step so that world_from_projector.frame = 'tracker'")
         dist = np.zeros(5)
         coeffs = np.asarray(calib.dist, float).reshape(-1)[:5]
         dist[: coeffs.size] = coeffs
