@@ -220,10 +220,17 @@ class ClockMapping:
     """
 
     def __init__(self, window_s: float = 2.0):
-        window_ns = int(window_s * 1e9)
-        self._one_way = _SlidingMinimum(window_ns)
-        self._round_trips = _SlidingMinimum(window_ns)
+        self._window_ns = int(window_s * 1e9)
+        self._one_way = _SlidingMinimum(self._window_ns)
+        self._round_trips = _SlidingMinimum(self._window_ns)
         self._lock = threading.Lock()
+
+    def reset(self) -> None:
+        """Forget all evidence: after a reconnect the device may have restarted, and its clock
+        with it; kept evidence would then stamp poses off by the jump for a whole window."""
+        with self._lock:
+            self._one_way = _SlidingMinimum(self._window_ns)
+            self._round_trips = _SlidingMinimum(self._window_ns)
 
     def add_one_way(self, device_ns: int, arrival_ns: int) -> None:
         with self._lock:

@@ -63,6 +63,10 @@ class ReceiverTracker:
         self._state = TrackerState.STOPPED
         self._reason = "not started"
         self._last_frame_number: int | None = None
+        # A new session may face a restarted device whose frame counter began again below the
+        # last one seen: its first frame is taken as is (only a forward jump counts as a gap).
+        # Its clock may have restarted too, so every session also starts a fresh clock mapping.
+        self._first_frame_of_session = True
         self.frames = 0
         self.malformed = 0
         self.frames_missed = 0
@@ -165,11 +169,13 @@ class ReceiverTracker:
         """Count gaps; reject frames older than the newest published one (UDP reordering)."""
         last = self._last_frame_number
         if last is not None:
-            if frame_number <= last and last - frame_number < _RESTART_JUMP:
+            restarted = self._first_frame_of_session or last - frame_number >= _RESTART_JUMP
+            if frame_number <= last and not restarted:
                 self.out_of_order += 1
                 return False
             if frame_number > last + 1:
                 self.frames_missed += frame_number - last - 1
+        self._first_frame_of_session = False
         self._last_frame_number = frame_number
         return True
 
@@ -197,6 +203,8 @@ class ReceiverTracker:
             frames_before = self.frames
             try:
                 self._set_state(TrackerState.CONNECTING, f"reconnecting; last failure: {last_failure}" if last_failure else "connecting")
+                self._first_frame_of_session = True
+                self.clock.reset()
                 self._session()
                 reason = "session ended"
             except (TrackerError, OSError) as exc:

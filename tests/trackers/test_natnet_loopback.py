@@ -205,3 +205,28 @@ def test_explicit_version_mismatch_is_counted_not_published():
         assert wait_for(lambda: client.status().malformed >= 20, 10)
         assert client.status().frames == 0 and client.latest_all() == {}
         assert "end-of-data" in client.last_decode_error or "bytes" in client.last_decode_error
+
+
+def test_restarted_server_whose_frame_numbers_began_again_is_followed():
+    """Motive restarted: after the reconnect its frame numbers start low again. They used to be
+    dropped as 'out of order' until they passed the last number seen before the restart (up to
+    1000 frames, below which a backwards jump is taken for UDP reordering)."""
+    world = World.demo("circular", epoch_s=time.monotonic(), count=1)
+    cfg = NatNetServerConfig(unicast=True, command_port=0, latency_ms=LATENCY_MS)
+    client_kw = dict(lost_after_s=0.3, backoff_initial_s=0.05, backoff_max_s=0.1)
+    first = NatNetServer(world, cfg).start()
+    client = NatNetClient(command_port=first.command_port, **client_kw)
+    client.start()
+    try:
+        with first:
+            assert wait_for(lambda: client.status().frames >= 300, 10), client.status()
+        before = client.latest(1).frame_number  # far fewer than the 1000 that read as a restart
+        assert wait_for(lambda: client.status().state == TrackerState.LOST, 5), client.status()
+        cfg = NatNetServerConfig(unicast=True, command_port=client.command_port, latency_ms=LATENCY_MS)
+        with NatNetServer(world, cfg) as second:
+            assert wait_for(lambda: client.latest(1).frame_number < before, 10), client.status()
+            assert wait_for(lambda: client.status().state == TrackerState.STREAMING, 5)
+            assert client.status().out_of_order == 0
+            assert check_against_truth([client.latest(1)], world, second) == 1
+    finally:
+        client.stop()

@@ -118,6 +118,10 @@ def test_clock_mapping_prefers_round_trips_and_takes_the_minimum():
     clock.add_round_trip(sent_ns=30_000, device_ns=29_000, received_ns=32_000)  # rtt 2000, worse
     assert clock.offset_ns == 1000 and clock.method == "round-trip"
     assert clock.to_host_ns(5) == 1005
+    clock.reset()  # a new session: the device may have restarted with a new clock origin
+    assert clock.offset_ns is None and clock.method == "none"
+    clock.add_one_way(device_ns=10_000, arrival_ns=90_000)
+    assert clock.offset_ns == 80_000
 
 
 def test_clock_mapping_forgets_evidence_older_than_its_window():
