@@ -79,13 +79,13 @@ def status(serial: SerialOpt = None, mock: MockOpt = False) -> None:
     with _bus(mock):
         try:
             dlp = DLPC900.open(serial, settle_s=0)
-        except DLPC900Error as exc:
+            try:
+                typer.echo(json.dumps(dlp.status(), indent=2))
+            finally:
+                dlp.close()
+        except DLPC900Error as exc:  # opening or reading (a timeout, an unplug): no traceback
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(1)
-        try:
-            typer.echo(json.dumps(dlp.status(), indent=2))
-        finally:
-            dlp.close()
 
 
 @projector_app.command()

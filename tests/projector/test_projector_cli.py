@@ -35,3 +35,15 @@ def test_projector_blank_and_missing_serial():
     assert result.exit_code == 0 and "dark (idle)" in result.output
     result = _run("projector", "status", "--mock", "--serial", "NOPE")
     assert result.exit_code == 1 and "NOPE" in result.output
+
+
+def test_projector_status_read_failure_is_an_error_not_a_traceback(monkeypatch):
+    from drivers.dlpc900 import DLPC900, DLPC900Timeout
+
+    def times_out(self):
+        raise DLPC900Timeout("DLPC900: read timed out")
+
+    monkeypatch.setattr(DLPC900, "status", times_out)
+    result = _run("projector", "status", "--mock")
+    assert result.exit_code == 1 and "error: DLPC900: read timed out" in result.output
+    assert not isinstance(result.exception, DLPC900Timeout)
