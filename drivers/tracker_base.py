@@ -60,8 +60,9 @@ class ReceiverTracker:
         self._poses = LatestPoses()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._state = TrackerState.STOPPED
-        self._reason = "not started"
+        # (state, reason) as one attribute: the receiver thread replaces it in one store, so
+        # `status()` on another thread never pairs a new state with the previous reason.
+        self._state_reason = (TrackerState.STOPPED, "not started")
         self._last_frame_number: int | None = None
         # A new session may face a restarted device whose frame counter began again below the
         # last one seen: its first frame is taken as is (only a forward jump counts as a gap).
@@ -120,7 +121,7 @@ class ReceiverTracker:
         return self._poses.subscribe(maxlen)
 
     def status(self) -> TrackerStatus:
-        state, reason = self._state, self._reason
+        state, reason = self._state_reason
         last = self._last_arrival_ns
         if state == TrackerState.STREAMING and last is not None:
             age_s = (time.monotonic_ns() - last) / 1e9
@@ -153,7 +154,7 @@ class ReceiverTracker:
                 "last_decode_error": self.last_decode_error, "callback_errors": self._poses.callback_errors}
 
     def _set_state(self, state: TrackerState, reason: str = "") -> None:
-        self._state, self._reason = state, reason
+        self._state_reason = (state, reason)
 
     def _count_malformed(self, exc: Exception) -> None:
         self.malformed += 1
@@ -184,7 +185,7 @@ class ReceiverTracker:
         self._last_arrival_ns = arrival_ns
         if samples:
             self._last_latency_ns = samples[0].latency_ns
-        if self._state != TrackerState.STREAMING:
+        if self._state_reason[0] != TrackerState.STREAMING:
             self._set_state(TrackerState.STREAMING, "")
         self._poses.publish(samples)
 
