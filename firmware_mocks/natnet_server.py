@@ -376,7 +376,9 @@ class NatNetServer:
         if msg_id in (CONNECT, DISCOVERY):
             self._reply(addr, _message(SERVER_INFO, self._server_info()))
         elif msg_id == REQUEST_MODEL_DEF:
-            self._reply(addr, encode_model_definitions(self.world, self.version))
+            with self._lock:  # `add_body` may be changing the world on another thread
+                datagram = encode_model_definitions(self.world, self.version)
+            self._reply(addr, datagram)
         elif msg_id == ECHO_REQUEST and len(payload) == 8:
             (client_time,) = struct.unpack("<Q", payload)
             self._reply(addr, _message(ECHO_RESPONSE, struct.pack("<QQ", client_time, self.ticks(time.monotonic_ns()))))
