@@ -112,10 +112,11 @@ class LoopMetrics:
             return 0.0
         return (len(t) - 1) / (t[-1] - t[0])
 
-    def expected_pipeline_s(self) -> float:
-        """Median time from frame start to present over the window (the prediction look-ahead)."""
+    def expected_pipeline_s(self, recent: int = 16) -> float:
+        """Median time from frame start to present over the last `recent` frames: the prediction
+        look-ahead. Short, so it follows a change of spp or machine load within a second."""
         frames = self.stages["frame"]
-        return float(np.median(frames.values())) if len(frames) else 0.0
+        return float(np.median(frames.values()[-recent:])) if len(frames) else 0.0
 
     def summary(self) -> dict:
         stages = {}

@@ -108,3 +108,6 @@ def test_loop_metrics_fps_latency_and_deadline_misses():
     assert s["counters"] == {"frames_presented": 20, "deadline_misses": 10}
     assert s["window_frames"] == 8
     assert m.expected_pipeline_s() == pytest.approx(0.02)
+    for k in range(3):  # the look-ahead follows the newest frames, not the whole window
+        m.record_frame({"frame": 0.05}, t_present_ns=int((20 + k) * 0.05e9), latency_s=0.06, horizon_s=0.05)
+    assert m.expected_pipeline_s(recent=3) == pytest.approx(0.05)
