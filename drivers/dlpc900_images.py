@@ -157,8 +157,7 @@ def erle_encode(image: np.ndarray) -> bytes:
     rep = ~in_literal
     lit_first = group_start & in_literal
     lit_n = group_size[group_id[lit_first]]
-    # Split over-long repeats / literals (only needed beyond 32767 pixels: never for one line).
-
+    # No token needs splitting: runs and literals stay within a line, and w <= MAX_COUNT.
     # Tokens: kind 0 repeat, 1 literal, 2 copy, 3 end of line. Sorted by (row, position).
     src_row_of = enc_rows  # sub line -> image row
     rep_pos = starts[rep]
