@@ -629,7 +629,7 @@ class DLPC900:
             try:
                 self._attach(_find(self.serial, self._backend))
                 break
-            except (DLPC900NotFound, DLPC900USBError) as exc:
+            except (DLPC900NotFound, DLPC900USBError, DLPC900Timeout) as exc:  # not back, or not ready yet
                 last = exc
                 log.info("DLPC900 reconnect attempt %d failed: %s", attempt + 1, exc)
                 if attempt + 1 < self.reconnect_attempts:

@@ -261,3 +261,23 @@ def test_status_in_standby_reads_only_what_is_allowed(dlp, emu):
     st = dlp.status()
     assert st["standby"] is True and st["firmware"] is None and st["hardware_faults"] == []
     assert all(c.error == 0 for c in emu.model.command_log[-4:])
+
+
+def test_reconnect_retries_a_device_that_is_back_but_not_ready(dlp, emu, clock, monkeypatch):
+    """A timeout while configuring the replugged device is one more failed attempt, not the end."""
+    import usb.core
+
+    set_configuration, calls = emu.backend.set_configuration, []
+
+    def slow_first(handle, value):
+        calls.append(value)
+        if len(calls) == 1:
+            raise usb.core.USBTimeoutError("Operation timed out", -7, errno.ETIMEDOUT)
+        return set_configuration(handle, value)
+
+    monkeypatch.setattr(emu.backend, "set_configuration", slow_first)
+    emu.unplug()
+    emu.replug()
+    dlp.reconnect()
+    assert len(calls) == 2 and clock.sleeps == [0.05]
+    assert dlp.main_status().raw == 0
