@@ -134,7 +134,6 @@ class SessionLoop:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._heartbeat_ns = clock()
-        self._in_frame_since: int | None = None
         self._status: MappingProxyType = MappingProxyType({})
         self._published_ns = 0
         self._latest: LatestFrame | None = None
@@ -259,6 +258,7 @@ class SessionLoop:
             self._heartbeat_ns = self.clock()
             try:
                 presented = self._iteration()
+                self.safety.update("loop", False)
             except Exception as exc:  # a bug in the loop itself: dark, visible, keep going
                 log.exception("session loop iteration failed")
                 self.safety.update("loop", True, f"internal error {type(exc).__name__}: {exc}", "fault")
@@ -313,7 +313,6 @@ class SessionLoop:
     def _iteration(self) -> bool:
         settings = self._apply_queued()
         t_start = self.clock()
-        self._in_frame_since = t_start
         stages: dict[str, float] = {}
         tracking = self._check_tracking(t_start)
         if tracking is None:
