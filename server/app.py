@@ -50,6 +50,7 @@ def build_app(runtime: Runtime | None = None, *, token: str | None = None,
     app = FastAPI(title="dpmhw session", version=__version__, lifespan=lifespan,
                   description="Status, settings and control of a dynamic projection mapping session.")
     app.state.runtime = runtime
+    app.state.png_cache = status.PngCache()  # per app: each presented frame is encoded once
     app.state.token = token if token is not None else os.environ.get("DPMHW_API_TOKEN", "")
     app.include_router(status.router)
     app.include_router(settings.router)

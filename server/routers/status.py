@@ -67,7 +67,7 @@ async def metrics(runtime: RuntimeDep) -> Response:
     return Response(render_metrics(runtime.status()), media_type="text/plain; version=0.0.4; charset=utf-8")
 
 
-class _PngCache:
+class PngCache:
     """Encodes each presented frame at most once, however many clients ask for it."""
 
     def __init__(self) -> None:
@@ -88,15 +88,12 @@ class _PngCache:
             return self._png
 
 
-_png_cache = _PngCache()
-
-
 @router.get("/frame.png", summary="The latest frame sent to the projector (what the audience sees)",
             responses={200: {"content": {"image/png": {}}}, 404: {"description": "no frame presented yet"}})
-async def frame_png(runtime: RuntimeDep) -> Response:
+async def frame_png(request: Request, runtime: RuntimeDep) -> Response:
     frame = runtime.latest_frame()
     if frame is None:
         raise HTTPException(404, "no frame has been sent to the projector yet")
-    return Response(_png_cache.get(frame), media_type="image/png",
+    return Response(request.app.state.png_cache.get(frame), media_type="image/png",
                     headers={"X-Frame-Number": str(frame.number), "X-Frame-Blank": str(bool(frame.blank)).lower(),
                              "Cache-Control": "no-store"})
