@@ -62,6 +62,7 @@ from dpmhw.errors import DpmhwError
 MODES = ("off", "same-pixel", "motion")
 MIN_BILINEAR_WEIGHT = 1e-6
 SNAP_PX = 1e-3
+MAX_HISTORY_LENGTH = 2.0**20  # history length saturates here (float32 counts exactly up to 2^24)
 
 
 class ReuseError(DpmhwError, ValueError):
@@ -120,7 +121,7 @@ def _blend_pixel(p, c0, c1, c2, prev0, prev1, prev2, n_prev, has_prev, alpha, wa
     elif not has_prev:
         v0, v1, v2, n = np.float64(c0), np.float64(c1), np.float64(c2), 1.0
     else:
-        n = n_prev + 1.0
+        n = min(n_prev + 1.0, MAX_HISTORY_LENGTH)
         a = alpha
         if warmup and 1.0 / n > a:
             a = 1.0 / n
