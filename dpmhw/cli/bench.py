@@ -40,6 +40,7 @@ def bench_quality(
     scale: Annotated[Optional[float], typer.Option(min=0.01, max=1.0, help="Override the resolution scale.")] = None,
     ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Override the static reference spp.")] = None,
     dynamic_ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Override the dynamic references' spp.")] = None,
+    dynamic_times: Annotated[Optional[str], typer.Option(help="Override the dynamic eval times, comma-separated seconds, e.g. 0.2,0.5.")] = None,
     threads: Annotated[int, typer.Option(min=1)] = 2,
 ) -> None:
     """Speed against error: PSNR/SSIM against converged references for plain path tracing and
@@ -60,6 +61,14 @@ def bench_quality(
         changes["ref_spp"] = ref_spp
     if dynamic_ref_spp is not None:
         changes["dynamic_ref_spp"] = dynamic_ref_spp
+    if dynamic_times is not None:
+        try:
+            times = tuple(float(x) for x in dynamic_times.split(","))
+        except ValueError:
+            raise typer.BadParameter(f"--dynamic-times: expected comma-separated seconds, got {dynamic_times!r}") from None
+        if not times or any(not (t >= 0) for t in times):
+            raise typer.BadParameter(f"--dynamic-times: expected times ≥ 0, got {dynamic_times!r}")
+        changes["dynamic_eval_times"] = times
     cfg = dataclasses.replace(cfg, **changes)
     with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   TimeRemainingColumn(), transient=True) as bar:

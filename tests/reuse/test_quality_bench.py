@@ -71,3 +71,15 @@ def test_reference_key_changes_with_what_changes_the_image(tmp_path):
     assert cache.rendered == 2 and cache.hits == 1
     np.testing.assert_array_equal(a["radiance"], b["radiance"])
     assert not np.array_equal(a["radiance"], c["radiance"])
+
+
+@pytest.mark.parametrize("args, message", [(["--part", "both"], "--part"), (["--dynamic-times", "0.2,x"], "--dynamic-times")])
+def test_bench_quality_cli_rejects_bad_options_before_rendering(args, message, tmp_path):
+    from typer.testing import CliRunner
+
+    from dpmhw.cli import _register, app
+
+    _register()
+    result = CliRunner().invoke(app, ["bench", "quality", "--cache-dir", str(tmp_path), *args])
+    assert result.exit_code == 2 and message in result.output
+    assert not any(tmp_path.iterdir())  # nothing was rendered
