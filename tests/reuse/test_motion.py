@@ -4,7 +4,7 @@ dpmhw.reuse (bilinear over matching taps, renormalised; else the nearest matchin
 import numpy as np
 import pytest
 
-from dpmhw.reuse import TemporalReuse, reproject
+from dpmhw.reuse import ReuseError, TemporalReuse, reproject
 from dpmhw.transforms import Pose, rotation_about_axis
 
 from .conftest import make_camera, plane_gbuffer
@@ -169,3 +169,16 @@ def test_motion_mode_follows_a_translating_object_where_same_pixel_smears():
     err_s = np.abs(out_s - f)[:, inner].mean()
     assert err_m < 0.2 and err_s > 0.3 and err_m < 0.5 * err_s
     assert np.all(motion.last_fetch_kind[:, :1] == 0)  # the column that entered the view reset
+
+
+def test_motion_mode_input_errors_name_what_is_missing(static_view):
+    ids, mpos, poses, cam = static_view(3, 4)
+    reuse = TemporalReuse(4, 3, alpha=0.5, mode="motion")
+    with pytest.raises(ReuseError, match="model_position, poses and camera"):
+        reuse.update(np.zeros((3, 4, 3), np.float32), ids)
+    with pytest.raises(ReuseError, match=r"expected shape \(3, 4, 3\)"):
+        reuse.update(np.zeros((4, 3, 3), np.float32), ids, mpos, poses, cam)
+    bad_ids = ids.copy()
+    bad_ids[0, 0] = 3  # an id with no pose
+    with pytest.raises(ReuseError, match="only 1 previous poses"):
+        reproject(bad_ids, mpos, poses, cam, cam)
