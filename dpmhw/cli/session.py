@@ -203,6 +203,7 @@ def bench_session(
     api_rate: Annotated[float, typer.Option(min=0.0, max=1000.0, help="Requests per second per API client (0: as fast as possible).")] = 10.0,
     trajectory: Annotated[Optional[list[str]], typer.Option(help="linear, rotate-oscillate (repeatable; default both).")] = None,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
+    sets: SetOpt = None,
 ) -> None:
     """Registration error vs ground truth with/without prediction, fps, latency, frame time under API load."""
     from dpmhw.session.bench import format_table, run_bench
@@ -212,7 +213,7 @@ def bench_session(
         if t not in ("linear", "rotate-oscillate", "static"):
             raise typer.BadParameter(f"--trajectory: expected linear, rotate-oscillate or static, got {t!r}")
     results = run_bench(trajectories, api_clients=api_clients, api_rate_hz=api_rate, seconds=seconds, width=width, height=height, spp=spp,
-                        progress=lambda label: typer.echo(f"running {label} …"))
+                        overrides=tuple(sets or ()), progress=lambda label: typer.echo(f"running {label} …"))
     typer.echo(format_table(results))
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)

@@ -217,7 +217,7 @@ def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int =
     if api_clients:
         if progress is not None:
             progress(f"API load: {api_clients} clients × {api_rate_hz:g} req/s, alternating windows")
-        size = {k: kw[k] for k in ("width", "height", "spp") if k in kw}
+        size = {k: kw[k] for k in ("width", "height", "spp", "overrides") if k in kw}
         load = run_load_case(trajectories[-1], clients=api_clients, rate_hz=api_rate_hz, **size)
     return {"cases": results, "api_load": load}
 

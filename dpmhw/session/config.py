@@ -72,7 +72,8 @@ class ReuseSection(_Section):
 
 class PredictionSection(_Section):
     enabled: bool = True
-    history: int = Field(4, ge=2, le=64, description="recent samples used to estimate the velocities")
+    model: Literal["velocity", "acceleration"] = Field("velocity", description="constant velocity, or constant linear acceleration")
+    history: int = Field(8, ge=2, le=64, description="recent samples used to estimate the derivatives")
     display_latency_ms: float = Field(0.0, ge=0.0, le=1000.0, description="present() to photons (the projector's own delay)")
     max_horizon_ms: float = Field(150.0, gt=0.0, le=2000.0, description="never extrapolate further than this")
 

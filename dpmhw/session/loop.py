@@ -119,7 +119,8 @@ class SessionLoop:
         self.watchdog_ns = int(s.watchdog_s * 1e9)
         self.safety = SafetyMonitor(s.holdoff_s, s.resume, clock)
         self.metrics = LoopMetrics(config.metrics.window, 1.0 / config.render.target_fps)
-        self.predictor = PosePredictor(config.prediction.history, config.prediction.max_horizon_ms / 1e3)
+        self.predictor = PosePredictor(config.prediction.history, config.prediction.max_horizon_ms / 1e3,
+                                       config.prediction.model)
         self.reuse = ReuseStage(parts.renderer.width, parts.renderer.height, config.reuse.warmup)
         self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
         self.frame_log: list[FrameRecord] | None = [] if frame_log else None

@@ -82,3 +82,34 @@ def test_prediction_beats_none_on_the_papers_motion():
         err_pred.append(np.linalg.norm(pred.predict(1, target)[0].t - p_true))
         err_none.append(np.linalg.norm(pred.predict(1, target, enabled=False)[0].t - p_true))
     assert np.median(err_pred) < 0.1 * np.median(err_none)
+
+
+def test_acceleration_model_is_exact_on_constant_acceleration_and_beats_velocity_on_curves():
+    from firmware_mocks.world import RotateWhileOscillating
+
+    acc = np.array([0.3, -0.2, 0.5])
+    pred = PosePredictor(history=6, max_horizon_s=1.0, model="acceleration")
+    for k in range(6):
+        t = k / RATE_HZ
+        pred.observe(sample(1, t, np.eye(3), np.array([0.1, 1.0, 0.0]) + 0.2 * t + 0.5 * acc * t * t))
+    t_target = 5 / RATE_HZ + 0.1
+    pose, _ = pred.predict(1, int(round(t_target * 1e9)))
+    np.testing.assert_allclose(pose.t, np.array([0.1, 1.0, 0.0]) + 0.2 * t_target + 0.5 * acc * t_target ** 2, atol=1e-7)
+
+    traj = RotateWhileOscillating(center=(0, 0, 0), amplitude_m=0.08, oscillation_hz=0.5, spin_rad_s=np.pi / 2)
+    errors = {}
+    for model in ("velocity", "acceleration"):
+        p = PosePredictor(history=12, max_horizon_s=1.0, model=model)
+        e = []
+        for k in range(720):
+            t = k / RATE_HZ
+            p.observe(sample(1, t, *traj.pose(t)))
+            if k >= 12:
+                e.append(np.linalg.norm(p.predict(1, int(round((t + 0.1) * 1e9)))[0].t - traj.pose(t + 0.1)[1]))
+        errors[model] = np.median(e)
+    assert errors["acceleration"] < 0.5 * errors["velocity"], errors
+
+
+def test_unknown_model_is_refused():
+    with pytest.raises(ValueError, match="prediction model"):
+        PosePredictor(model="psychic")
