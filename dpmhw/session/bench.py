@@ -127,7 +127,7 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     if len(records) < 2:
         raise RuntimeError(f"bench {case.label}: only {len(records)} frames in {seconds} s")
     # ground truth at native projector resolution: errors in the projector's own pixels
-    native_cfg = load_session_config(overrides=["render.width=0", "render.height=0"])
+    native_cfg = load_session_config(overrides=[*overrides, "render.width=0", "render.height=0"])
     scene = prepare_scene(native_cfg)
     camera = PinholeCamera(scene.camera.K, scene.camera.dist, scene.render.width, scene.render.height, scene.camera.pose)
     (index, body), = loop.parts.bindings.items()

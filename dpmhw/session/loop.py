@@ -142,6 +142,7 @@ class SessionLoop:
         self._last_blank = ""
         self._frame_number = 0
         self._t0_ns = clock()
+        self._samples = None  # tracker subscription (every sample), opened by start()
         self._ever_streamed = False
         self._stopped = False
         self.final_blank: str | None = None
@@ -149,6 +150,10 @@ class SessionLoop:
 
     # ---- lifecycle -------------------------------------------------------------------------
     def start(self) -> "SessionLoop":
+        # every tracker sample feeds the predictor, not only the newest one per frame: at 10 fps
+        # `history` newest-per-frame samples would span a second instead of a few milliseconds
+        subscribe = getattr(self.parts.tracker, "subscribe", None)
+        self._samples = subscribe(maxlen=4096) if subscribe is not None else None
         self._go_dark("starting: dark until tracking and devices are ready")
         for name, target in (("session-loop", self._run), ("session-watchdog", self._watchdog),
                              ("session-health", self._health)):
@@ -173,6 +178,8 @@ class SessionLoop:
         self._threads.clear()
         self._go_dark(reason, force=True)
         self.final_blank = self._last_blank
+        if self._samples is not None:
+            self._samples.close()
         self.safety.mark_stopped(f"{reason}; projector dark ({self._last_blank or 'no projector'})")
         self._publish(force=True)
         p = self.parts
@@ -290,9 +297,14 @@ class SessionLoop:
             self.safety.update("tracker", False)
         elif self._ever_streamed and status.state != TrackerState.STOPPED:
             self.safety.update("tracker", True, f"tracker link {status.state.value}: {status.reason}", "fault")
+        bodies = set(self.parts.bindings.values())
+        if self._samples is not None:
+            for sample in self._samples.drain():
+                if sample.rigid_body_id in bodies:
+                    self.predictor.observe(sample)
         samples = {}
         problems = []
-        for body in sorted(set(self.parts.bindings.values())):
+        for body in sorted(bodies):
             s = tracker.latest(body)
             if s is None:
                 problems.append(f"rigid body {body}: no sample yet (tracker {status.state.value})")

@@ -167,3 +167,25 @@ def test_failed_blank_is_a_fault_not_a_crash(make_loop):
     loop.blank()
     assert wait_for(lambda: state(loop) == "fault", 10)
     assert "cannot confirm the projector is dark" in loop.status()["reason"]
+
+
+def test_predictor_sees_every_tracker_sample_not_one_per_frame(make_loop):
+    """With a slow loop, the velocity estimate must still come from consecutive tracker samples."""
+    import time as _time
+
+    from dpmhw.session.testing import FakeTracker, FlatRenderer
+
+    class SubscribingTracker(FakeTracker):
+        def subscribe(self, maxlen=4096):
+            return self.poses.subscribe(maxlen)
+
+    class SlowRenderer(FlatRenderer):
+        def render(self, **kw):
+            _time.sleep(0.05)
+            return super().render(**kw)
+
+    loop = make_loop(tracker=SubscribingTracker(), renderer=SlowRenderer()).start()
+    assert wait_for(lambda: presented(loop) >= 5, 20)
+    kept = list(loop.predictor._samples[1])
+    gaps_ms = np.diff([s.t_exposure_ns for s in kept]) / 1e6
+    assert len(kept) == loop.predictor.history and gaps_ms.max() < 30  # tracker period ~3 ms, frames ≥ 50 ms
