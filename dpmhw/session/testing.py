@@ -127,7 +127,7 @@ def fake_session(overrides=(), renderer=None, projector=True, tracker=None, fram
     scene = scale_to(load_scene("dpm-bunny"), 32, 24)
     cfg = load_session_config(overrides=["safety.holdoff_s=0.1", "safety.stale_after_ms=200", "safety.watchdog_s=1.0",
                                          "projector.poll_interval_s=0.02", "reuse.mode=same-pixel", *overrides])
-    parts = SessionParts(scene, renderer or FlatRenderer(), tracker or FakeTracker(), RecordingSink(max_frames=50),
+    parts = SessionParts(scene, renderer or FlatRenderer(), tracker or FakeTracker(), RecordingSink(max_frames=4096),
                          resolve_bindings(cfg, scene), FakeProjector() if projector else None)
     parts.tracker.start()
     return SessionLoop(cfg, parts, frame_log=frame_log)
