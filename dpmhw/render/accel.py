@@ -65,6 +65,22 @@ def _rays_into_model(o, d, tmax, R, t, centre, radius):
     return index, om, dm, tm
 
 
+@nb.njit(nogil=True, cache=True)
+def _static_hit_ids(prim_id, geom_id, tfar, static_objects, tri_offsets):
+    """Embree's (geomID, primID) → our object index and global triangle index; inf / −1 on a miss."""
+    n = prim_id.shape[0]
+    t = np.empty(n, np.float32)
+    obj = np.empty(n, np.int32)
+    prim = np.empty(n, np.int32)
+    for i in range(n):
+        if prim_id[i] >= 0:
+            k = static_objects[geom_id[i]]
+            t[i], obj[i], prim[i] = tfar[i], k, tri_offsets[k] + prim_id[i]
+        else:
+            t[i], obj[i], prim[i] = np.inf, -1, -1
+    return t, obj, prim
+
+
 def _embree_scene(vertices_list, faces_list) -> rtcore_scene.EmbreeScene:
     scene = rtcore_scene.EmbreeScene(robust=True)
     for vertices, faces in zip(vertices_list, faces_list):
@@ -109,7 +125,9 @@ class EmbreeAccel:
     def _map(self, fn, n: int, *arrays):
         if self._pool is None or n < 2 * MIN_RAYS_PER_THREAD:
             return [fn(*arrays)]
-        bounds = np.linspace(0, n, self.threads + 1).astype(int)
+        # a few chunks per thread: ray batches are not uniform in cost, so halves leave a core idle
+        chunks = min(4 * self.threads, max(self.threads, n // MIN_RAYS_PER_THREAD))
+        bounds = np.linspace(0, n, chunks + 1).astype(int)
         chunks = [tuple(a[s:e] for a in arrays) for s, e in zip(bounds[:-1], bounds[1:])]
         return list(self._pool.map(lambda c: fn(*c), chunks))
 
@@ -147,10 +165,7 @@ class EmbreeAccel:
             return (np.full(m, np.inf, np.float32), np.full(m, -1, np.int32), np.full(m, -1, np.int32),
                     np.zeros(m, np.float32), np.zeros(m, np.float32))
         res = self.static_scene.run(o, d, output=True)
-        hit = res["primID"] >= 0
-        obj = np.where(hit, self.static_objects[res["geomID"]], -1).astype(np.int32)
-        prim = np.where(hit, self.tri_offsets[obj] + res["primID"], -1).astype(np.int32)
-        t = np.where(hit, res["tfar"], np.float32(np.inf))
+        t, obj, prim = _static_hit_ids(res["primID"], res["geomID"], res["tfar"], self.static_objects, self.tri_offsets)
         return t, obj, prim, res["u"], res["v"]
 
     @staticmethod
