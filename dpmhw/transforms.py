@@ -26,19 +26,9 @@ class Pose:
     def inverse(self) -> "Pose":
         return Pose(self.R.T, -self.R.T @ self.t)
 
-    def compose(self, other: "Pose") -> "Pose":
-        """self ∘ other: apply `other` first."""
-        return Pose(self.R @ other.R, self.R @ other.t + self.t)
-
     def apply(self, points: np.ndarray) -> np.ndarray:
         """points : (n, 3) → (n, 3)."""
         return points @ self.R.T + self.t
-
-    def matrix(self) -> np.ndarray:
-        m = np.eye(4)
-        m[:3, :3] = self.R
-        m[:3, 3] = self.t
-        return m
 
 
 def rotation_from_euler_xyz_deg(angles) -> np.ndarray:

@@ -37,10 +37,6 @@ class RayCounts:
     intersect: int = 0  # continuation rays (closest hit)
     occluded: int = 0  # shadow rays
 
-    @property
-    def total(self) -> int:
-        return self.primary + self.intersect + self.occluded
-
 
 class PathIntegrator:
     """Renders a Scene from its camera. Thread count applies to Embree queries."""
