@@ -388,6 +388,16 @@ def write_figures(result: dict, images: dict, out_dir: Path) -> list[str]:
     return files
 
 
+def _save(fig, path: Path) -> str:
+    """Lay out, write and close a figure; returns the path written."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return str(path)
+
+
 def _plots(result: dict, out_dir: Path) -> list[str]:
     import matplotlib
 
@@ -414,10 +424,7 @@ def _plots(result: dict, out_dir: Path) -> list[str]:
     ax.set_ylabel("PSNR (dB) against the reference")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=6, loc="lower right")
-    fig.tight_layout()
-    fig.savefig(out_dir / "speed_vs_psnr.png", dpi=130)
-    plt.close(fig)
-    files.append(str(out_dir / "speed_vs_psnr.png"))
+    files.append(_save(fig, out_dir / "speed_vs_psnr.png"))
     if "static" in result:
         fig, ax = plt.subplots(figsize=(7, 4.5))
         for label, pts in result["static"]["convergence"].items():
@@ -430,10 +437,7 @@ def _plots(result: dict, out_dir: Path) -> list[str]:
         ax.set_title("static scene: convergence of reuse, with and without warm-up")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(out_dir / "static_convergence.png", dpi=130)
-        plt.close(fig)
-        files.append(str(out_dir / "static_convergence.png"))
+        files.append(_save(fig, out_dir / "static_convergence.png"))
     tls = result.get("dynamic", {}).get("timelines", [])
     if tls:
         fig, axes = plt.subplots(1, len(tls), figsize=(6 * len(tls), 4.5), squeeze=False)
@@ -446,10 +450,7 @@ def _plots(result: dict, out_dir: Path) -> list[str]:
             ax.set_ylabel("PSNR (dB)")
             ax.grid(True, alpha=0.3)
             ax.legend(fontsize=6)
-        fig.tight_layout()
-        fig.savefig(out_dir / "dynamic_psnr_over_time.png", dpi=130)
-        plt.close(fig)
-        files.append(str(out_dir / "dynamic_psnr_over_time.png"))
+        files.append(_save(fig, out_dir / "dynamic_psnr_over_time.png"))
     return files
 
 

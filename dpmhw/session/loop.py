@@ -352,28 +352,20 @@ class SessionLoop:
             frame = self.parts.renderer.render(time=scene_time, seed=self._frame_number, spp=settings.spp, poses=poses)
             self.safety.update("render", False)
         except Exception as exc:
-            self.metrics.count("render_errors")
-            self.safety.update("render", True, f"render failed: {type(exc).__name__}: {exc}", "fault")
-            self._sync_output()
-            return False
+            return self._stage_failed("render", "render_errors", f"render failed: {type(exc).__name__}: {exc}")
         t2 = self.clock()
         stages["render"] = (t2 - t1) / 1e9
         try:
             radiance = self.reuse.apply(frame, settings.reuse_mode, settings.alpha, settings.split_screen,
                                         poses=poses, camera=getattr(self.parts.renderer, "camera", None))
         except Exception as exc:
-            self.metrics.count("reuse_errors")
-            self.safety.update("render", True, f"temporal reuse failed: {type(exc).__name__}: {exc}", "fault")
-            self._sync_output()
-            return False
+            return self._stage_failed("render", "reuse_errors", f"temporal reuse failed: {type(exc).__name__}: {exc}")
         t3 = self.clock()
         stages["reuse"] = (t3 - t2) / 1e9
         try:
             image = to_srgb8(radiance, self.config.render.exposure)
         except ValueError as exc:
-            self.safety.update("render", True, f"post-processing refused the frame: {exc}", "fault")
-            self._sync_output()
-            return False
+            return self._stage_failed("render", None, f"post-processing refused the frame: {exc}")
         image.setflags(write=False)
         t4 = self.clock()
         stages["post"] = (t4 - t3) / 1e9
@@ -384,10 +376,7 @@ class SessionLoop:
             t_present = self.parts.sink.present(image, t_target)
             self.safety.update("sink", False)
         except Exception as exc:
-            self.metrics.count("present_errors")
-            self.safety.update("sink", True, f"present failed: {type(exc).__name__}: {exc}", "fault")
-            self._sync_output()
-            return False
+            return self._stage_failed("sink", "present_errors", f"present failed: {type(exc).__name__}: {exc}")
         t5 = self.clock()
         stages["present"] = (t5 - t4) / 1e9
         stages["frame"] = (t5 - t_start) / 1e9
@@ -410,6 +399,14 @@ class SessionLoop:
         return True
 
     # ---- output on / off -------------------------------------------------------------------
+    def _stage_failed(self, cause: str, counter: str | None, reason: str) -> bool:
+        """A stage of this frame failed: count it, raise the fault cause, go dark; the frame is dropped."""
+        if counter is not None:
+            self.metrics.count(counter)
+        self.safety.update(cause, True, reason, "fault")
+        self._sync_output()
+        return False
+
     def _sync_output(self) -> bool:
         """Make the output match the safety decision; returns whether frames may be presented."""
         allowed = self.safety.output_allowed()
