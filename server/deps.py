@@ -8,13 +8,19 @@ from typing import Annotated, Any, Protocol
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-__all__ = ["Runtime", "get_runtime", "require_token"]
+__all__ = ["Runtime", "RuntimeUnavailable", "get_runtime", "require_token"]
+
+
+class RuntimeUnavailable(RuntimeError):
+    """The session cannot be reached right now (answered as 503 with this message)."""
 
 
 class Runtime(Protocol):
     """What the service needs from a running session (`dpmhw.session.loop.SessionLoop`).
 
     Every method returns at once: reads are snapshot swaps, writes are validated and queued.
+    A runtime in another process (`server.process.RemoteRuntime`) raises `RuntimeUnavailable`
+    when the session does not answer.
     """
 
     def status(self) -> dict: ...

@@ -93,90 +93,51 @@ def start(
                    f"render {loop.parts.renderer.width}×{loop.parts.renderer.height}")
         return loop
 
+    api = None
     try:
         if cfg.api.enabled:
-            _serve(cfg, make_loop, duration, status_every)
-        else:
-            _run_plain(make_loop, duration, status_every)
-    except (DpmhwError, OSError) as exc:
+            from server.process import ApiProcess
+
+            token = cfg.api_token()
+            if not token:
+                token = secrets.token_urlsafe(18)
+                typer.echo(f"no api.token / DPMHW_API_TOKEN set; this session's token: {token}")
+            api = ApiProcess(host=cfg.api.host, port=cfg.api.port, token=token, priority=cfg.api.priority)  # binds now
+        _run(make_loop, api, duration, status_every)
+    except (DpmhwError, OSError, RuntimeError) as exc:
         _fail(exc)
 
 
-def _run_plain(make_loop, duration: Optional[float], status_every: float) -> None:
-    loop = make_loop()
+def _run(make_loop, api, duration: Optional[float], status_every: float) -> None:
+    """Run until `duration`, Ctrl-C or SIGTERM; always end with the loop stopped and the projector dark."""
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *a: stop.set())
-    reporter = _Reporter(loop.status, status_every) if status_every > 0 else None
-    if reporter:
-        reporter.thread.start()
+    loop = reporter = None
     try:
+        loop = make_loop()
+        if api is not None:
+            api.start(loop)
+            typer.echo(f"API on {api.url} (docs at {api.url}/docs)")
+        if status_every > 0:
+            reporter = _Reporter(loop.status, status_every)
+            reporter.thread.start()
         deadline = None if duration is None else time.monotonic() + duration
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             stop.wait(0.1)
     except KeyboardInterrupt:
         typer.echo("interrupted")
     finally:
-        if reporter:
-            reporter.stop.set()
         signal.signal(signal.SIGTERM, previous)
-        how = loop.stop("stopped by the operator")
-        typer.echo(_status_line(loop.status()))
-        typer.echo(f"projector dark ({how or 'no projector'})")
-
-
-def _serve(cfg, make_loop, duration: Optional[float], status_every: float) -> None:
-    """uvicorn owns SIGINT/SIGTERM; its shutdown runs the app's lifespan, which stops the loop."""
-    import uvicorn
-
-    from server.app import build_app
-
-    token = cfg.api_token()
-    if not token:
-        token = secrets.token_urlsafe(18)
-        typer.echo(f"no api.token / DPMHW_API_TOKEN set; this session's token: {token}")
-    holder: dict = {}
-
-    def start():
-        holder["loop"] = make_loop()
-        return holder["loop"]
-
-    def stopped(loop) -> None:
         if reporter:
             reporter.stop.set()
-        typer.echo(_status_line(loop.status()))
-        typer.echo(f"projector dark ({loop.final_blank or 'no projector'})")
-
-    app_ = build_app(start=start, token=token, stopped=stopped)
-    server = uvicorn.Server(uvicorn.Config(app_, host=cfg.api.host, port=cfg.api.port, log_level="warning"))
-    reporter = _Reporter(lambda: holder["loop"].status(), status_every) if status_every > 0 else None
-    timer = threading.Timer(duration, lambda: setattr(server, "should_exit", True)) if duration else None
-
-    def announce():
-        if wait_started(server):
-            bound = [s.getsockname() for srv in server.servers for s in srv.sockets]
-            typer.echo(f"API on http://{bound[0][0]}:{bound[0][1]} (docs at /docs)")
-        if reporter:
-            reporter.thread.start()
-
-    threading.Thread(target=announce, daemon=True).start()
-    if timer:
-        timer.start()
-    try:
-        server.run()
-    finally:
-        if timer:
-            timer.cancel()
-        if reporter:
-            reporter.stop.set()
-
-
-def wait_started(server, timeout_s: float = 60.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if server.started:
-            return True
-        time.sleep(0.05)
-    return False
+        if loop is not None:
+            how = loop.stop("stopped by the operator")
+            if api is not None:
+                api.publish()  # the last status (stopped, dark) for anyone still asking
+            typer.echo(_status_line(loop.status()))
+            typer.echo(f"projector dark ({how or 'no projector'})")
+        if api is not None:
+            api.close()
 
 
 @session_app.command("config")
@@ -201,6 +162,10 @@ def bench_session(
     spp: Annotated[int, typer.Option(min=1, max=64)] = 1,
     api_clients: Annotated[int, typer.Option(min=0, max=64, help="Concurrent API clients for the load case (0: skip it).")] = 4,
     api_rate: Annotated[float, typer.Option(min=0.0, max=1000.0, help="Requests per second per API client (0: as fast as possible).")] = 10.0,
+    api_mode: Annotated[Optional[list[str]], typer.Option(help="How the API is served in the load case: process (as `session start` does), thread (inside the session process; for comparison). Repeatable; default both.")] = None,
+    api_windows: Annotated[int, typer.Option(min=1, max=100, help="Unloaded/loaded window pairs per API mode.")] = 6,
+    api_window_s: Annotated[float, typer.Option(min=0.5, max=60.0, help="Seconds per load window.")] = 3.0,
+    api_only: Annotated[bool, typer.Option("--api-only", help="Only the API-load case (skip the registration cases).")] = False,
     trajectory: Annotated[Optional[list[str]], typer.Option(help="linear, rotate-oscillate (repeatable; default both).")] = None,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
     sets: SetOpt = None,
@@ -212,8 +177,16 @@ def bench_session(
     for t in trajectories:
         if t not in ("linear", "rotate-oscillate", "static"):
             raise typer.BadParameter(f"--trajectory: expected linear, rotate-oscillate or static, got {t!r}")
-    results = run_bench(trajectories, api_clients=api_clients, api_rate_hz=api_rate, seconds=seconds, width=width, height=height, spp=spp,
-                        overrides=tuple(sets or ()), progress=lambda label: typer.echo(f"running {label} …"))
+    modes = tuple(api_mode or ("process", "thread"))
+    for m in modes:
+        if m not in ("process", "thread"):
+            raise typer.BadParameter(f"--api-mode: expected process or thread, got {m!r}")
+    if api_only and not api_clients:
+        raise typer.BadParameter("--api-only needs --api-clients ≥ 1")
+    results = run_bench(trajectories, api_clients=api_clients, api_rate_hz=api_rate, api_modes=modes,
+                        api_windows=api_windows, api_window_s=api_window_s, cases=not api_only, seconds=seconds,
+                        width=width, height=height, spp=spp, overrides=tuple(sets or ()),
+                        progress=lambda label: typer.echo(f"running {label} …"))
     typer.echo(format_table(results))
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)

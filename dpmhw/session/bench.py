@@ -13,6 +13,7 @@ same machine conditions.
 
 from __future__ import annotations
 
+import os
 import socket
 import threading
 import time
@@ -43,61 +44,129 @@ def _pct(values, qs=(50, 95, 99)):
     return [None if not len(v) else round(float(x), 3) for x in (np.percentile(v, qs) if len(v) else [0] * len(qs))]
 
 
-class _ApiLoad:
-    """uvicorn on a loopback socket + client threads hammering the read endpoints (bounded)."""
+def _cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time of a process so far (Linux /proc; None elsewhere)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
 
-    def __init__(self, loop, clients: int, rate_hz: float = 10.0):
-        import uvicorn
 
-        from server.app import build_app
+def _load_clients(port: int, clients: int, rate_hz: float, priority: str, ready, active, stop, counts) -> None:
+    """The load generator's process: `clients` threads polling the read endpoints (bounded)."""
+    import httpx
 
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self.sock.bind(("127.0.0.1", 0))
-        self.port = self.sock.getsockname()[1]
-        self.server = uvicorn.Server(uvicorn.Config(build_app(runtime=loop, token="bench"), log_level="warning",
-                                                    lifespan="on"))
-        self.server_thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
-        self.stop_event = threading.Event()
-        self.active = threading.Event()  # clients send only while set (load windows)
-        self.period_s = 1.0 / rate_hz if rate_hz > 0 else 0.0
-        self.requests = 0
-        self.errors = 0
-        self.clients = [threading.Thread(target=self._client, daemon=True) for _ in range(clients)]
+    from server.process import lower_priority
 
-    def _client(self) -> None:
-        import httpx
+    lower_priority(priority)
+    period_s = 1.0 / rate_hz if rate_hz > 0 else 0.0
+    paths = ("/status", "/metrics", "/frame.png")
 
-        paths = ("/status", "/metrics", "/frame.png")
-        with httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=5.0) as c:
+    def client() -> None:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=5.0) as c:
             k = 0
-            while not self.stop_event.is_set():
-                if not self.active.wait(0.05):
+            while not stop.is_set():
+                if not active.wait(0.05):
                     continue
                 t0 = time.monotonic()
                 try:
                     c.get(paths[k % len(paths)]).raise_for_status()
-                    self.requests += 1
+                    ok = 0
                 except Exception:
-                    self.errors += 1
+                    ok = 1
+                with counts.get_lock():
+                    counts[ok] += 1
                 k += 1
-                self.stop_event.wait(max(0.0, self.period_s - (time.monotonic() - t0)))
+                stop.wait(max(0.0, period_s - (time.monotonic() - t0)))
+
+    threads = [threading.Thread(target=client, daemon=True) for _ in range(clients)]
+    for t in threads:
+        t.start()
+    ready.set()
+    for t in threads:
+        t.join()
+
+
+class _ApiLoad:
+    """The session's API, served as `mode` says, plus a separate process of load clients.
+
+    mode "process": `server.process.ApiProcess`, as `dpmhw session start` runs it;
+    mode "thread": uvicorn on a thread of the session's own process (for comparison).
+    The clients never share the session's process, like real ones.
+    """
+
+    def __init__(self, loop, mode: str, clients: int, rate_hz: float = 10.0, client_priority: str = "normal"):
+        import multiprocessing
+
+        self.loop, self.mode = loop, mode
+        ctx = multiprocessing.get_context("spawn")
+        # clients send only while `active` is set (the load windows)
+        self.ready, self.active, self.stop_event = ctx.Event(), ctx.Event(), ctx.Event()
+        self.counts = ctx.Array("q", 2)  # ok, failed
+        self.api = self.server = None
+        if mode == "process":
+            from server.process import ApiProcess
+
+            self.api = ApiProcess(host="127.0.0.1", port=0, token="bench")
+            self.port = self.api.port
+        elif mode == "thread":
+            import uvicorn
+
+            from server.app import build_app
+
+            self.sock = socket.create_server(("127.0.0.1", 0))
+            self.port = self.sock.getsockname()[1]
+            self.server = uvicorn.Server(uvicorn.Config(build_app(runtime=loop, token="bench"), log_level="warning"))
+            self.server_thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
+        else:
+            raise ValueError(f"api mode must be 'process' or 'thread', not {mode!r}")
+        self.clients = ctx.Process(target=_load_clients, daemon=True, name="api-load-clients",
+                                   args=(self.port, clients, rate_hz, client_priority, self.ready, self.active, self.stop_event,
+                                         self.counts))
+        self.cpu_s: dict[str, float | None] = {}
+
+    @property
+    def requests(self) -> int:
+        return int(self.counts[0])
+
+    @property
+    def errors(self) -> int:
+        return int(self.counts[1])
 
     def __enter__(self) -> "_ApiLoad":
-        self.server_thread.start()
-        if not wait_for(lambda: self.server.started, 10):
-            raise RuntimeError("bench: the API server did not start on 127.0.0.1")
-        for t in self.clients:
-            t.start()
+        if self.api is not None:
+            self.api.start(self.loop)
+        else:
+            self.server_thread.start()
+            if not wait_for(lambda: self.server.started, 10):
+                raise RuntimeError("bench: the API server did not start on 127.0.0.1")
+        self.clients.start()
+        if not self.ready.wait(60):
+            raise RuntimeError("bench: the load-client process did not start")
+        time.sleep(0.5)  # let start-up work (imports, JIT) settle before the first window
+        self._cpu0 = self._cpu()
         return self
 
+    def _cpu(self) -> dict[str, float | None]:
+        return {"clients": _cpu_seconds(self.clients.pid),
+                "api": _cpu_seconds(self.api.process.pid) if self.api is not None else None}
+
     def __exit__(self, *exc) -> None:
+        cpu = self._cpu()  # spent during the windows (start-up excluded)
+        self.cpu_s = {k: None if v is None or self._cpu0[k] is None else v - self._cpu0[k] for k, v in cpu.items()}
         self.stop_event.set()
-        for t in self.clients:
-            t.join(10)
-        self.server.should_exit = True
-        self.server_thread.join(10)
-        self.sock.close()
+        self.active.set()
+        self.clients.join(10)
+        if self.clients.is_alive():
+            self.clients.kill()
+        if self.api is not None:
+            self.api.close()
+        else:
+            self.server.should_exit = True
+            self.server_thread.join(10)
+            self.sock.close()
 
 
 def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 256, height: int = 192,
@@ -161,64 +230,80 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     return out
 
 
-def run_load_case(trajectory: str = "rotate-oscillate", *, clients: int = 4, rate_hz: float = 10.0, windows: int = 4,
-                  window_s: float = 2.0, warmup_s: float = 1.5, width: int = 256, height: int = 192, spp: int = 1,
-                  overrides: tuple[str, ...] = ()) -> dict:
-    """Frame time with and without API load in one session, in alternating windows (same
-    machine conditions for both): `clients` threads, each at most `rate_hz` requests/s."""
+def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...] = ("process", "thread"),
+                  clients: int = 4, rate_hz: float = 10.0, client_priority: str = "normal", windows: int = 6,
+                  window_s: float = 3.0,
+                  warmup_s: float = 1.5, width: int = 256, height: int = 192, spp: int = 1,
+                  overrides: tuple[str, ...] = ()) -> list[dict]:
+    """Frame time with and without API load, in alternating windows of one session (the same
+    machine conditions for both), for each way of serving the API (`_ApiLoad`)."""
     from dpmhw.session.factory import build_session
 
     cfg = load_session_config(overrides=[
         f"mock.trajectory={trajectory}", f"render.width={width}", f"render.height={height}", f"render.spp={spp}",
         "sink.kind=recording", "api.enabled=false", *overrides])
     loop = build_session(cfg, mock=True, frame_log=100_000)
-    spans: dict[bool, list[tuple[int, int]]] = {False: [], True: []}
+    spans = {(m, loaded): [] for m in modes for loaded in (False, True)}
+    counts = {}
     try:
         loop.start()
         if not wait_for(lambda: loop.status()["state"] == "running", 60):
             raise RuntimeError(f"bench load: the session did not start: {loop.status()['reason']}")
         time.sleep(warmup_s)
-        with _ApiLoad(loop, clients, rate_hz) as load:
-            for w in range(2 * windows):
-                loaded = w % 2 == 1
-                if loaded:
-                    load.active.set()
-                t0 = time.monotonic_ns()
-                time.sleep(window_s)
-                spans[loaded].append((t0, time.monotonic_ns()))
-                load.active.clear()
+        for mode in modes:
+            with _ApiLoad(loop, mode, clients, rate_hz, client_priority) as load:
+                for w in range(2 * windows):
+                    loaded = w % 2 == 1
+                    if loaded:
+                        load.active.set()
+                    t0 = time.monotonic_ns()
+                    time.sleep(window_s)
+                    spans[mode, loaded].append((t0, time.monotonic_ns()))
+                    load.active.clear()
+            counts[mode] = (load.requests, load.errors, load.cpu_s)
         records = list(loop.frame_log)
     finally:
         loop.stop()
 
-    def frame_ms(loaded: bool) -> list[float]:
+    def frame_ms(key) -> list[float]:
         return [r.stages_s["frame"] * 1e3 for r in records
-                if any(a <= r.t_start_ns and r.t_present_ns <= b for a, b in spans[loaded])]
+                if any(a <= r.t_start_ns and r.t_present_ns <= b for a, b in spans[key])]
 
-    quiet, busy = frame_ms(False), frame_ms(True)
-    q, b = _pct(quiet), _pct(busy)
-    return {"case": f"{trajectory} API load", "clients": clients, "rate_hz": rate_hz, "windows": windows,
-            "window_s": window_s, "requests": load.requests, "errors": load.errors,
-            "unloaded_frames": len(quiet), "loaded_frames": len(busy),
-            "unloaded_frame_ms": dict(zip(("p50", "p95", "p99"), q)),
-            "loaded_frame_ms": dict(zip(("p50", "p95", "p99"), b)),
-            "p99_ratio": None if not (q[2] and b[2]) else round(b[2] / q[2], 3)}
+    out = []
+    for mode in modes:
+        q, b = _pct(frame_ms((mode, False))), _pct(frame_ms((mode, True)))
+        requests, errors, cpu = counts[mode]
+        out.append({"case": f"{trajectory} API load", "api_mode": mode, "clients": clients, "rate_hz": rate_hz,
+                    "client_priority": client_priority,
+                    "api_cpu_ms_per_request": None if cpu["api"] is None or not requests
+                    else round(cpu["api"] * 1e3 / requests, 3),
+                    "client_cpu_ms_per_request": None if cpu["clients"] is None or not requests
+                    else round(cpu["clients"] * 1e3 / requests, 3),
+                    "windows": windows, "window_s": window_s, "requests": requests, "errors": errors,
+                    "unloaded_frames": len(frame_ms((mode, False))), "loaded_frames": len(frame_ms((mode, True))),
+                    "unloaded_frame_ms": dict(zip(("p50", "p95", "p99"), q)),
+                    "loaded_frame_ms": dict(zip(("p50", "p95", "p99"), b)),
+                    "p99_ratio": None if not (q[2] and b[2]) else round(b[2] / q[2], 3)})
+    return out
 
 
 def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int = 4, api_rate_hz: float = 10.0,
-              progress=None, **kw) -> dict:
-    """Every trajectory with prediction on and off, then (if `api_clients`) the API-load comparison."""
+              api_modes: tuple[str, ...] = ("process", "thread"), api_windows: int = 6, api_window_s: float = 3.0,
+              cases: bool = True, progress=None, **kw) -> dict:
+    """Every trajectory with prediction on and off (unless not `cases`), then (if `api_clients`)
+    the API-load comparison for each of `api_modes`."""
     results = []
-    for case in [BenchCase(t, p) for t in trajectories for p in (True, False)]:
+    for case in [BenchCase(t, p) for t in trajectories for p in (True, False)] if cases else []:
         if progress is not None:
             progress(case.label)
         results.append(run_case(case, **kw))
-    load = None
+    load = []
     if api_clients:
         if progress is not None:
-            progress(f"API load: {api_clients} clients × {api_rate_hz:g} req/s, alternating windows")
+            progress(f"API load: {api_clients} clients × {api_rate_hz:g} req/s, API served by {' then '.join(api_modes)}")
         size = {k: kw[k] for k in ("width", "height", "spp", "overrides") if k in kw}
-        load = run_load_case(trajectories[-1], clients=api_clients, rate_hz=api_rate_hz, **size)
+        load = run_load_case(trajectories[-1], modes=api_modes, clients=api_clients, rate_hz=api_rate_hz,
+                             windows=api_windows, window_s=api_window_s, **size)
     return {"cases": results, "api_load": load}
 
 
@@ -226,20 +311,22 @@ def format_table(bench: dict) -> str:
     results = bench["cases"]
     head = (f"{'case':<34} {'fps':>6} {'lat p50':>8} {'p95':>7} {'p99':>7} {'frame p99':>9} "
             f"{'reg p50':>8} {'reg p99':>8} {'vert p50':>8} {'unpred p50':>10} {'p99':>7}")
-    lines = [head, "-" * len(head)]
+    lines = [head, "-" * len(head)] if results else []
     for r in results:
         lat, fr, reg, vert = r["latency_ms"], r["frame_ms"], r["registration_px"], r["vertex_px"]
         meas = r["registration_measured_pose_px"]
         lines.append(f"{r['case']:<34} {r['fps']:>6.1f} {lat['p50']:>8.1f} {lat['p95']:>7.1f} {lat['p99']:>7.1f} "
                      f"{fr['p99']:>9.1f} {reg['p50']:>8.2f} {reg['p99']:>8.2f} {vert['p50']:>8.2f} "
                      f"{meas['p50']:>10.2f} {meas['p99']:>7.2f}")
-    load = bench.get("api_load")
-    if load:
+    for load in bench.get("api_load") or []:
         u, b = load["unloaded_frame_ms"], load["loaded_frame_ms"]
-        lines.append(f"API load ({load['clients']} clients × ≤{load['rate_hz']:g} req/s on /status, /metrics, /frame.png; "
-                     f"{load['requests']} requests, {load['errors']} errors; {load['windows']} alternating "
-                     f"{load['window_s']:g} s windows): frame time p50/p99 {b['p50']}/{b['p99']} ms loaded vs "
-                     f"{u['p50']}/{u['p99']} ms unloaded (p99 ratio {load['p99_ratio']})")
+        where = "own process" if load["api_mode"] == "process" else "thread of the session process"
+        lines.append(f"API in its {where}: {load['clients']} clients × ≤{load['rate_hz']:g} req/s on /status, /metrics, "
+                     f"/frame.png ({load['requests']} requests, {load['errors']} errors; {load['windows']}+{load['windows']} "
+                     f"alternating {load['window_s']:g} s windows): frame time p50/p99 {b['p50']}/{b['p99']} ms loaded vs "
+                     f"{u['p50']}/{u['p99']} ms unloaded, p99 ratio {load['p99_ratio']}")
+    if not results:
+        return "\n".join(lines)
     lines.append("latency: tracker mid-exposure → frame presented; reg: symmetric outline distance between the "
                  "silhouette shown and the true one at present time, in projector pixels "
                  f"({results[0]['projector_size'][0]}×{results[0]['projector_size'][1]}); vert: mean vertex displacement; "

@@ -122,6 +122,9 @@ class ApiSection(_Section):
     host: str = "127.0.0.1"
     port: int = Field(8765, ge=0, le=65535)
     token: str = Field("", description="bearer token for mutating endpoints; DPMHW_API_TOKEN overrides")
+    priority: Literal["idle", "low", "normal"] = Field(
+        "idle", description="CPU priority of the API process: idle (Linux SCHED_IDLE: runs only on otherwise idle "
+                            "CPU time, so the loop always goes first), low (nice 10), normal")
 
 
 class RecordingSection(_Section):

@@ -1,4 +1,7 @@
-"""Live settings: read freely; change with the bearer token (applied on the next frame)."""
+"""Live settings: read freely; change with the bearer token (applied on the next frame).
+
+PATCH is a plain `def` (thread pool) for the reason given in `session.py`.
+"""
 
 from __future__ import annotations
 
@@ -18,7 +21,7 @@ async def get_settings(runtime: RuntimeDep) -> SettingsModel:
 @router.patch("", response_model=SettingsModel, dependencies=[Depends(require_token)],
               summary="Change some settings; invalid values → 422 with the reason",
               responses={401: {"description": "missing or wrong bearer token"}})
-async def patch_settings(patch: SettingsPatch, runtime: RuntimeDep) -> SettingsModel:
+def patch_settings(patch: SettingsPatch, runtime: RuntimeDep) -> SettingsModel:
     changes = patch.model_dump(exclude_unset=True)
     if any(v is None for v in changes.values()):
         raise HTTPException(422, f"null is not a value for: {', '.join(k for k, v in changes.items() if v is None)}")

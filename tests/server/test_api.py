@@ -148,18 +148,3 @@ def test_no_configured_token_refuses_every_mutation(loop, monkeypatch):
         assert c.post("/session/blank", headers=AUTH).status_code == 200
 
 
-def test_app_started_loop_is_stopped_on_shutdown():
-    from dpmhw.session.testing import fake_session
-
-    loops = []
-
-    def start():
-        loops.append(fake_session().start())
-        return loops[-1]
-
-    with TestClient(build_app(start=start, token=TOKEN)) as c:
-        assert c.get("/livez").status_code == 200
-        assert wait_for(lambda: c.get("/status").json()["state"] == "running", 20)
-    assert loops[0].status()["state"] == "stopped"
-    with pytest.raises(ValueError):
-        build_app()

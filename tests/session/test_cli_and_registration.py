@@ -81,11 +81,13 @@ def test_registration_error_of_a_known_shift():
 def test_bench_session_command(runner, tmp_path):
     out = tmp_path / "bench.json"
     r = runner.invoke(app, ["bench", "session", "--seconds", "1", "--trajectory", "linear", "--api-clients", "2",
-                            "--width", "64", "--height", "48", "--json", str(out)])
+                            "--api-windows", "1", "--api-window-s", "1", "--width", "64", "--height", "48",
+                            "--json", str(out)])
     assert r.exit_code == 0, r.output
     results = json.loads(out.read_text())
     assert [x["prediction"] for x in results["cases"]] == [True, False]
     assert all(x["frames"] > 2 and x["registration_px"]["p50"] is not None for x in results["cases"])
-    load = results["api_load"]
-    assert load["requests"] > 0 and load["errors"] == 0 and load["loaded_frames"] > 0 and load["unloaded_frames"] > 0
-    assert "API load (2 clients" in r.output
+    assert [x["api_mode"] for x in results["api_load"]] == ["process", "thread"]
+    for load in results["api_load"]:
+        assert load["requests"] > 0 and load["errors"] == 0 and load["loaded_frames"] > 0 and load["unloaded_frames"] > 0
+    assert "API in its own process: 2 clients" in r.output and "API in its thread of the session process" in r.output

@@ -1,9 +1,12 @@
-"""SIGTERM ends a running `dpmhw session start --mock` with the projector dark (read back)."""
+"""`dpmhw session start --mock` as an operator runs it: SIGTERM ends it with the projector dark
+(read back) and the API process gone; a killed session process takes its API process with it."""
 
 from __future__ import annotations
 
 import os
+import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -13,8 +16,7 @@ import pytest
 from dpmhw.tracking import wait_for
 
 
-@pytest.mark.parametrize("api", [False, True], ids=["loop-only", "with-api"])
-def test_sigterm_shuts_down_dark(api):
+def _start(api: bool):
     args = ["session", "start", "--mock", "--status-every", "0", "--set", "render.width=32", "--set", "render.height=24"]
     args += ["--port", "0"] if api else ["--no-api"]
     env = {**os.environ, "DPMHW_API_TOKEN": "t"}
@@ -23,17 +25,53 @@ def test_sigterm_shuts_down_dark(api):
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
     reader.start()
+    ready = "API on http://127.0.0.1:" if api else "session started"
+    if not wait_for(lambda: any(ready in line for line in lines), 60):
+        proc.kill()
+        pytest.fail("".join(lines))
+    port = next((int(m.group(1)) for line in lines if (m := re.search(r"API on http://127\.0\.0\.1:(\d+)", line))), None)
+    return proc, lines, reader, port
+
+
+def _finish(proc, reader) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(timeout=10)
+    reader.join(timeout=10)
+    proc.stdout.close()
+
+
+def _port_closed(port: int) -> bool:
     try:
-        ready = "API on http://127.0.0.1:" if api else "session started"
-        assert wait_for(lambda: any(ready in line for line in lines), 60), "".join(lines)
+        socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+    except OSError:
+        return True
+    return False
+
+
+@pytest.mark.parametrize("api", [False, True], ids=["loop-only", "with-api"])
+def test_sigterm_shuts_down_dark(api):
+    proc, lines, reader, port = _start(api)
+    try:
+        if api:
+            assert not _port_closed(port)
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=30)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
-        reader.join(timeout=10)
-        proc.stdout.close()
+        _finish(proc, reader)
     out = "".join(lines)
     assert "projector dark (idle)" in out and "[stopped]" in out, out
-    assert proc.returncode in (0, -signal.SIGTERM)  # uvicorn re-raises SIGTERM after its shutdown
+    assert proc.returncode == 0, out
+    if api:
+        assert wait_for(lambda: _port_closed(port), 10), "the API process outlived its session"
+
+
+def test_killed_session_takes_its_api_process_along():
+    proc, lines, reader, port = _start(True)
+    try:
+        assert not _port_closed(port)
+        proc.kill()  # no shutdown code runs in the session process
+        proc.wait(timeout=10)
+        assert wait_for(lambda: _port_closed(port), 15), "the API process was orphaned"
+    finally:
+        _finish(proc, reader)

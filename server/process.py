@@ -1,0 +1,348 @@
+"""The HTTP service in its own process, so that no request can take the session's interpreter lock.
+
+    api = ApiProcess(host="127.0.0.1", port=8765, token="…")    # binds (a busy port fails here)
+    with api.start(loop):
+        print(api.url)                                           # serving until the block ends
+
+The session process (this one) owns the devices and the loop. A publisher thread here copies the
+loop's status (every `publish_period_s`, and at once after a command) and its latest frame into
+two shared-memory slots (`shared_slot.py`); the API process answers reads from those slots alone,
+and sends the few mutating requests (settings, blank, resume, reset-history) over a pipe to a
+command thread here, which applies them exactly as an in-process request would. The work this
+process does for the service is therefore fixed (one publish per period) whatever the request
+load, and the API process runs at a lower CPU priority (by default Linux's SCHED_IDLE: it gets
+the CPU time the loop leaves idle, so requests wait for the loop rather than the other way round).
+
+If the session process stops publishing (wedged, or gone), the API process keeps answering and
+reports `fault` with the age of the last snapshot; it exits by itself when this process dies.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import multiprocessing
+import os
+import socket
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from dpmhw.session.config import LiveSettings
+from dpmhw.session.loop import LatestFrame, SettingsError
+from server.deps import Runtime, RuntimeUnavailable
+from server.shared_slot import SharedSlot
+
+__all__ = ["ApiProcess", "RemoteRuntime", "lower_priority"]
+
+log = logging.getLogger(__name__)
+
+_COMMANDS = ("update_settings", "blank", "resume", "reset_history")
+_PRIORITIES = ("idle", "low", "normal")
+
+
+def lower_priority(priority: str) -> str:
+    """Lower this process's CPU priority; returns what was applied (SCHED_IDLE needs Linux)."""
+    if priority == "idle" and hasattr(os, "SCHED_IDLE"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+            return "SCHED_IDLE"
+        except OSError:
+            priority = "low"
+    if priority in ("idle", "low"):
+        os.nice(19 if priority == "idle" else 10)
+        return f"nice {os.nice(0)}"
+    return "normal"
+
+
+class ApiProcess:
+    """Serve a runtime (a started `SessionLoop`) over HTTP from a child process; see module doc."""
+
+    def __init__(self, *, host: str = "127.0.0.1", port: int = 8765, token: str = "", priority: str = "idle",
+                 publish_period_s: float = 0.05, stale_after_s: float = 1.0, status_capacity: int = 1 << 20,
+                 start_timeout_s: float = 60.0):
+        self.runtime: Runtime | None = None
+        self.token = token
+        if priority not in _PRIORITIES:
+            raise ValueError(f"API process priority must be one of {', '.join(_PRIORITIES)}, not {priority!r}")
+        self.priority = priority
+        self.publish_period_s = publish_period_s
+        self.stale_after_s = stale_after_s
+        self.start_timeout_s = start_timeout_s
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        # bound here: a busy port fails in the caller with the OS's message, and port 0 is resolved
+        self.sock = socket.create_server((host, port), family=family, backlog=128)
+        self.host, self.port = self.sock.getsockname()[:2]
+        self.status_capacity = status_capacity
+        self.status_slot: SharedSlot | None = None
+        self.frame_slot: SharedSlot | None = None
+        self._write_lock = threading.Lock()  # one writer per slot: publisher and command threads
+        self._frame_key: tuple | None = None
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._conn = None
+        self.process = None
+        self.publishes = 0
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}"
+
+    # ---- lifecycle -------------------------------------------------------------------------
+    def start(self, runtime: Runtime) -> "ApiProcess":
+        self.runtime = runtime
+        width, height = runtime.status()["render_size"]
+        self.status_slot = SharedSlot.create(self.status_capacity)
+        self.frame_slot = SharedSlot.create(width * height * 3)
+        self.publish()
+        ctx = multiprocessing.get_context("spawn")  # never fork a process running native threads
+        self._conn, child_conn = ctx.Pipe(duplex=True)
+        self.process = ctx.Process(
+            target=_serve_child, name="dpmhw-api", daemon=True,
+            args=(self.sock, child_conn, self.status_slot.name, self.frame_slot.name, self.token, self.priority,
+                  self.stale_after_s))
+        self.process.start()
+        child_conn.close()
+        try:
+            self._wait_ready()
+        except BaseException:
+            self.close()
+            raise
+        for name, target in (("api-publisher", self._publish_loop), ("api-commands", self._serve_commands)):
+            t = threading.Thread(target=target, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
+        return self
+
+    def _wait_ready(self) -> None:
+        deadline = time.monotonic() + self.start_timeout_s
+        while time.monotonic() < deadline:
+            try:
+                if self._conn.poll(0.1) and self._conn.recv() == ("ready",):
+                    return
+            except EOFError:
+                self.process.join(5)
+            if not self.process.is_alive():
+                raise RuntimeError(f"the API process exited during start-up (exit code {self.process.exitcode}); "
+                                   "its error is printed above")
+        raise RuntimeError(f"the API process did not start within {self.start_timeout_s:g} s")
+
+    def close(self) -> None:
+        """Stop the API process (graceful, then killed), the threads, and remove the slots."""
+        self._stop.set()
+        if self.process is not None and self.process.is_alive():
+            self.process.terminate()  # SIGTERM: uvicorn finishes open requests and exits
+            self.process.join(5)
+            if self.process.is_alive():
+                self.process.kill()
+                self.process.join(5)
+        for t in self._threads:
+            t.join(2)
+        self._threads.clear()
+        if self._conn is not None:
+            self._conn.close()
+        self.sock.close()
+        for slot in (self.status_slot, self.frame_slot):
+            if slot is not None:
+                slot.close()
+        self.status_slot = self.frame_slot = None
+
+    def __enter__(self) -> "ApiProcess":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ---- this process's side ---------------------------------------------------------------
+    def publish(self) -> None:
+        """Copy the runtime's status (and a new latest frame) into the shared slots."""
+        t_read = time.monotonic_ns()
+        payload = {"status": self.runtime.status(), "ready": self.runtime.ready(),
+                   "settings": self.runtime.settings().model_dump(), "t_read_ns": t_read}
+        data = json.dumps(payload, separators=(",", ":")).encode()
+        frame = self.runtime.latest_frame()
+        with self._write_lock:
+            self.status_slot.write(data)
+            if frame is not None:
+                key = (frame.number, frame.t_present_ns, bool(frame.blank))
+                if key != self._frame_key and frame.image.size <= self.frame_slot.capacity:
+                    h, w = frame.image.shape[:2]
+                    self.frame_slot.write(frame.image, (frame.number, frame.t_present_ns, int(frame.blank), h, w))
+                    self._frame_key = key
+            self.publishes += 1
+
+    def _publish_loop(self) -> None:
+        while not self._stop.wait(self.publish_period_s):
+            try:
+                self.publish()
+            except Exception:  # never let the service take the session down
+                log.exception("publishing the session status for the API failed")
+
+    def _serve_commands(self) -> None:
+        while not self._stop.is_set():
+            try:
+                if not self._conn.poll(0.2):
+                    continue
+                request_id, name, args = self._conn.recv()
+            except (EOFError, OSError):
+                if not self._stop.is_set():
+                    log.warning("the API process closed its command pipe (exit code %s)",
+                                self.process.exitcode if self.process else None)
+                return
+            reply = self._execute(name, args)
+            try:
+                self.publish()  # the reply's sender reads its own write in the next status
+            except Exception:
+                log.exception("publishing the session status for the API failed")
+            try:
+                self._conn.send((request_id, *reply))
+            except OSError:
+                return
+
+    def _execute(self, name: str, args: tuple) -> tuple[str, Any]:
+        if name not in _COMMANDS:
+            return "error", f"unknown command {name!r}"
+        try:
+            if name == "update_settings":
+                return "ok", (self.runtime.update_settings(dict(args[0])).model_dump(), time.monotonic_ns())
+            result = getattr(self.runtime, name)()
+            return "ok", None if result is None else list(result)
+        except ValueError as exc:  # SettingsError: the loop refused the value
+            return "refused", str(exc)
+        except Exception as exc:
+            log.exception("API command %s failed", name)
+            return "error", f"{type(exc).__name__}: {exc}"
+
+
+class RemoteRuntime:
+    """The `Runtime` the API process serves: reads from the shared slots, commands over the pipe."""
+
+    def __init__(self, status_slot: SharedSlot, frame_slot: SharedSlot, conn, *, stale_after_s: float = 1.0,
+                 command_timeout_s: float = 2.0):
+        self.status_slot = status_slot
+        self.frame_slot = frame_slot
+        self.stale_after_ns = int(stale_after_s * 1e9)
+        self.command_timeout_s = command_timeout_s
+        self._conn = conn
+        self._call_lock = threading.Lock()
+        self._ids = itertools.count(1)
+        self._cache_lock = threading.Lock()
+        self._payload: tuple[int, int, dict] | None = None  # (sequence, published ns, decoded)
+        self._frame: tuple[int, LatestFrame] | None = None
+        self._own_settings: tuple[int, LiveSettings] | None = None  # from our last accepted PATCH
+
+    def _read(self) -> tuple[int, dict]:
+        seq = self.status_slot.sequence()
+        with self._cache_lock:
+            if self._payload is None or self._payload[0] != seq:
+                got = self.status_slot.read()
+                if got is None:
+                    raise RuntimeUnavailable("the session has not published a status yet")
+                seq, published, _, data = got
+                self._payload = (seq, published, json.loads(data))
+            return self._payload[1], self._payload[2]
+
+    def _silent_for_s(self, published_ns: int) -> float:
+        return (time.monotonic_ns() - published_ns) / 1e9
+
+    def status(self) -> dict:
+        published, payload = self._read()
+        out = dict(payload["status"])
+        silent = self._silent_for_s(published)
+        out["snapshot_age_s"] = round(silent, 3)
+        if silent * 1e9 > self.stale_after_ns and out.get("state") != "stopped":
+            out.update(state="fault", output_on=False,
+                       reason=f"the session process has not published for {silent:.1f} s (stuck or gone); "
+                              f"last state {payload['status'].get('state')}: {payload['status'].get('reason', '')}")
+        return out
+
+    def ready(self) -> bool:
+        published, payload = self._read()
+        return bool(payload["ready"]) and self._silent_for_s(published) * 1e9 <= self.stale_after_ns
+
+    def settings(self) -> LiveSettings:
+        _, payload = self._read()
+        own = self._own_settings
+        if own is not None and own[0] > payload["t_read_ns"]:
+            return own[1]  # our change was accepted after that snapshot was taken
+        return LiveSettings.model_validate(payload["settings"])
+
+    def update_settings(self, patch: dict) -> LiveSettings:
+        settings, accepted_ns = self._call("update_settings", dict(patch))
+        new = LiveSettings.model_validate(settings)
+        self._own_settings = (accepted_ns, new)
+        return new
+
+    def blank(self) -> None:
+        self._call("blank")
+
+    def resume(self) -> tuple[bool, str]:
+        ok, message = self._call("resume")
+        return bool(ok), str(message)
+
+    def reset_history(self) -> None:
+        self._call("reset_history")
+
+    def latest_frame(self) -> LatestFrame | None:
+        seq = self.frame_slot.sequence()
+        if seq == 0:
+            return None
+        cached = self._frame
+        if cached is not None and cached[0] == seq:
+            return cached[1]
+        seq, _, (number, t_present, blank, h, w), data = self.frame_slot.read()
+        frame = LatestFrame(number, t_present, np.frombuffer(data, np.uint8).reshape(h, w, 3), self.settings(),
+                            bool(blank))
+        self._frame = (seq, frame)  # one reference swap: readers see the old or the new pair
+        return frame
+
+    def _call(self, name: str, *args) -> Any:
+        """Send one command and wait for its reply (bounded: a stuck session → 503, not a hang)."""
+        with self._call_lock:
+            request_id = next(self._ids)
+            try:
+                self._conn.send((request_id, name, args))
+                deadline = time.monotonic() + self.command_timeout_s
+                while True:
+                    left = deadline - time.monotonic()
+                    if left <= 0 or not self._conn.poll(left):
+                        raise RuntimeUnavailable(f"the session did not answer {name!r} within "
+                                                 f"{self.command_timeout_s:g} s (stuck?)")
+                    reply_id, outcome, value = self._conn.recv()
+                    if reply_id == request_id:
+                        break  # older replies belong to requests that already timed out
+            except (EOFError, OSError) as exc:
+                raise RuntimeUnavailable(f"the session process is gone ({type(exc).__name__})") from None
+        if outcome == "refused":
+            raise SettingsError(value)
+        if outcome != "ok":
+            raise RuntimeError(f"the session failed to {name}: {value}")
+        return value
+
+
+def _serve_child(sock: socket.socket, conn, status_name: str, frame_name: str, token: str, priority: str,
+                 stale_after_s: float) -> None:
+    """The API process: uvicorn on the inherited socket, serving a `RemoteRuntime`."""
+    import uvicorn
+
+    from server.app import build_app
+
+    lower_priority(priority)
+    runtime = RemoteRuntime(SharedSlot.attach(status_name), SharedSlot.attach(frame_name), conn,
+                            stale_after_s=stale_after_s)
+    server = uvicorn.Server(uvicorn.Config(build_app(runtime=runtime, token=token), log_level="warning",
+                                           lifespan="on", timeout_graceful_shutdown=2))
+
+    def watch_parent() -> None:
+        parent = multiprocessing.parent_process()
+        if parent is not None:
+            parent.join()  # returns when the session process dies: then so do we
+            server.should_exit = True
+
+    threading.Thread(target=watch_parent, name="api-parent-watch", daemon=True).start()
+    conn.send(("ready",))  # before any request can use the pipe (the socket already queues them)
+    server.run(sockets=[sock])

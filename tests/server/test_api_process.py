@@ -1,0 +1,154 @@
+"""The API served from its own process (what `dpmhw session start` runs): real HTTP on loopback,
+the session's status and frames through shared memory, commands through the pipe."""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from dpmhw.session.testing import fake_session
+from dpmhw.tracking import wait_for
+from server.process import ApiProcess
+from server.shared_slot import SharedSlot, SlotTornError
+
+TOKEN = "process-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+@pytest.fixture(scope="module")
+def served():
+    loop = fake_session().start()
+    api = ApiProcess(port=0, token=TOKEN, publish_period_s=0.02).start(loop)
+    try:
+        with httpx.Client(base_url=api.url, timeout=10.0) as client:
+            assert wait_for(lambda: client.get("/status").json()["state"] == "running", 20)
+            yield loop, api, client
+    finally:
+        api.close()
+        loop.parts.renderer.block.set()
+        loop.stop()
+
+
+def test_shared_slot_round_trip_and_limits():
+    slot = SharedSlot.create(64)
+    try:
+        assert slot.read() is None and slot.sequence() == 0
+        slot.write(b"hello", (7, 2**40))
+        seq, published, meta, payload = slot.read()
+        assert (payload, meta[:2], seq) == (b"hello", (7, 2**40), 2) and published > 0
+        slot.write(np.arange(64, dtype=np.uint8))
+        assert slot.read()[3] == bytes(range(64)) and slot.sequence() == 4
+        with pytest.raises(ValueError, match="exceeds"):
+            slot.write(b"x" * 65)
+        reader = SharedSlot.attach(slot.name)
+        assert reader.read()[3] == bytes(range(64))
+        slot._header[0] += 1  # a writer that never finishes: the reader must not return half a payload
+        with pytest.raises(SlotTornError):
+            reader.read(retries=5)
+        reader.close()
+    finally:
+        slot.close()
+
+
+def test_status_frames_and_probes_come_from_the_session(served):
+    loop, api, client = served
+    first = client.get("/status").json()
+    assert wait_for(lambda: client.get("/status").json()["frame_number"] > first["frame_number"] + 5, 10)
+    status = client.get("/status").json()
+    assert status["render_size"] == [32, 24] and status["snapshot_age_s"] < 1.0
+    assert status["devices"]["projector"]["error"] is None
+    assert client.get("/readyz").json()["ready"] is True
+    metrics = client.get("/metrics").text
+    assert "dpmhw_frames_presented_total" in metrics and "dpmhw_fps" in metrics
+    r = client.get("/frame.png")
+    assert r.status_code == 200 and r.headers["x-frame-blank"] == "false"
+    image = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR)
+    assert image.shape == (24, 32, 3) and image.mean() > 20  # a lit frame, not the black one
+    assert int(r.headers["x-frame-number"]) <= loop.status()["frame_number"]
+
+
+def test_settings_change_reaches_the_loop_and_reads_back_at_once(served):
+    loop, api, client = served
+    assert client.patch("/settings", json={"alpha": 0.37}).status_code == 401
+    r = client.patch("/settings", json={"alpha": 0.37, "reuse_mode": "off"}, headers=AUTH)
+    assert r.status_code == 200 and r.json()["alpha"] == 0.37
+    assert loop.settings().alpha == 0.37  # accepted by the session before the reply was sent
+    assert client.get("/settings").json()["alpha"] == 0.37  # read-your-writes, before the next publish
+    n = loop.status()["frame_number"]
+    assert wait_for(lambda: any(rec.number > n and rec.settings.alpha == 0.37 for rec in list(loop.frame_log)), 10)
+    r = client.patch("/settings", json={"alpha": 0}, headers=AUTH)
+    assert r.status_code == 422 and loop.settings().alpha == 0.37
+    r = client.patch("/settings", json={"spp": 1000}, headers=AUTH)
+    assert r.status_code == 422 and "spp" in str(r.json()["detail"])
+    client.patch("/settings", json={"alpha": 0.2, "reuse_mode": "same-pixel"}, headers=AUTH)
+
+
+def test_blank_and_resume_go_through_the_session(served):
+    loop, api, client = served
+    assert client.post("/session/blank").status_code == 401
+    r = client.post("/session/blank", headers=AUTH)
+    assert r.status_code == 200 and r.json()["state"] == "blanked"
+    assert loop.status()["state"] == "blanked"
+    assert wait_for(lambda: client.get("/frame.png").headers["x-frame-blank"] == "true", 5)
+    dark = cv2.imdecode(np.frombuffer(client.get("/frame.png").content, np.uint8), cv2.IMREAD_COLOR)
+    assert dark.max() == 0
+    r = client.post("/session/resume", headers=AUTH)
+    assert r.status_code == 200 and r.json()["ok"] is True
+    assert wait_for(lambda: client.get("/status").json()["state"] == "running", 10)
+    assert client.post("/session/reset-history", headers=AUTH).status_code == 200
+
+
+def test_stuck_loop_thread_is_reported_by_the_api_process(served):
+    loop, api, client = served
+    loop.parts.renderer.block.clear()  # the frame thread hangs inside render()
+    try:
+        assert wait_for(lambda: client.get("/status").json()["state"] == "fault", 10)
+        status = client.get("/status").json()
+        assert "loop stalled" in status["reason"] and client.get("/readyz").status_code == 503
+    finally:
+        loop.parts.renderer.block.set()
+    assert wait_for(lambda: client.get("/status").json()["state"] == "running", 15)
+
+
+def test_silent_session_process_is_a_fault_and_commands_fail_fast():
+    loop = fake_session().start()
+    api = ApiProcess(port=0, token=TOKEN, stale_after_s=0.3).start(loop)
+    try:
+        with httpx.Client(base_url=api.url, timeout=10.0) as client:
+            assert client.get("/readyz").status_code in (200, 503)
+            api._stop.set()  # the session process stops publishing and answering (as if wedged)
+            for t in api._threads:
+                t.join(5)
+            assert wait_for(lambda: client.get("/status").json()["state"] == "fault", 5)
+            status = client.get("/status").json()
+            assert "has not published" in status["reason"] and status["snapshot_age_s"] >= 0.3
+            assert client.get("/readyz").status_code == 503
+            r = client.post("/session/blank", headers=AUTH)
+            assert r.status_code == 503 and "did not answer" in r.json()["detail"]
+    finally:
+        api.close()
+        loop.stop()
+    assert not api.process.is_alive()
+    with pytest.raises(OSError):
+        socket.create_connection(("127.0.0.1", api.port), timeout=1).close()
+
+
+def test_busy_port_fails_before_anything_starts():
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        with pytest.raises(OSError):
+            ApiProcess(port=taken.getsockname()[1])
+    with pytest.raises(ValueError, match="priority"):
+        ApiProcess(port=0, priority="realtime")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="SCHED_IDLE is Linux's")
+def test_api_process_runs_at_idle_priority_and_the_session_does_not(served):
+    loop, api, client = served
+    assert os.sched_getscheduler(api.process.pid) == os.SCHED_IDLE
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER
