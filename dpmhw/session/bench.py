@@ -54,9 +54,12 @@ def _cpu_seconds(pid: int) -> float | None:
         return None
 
 
-def _load_clients(port: int, clients: int, rate_hz: float, priority: str, ready, active, stop, counts) -> None:
-    """The load generator's process: `clients` threads polling the read endpoints (bounded)."""
-    import httpx
+def _load_clients(port: int, clients: int, rate_hz: float, priority: str, ready, active, stop, counts,
+                  latencies) -> None:
+    """The load generator's process: `clients` threads polling the read endpoints (bounded), each
+    on one keep-alive connection with the standard library's client (little CPU of its own, like
+    a dashboard or a Prometheus scraper)."""
+    import http.client
 
     from server.process import lower_priority
 
@@ -65,21 +68,28 @@ def _load_clients(port: int, clients: int, rate_hz: float, priority: str, ready,
     paths = ("/status", "/metrics", "/frame.png")
 
     def client() -> None:
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=5.0) as c:
-            k = 0
-            while not stop.is_set():
-                if not active.wait(0.05):
-                    continue
-                t0 = time.monotonic()
-                try:
-                    c.get(paths[k % len(paths)]).raise_for_status()
-                    ok = 0
-                except Exception:
-                    ok = 1
-                with counts.get_lock():
-                    counts[ok] += 1
-                k += 1
-                stop.wait(max(0.0, period_s - (time.monotonic() - t0)))
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=5.0)
+        seconds: list[float] = []
+        k = 0
+        while not stop.is_set():
+            if not active.wait(0.05):
+                continue
+            t0 = time.monotonic()
+            try:
+                conn.request("GET", paths[k % len(paths)])
+                response = conn.getresponse()
+                response.read()
+                failed = int(response.status != 200)
+                seconds.append(time.monotonic() - t0)
+            except (OSError, http.client.HTTPException):
+                conn.close()  # reconnects on the next request
+                failed = 1
+            with counts.get_lock():
+                counts[failed] += 1
+            k += 1
+            stop.wait(max(0.0, period_s - (time.monotonic() - t0)))
+        conn.close()
+        latencies.put(seconds)
 
     threads = [threading.Thread(target=client, daemon=True) for _ in range(clients)]
     for t in threads:
@@ -105,11 +115,13 @@ class _ApiLoad:
         # clients send only while `active` is set (the load windows)
         self.ready, self.active, self.stop_event = ctx.Event(), ctx.Event(), ctx.Event()
         self.counts = ctx.Array("q", 2)  # ok, failed
+        self.latencies_q = ctx.Queue()  # each client's response times, sent when it stops
+        self.response_ms: list[float] = []
         self.api = self.server = None
         if mode == "process":
             from server.process import ApiProcess
 
-            self.api = ApiProcess(host="127.0.0.1", port=0, token="bench")
+            self.api = ApiProcess(host="127.0.0.1", port=0, token="bench", priority=loop.config.api.priority)
             self.port = self.api.port
         elif mode == "thread":
             import uvicorn
@@ -124,7 +136,8 @@ class _ApiLoad:
             raise ValueError(f"api mode must be 'process' or 'thread', not {mode!r}")
         self.clients = ctx.Process(target=_load_clients, daemon=True, name="api-load-clients",
                                    args=(self.port, clients, rate_hz, client_priority, self.ready, self.active, self.stop_event,
-                                         self.counts))
+                                         self.counts, self.latencies_q))
+        self.n_clients = clients
         self.cpu_s: dict[str, float | None] = {}
 
     @property
@@ -158,6 +171,11 @@ class _ApiLoad:
         self.cpu_s = {k: None if v is None or self._cpu0[k] is None else v - self._cpu0[k] for k, v in cpu.items()}
         self.stop_event.set()
         self.active.set()
+        for _ in range(self.n_clients):
+            try:
+                self.response_ms += [x * 1e3 for x in self.latencies_q.get(timeout=10)]
+            except Exception:  # queue.Empty: a client is stuck; its times are lost, the counts are not
+                break
         self.clients.join(10)
         if self.clients.is_alive():
             self.clients.kill()
@@ -260,7 +278,7 @@ def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...
                     time.sleep(window_s)
                     spans[mode, loaded].append((t0, time.monotonic_ns()))
                     load.active.clear()
-            counts[mode] = (load.requests, load.errors, load.cpu_s)
+            counts[mode] = (load.requests, load.errors, load.cpu_s, load.response_ms)
         records = list(loop.frame_log)
     finally:
         loop.stop()
@@ -272,9 +290,10 @@ def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...
     out = []
     for mode in modes:
         q, b = _pct(frame_ms((mode, False))), _pct(frame_ms((mode, True)))
-        requests, errors, cpu = counts[mode]
+        requests, errors, cpu, response_ms = counts[mode]
         out.append({"case": f"{trajectory} API load", "api_mode": mode, "clients": clients, "rate_hz": rate_hz,
                     "client_priority": client_priority,
+                    "response_ms": dict(zip(("p50", "p95", "p99"), _pct(response_ms))),
                     "api_cpu_ms_per_request": None if cpu["api"] is None or not requests
                     else round(cpu["api"] * 1e3 / requests, 3),
                     "client_cpu_ms_per_request": None if cpu["clients"] is None or not requests
@@ -323,7 +342,8 @@ def format_table(bench: dict) -> str:
         where = "own process" if load["api_mode"] == "process" else "thread of the session process"
         lines.append(f"API in its {where}: {load['clients']} clients × ≤{load['rate_hz']:g} req/s on /status, /metrics, "
                      f"/frame.png ({load['requests']} requests, {load['errors']} errors; {load['windows']}+{load['windows']} "
-                     f"alternating {load['window_s']:g} s windows): frame time p50/p99 {b['p50']}/{b['p99']} ms loaded vs "
+                     f"alternating {load['window_s']:g} s windows; response p50/p99 {load['response_ms']['p50']}/"
+                     f"{load['response_ms']['p99']} ms): frame time p50/p99 {b['p50']}/{b['p99']} ms loaded vs "
                      f"{u['p50']}/{u['p99']} ms unloaded, p99 ratio {load['p99_ratio']}")
     if not results:
         return "\n".join(lines)

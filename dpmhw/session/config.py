@@ -111,6 +111,8 @@ class SafetySection(_Section):
     holdoff_s: float = Field(0.5, ge=0.0, le=600.0, description="a cause must be gone this long before projection resumes")
     resume: Literal["auto", "manual"] = Field("auto", description="manual: resume only on an explicit request")
     watchdog_s: float = Field(1.0, gt=0.0, le=600.0, description="a loop iteration longer than this is a stall")
+    dark_render_interval_s: float = Field(
+        0.25, ge=0.0, le=60.0, description="while dark, render only this often (enough to see a render fault clear)")
 
 
 class MetricsSection(_Section):

@@ -147,7 +147,8 @@ class MockRig:
     """The firmware mocks a `--mock` session runs against, for tests and benchmarks."""
 
     world: Any  # firmware_mocks.world.World (ground truth)
-    natnet: Any  # firmware_mocks.natnet_server.NatNetServer
+    natnet: Any  # firmware_mocks.natnet_server.NatNetServer (tracker.kind = "natnet")
+    serial: Any  # firmware_mocks.serial_tracker.PolhemusEmulator (tracker.kind = "serial")
     projector: Any  # firmware_mocks.dlpc900_usb.EmulatedDLPC900
     stack: contextlib.ExitStack
 
@@ -166,9 +167,11 @@ def mock_trajectory(name: str, base_t: np.ndarray, speed: float):
 
 
 def start_mock_rig(config: SessionConfig, scene: Scene, bindings: dict[int, int]) -> tuple[MockRig, dict]:
-    """Start the mocks; returns the rig and config overrides pointing the drivers at them."""
+    """Start the mocks; returns the rig and config overrides pointing the drivers at them
+    (`command_port` of the NatNet server, or `port`: the serial emulator's pty)."""
     from firmware_mocks.dlpc900_usb import usb_emulation
     from firmware_mocks.natnet_server import NatNetServer, NatNetServerConfig
+    from firmware_mocks.serial_tracker import PolhemusEmulator
     from firmware_mocks.world import World
 
     stack = contextlib.ExitStack()
@@ -178,19 +181,32 @@ def start_mock_rig(config: SessionConfig, scene: Scene, bindings: dict[int, int]
             base = scene.objects[index].pose.t
             world.add(body, scene.objects[index].name, mock_trajectory(config.mock.trajectory, base, config.mock.speed))
         m = config.mock
-        server = NatNetServer(world, NatNetServerConfig(
-            unicast=True, command_port=0, interface="127.0.0.1", rate_hz=m.rate_hz, latency_ms=m.latency_ms,
-            software_latency_ms=min(0.9, m.latency_ms)))
-        stack.callback(server.stop)
-        server.start()
+        server = serial = None
+        if config.tracker.kind == "serial":
+            stations = list(range(1, len(world.objects) + 1))
+            if sorted(world.objects) != stations:
+                raise SessionConfigError(f"bindings: the mock serial tracker numbers its stations 1…{len(stations)}; "
+                                         f"bind rigid_body = {stations} (got {sorted(world.objects)})")
+            # a Liberty streams at most 240 Hz
+            serial = PolhemusEmulator(world, rate_hz=min(m.rate_hz, 240.0), latency_ms=m.latency_ms)
+            stack.callback(serial.close)
+            serial.start()
+            over = {"port": serial.port}
+        else:
+            server = NatNetServer(world, NatNetServerConfig(
+                unicast=True, command_port=0, interface="127.0.0.1", rate_hz=m.rate_hz, latency_ms=m.latency_ms,
+                software_latency_ms=min(0.9, m.latency_ms)))
+            stack.callback(server.stop)
+            server.start()
+            over = {"command_port": server.command_port}
         device = stack.enter_context(usb_emulation())
     except BaseException:
         stack.close()
         raise
-    return MockRig(world, server, device, stack), {"command_port": server.command_port}
+    return MockRig(world, server, serial, device, stack), over
 
 
-def open_tracker(config: SessionConfig, command_port: int | None = None):
+def open_tracker(config: SessionConfig, command_port: int | None = None, port: str | None = None):
     t = config.tracker
     stale_s = config.safety.stale_after_ms / 1e3
     if t.kind == "natnet":
@@ -200,9 +216,10 @@ def open_tracker(config: SessionConfig, command_port: int | None = None):
                             stale_after_s=stale_s, lost_after_s=max(1.0, stale_s))
     from drivers.serial_tracker import SerialTracker
 
-    if not t.port:
+    port = port or t.port
+    if not port:
         raise SessionConfigError("tracker.port: a serial tracker needs a port (e.g. /dev/ttyUSB0)")
-    return SerialTracker(t.port, baudrate=t.baudrate, stale_after_s=stale_s, lost_after_s=max(1.0, stale_s))
+    return SerialTracker(port, baudrate=t.baudrate, stale_after_s=stale_s, lost_after_s=max(1.0, stale_s))
 
 
 def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):
@@ -227,11 +244,10 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
     closers: list = []
     rig = None
     try:
-        command_port = None
+        over: dict = {}
         if mock:
             rig, over = start_mock_rig(config, scene, bindings)
             closers.append(rig.stack.close)
-            command_port = over["command_port"]
         if renderer is None:
             from dpmhw.render.integrator import PathIntegrator
 
@@ -244,7 +260,7 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
             closers.append(projector.close)
         sink = open_sink(config, mock, (renderer.height, renderer.width))
         closers.append(sink.close)
-        tracker = open_tracker(config, command_port)
+        tracker = open_tracker(config, **over)
         tracker.start()
         closers.append(tracker.stop)
         recorder = None

@@ -117,6 +117,7 @@ class SessionLoop:
         s = config.safety
         self.stale_ns = int(s.stale_after_ms * 1e6)
         self.watchdog_ns = int(s.watchdog_s * 1e9)
+        self.dark_render_interval_ns = int(s.dark_render_interval_s * 1e9)
         self.safety = SafetyMonitor(s.holdoff_s, s.resume, clock)
         self.metrics = LoopMetrics(config.metrics.window, 1.0 / config.render.target_fps)
         self.predictor = PosePredictor(config.prediction.history, config.prediction.max_horizon_ms / 1e3,
@@ -140,6 +141,7 @@ class SessionLoop:
         self._latest: LatestFrame | None = None
         self._projector_health: MappingProxyType = MappingProxyType({"kind": "none"} if parts.projector is None else {})
         self._last_blank = ""
+        self._dark_render_ns = 0  # when the last frame was rendered while the output was dark
         self._frame_number = 0
         self._t0_ns = clock()
         self._samples = None  # tracker subscription (every sample), opened by start()
@@ -348,6 +350,12 @@ class SessionLoop:
             used[body] = predicted[0]
         t1 = self.clock()
         stages["predict"] = (t1 - t_start) / 1e9
+        if not self.safety.output_allowed():
+            # dark: nothing is shown, so render only as often as it takes to see a render fault clear
+            if t1 - self._dark_render_ns < self.dark_render_interval_ns:
+                self._sync_output()
+                return False
+            self._dark_render_ns = t1
         try:
             frame = self.parts.renderer.render(time=scene_time, seed=self._frame_number, spp=settings.spp, poses=poses)
             self.safety.update("render", False)

@@ -189,3 +189,21 @@ def test_predictor_sees_every_tracker_sample_not_one_per_frame(make_loop):
     kept = list(loop.predictor._samples[1])
     gaps_ms = np.diff([s.t_exposure_ns for s in kept]) / 1e6
     assert len(kept) == loop.predictor.history and gaps_ms.max() < 30  # tracker period ~3 ms, frames ≥ 50 ms
+
+
+def test_dark_output_renders_only_at_the_probe_interval(make_loop):
+    loop = make_loop(["safety.dark_render_interval_s=0.2"]).start()
+    renderer = loop.parts.renderer
+    assert wait_for(lambda: state(loop) == "running", 20)
+    loop.blank()
+    assert wait_for(lambda: state(loop) == "blanked", 5)
+    calls0, withheld0 = renderer.calls, loop.status()["counters"].get("frames_withheld", 0)
+    threading.Event().wait(1.0)
+    dark_calls = renderer.calls - calls0
+    assert 2 <= dark_calls <= 8, dark_calls  # ~5 probes per second, not one per loop turn
+    assert loop.status()["counters"]["frames_withheld"] - withheld0 == dark_calls
+    ok, _ = loop.resume()
+    assert ok and wait_for(lambda: state(loop) == "running", 10)
+    calls1 = renderer.calls
+    threading.Event().wait(0.5)
+    assert renderer.calls - calls1 > 20  # lit: every loop turn renders again
