@@ -201,7 +201,8 @@ def test_dark_output_renders_only_at_the_probe_interval(make_loop):
     threading.Event().wait(1.0)
     dark_calls = renderer.calls - calls0
     assert 2 <= dark_calls <= 8, dark_calls  # ~5 probes per second, not one per loop turn
-    assert loop.status()["counters"]["frames_withheld"] - withheld0 == dark_calls
+    # counted as withheld, not presented (the status snapshot may lag by one probe)
+    assert abs(loop.status()["counters"]["frames_withheld"] - withheld0 - dark_calls) <= 1
     ok, _ = loop.resume()
     assert ok and wait_for(lambda: state(loop) == "running", 10)
     calls1 = renderer.calls
