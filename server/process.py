@@ -85,7 +85,6 @@ class ApiProcess:
         self._threads: list[threading.Thread] = []
         self._conn = None
         self.process = None
-        self.publishes = 0
 
     @property
     def url(self) -> str:
@@ -173,7 +172,6 @@ class ApiProcess:
                     h, w = frame.image.shape[:2]
                     self.frame_slot.write(frame.image, (frame.number, frame.t_present_ns, int(frame.blank), h, w))
                     self._frame_key = key
-            self.publishes += 1
 
     def _publish_loop(self) -> None:
         while not self._stop.wait(self.publish_period_s):
