@@ -122,22 +122,30 @@ def _raw_throughput(integrator: PathIntegrator, threads: int) -> dict:
     scene = getattr(accel.static_scene, "_scene", accel.static_scene)
     if scene is None:  # every object moves: use the first moving object's BVH
         scene = getattr(accel.dynamic_scenes[0], "_scene", accel.dynamic_scenes[0])
-    captured = {"INTERSECT": [], "OCCLUDED": []}
-    intersect, occluded = accel.intersect, accel.occluded
+    o, d = integrator.camera.generate_rays()
+    captured = {"INTERSECT": [(o, d, np.full(len(o), np.inf, np.float32))], "OCCLUDED": []}
+    intersect, occluded = accel.intersect_segments, accel.occluded_segments
 
-    def cap_intersect(o, d, R, T, static_hits=None):
-        captured["INTERSECT"].append((np.ascontiguousarray(o), np.ascontiguousarray(d), np.full(len(o), np.inf, np.float32)))
-        return intersect(o, d, R, T, static_hits)
+    def rows(starts, counts):
+        return np.concatenate([np.arange(a, a + c) for a, c in zip(starts, counts)])
 
-    def cap_occluded(o, d, tmax, R, T):
-        captured["OCCLUDED"].append((np.ascontiguousarray(o), np.ascontiguousarray(d), np.asarray(tmax, np.float32)))
-        return occluded(o, d, tmax, R, T)
+    def cap_intersect(o, d, starts, counts, R, T, hits, static_done=False):
+        if static_done:  # camera rays against the moving objects: the camera rays are captured above
+            return intersect(o, d, starts, counts, R, T, hits, static_done)
+        i = rows(starts, counts)
+        captured["INTERSECT"].append((np.ascontiguousarray(o[i]), np.ascontiguousarray(d[i]), np.full(len(i), np.inf, np.float32)))
+        return intersect(o, d, starts, counts, R, T, hits, static_done)
 
-    accel.intersect, accel.occluded = cap_intersect, cap_occluded
+    def cap_occluded(o, d, tmax, starts, counts, R, T, blocked):
+        i = rows(starts, counts)
+        captured["OCCLUDED"].append((np.ascontiguousarray(o[i]), np.ascontiguousarray(d[i]), np.asarray(tmax[i], np.float32)))
+        return occluded(o, d, tmax, starts, counts, R, T, blocked)
+
+    accel.intersect_segments, accel.occluded_segments = cap_intersect, cap_occluded
     try:
         integrator.render(time=0.0, seed=12345)
     finally:
-        del accel.intersect, accel.occluded
+        del accel.intersect_segments, accel.occluded_segments
     return {
         "closest_hit_rays_per_s": _replay(scene, captured["INTERSECT"], "INTERSECT", threads),
         "occlusion_rays_per_s": _replay(scene, captured["OCCLUDED"], "OCCLUDED", threads),

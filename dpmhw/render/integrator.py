@@ -17,7 +17,7 @@ import numpy as np
 
 from dpmhw.errors import RenderError
 from dpmhw.render import kernels
-from dpmhw.render.accel import Hits
+from dpmhw.render.accel import Hits, empty_hits
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.frame import Frame
 from dpmhw.render.geometry import SceneGeometry
@@ -26,6 +26,7 @@ from dpmhw.transforms import Pose
 
 f32 = np.float32
 GLOSSY_ROUGHNESS = 0.5  # below this, a specular lobe is sharp enough that NEE alone is noisy
+SEGMENTS = 64  # path segments: compaction units of the kernels and Embree jobs (fixed: not per thread count)
 
 
 @dataclass
@@ -54,6 +55,7 @@ class PathIntegrator:
         self.counts = RayCounts()
         self._static_primary_key = None
         self._static_primary_hits = None
+        self._work: _Work | None = None
 
     def close(self) -> None:
         self.geometry.close()
@@ -89,7 +91,9 @@ class PathIntegrator:
         gbuf = _GBuffer(npix)
         nonfinite = np.zeros(npix, np.int32)
         o, d = camera.generate_rays()
-        primary = self.geometry.accel.intersect(o, d, R, T, static_hits=self._static_primary(camera, o, d))
+        primary = self._static_primary(camera, o, d)
+        if self.geometry.accel.dynamic_objects:  # without moving objects the cached hits are the primary hits
+            primary = self.geometry.accel.intersect(o, d, R, T, static_hits=primary)
         self.counts.primary = npix
         done = 0
         for p in range(spp):
@@ -100,7 +104,8 @@ class PathIntegrator:
             if progress is not None:
                 progress(done, spp)
         H, W = self.height, self.width
-        emit, diff, spec = (film[k].reshape(H, W, 3) / f32(done) for k in ("emit", "diff", "spec"))
+        # x / 1 == x exactly: at 1 spp hand over the film arrays (fresh each frame) without copies
+        emit, diff, spec = (film[k].reshape(H, W, 3) / f32(done) if done > 1 else film[k].reshape(H, W, 3) for k in ("emit", "diff", "spec"))
         return Frame(
             radiance=emit + diff + spec, diffuse=diff, specular=spec,
             object_id=gbuf.id.reshape(H, W), model_position=gbuf.model.reshape(H, W, 3),
@@ -121,54 +126,76 @@ class PathIntegrator:
 
     def _trace_pass(self, key, primary_dirs, primary: Hits, R, T, camera, film, gbuf, nonfinite, write_gbuffer):
         g = self.geometry
-        n = len(primary.t)
-        pixel = np.arange(n, dtype=np.int32)
-        rd, hits = primary_dirs, primary
-        beta = np.empty((n, 3), f32)  # at depth 0 the kernel reads none of these: it starts paths at 1
-        kd = np.empty((n, 3), f32)
-        prev_pdf = np.empty(n, f32)
-        prev_n = np.empty((n, 3), f32)
+        w = self._work_buffers(len(primary.t))
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
         last_depth = self.max_bounces + (1 if self.mis_last else 0)
+        counts = w.full_counts.copy()  # depth 0: every pixel, path index = pixel index
+        rd, hits = primary_dirs, primary
+        rays = 0  # which of the two ray buffers the kernel writes continuation rays into
         depth = 0
         while True:
-            m = len(pixel)
-            sh_o = np.empty((m, 3), f32)
-            sh_d = np.empty((m, 3), f32)
-            sh_tmax = np.empty(m, f32)
-            sh_c = np.empty((m, 6), f32)
-            sh_valid = np.empty(m, np.bool_)
-            nx_o = np.empty((m, 3), f32)
-            nx_d = np.empty((m, 3), f32)
-            alive = np.empty(m, np.bool_)
+            nx_o, nx_d = w.ray_o[rays], w.ray_d[rays]
             kernels.shade(
-                depth, self.max_bounces, self.mis_last, key, pixel, rd,
-                hits.t, hits.obj, hits.prim, hits.u, hits.v, beta, kd, prev_pdf, prev_n,
+                depth, self.max_bounces, self.mis_last, key, w.starts, counts, w.order, w.pixel, rd,
+                hits.t, hits.obj, hits.prim, hits.u, hits.v, w.beta, w.kd, w.prev_pdf, w.prev_n,
                 g.tri,
                 R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
                 g.light_prim, g.light_obj, g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd,
                 film["emit"], film["diff"], film["spec"], nonfinite,
                 gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer,
-                sh_o, sh_d, sh_tmax, sh_c, sh_valid, nx_o, nx_d, alive,
+                w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.sh_count, nx_o, nx_d, w.nx_count,
             )
-            shadow = np.flatnonzero(sh_valid)
-            if shadow.size:
-                s_pix, s_o, s_d, s_tmax, s_c = kernels.gather_shadow_rays(shadow, pixel, sh_o, sh_d, sh_tmax, sh_c)
-                blocked = g.accel.occluded(s_o, s_d, s_tmax, R, T)
-                self.counts.occluded += shadow.size
-                kernels.add_unoccluded(s_pix, s_c, blocked, film["diff"], film["spec"])
+            shadow = int(w.sh_count.sum())
+            if shadow:
+                g.accel.occluded_segments(w.sh_o, w.sh_d, w.sh_tmax, w.starts, w.sh_count, R, T, w.blocked)
+                self.counts.occluded += shadow
+                kernels.add_unoccluded(w.starts, w.sh_count, w.order, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"])
             if depth >= last_depth:
                 break
-            keep = np.flatnonzero(alive)
-            if keep.size == 0:
+            counts = w.nx_count.copy()
+            alive = int(counts.sum())
+            if alive == 0:
                 break
-            pixel, beta, kd, prev_pdf, prev_n, origins, rd = kernels.gather_paths(keep, pixel, beta, kd, prev_pdf, prev_n, nx_o, nx_d)
-            hits = g.accel.intersect(origins, rd, R, T)
-            self.counts.intersect += keep.size
+            g.accel.intersect_segments(nx_o, nx_d, w.starts, counts, R, T, w.hits)
+            self.counts.intersect += alive
+            rd, hits, rays = nx_d, w.hits, 1 - rays
             depth += 1
             if depth > 4096:
                 raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
+
+    def _work_buffers(self, n: int) -> "_Work":
+        if self._work is None or self._work.n != n:
+            self._work = _Work(n)
+        return self._work
+
+
+class _Work:
+    """Per-path working arrays, kept between frames (fresh multi-MB arrays cost page faults every
+    frame). Rows are grouped in SEGMENTS fixed segments; `shade` packs each segment's outputs."""
+
+    def __init__(self, n: int):
+        self.n = n
+        size = -(-n // SEGMENTS)
+        self.starts = np.minimum(np.arange(SEGMENTS, dtype=np.int64) * size, n)
+        self.full_counts = np.minimum(self.starts + size, n) - self.starts
+        self.order = kernels.segment_order(SEGMENTS)
+        self.pixel = np.empty(n, np.int32)
+        self.beta = np.empty((n, 3), f32)
+        self.kd = np.empty((n, 3), f32)
+        self.prev_pdf = np.empty(n, f32)
+        self.prev_n = np.empty((n, 3), f32)
+        self.ray_o = (np.empty((n, 3), f32), np.empty((n, 3), f32))  # ping-pong: a kernel reads one, writes the other
+        self.ray_d = (np.empty((n, 3), f32), np.empty((n, 3), f32))
+        self.hits = empty_hits(n)
+        self.sh_o = np.empty((n, 3), f32)
+        self.sh_d = np.empty((n, 3), f32)
+        self.sh_tmax = np.empty(n, f32)
+        self.sh_c = np.empty((n, 6), f32)
+        self.sh_pix = np.empty(n, np.int32)
+        self.blocked = np.empty(n, np.bool_)
+        self.sh_count = np.zeros(SEGMENTS, np.int64)
+        self.nx_count = np.zeros(SEGMENTS, np.int64)
 
 
 class _GBuffer:
