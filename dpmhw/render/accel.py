@@ -150,27 +150,30 @@ class EmbreeAccel:
 
     def intersect_segments(self, origins, directions, starts, counts, poses_R, poses_t, hits: Hits,
                            static_done: bool = False) -> None:
-        """Closest hits of the rays in rows [starts[s], starts[s] + counts[s]) of origins and
-        directions, written into the same rows of `hits`. `static_done`: those rows of `hits`
+        """`intersect_range` for every segment [starts[s], starts[s] + counts[s]), over the threads."""
+        self._run_segments(
+            lambda a, e: self.intersect_range(origins, directions, a, e, poses_R, poses_t, hits, static_done), starts, counts
+        )
+
+    def intersect_range(self, origins, directions, first, end, poses_R, poses_t, hits: Hits, static_done: bool = False) -> None:
+        """Closest hits of the rays in rows [first, end) of origins and directions, written into
+        the same rows of `hits`, on the calling thread. `static_done`: those rows of `hits`
         already hold the static BVH's hits (only the moving objects are traced)."""
-
-        def run(a, e):
-            o, d = origins[a:e], directions[a:e]
-            t, obj, prim, u, v = hits.t[a:e], hits.obj[a:e], hits.prim[a:e], hits.u[a:e], hits.v[a:e]
-            if not static_done:
-                self._trace_static(o, d, t, obj, prim, u, v)
-            for k, scene, (centre, radius) in zip(self.dynamic_objects, self.dynamic_scenes, self.dynamic_bounds):
-                index, om, dm, tm = _rays_into_model(o, d, t, poses_R[k], poses_t[k], centre, radius)
-                if index.size == 0:
-                    continue
-                res = scene.run(om, dm, dists=tm, output=True)
-                hit = res["primID"] >= 0
-                rows = index[hit]
-                obj[rows] = k
-                prim[rows] = self.tri_offsets[k] + res["primID"][hit]
-                t[rows], u[rows], v[rows] = res["tfar"][hit], res["u"][hit], res["v"][hit]
-
-        self._run_segments(run, starts, counts)
+        a, e = first, end
+        o, d = origins[a:e], directions[a:e]
+        t, obj, prim, u, v = hits.t[a:e], hits.obj[a:e], hits.prim[a:e], hits.u[a:e], hits.v[a:e]
+        if not static_done:
+            self._trace_static(o, d, t, obj, prim, u, v)
+        for k, scene, (centre, radius) in zip(self.dynamic_objects, self.dynamic_scenes, self.dynamic_bounds):
+            index, om, dm, tm = _rays_into_model(o, d, t, poses_R[k], poses_t[k], centre, radius)
+            if index.size == 0:
+                continue
+            res = scene.run(om, dm, dists=tm, output=True)
+            hit = res["primID"] >= 0
+            rows = index[hit]
+            obj[rows] = k
+            prim[rows] = self.tri_offsets[k] + res["primID"][hit]
+            t[rows], u[rows], v[rows] = res["tfar"][hit], res["u"][hit], res["v"][hit]
 
     def intersect_static(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         """Closest hits among the static objects only (they never move, so this can be cached)."""
@@ -194,26 +197,24 @@ class EmbreeAccel:
         """(n,) bool: something lies along the ray closer than tmax."""
         n = len(origins)
         blocked = np.empty(n, bool)
-        self.occluded_segments(origins, directions, np.asarray(tmax, np.float32), *self._chunks(n), poses_R, poses_t, blocked)
+        tmax = np.asarray(tmax, np.float32)
+        self._run_segments(lambda a, e: self.occluded_range(origins, directions, tmax, a, e, poses_R, poses_t, blocked), *self._chunks(n))
         return blocked
 
-    def occluded_segments(self, origins, directions, tmax, starts, counts, poses_R, poses_t, blocked) -> None:
-        """blocked[i] = something lies along ray i closer than tmax[i], for the rows of the
-        segments [starts[s], starts[s] + counts[s]) (other rows are left alone)."""
-
-        def run(a, e):
-            o, d, tm, blk = origins[a:e], directions[a:e], tmax[a:e], blocked[a:e]
-            if self.static_scene is not None:
-                blk[:] = self.static_scene.run(o, d, dists=tm.copy(), query="OCCLUDED") >= 0
-            else:
-                blk[:] = False
-            for k, scene, (centre, radius) in zip(self.dynamic_objects, self.dynamic_scenes, self.dynamic_bounds):
-                # rays already blocked get tmax 0, so the bounding-sphere test drops them
-                index, om, dm, tmk = _rays_into_model(o, d, np.where(blk, 0, tm), poses_R[k], poses_t[k], centre, radius)
-                if index.size:
-                    blk[index] |= scene.run(om, dm, dists=tmk, query="OCCLUDED") >= 0
-
-        self._run_segments(run, starts, counts)
+    def occluded_range(self, origins, directions, tmax, first, end, poses_R, poses_t, blocked) -> None:
+        """blocked[i] = something lies along ray i closer than tmax[i], for rows [first, end), on
+        the calling thread (other rows are left alone)."""
+        a, e = first, end
+        o, d, tm, blk = origins[a:e], directions[a:e], tmax[a:e], blocked[a:e]
+        if self.static_scene is not None:
+            blk[:] = self.static_scene.run(o, d, dists=tm.copy(), query="OCCLUDED") >= 0
+        else:
+            blk[:] = False
+        for k, scene, (centre, radius) in zip(self.dynamic_objects, self.dynamic_scenes, self.dynamic_bounds):
+            # rays already blocked get tmax 0, so the bounding-sphere test drops them
+            index, om, dm, tmk = _rays_into_model(o, d, np.where(blk, 0, tm), poses_R[k], poses_t[k], centre, radius)
+            if index.size:
+                blk[index] |= scene.run(om, dm, dists=tmk, query="OCCLUDED") >= 0
 
 
 def empty_hits(n: int) -> Hits:

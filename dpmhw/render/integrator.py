@@ -2,14 +2,16 @@
 
 Per pass (1 sample per pixel, through the pixel centre): primary hits (traced once per frame and
 reused by every pass, since pixel-centre rays do not change), then per bounce: `shade` (emission
-with MIS, one NEE shadow ray, BSDF sampling, Russian roulette) → occlusion query for the shadow
-rays → compaction of the surviving paths → closest-hit query. With `max_bounces` = B a path has
+with MIS, one NEE shadow ray, BSDF sampling, Russian roulette, compaction of the shadow rays and
+surviving paths) → occlusion query for the shadow rays → closest-hit query. The wavefront runs
+per image segment, one thread taking a segment through all its bounces. With `max_bounces` = B a path has
 B + 1 vertices; the last one is lit by NEE alone, unless the scene has glossy lobes, where one
 more ray is traced from it so emitters it finds get MIS weights (`mis_last`).
 """
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
@@ -26,7 +28,7 @@ from dpmhw.transforms import Pose
 
 f32 = np.float32
 GLOSSY_ROUGHNESS = 0.5  # below this, a specular lobe is sharp enough that NEE alone is noisy
-SEGMENTS = 64  # path segments: compaction units of the kernels and Embree jobs (fixed: not per thread count)
+SEGMENTS = 64  # image segments, traced independently (fixed: results must not depend on the thread count)
 
 
 @dataclass
@@ -40,11 +42,14 @@ class RayCounts:
 
 
 class PathIntegrator:
-    """Renders a Scene from its camera. Thread count applies to Embree queries."""
+    """Renders a Scene from its camera on `threads` threads (image segments, each taken through
+    shading and its Embree queries by one thread)."""
 
     def __init__(self, scene: Scene, threads: int = 2, mis_last: bool | None = None):
         self.scene = scene
         self.geometry = SceneGeometry(scene, threads=threads)
+        self.threads = max(1, int(threads))
+        self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="render") if self.threads > 1 else None
         r = scene.render
         self.width, self.height, self.max_bounces = r.width, r.height, r.max_bounces
         self.camera = PinholeCamera(scene.camera.K, scene.camera.dist, r.width, r.height, scene.camera.pose)
@@ -58,6 +63,9 @@ class PathIntegrator:
         self._work: _Work | None = None
 
     def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
         self.geometry.close()
 
     def __enter__(self):
@@ -125,41 +133,55 @@ class PathIntegrator:
         return self._static_primary_hits
 
     def _trace_pass(self, key, primary_dirs, primary: Hits, R, T, camera, film, gbuf, nonfinite, write_gbuffer):
-        g = self.geometry
+        """One sample per pixel. The image is cut into SEGMENTS row ranges; each is traced to the
+        end of its paths by one thread (shade → shadow rays → continuation rays → shade …), so a
+        segment's rays and hits are still in cache when the next stage reads them, and the
+        threads never wait for each other between stages. Segments write disjoint pixels."""
         w = self._work_buffers(len(primary.t))
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
+
+        def run(segment):
+            first, count = segment
+            return self._trace_segment(first, count, key, primary_dirs, primary, R, T, cam_fwd, viewer,
+                                       film, gbuf, nonfinite, write_gbuffer, w)
+
+        segments = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
+        results = list(self._pool.map(run, segments)) if self._pool is not None else [run(s) for s in segments]
+        self.counts.occluded += sum(r[0] for r in results)
+        self.counts.intersect += sum(r[1] for r in results)
+
+    def _trace_segment(self, first, count, key, primary_dirs, primary, R, T, cam_fwd, viewer,
+                       film, gbuf, nonfinite, write_gbuffer, w: "_Work") -> tuple[int, int]:
+        """All bounces of the paths through pixels [first, first + count); their rows in the
+        work buffers are the same range. Returns (shadow rays, continuation rays) traced."""
+        g = self.geometry
         last_depth = self.max_bounces + (1 if self.mis_last else 0)
-        counts = w.full_counts.copy()  # depth 0: every pixel, path index = pixel index
         rd, hits = primary_dirs, primary
         rays = 0  # which of the two ray buffers the kernel writes continuation rays into
+        traced_shadow = traced_next = 0
         depth = 0
         while True:
             nx_o, nx_d = w.ray_o[rays], w.ray_d[rays]
-            kernels.shade(
-                depth, self.max_bounces, self.mis_last, key, w.starts, counts, w.order, w.pixel, rd,
+            n_shadow, n_next = kernels.shade(
+                depth, self.max_bounces, self.mis_last, key, first, count, w.pixel, rd,
                 hits.t, hits.obj, hits.prim, hits.u, hits.v, w.beta, w.kd, w.prev_pdf, w.prev_n,
                 g.tri,
                 R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
                 g.light_prim, g.light_obj, g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd,
                 film["emit"], film["diff"], film["spec"], nonfinite,
                 gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer,
-                w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.sh_count, nx_o, nx_d, w.nx_count,
+                w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, nx_o, nx_d,
             )
-            shadow = int(w.sh_count.sum())
-            if shadow:
-                g.accel.occluded_segments(w.sh_o, w.sh_d, w.sh_tmax, w.starts, w.sh_count, R, T, w.blocked)
-                self.counts.occluded += shadow
-                kernels.add_unoccluded(w.starts, w.sh_count, w.order, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"])
-            if depth >= last_depth:
-                break
-            counts = w.nx_count.copy()
-            alive = int(counts.sum())
-            if alive == 0:
-                break
-            g.accel.intersect_segments(nx_o, nx_d, w.starts, counts, R, T, w.hits)
-            self.counts.intersect += alive
-            rd, hits, rays = nx_d, w.hits, 1 - rays
+            if n_shadow:
+                g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, first + n_shadow, R, T, w.blocked)
+                kernels.add_unoccluded(first, n_shadow, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"])
+                traced_shadow += n_shadow
+            if depth >= last_depth or n_next == 0:
+                return traced_shadow, traced_next
+            g.accel.intersect_range(nx_o, nx_d, first, first + n_next, R, T, w.hits)
+            traced_next += n_next
+            rd, hits, rays, count = nx_d, w.hits, 1 - rays, n_next
             depth += 1
             if depth > 4096:
                 raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
@@ -172,14 +194,13 @@ class PathIntegrator:
 
 class _Work:
     """Per-path working arrays, kept between frames (fresh multi-MB arrays cost page faults every
-    frame). Rows are grouped in SEGMENTS fixed segments; `shade` packs each segment's outputs."""
+    frame). Segment s owns rows [starts[s], starts[s] + full_counts[s]) of every array."""
 
     def __init__(self, n: int):
         self.n = n
         size = -(-n // SEGMENTS)
         self.starts = np.minimum(np.arange(SEGMENTS, dtype=np.int64) * size, n)
         self.full_counts = np.minimum(self.starts + size, n) - self.starts
-        self.order = kernels.segment_order(SEGMENTS)
         self.pixel = np.empty(n, np.int32)
         self.beta = np.empty((n, 3), f32)
         self.kd = np.empty((n, 3), f32)
@@ -194,8 +215,6 @@ class _Work:
         self.sh_c = np.empty((n, 6), f32)
         self.sh_pix = np.empty(n, np.int32)
         self.blocked = np.empty(n, np.bool_)
-        self.sh_count = np.zeros(SEGMENTS, np.int64)
-        self.nx_count = np.zeros(SEGMENTS, np.int64)
 
 
 class _GBuffer:

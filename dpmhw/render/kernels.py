@@ -1,4 +1,4 @@
-"""The per-frame shading kernels, fused with numba (parallel, cached on disk).
+"""The per-frame shading kernels, fused with numba (serial and GIL-free, cached on disk).
 
 Chained numpy temporaries cost several times the arithmetic here, so each wavefront stage is one
 kernel over the active paths: surface interaction, emission with MIS, next-event estimation,
@@ -121,323 +121,307 @@ def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, ar, ag, ab, sr, sg, sb,
     return fd0, fd1, fd2, fs0, fs1, fs2, pdf
 
 
-@nb.njit(parallel=True, **_jit)
+@nb.njit(nogil=True, **_jit)
 def shade(
-    depth, max_bounces, mis_last, key, seg_start, seg_count, order, pixel, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v,
+    depth, max_bounces, mis_last, key, first, count, pixel, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v,
     beta, kd, prev_pdf, prev_n,
     tri,
     obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
     light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
     film_emit, film_diff, film_spec, nonfinite,
     gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
-    sh_o, sh_d, sh_tmax, sh_c, sh_pix, sh_count,
-    nx_o, nx_d, nx_count,
+    sh_o, sh_d, sh_tmax, sh_c, sh_pix,
+    nx_o, nx_d,
 ):
-    """One wavefront step over the active paths (see module doc), compacting as it goes.
+    """One wavefront step over the paths in rows [first, first + count) (see module doc),
+    compacting as it goes. Serial and without the GIL: the integrator runs one image segment
+    per call, on several threads at once (at depth 0 the rows are pixels, path index = pixel
+    index, and `pixel` is only written).
 
-    Paths live in segments: segment s holds seg_count[s] paths in rows seg_start[s] onwards of
-    every per-path array (at depth 0 every pixel, path index = pixel index, and `pixel` is only
-    written). `order` is the order segments go to threads (it spreads image regions over them).
     `tri` : (F, 24) float32 rows of v0, e1 = v1 − v0, e2 = v2 − v0, unit geometric normal and the
     three corner shading normals, all in model space: one hit touches two cache lines.
-    Writes the film at each path's pixel, and per segment, packed from its first row: sh_count[s]
-    shadow rays (sh_o, sh_d, sh_tmax, sh_pix, with their diffuse and specular contributions in
-    sh_c[:, 0:3] and sh_c[:, 3:6], added if unoccluded) and nx_count[s] surviving paths (pixel,
-    beta, kd, prev_pdf, prev_n compacted in place; their rays in nx_o, nx_d, which must not be
-    `rd`). Compacting in place is safe: row j ≤ k is written only after row k has been read."""
+    Writes the film at each path's pixel, and, packed from row `first`: the shadow rays (sh_o,
+    sh_d, sh_tmax, sh_pix, with their diffuse and specular contributions in sh_c[:, 0:3] and
+    sh_c[:, 3:6], added if unoccluded) and the surviving paths (pixel, beta, kd, prev_pdf, prev_n
+    compacted in place; their rays in nx_o, nx_d, which must not be `rd`). Compacting in place is
+    safe: row j ≤ k is written only after row k has been read. Returns (shadow rays, survivors)."""
     p_area = 1.0 - p_env
     has_bg = background[0] > 0.0 or background[1] > 0.0 or background[2] > 0.0
     last = depth >= max_bounces
     base_dim = depth * DIMS_PER_BOUNCE
-    for j in nb.prange(order.shape[0]):
-        seg = order[j]
-        first = seg_start[seg]
-        ns = first  # next shadow-ray row
-        nc = first  # next surviving-path row
-        for k in range(first, first + seg_count[seg]):
-            pix = k if depth == 0 else pixel[k]
-            d0, d1, d2 = rd[k, 0], rd[k, 1], rd[k, 2]
-            ob = hit_obj[k]
-            if depth == 0:
-                b0 = b1 = b2 = 1.0
-                kdr, kdg, kdb = 1.0, 1.0, 1.0
-            else:
-                b0, b1, b2 = beta[k, 0], beta[k, 1], beta[k, 2]
-                kdr, kdg, kdb = kd[k, 0], kd[k, 1], kd[k, 2]
-            tri_i = 0
-            u = v = 0.0
-            g0 = g1 = g2 = 0.0
-            le0 = le1 = le2 = 0.0  # radiance arriving along this ray from a light, MIS-weighted
-            if ob < 0:  # escaped: the constant environment
-                if has_bg:
-                    if depth == 0:
-                        film_emit[pix, 0] += background[0]
-                        film_emit[pix, 1] += background[1]
-                        film_emit[pix, 2] += background[2]
-                    else:
-                        cos_prev = _dot(prev_n[k, 0], prev_n[k, 1], prev_n[k, 2], d0, d1, d2)
-                        pl = p_env * max(cos_prev, 0.0) * INV_PI
-                        pb = prev_pdf[k]
-                        w = pb * pb / (pb * pb + pl * pl)
-                        le0, le1, le2 = background[0] * w, background[1] * w, background[2] * w
-            else:
-                tri_i = hit_prim[k]
-                u, v = hit_u[k], hit_v[k]
-                g0 = obj_R[ob, 0, 0] * tri[tri_i, 9] + obj_R[ob, 0, 1] * tri[tri_i, 10] + obj_R[ob, 0, 2] * tri[tri_i, 11]
-                g1 = obj_R[ob, 1, 0] * tri[tri_i, 9] + obj_R[ob, 1, 1] * tri[tri_i, 10] + obj_R[ob, 1, 2] * tri[tri_i, 11]
-                g2 = obj_R[ob, 2, 0] * tri[tri_i, 9] + obj_R[ob, 2, 1] * tri[tri_i, 10] + obj_R[ob, 2, 2] * tri[tri_i, 11]
-                if (obj_emit[ob, 0] > 0.0 or obj_emit[ob, 1] > 0.0 or obj_emit[ob, 2] > 0.0) and _dot(g0, g1, g2, d0, d1, d2) < 0.0:
-                    if depth == 0:
-                        if not use_viewer:
-                            film_emit[pix, 0] += obj_emit[ob, 0]
-                            film_emit[pix, 1] += obj_emit[ob, 1]
-                            film_emit[pix, 2] += obj_emit[ob, 2]
-                    else:
-                        t = hit_t[k]
-                        pl = p_area * obj_pdfA[ob] * t * t / max(-_dot(g0, g1, g2, d0, d1, d2), 1e-12)
-                        pb = prev_pdf[k]
-                        w = pb * pb / (pb * pb + pl * pl)
-                        le0, le1, le2 = obj_emit[ob, 0] * w, obj_emit[ob, 1] * w, obj_emit[ob, 2] * w
-            if depth > 0 and (le0 > 0.0 or le1 > 0.0 or le2 > 0.0):
-                c0, c1, c2 = b0 * le0, b1 * le1, b2 * le2
-                if math.isfinite(c0 + c1 + c2):
-                    film_diff[pix, 0] += c0 * kdr
-                    film_diff[pix, 1] += c1 * kdg
-                    film_diff[pix, 2] += c2 * kdb
-                    film_spec[pix, 0] += c0 * (1.0 - kdr)
-                    film_spec[pix, 1] += c1 * (1.0 - kdg)
-                    film_spec[pix, 2] += c2 * (1.0 - kdb)
+    ns = first  # next shadow-ray row
+    nc = first  # next surviving-path row
+    for k in range(first, first + count):
+        pix = k if depth == 0 else pixel[k]
+        d0, d1, d2 = rd[k, 0], rd[k, 1], rd[k, 2]
+        ob = hit_obj[k]
+        if depth == 0:
+            b0 = b1 = b2 = 1.0
+            kdr, kdg, kdb = 1.0, 1.0, 1.0
+        else:
+            b0, b1, b2 = beta[k, 0], beta[k, 1], beta[k, 2]
+            kdr, kdg, kdb = kd[k, 0], kd[k, 1], kd[k, 2]
+        tri_i = 0
+        u = v = 0.0
+        g0 = g1 = g2 = 0.0
+        le0 = le1 = le2 = 0.0  # radiance arriving along this ray from a light, MIS-weighted
+        if ob < 0:  # escaped: the constant environment
+            if has_bg:
+                if depth == 0:
+                    film_emit[pix, 0] += background[0]
+                    film_emit[pix, 1] += background[1]
+                    film_emit[pix, 2] += background[2]
                 else:
-                    nonfinite[pix] += 1
-            if ob < 0 or depth > max_bounces:
-                continue  # escaped, or the extra ray that only looked for emitters (mis_last)
-            # ---- surface interaction: hit point from barycentrics in model space, then to world ----
-            w0 = 1.0 - u - v
-            pm0 = tri[tri_i, 0] + u * tri[tri_i, 3] + v * tri[tri_i, 6]
-            pm1 = tri[tri_i, 1] + u * tri[tri_i, 4] + v * tri[tri_i, 7]
-            pm2 = tri[tri_i, 2] + u * tri[tri_i, 5] + v * tri[tri_i, 8]
-            p0 = obj_R[ob, 0, 0] * pm0 + obj_R[ob, 0, 1] * pm1 + obj_R[ob, 0, 2] * pm2 + obj_t[ob, 0]
-            p1 = obj_R[ob, 1, 0] * pm0 + obj_R[ob, 1, 1] * pm1 + obj_R[ob, 1, 2] * pm2 + obj_t[ob, 1]
-            p2 = obj_R[ob, 2, 0] * pm0 + obj_R[ob, 2, 1] * pm1 + obj_R[ob, 2, 2] * pm2 + obj_t[ob, 2]
-            sm0 = w0 * tri[tri_i, 12] + u * tri[tri_i, 15] + v * tri[tri_i, 18]
-            sm1 = w0 * tri[tri_i, 13] + u * tri[tri_i, 16] + v * tri[tri_i, 19]
-            sm2 = w0 * tri[tri_i, 14] + u * tri[tri_i, 17] + v * tri[tri_i, 20]
-            s0 = obj_R[ob, 0, 0] * sm0 + obj_R[ob, 0, 1] * sm1 + obj_R[ob, 0, 2] * sm2
-            s1 = obj_R[ob, 1, 0] * sm0 + obj_R[ob, 1, 1] * sm1 + obj_R[ob, 1, 2] * sm2
-            s2 = obj_R[ob, 2, 0] * sm0 + obj_R[ob, 2, 1] * sm1 + obj_R[ob, 2, 2] * sm2
-            sl = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-            if sl > 1e-12:
-                s0, s1, s2 = s0 / sl, s1 / sl, s2 / sl
-            else:
-                s0, s1, s2 = g0, g1, g2
-            wo0, wo1, wo2 = -d0, -d1, -d2
-            if depth == 0 and use_viewer:  # in DPM the eye, not the projector, sees the surface
-                e0, e1, e2 = viewer[0] - p0, viewer[1] - p1, viewer[2] - p2
-                el = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-                if el > 1e-12:
-                    wo0, wo1, wo2 = e0 / el, e1 / el, e2 / el
-            front = _dot(g0, g1, g2, wo0, wo1, wo2) > 0.0
-            if not front:  # two-sided shading: face both normals towards wo
-                g0, g1, g2, s0, s1, s2 = -g0, -g1, -g2, -s0, -s1, -s2
-            if _dot(s0, s1, s2, wo0, wo1, wo2) <= 1e-6:
-                s0, s1, s2 = g0, g1, g2
-            alpha = obj_alpha[ob]
-            if depth == 0:
-                if use_viewer and front and (obj_emit[ob, 0] > 0.0 or obj_emit[ob, 1] > 0.0 or obj_emit[ob, 2] > 0.0):
-                    film_emit[pix, 0] += obj_emit[ob, 0]
-                    film_emit[pix, 1] += obj_emit[ob, 1]
-                    film_emit[pix, 2] += obj_emit[ob, 2]
-                if write_gbuffer:
-                    gb_id[pix] = ob
-                    gb_model[pix, 0], gb_model[pix, 1], gb_model[pix, 2] = pm0, pm1, pm2
-                    gb_pos[pix, 0], gb_pos[pix, 1], gb_pos[pix, 2] = p0, p1, p2
-                    gb_normal[pix, 0], gb_normal[pix, 1], gb_normal[pix, 2] = s0, s1, s2
-                    gb_depth[pix] = hit_t[k] * _dot(d0, d1, d2, cam_fwd[0], cam_fwd[1], cam_fwd[2])
-                    for c in range(3):
-                        gb_alb[pix, c] = obj_alb[ob, c]
-                        gb_spec[pix, c] = obj_spec[ob, c]
-                    gb_rough[pix] = math.sqrt(alpha)
-            wd = _lum(obj_alb[ob, 0] * (1.0 - obj_spec[ob, 0]), obj_alb[ob, 1] * (1.0 - obj_spec[ob, 1]), obj_alb[ob, 2] * (1.0 - obj_spec[ob, 2]))
-            ws = _lum(obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2])
-            if wd + ws <= 0.0:
-                continue  # black surface: nothing is reflected
-            p_spec = ws / (wd + ws)
-            eps = OFFSET_REL * max(_max_abs3(p0, p1, p2), _max_abs3(pm0, pm1, pm2)) + 1e-20
-            o0, o1, o2 = p0 + g0 * eps, p1 + g1 * eps, p2 + g2 * eps
-            continues = not last
-            # ---- next-event estimation: one shadow ray, to the environment or an emissive triangle ----
-            u_sel = rand(key, pix, base_dim)
-            u1 = rand(key, pix, base_dim + 1)
-            u2 = rand(key, pix, base_dim + 2)
-            li0 = li1 = li2 = 0.0
-            pdf_l = 0.0
-            tmax = 0.0
-            wi0 = wi1 = wi2 = 0.0
-            if u_sel < p_env:
-                t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
-                r = math.sqrt(u1)
-                phi = 2.0 * math.pi * u2
-                x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))
-                wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
-                pdf_l = p_env * z * INV_PI
-                li0, li1, li2 = background[0], background[1], background[2]
-                tmax = 3.0e38
-            elif p_area > 0.0:
-                ut = (u_sel - p_env) / p_area
-                lo, hi = 0, light_cdf.shape[0] - 1
-                while lo < hi:  # first triangle whose cumulative weight exceeds ut
-                    mid = (lo + hi) // 2
-                    if light_cdf[mid] <= ut:
-                        lo = mid + 1
-                    else:
-                        hi = mid
-                lt = light_prim[lo]
-                lob = light_obj[lo]
-                su = math.sqrt(u1)
-                bb1, bb2 = u2 * su, 1.0 - su
-                lm0 = tri[lt, 0] + bb1 * tri[lt, 3] + bb2 * tri[lt, 6]
-                lm1 = tri[lt, 1] + bb1 * tri[lt, 4] + bb2 * tri[lt, 7]
-                lm2 = tri[lt, 2] + bb1 * tri[lt, 5] + bb2 * tri[lt, 8]
-                q0 = obj_R[lob, 0, 0] * lm0 + obj_R[lob, 0, 1] * lm1 + obj_R[lob, 0, 2] * lm2 + obj_t[lob, 0] - o0
-                q1 = obj_R[lob, 1, 0] * lm0 + obj_R[lob, 1, 1] * lm1 + obj_R[lob, 1, 2] * lm2 + obj_t[lob, 1] - o1
-                q2 = obj_R[lob, 2, 0] * lm0 + obj_R[lob, 2, 1] * lm1 + obj_R[lob, 2, 2] * lm2 + obj_t[lob, 2] - o2
-                dist = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
-                if dist > 1e-20:
-                    wi0, wi1, wi2 = q0 / dist, q1 / dist, q2 / dist
-                    ln0 = obj_R[lob, 0, 0] * tri[lt, 9] + obj_R[lob, 0, 1] * tri[lt, 10] + obj_R[lob, 0, 2] * tri[lt, 11]
-                    ln1 = obj_R[lob, 1, 0] * tri[lt, 9] + obj_R[lob, 1, 1] * tri[lt, 10] + obj_R[lob, 1, 2] * tri[lt, 11]
-                    ln2 = obj_R[lob, 2, 0] * tri[lt, 9] + obj_R[lob, 2, 1] * tri[lt, 10] + obj_R[lob, 2, 2] * tri[lt, 11]
-                    cos_l = -_dot(ln0, ln1, ln2, wi0, wi1, wi2)
-                    if cos_l > 0.0:
-                        pdf_l = p_area * obj_pdfA[lob] * dist * dist / cos_l
-                        li0, li1, li2 = obj_emit[lob, 0], obj_emit[lob, 1], obj_emit[lob, 2]
-                        tmax = dist * (1.0 - SHADOW_SHORTEN)
-            cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
-            if pdf_l > 0.0 and cos_i > 0.0 and _dot(wi0, wi1, wi2, g0, g1, g2) > 0.0:
-                fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec)
-                w = 1.0
-                if continues or mis_last:
-                    w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
-                scale = cos_i * w / pdf_l
-                cd0, cd1, cd2 = fd0 * li0 * scale * b0, fd1 * li1 * scale * b1, fd2 * li2 * scale * b2
-                cs0, cs1, cs2 = fs0 * li0 * scale * b0, fs1 * li1 * scale * b1, fs2 * li2 * scale * b2
-                if depth > 0:  # deeper vertices inherit the first vertex's diffuse/specular split
-                    t0 = cd0 + cs0
-                    t1 = cd1 + cs1
-                    t2 = cd2 + cs2
-                    cd0, cd1, cd2 = t0 * kdr, t1 * kdg, t2 * kdb
-                    cs0, cs1, cs2 = t0 - cd0, t1 - cd1, t2 - cd2
-                if math.isfinite(cd0 + cd1 + cd2 + cs0 + cs1 + cs2):
-                    if cd0 + cd1 + cd2 + cs0 + cs1 + cs2 > 0.0:
-                        sh_pix[ns] = pix
-                        sh_o[ns, 0], sh_o[ns, 1], sh_o[ns, 2] = o0, o1, o2
-                        sh_d[ns, 0], sh_d[ns, 1], sh_d[ns, 2] = wi0, wi1, wi2
-                        sh_tmax[ns] = tmax
-                        sh_c[ns, 0], sh_c[ns, 1], sh_c[ns, 2] = cd0, cd1, cd2
-                        sh_c[ns, 3], sh_c[ns, 4], sh_c[ns, 5] = cs0, cs1, cs2
-                        ns += 1
+                    cos_prev = _dot(prev_n[k, 0], prev_n[k, 1], prev_n[k, 2], d0, d1, d2)
+                    pl = p_env * max(cos_prev, 0.0) * INV_PI
+                    pb = prev_pdf[k]
+                    w = pb * pb / (pb * pb + pl * pl)
+                    le0, le1, le2 = background[0] * w, background[1] * w, background[2] * w
+        else:
+            tri_i = hit_prim[k]
+            u, v = hit_u[k], hit_v[k]
+            g0 = obj_R[ob, 0, 0] * tri[tri_i, 9] + obj_R[ob, 0, 1] * tri[tri_i, 10] + obj_R[ob, 0, 2] * tri[tri_i, 11]
+            g1 = obj_R[ob, 1, 0] * tri[tri_i, 9] + obj_R[ob, 1, 1] * tri[tri_i, 10] + obj_R[ob, 1, 2] * tri[tri_i, 11]
+            g2 = obj_R[ob, 2, 0] * tri[tri_i, 9] + obj_R[ob, 2, 1] * tri[tri_i, 10] + obj_R[ob, 2, 2] * tri[tri_i, 11]
+            if (obj_emit[ob, 0] > 0.0 or obj_emit[ob, 1] > 0.0 or obj_emit[ob, 2] > 0.0) and _dot(g0, g1, g2, d0, d1, d2) < 0.0:
+                if depth == 0:
+                    if not use_viewer:
+                        film_emit[pix, 0] += obj_emit[ob, 0]
+                        film_emit[pix, 1] += obj_emit[ob, 1]
+                        film_emit[pix, 2] += obj_emit[ob, 2]
                 else:
-                    nonfinite[pix] += 1
-            if not (continues or mis_last):
-                continue
-            # ---- BSDF sampling: the continuation ray ----
-            u_lobe = rand(key, pix, base_dim + 3)
-            u1 = rand(key, pix, base_dim + 4)
-            u2 = rand(key, pix, base_dim + 5)
-            t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
-            if u_lobe < p_spec:  # GGX visible-normal sampling (Heitz 2018) in the local frame
-                lx = _dot(wo0, wo1, wo2, t0, t1, t2)
-                ly = _dot(wo0, wo1, wo2, c0, c1, c2)
-                lz = _dot(wo0, wo1, wo2, s0, s1, s2)
-                vx, vy, vz = alpha * lx, alpha * ly, lz
-                vl = math.sqrt(vx * vx + vy * vy + vz * vz)
-                vx, vy, vz = vx / vl, vy / vl, vz / vl
-                lensq = vx * vx + vy * vy
-                if lensq > 1e-14:
-                    il = 1.0 / math.sqrt(lensq)
-                    a0, a1, a2 = -vy * il, vx * il, 0.0
-                else:
-                    a0, a1, a2 = 1.0, 0.0, 0.0
-                e0, e1, e2 = vy * a2 - vz * a1, vz * a0 - vx * a2, vx * a1 - vy * a0
-                r = math.sqrt(u1)
-                phi = 2.0 * math.pi * u2
-                q1 = r * math.cos(phi)
-                q2 = r * math.sin(phi)
-                sv = 0.5 * (1.0 + vz)
-                q2 = (1.0 - sv) * math.sqrt(max(0.0, 1.0 - q1 * q1)) + sv * q2
-                q3 = math.sqrt(max(0.0, 1.0 - q1 * q1 - q2 * q2))
-                hx = q1 * a0 + q2 * e0 + q3 * vx
-                hy = q1 * a1 + q2 * e1 + q3 * vy
-                hz = max(1e-6, q3 * vz + q2 * e2)
-                hx, hy = alpha * hx, alpha * hy
-                hl = math.sqrt(hx * hx + hy * hy + hz * hz)
-                hx, hy, hz = hx / hl, hy / hl, hz / hl
-                h0 = hx * t0 + hy * c0 + hz * s0
-                h1 = hx * t1 + hy * c1 + hz * s1
-                h2 = hx * t2 + hy * c2 + hz * s2
-                dh = 2.0 * _dot(wo0, wo1, wo2, h0, h1, h2)
-                wi0, wi1, wi2 = dh * h0 - wo0, dh * h1 - wo1, dh * h2 - wo2
+                    t = hit_t[k]
+                    pl = p_area * obj_pdfA[ob] * t * t / max(-_dot(g0, g1, g2, d0, d1, d2), 1e-12)
+                    pb = prev_pdf[k]
+                    w = pb * pb / (pb * pb + pl * pl)
+                    le0, le1, le2 = obj_emit[ob, 0] * w, obj_emit[ob, 1] * w, obj_emit[ob, 2] * w
+        if depth > 0 and (le0 > 0.0 or le1 > 0.0 or le2 > 0.0):
+            c0, c1, c2 = b0 * le0, b1 * le1, b2 * le2
+            if math.isfinite(c0 + c1 + c2):
+                film_diff[pix, 0] += c0 * kdr
+                film_diff[pix, 1] += c1 * kdg
+                film_diff[pix, 2] += c2 * kdb
+                film_spec[pix, 0] += c0 * (1.0 - kdr)
+                film_spec[pix, 1] += c1 * (1.0 - kdg)
+                film_spec[pix, 2] += c2 * (1.0 - kdb)
             else:
-                r = math.sqrt(u1)
-                phi = 2.0 * math.pi * u2
-                x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))
-                wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
-            cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
-            if cos_i <= 0.0 or _dot(wi0, wi1, wi2, g0, g1, g2) <= 0.0:
-                continue
-            fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec)
-            if not pdf_b > 0.0:
-                continue
-            f0, f1, f2 = fd0 + fs0, fd1 + fs1, fd2 + fs2
-            if depth == 0:  # split the path by the lobe weights at the first vertex
-                kdr = fd0 / f0 if f0 > 0.0 else 1.0
-                kdg = fd1 / f1 if f1 > 0.0 else 1.0
-                kdb = fd2 / f2 if f2 > 0.0 else 1.0
-            scale = cos_i / pdf_b
-            nb0, nb1, nb2 = b0 * f0 * scale, b1 * f1 * scale, b2 * f2 * scale
-            if depth + 1 >= RR_START_DEPTH:
-                q = min(RR_MAX_SURVIVAL, max(nb0, max(nb1, nb2)))
-                if rand(key, pix, base_dim + 6) >= q:
-                    continue
-                nb0, nb1, nb2 = nb0 / q, nb1 / q, nb2 / q
-            if not math.isfinite(nb0 + nb1 + nb2):
                 nonfinite[pix] += 1
+        if ob < 0 or depth > max_bounces:
+            continue  # escaped, or the extra ray that only looked for emitters (mis_last)
+        # ---- surface interaction: hit point from barycentrics in model space, then to world ----
+        w0 = 1.0 - u - v
+        pm0 = tri[tri_i, 0] + u * tri[tri_i, 3] + v * tri[tri_i, 6]
+        pm1 = tri[tri_i, 1] + u * tri[tri_i, 4] + v * tri[tri_i, 7]
+        pm2 = tri[tri_i, 2] + u * tri[tri_i, 5] + v * tri[tri_i, 8]
+        p0 = obj_R[ob, 0, 0] * pm0 + obj_R[ob, 0, 1] * pm1 + obj_R[ob, 0, 2] * pm2 + obj_t[ob, 0]
+        p1 = obj_R[ob, 1, 0] * pm0 + obj_R[ob, 1, 1] * pm1 + obj_R[ob, 1, 2] * pm2 + obj_t[ob, 1]
+        p2 = obj_R[ob, 2, 0] * pm0 + obj_R[ob, 2, 1] * pm1 + obj_R[ob, 2, 2] * pm2 + obj_t[ob, 2]
+        sm0 = w0 * tri[tri_i, 12] + u * tri[tri_i, 15] + v * tri[tri_i, 18]
+        sm1 = w0 * tri[tri_i, 13] + u * tri[tri_i, 16] + v * tri[tri_i, 19]
+        sm2 = w0 * tri[tri_i, 14] + u * tri[tri_i, 17] + v * tri[tri_i, 20]
+        s0 = obj_R[ob, 0, 0] * sm0 + obj_R[ob, 0, 1] * sm1 + obj_R[ob, 0, 2] * sm2
+        s1 = obj_R[ob, 1, 0] * sm0 + obj_R[ob, 1, 1] * sm1 + obj_R[ob, 1, 2] * sm2
+        s2 = obj_R[ob, 2, 0] * sm0 + obj_R[ob, 2, 1] * sm1 + obj_R[ob, 2, 2] * sm2
+        sl = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+        if sl > 1e-12:
+            s0, s1, s2 = s0 / sl, s1 / sl, s2 / sl
+        else:
+            s0, s1, s2 = g0, g1, g2
+        wo0, wo1, wo2 = -d0, -d1, -d2
+        if depth == 0 and use_viewer:  # in DPM the eye, not the projector, sees the surface
+            e0, e1, e2 = viewer[0] - p0, viewer[1] - p1, viewer[2] - p2
+            el = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+            if el > 1e-12:
+                wo0, wo1, wo2 = e0 / el, e1 / el, e2 / el
+        front = _dot(g0, g1, g2, wo0, wo1, wo2) > 0.0
+        if not front:  # two-sided shading: face both normals towards wo
+            g0, g1, g2, s0, s1, s2 = -g0, -g1, -g2, -s0, -s1, -s2
+        if _dot(s0, s1, s2, wo0, wo1, wo2) <= 1e-6:
+            s0, s1, s2 = g0, g1, g2
+        alpha = obj_alpha[ob]
+        if depth == 0:
+            if use_viewer and front and (obj_emit[ob, 0] > 0.0 or obj_emit[ob, 1] > 0.0 or obj_emit[ob, 2] > 0.0):
+                film_emit[pix, 0] += obj_emit[ob, 0]
+                film_emit[pix, 1] += obj_emit[ob, 1]
+                film_emit[pix, 2] += obj_emit[ob, 2]
+            if write_gbuffer:
+                gb_id[pix] = ob
+                gb_model[pix, 0], gb_model[pix, 1], gb_model[pix, 2] = pm0, pm1, pm2
+                gb_pos[pix, 0], gb_pos[pix, 1], gb_pos[pix, 2] = p0, p1, p2
+                gb_normal[pix, 0], gb_normal[pix, 1], gb_normal[pix, 2] = s0, s1, s2
+                gb_depth[pix] = hit_t[k] * _dot(d0, d1, d2, cam_fwd[0], cam_fwd[1], cam_fwd[2])
+                for c in range(3):
+                    gb_alb[pix, c] = obj_alb[ob, c]
+                    gb_spec[pix, c] = obj_spec[ob, c]
+                gb_rough[pix] = math.sqrt(alpha)
+        wd = _lum(obj_alb[ob, 0] * (1.0 - obj_spec[ob, 0]), obj_alb[ob, 1] * (1.0 - obj_spec[ob, 1]), obj_alb[ob, 2] * (1.0 - obj_spec[ob, 2]))
+        ws = _lum(obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2])
+        if wd + ws <= 0.0:
+            continue  # black surface: nothing is reflected
+        p_spec = ws / (wd + ws)
+        eps = OFFSET_REL * max(_max_abs3(p0, p1, p2), _max_abs3(pm0, pm1, pm2)) + 1e-20
+        o0, o1, o2 = p0 + g0 * eps, p1 + g1 * eps, p2 + g2 * eps
+        continues = not last
+        # ---- next-event estimation: one shadow ray, to the environment or an emissive triangle ----
+        u_sel = rand(key, pix, base_dim)
+        u1 = rand(key, pix, base_dim + 1)
+        u2 = rand(key, pix, base_dim + 2)
+        li0 = li1 = li2 = 0.0
+        pdf_l = 0.0
+        tmax = 0.0
+        wi0 = wi1 = wi2 = 0.0
+        if u_sel < p_env:
+            t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
+            r = math.sqrt(u1)
+            phi = 2.0 * math.pi * u2
+            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))
+            wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
+            pdf_l = p_env * z * INV_PI
+            li0, li1, li2 = background[0], background[1], background[2]
+            tmax = 3.0e38
+        elif p_area > 0.0:
+            ut = (u_sel - p_env) / p_area
+            lo, hi = 0, light_cdf.shape[0] - 1
+            while lo < hi:  # first triangle whose cumulative weight exceeds ut
+                mid = (lo + hi) // 2
+                if light_cdf[mid] <= ut:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            lt = light_prim[lo]
+            lob = light_obj[lo]
+            su = math.sqrt(u1)
+            bb1, bb2 = u2 * su, 1.0 - su
+            lm0 = tri[lt, 0] + bb1 * tri[lt, 3] + bb2 * tri[lt, 6]
+            lm1 = tri[lt, 1] + bb1 * tri[lt, 4] + bb2 * tri[lt, 7]
+            lm2 = tri[lt, 2] + bb1 * tri[lt, 5] + bb2 * tri[lt, 8]
+            q0 = obj_R[lob, 0, 0] * lm0 + obj_R[lob, 0, 1] * lm1 + obj_R[lob, 0, 2] * lm2 + obj_t[lob, 0] - o0
+            q1 = obj_R[lob, 1, 0] * lm0 + obj_R[lob, 1, 1] * lm1 + obj_R[lob, 1, 2] * lm2 + obj_t[lob, 1] - o1
+            q2 = obj_R[lob, 2, 0] * lm0 + obj_R[lob, 2, 1] * lm1 + obj_R[lob, 2, 2] * lm2 + obj_t[lob, 2] - o2
+            dist = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
+            if dist > 1e-20:
+                wi0, wi1, wi2 = q0 / dist, q1 / dist, q2 / dist
+                ln0 = obj_R[lob, 0, 0] * tri[lt, 9] + obj_R[lob, 0, 1] * tri[lt, 10] + obj_R[lob, 0, 2] * tri[lt, 11]
+                ln1 = obj_R[lob, 1, 0] * tri[lt, 9] + obj_R[lob, 1, 1] * tri[lt, 10] + obj_R[lob, 1, 2] * tri[lt, 11]
+                ln2 = obj_R[lob, 2, 0] * tri[lt, 9] + obj_R[lob, 2, 1] * tri[lt, 10] + obj_R[lob, 2, 2] * tri[lt, 11]
+                cos_l = -_dot(ln0, ln1, ln2, wi0, wi1, wi2)
+                if cos_l > 0.0:
+                    pdf_l = p_area * obj_pdfA[lob] * dist * dist / cos_l
+                    li0, li1, li2 = obj_emit[lob, 0], obj_emit[lob, 1], obj_emit[lob, 2]
+                    tmax = dist * (1.0 - SHADOW_SHORTEN)
+        cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
+        if pdf_l > 0.0 and cos_i > 0.0 and _dot(wi0, wi1, wi2, g0, g1, g2) > 0.0:
+            fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec)
+            w = 1.0
+            if continues or mis_last:
+                w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
+            scale = cos_i * w / pdf_l
+            cd0, cd1, cd2 = fd0 * li0 * scale * b0, fd1 * li1 * scale * b1, fd2 * li2 * scale * b2
+            cs0, cs1, cs2 = fs0 * li0 * scale * b0, fs1 * li1 * scale * b1, fs2 * li2 * scale * b2
+            if depth > 0:  # deeper vertices inherit the first vertex's diffuse/specular split
+                t0 = cd0 + cs0
+                t1 = cd1 + cs1
+                t2 = cd2 + cs2
+                cd0, cd1, cd2 = t0 * kdr, t1 * kdg, t2 * kdb
+                cs0, cs1, cs2 = t0 - cd0, t1 - cd1, t2 - cd2
+            if math.isfinite(cd0 + cd1 + cd2 + cs0 + cs1 + cs2):
+                if cd0 + cd1 + cd2 + cs0 + cs1 + cs2 > 0.0:
+                    sh_pix[ns] = pix
+                    sh_o[ns, 0], sh_o[ns, 1], sh_o[ns, 2] = o0, o1, o2
+                    sh_d[ns, 0], sh_d[ns, 1], sh_d[ns, 2] = wi0, wi1, wi2
+                    sh_tmax[ns] = tmax
+                    sh_c[ns, 0], sh_c[ns, 1], sh_c[ns, 2] = cd0, cd1, cd2
+                    sh_c[ns, 3], sh_c[ns, 4], sh_c[ns, 5] = cs0, cs1, cs2
+                    ns += 1
+            else:
+                nonfinite[pix] += 1
+        if not (continues or mis_last):
+            continue
+        # ---- BSDF sampling: the continuation ray ----
+        u_lobe = rand(key, pix, base_dim + 3)
+        u1 = rand(key, pix, base_dim + 4)
+        u2 = rand(key, pix, base_dim + 5)
+        t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
+        if u_lobe < p_spec:  # GGX visible-normal sampling (Heitz 2018) in the local frame
+            lx = _dot(wo0, wo1, wo2, t0, t1, t2)
+            ly = _dot(wo0, wo1, wo2, c0, c1, c2)
+            lz = _dot(wo0, wo1, wo2, s0, s1, s2)
+            vx, vy, vz = alpha * lx, alpha * ly, lz
+            vl = math.sqrt(vx * vx + vy * vy + vz * vz)
+            vx, vy, vz = vx / vl, vy / vl, vz / vl
+            lensq = vx * vx + vy * vy
+            if lensq > 1e-14:
+                il = 1.0 / math.sqrt(lensq)
+                a0, a1, a2 = -vy * il, vx * il, 0.0
+            else:
+                a0, a1, a2 = 1.0, 0.0, 0.0
+            e0, e1, e2 = vy * a2 - vz * a1, vz * a0 - vx * a2, vx * a1 - vy * a0
+            r = math.sqrt(u1)
+            phi = 2.0 * math.pi * u2
+            q1 = r * math.cos(phi)
+            q2 = r * math.sin(phi)
+            sv = 0.5 * (1.0 + vz)
+            q2 = (1.0 - sv) * math.sqrt(max(0.0, 1.0 - q1 * q1)) + sv * q2
+            q3 = math.sqrt(max(0.0, 1.0 - q1 * q1 - q2 * q2))
+            hx = q1 * a0 + q2 * e0 + q3 * vx
+            hy = q1 * a1 + q2 * e1 + q3 * vy
+            hz = max(1e-6, q3 * vz + q2 * e2)
+            hx, hy = alpha * hx, alpha * hy
+            hl = math.sqrt(hx * hx + hy * hy + hz * hz)
+            hx, hy, hz = hx / hl, hy / hl, hz / hl
+            h0 = hx * t0 + hy * c0 + hz * s0
+            h1 = hx * t1 + hy * c1 + hz * s1
+            h2 = hx * t2 + hy * c2 + hz * s2
+            dh = 2.0 * _dot(wo0, wo1, wo2, h0, h1, h2)
+            wi0, wi1, wi2 = dh * h0 - wo0, dh * h1 - wo1, dh * h2 - wo2
+        else:
+            r = math.sqrt(u1)
+            phi = 2.0 * math.pi * u2
+            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))
+            wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
+        cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
+        if cos_i <= 0.0 or _dot(wi0, wi1, wi2, g0, g1, g2) <= 0.0:
+            continue
+        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec)
+        if not pdf_b > 0.0:
+            continue
+        f0, f1, f2 = fd0 + fs0, fd1 + fs1, fd2 + fs2
+        if depth == 0:  # split the path by the lobe weights at the first vertex
+            kdr = fd0 / f0 if f0 > 0.0 else 1.0
+            kdg = fd1 / f1 if f1 > 0.0 else 1.0
+            kdb = fd2 / f2 if f2 > 0.0 else 1.0
+        scale = cos_i / pdf_b
+        nb0, nb1, nb2 = b0 * f0 * scale, b1 * f1 * scale, b2 * f2 * scale
+        if depth + 1 >= RR_START_DEPTH:
+            q = min(RR_MAX_SURVIVAL, max(nb0, max(nb1, nb2)))
+            if rand(key, pix, base_dim + 6) >= q:
                 continue
-            if nb0 + nb1 + nb2 <= 0.0:
-                continue
-            pixel[nc] = pix
-            beta[nc, 0], beta[nc, 1], beta[nc, 2] = nb0, nb1, nb2
-            kd[nc, 0], kd[nc, 1], kd[nc, 2] = kdr, kdg, kdb
-            prev_pdf[nc] = pdf_b
-            prev_n[nc, 0], prev_n[nc, 1], prev_n[nc, 2] = s0, s1, s2
-            nx_o[nc, 0], nx_o[nc, 1], nx_o[nc, 2] = o0, o1, o2
-            nx_d[nc, 0], nx_d[nc, 1], nx_d[nc, 2] = wi0, wi1, wi2
-            nc += 1
-        sh_count[seg] = ns - first
-        nx_count[seg] = nc - first
+            nb0, nb1, nb2 = nb0 / q, nb1 / q, nb2 / q
+        if not math.isfinite(nb0 + nb1 + nb2):
+            nonfinite[pix] += 1
+            continue
+        if nb0 + nb1 + nb2 <= 0.0:
+            continue
+        pixel[nc] = pix
+        beta[nc, 0], beta[nc, 1], beta[nc, 2] = nb0, nb1, nb2
+        kd[nc, 0], kd[nc, 1], kd[nc, 2] = kdr, kdg, kdb
+        prev_pdf[nc] = pdf_b
+        prev_n[nc, 0], prev_n[nc, 1], prev_n[nc, 2] = s0, s1, s2
+        nx_o[nc, 0], nx_o[nc, 1], nx_o[nc, 2] = o0, o1, o2
+        nx_d[nc, 0], nx_d[nc, 1], nx_d[nc, 2] = wi0, wi1, wi2
+        nc += 1
+    return ns - first, nc - first
 
 
-@nb.njit(parallel=True, **_jit)
-def add_unoccluded(seg_start, sh_count, order, sh_pix, contrib, blocked, film_diff, film_spec):
-    """Add each shadow ray's contribution (rows laid out as `shade` packed them) where nothing
-    blocked it."""
-    for j in nb.prange(order.shape[0]):
-        seg = order[j]
-        first = seg_start[seg]
-        for k in range(first, first + sh_count[seg]):
-            if not blocked[k]:
-                p = sh_pix[k]
-                film_diff[p, 0] += contrib[k, 0]
-                film_diff[p, 1] += contrib[k, 1]
-                film_diff[p, 2] += contrib[k, 2]
-                film_spec[p, 0] += contrib[k, 3]
-                film_spec[p, 1] += contrib[k, 4]
-                film_spec[p, 2] += contrib[k, 5]
-
-
-def segment_order(count: int) -> np.ndarray:
-    """Bit-reversed segment order: numba splits a prange into one contiguous block per thread,
-    so consecutive (neighbouring, similar-cost) segments land on different threads."""
-    bits = max(1, (count - 1).bit_length())
-    order = sorted(range(count), key=lambda i: int(format(i, f"0{bits}b")[::-1], 2))
-    return np.array(order, np.int64)
+@nb.njit(nogil=True, **_jit)
+def add_unoccluded(first, count, sh_pix, contrib, blocked, film_diff, film_spec):
+    """Add the contribution of each shadow ray in rows [first, first + count) that nothing blocked."""
+    for k in range(first, first + count):
+        if not blocked[k]:
+            p = sh_pix[k]
+            film_diff[p, 0] += contrib[k, 0]
+            film_diff[p, 1] += contrib[k, 1]
+            film_diff[p, 2] += contrib[k, 2]
+            film_spec[p, 0] += contrib[k, 3]
+            film_spec[p, 1] += contrib[k, 4]
+            film_spec[p, 2] += contrib[k, 5]
