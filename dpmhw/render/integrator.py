@@ -99,15 +99,18 @@ class PathIntegrator:
         gbuf = _GBuffer(npix)
         nonfinite = np.zeros(npix, np.int32)
         o, d = camera.generate_rays()
-        primary = self._static_primary(camera, o, d)
-        if self.geometry.accel.dynamic_objects:  # without moving objects the cached hits are the primary hits
-            primary = self.geometry.accel.intersect(o, d, R, T, static_hits=primary)
+        static_hits = self._static_primary(camera, o, d)
+        # without moving objects the cached hits are the primary hits; with them, the first pass
+        # completes them per segment (in its thread) into a work buffer the later passes reuse
+        moving = bool(self.geometry.accel.dynamic_objects)
+        primary = self._work_buffers(npix).primary if moving else static_hits
         self.counts.primary = npix
         done = 0
         for p in range(spp):
             if should_stop is not None and done > 0 and should_stop():
                 break
-            self._trace_pass(kernels.pass_key(seed, p), d, primary, R, T, camera, film, gbuf, nonfinite, p == 0)
+            self._trace_pass(kernels.pass_key(seed, p), o, d, static_hits if moving and p == 0 else None, primary,
+                             R, T, camera, film, gbuf, nonfinite, p == 0)
             done += 1
             if progress is not None:
                 progress(done, spp)
@@ -132,7 +135,8 @@ class PathIntegrator:
             self.counts.primary_static_traced = len(o)
         return self._static_primary_hits
 
-    def _trace_pass(self, key, primary_dirs, primary: Hits, R, T, camera, film, gbuf, nonfinite, write_gbuffer):
+    def _trace_pass(self, key, camera_o, primary_dirs, static_hits: Hits | None, primary: Hits, R, T, camera, film, gbuf,
+                    nonfinite, write_gbuffer):
         """One sample per pixel. The image is cut into SEGMENTS row ranges; each is traced to the
         end of its paths by one thread (shade → shadow rays → continuation rays → shade …), so a
         segment's rays and hits are still in cache when the next stage reads them, and the
@@ -143,7 +147,7 @@ class PathIntegrator:
 
         def run(segment):
             first, count = segment
-            return self._trace_segment(first, count, key, primary_dirs, primary, R, T, cam_fwd, viewer,
+            return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
                                        film, gbuf, nonfinite, write_gbuffer, w)
 
         segments = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
@@ -151,11 +155,18 @@ class PathIntegrator:
         self.counts.occluded += sum(r[0] for r in results)
         self.counts.intersect += sum(r[1] for r in results)
 
-    def _trace_segment(self, first, count, key, primary_dirs, primary, R, T, cam_fwd, viewer,
+    def _trace_segment(self, first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
                        film, gbuf, nonfinite, write_gbuffer, w: "_Work") -> tuple[int, int]:
         """All bounces of the paths through pixels [first, first + count); their rows in the
-        work buffers are the same range. Returns (shadow rays, continuation rays) traced."""
+        work buffers are the same range. `static_hits`: the camera rays' cached hits on static
+        objects, to complete with the moving objects into `primary` first (None: `primary` is
+        ready). Returns (shadow rays, continuation rays) traced."""
         g = self.geometry
+        if static_hits is not None:
+            end = first + count
+            for name in ("t", "obj", "prim", "u", "v"):
+                getattr(primary, name)[first:end] = getattr(static_hits, name)[first:end]
+            g.accel.intersect_range(camera_o, primary_dirs, first, end, R, T, primary, static_done=True)
         last_depth = self.max_bounces + (1 if self.mis_last else 0)
         rd, hits = primary_dirs, primary
         rays = 0  # which of the two ray buffers the kernel writes continuation rays into
@@ -209,6 +220,7 @@ class _Work:
         self.ray_o = (np.empty((n, 3), f32), np.empty((n, 3), f32))  # ping-pong: a kernel reads one, writes the other
         self.ray_d = (np.empty((n, 3), f32), np.empty((n, 3), f32))
         self.hits = empty_hits(n)
+        self.primary = empty_hits(n)  # camera hits, when objects move (the static ones are cached)
         self.sh_o = np.empty((n, 3), f32)
         self.sh_d = np.empty((n, 3), f32)
         self.sh_tmax = np.empty(n, f32)
