@@ -274,7 +274,7 @@ def shade(
             t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
             r = math.sqrt(u1)
             phi = 2.0 * math.pi * u2
-            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))
+            x, y, z = r * math.cos(np.float32(phi)), r * math.sin(np.float32(phi)), math.sqrt(max(0.0, 1.0 - u1))
             wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
             pdf_l = p_env * z * INV_PI
             li0, li1, li2 = background[0], background[1], background[2]
@@ -358,8 +358,8 @@ def shade(
             e0, e1, e2 = vy * a2 - vz * a1, vz * a0 - vx * a2, vx * a1 - vy * a0
             r = math.sqrt(u1)
             phi = 2.0 * math.pi * u2
-            q1 = r * math.cos(phi)
-            q2 = r * math.sin(phi)
+            q1 = r * math.cos(np.float32(phi))
+            q2 = r * math.sin(np.float32(phi))
             sv = 0.5 * (1.0 + vz)
             q2 = (1.0 - sv) * math.sqrt(max(0.0, 1.0 - q1 * q1)) + sv * q2
             q3 = math.sqrt(max(0.0, 1.0 - q1 * q1 - q2 * q2))
@@ -377,7 +377,7 @@ def shade(
         else:
             r = math.sqrt(u1)
             phi = 2.0 * math.pi * u2
-            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))
+            x, y, z = r * math.cos(np.float32(phi)), r * math.sin(np.float32(phi)), math.sqrt(max(0.0, 1.0 - u1))
             wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if cos_i <= 0.0 or _dot(wi0, wi1, wi2, g0, g1, g2) <= 0.0:
