@@ -4,7 +4,9 @@ embreex has no instancing, so each BVH is built once: all static objects togethe
 space, and every moving object's mesh in its own model space. Per frame a query transforms the
 rays into each moving object's model space (a rigid transform keeps ray distances), and every
 later BVH is asked only for hits closer than the best so far (embree's `tfar` culls the rest).
-Ray batches are split across threads: `EmbreeScene.run` releases the GIL.
+The `*_range` queries work on a row range of the caller's arrays on the calling thread (the
+integrator runs one per image segment from its own threads: `EmbreeScene.run` releases the GIL);
+`intersect_static` splits its batch over this class's threads.
 """
 
 from __future__ import annotations
@@ -136,25 +138,6 @@ class EmbreeAccel:
         return bounds[:-1], np.diff(bounds)
 
     # -- queries --------------------------------------------------------------------------------
-    def intersect(self, origins: np.ndarray, directions: np.ndarray, poses_R: np.ndarray, poses_t: np.ndarray,
-                  static_hits: Hits | None = None) -> Hits:
-        """origins, directions : (n, 3) float32 world space; poses_R (O, 3, 3), poses_t (O, 3):
-        model→world. `static_hits` (from `intersect_static` on the same rays) skips the static BVH."""
-        n = len(origins)
-        if static_hits is not None:
-            hits = Hits(*(a.copy() for a in (static_hits.t, static_hits.obj, static_hits.prim, static_hits.u, static_hits.v)))
-        else:
-            hits = empty_hits(n)
-        self.intersect_segments(origins, directions, *self._chunks(n), poses_R, poses_t, hits, static_done=static_hits is not None)
-        return hits
-
-    def intersect_segments(self, origins, directions, starts, counts, poses_R, poses_t, hits: Hits,
-                           static_done: bool = False) -> None:
-        """`intersect_range` for every segment [starts[s], starts[s] + counts[s]), over the threads."""
-        self._run_segments(
-            lambda a, e: self.intersect_range(origins, directions, a, e, poses_R, poses_t, hits, static_done), starts, counts
-        )
-
     def intersect_range(self, origins, directions, first, end, poses_R, poses_t, hits: Hits, static_done: bool = False) -> None:
         """Closest hits of the rays in rows [first, end) of origins and directions, written into
         the same rows of `hits`, on the calling thread. `static_done`: those rows of `hits`
@@ -192,14 +175,6 @@ class EmbreeAccel:
         res = self.static_scene.run(o, d, output=True)
         _static_hit_ids(res["primID"], res["geomID"], res["tfar"], self.static_objects, self.tri_offsets, t, obj, prim)
         u[:], v[:] = res["u"], res["v"]
-
-    def occluded(self, origins, directions, tmax, poses_R, poses_t) -> np.ndarray:
-        """(n,) bool: something lies along the ray closer than tmax."""
-        n = len(origins)
-        blocked = np.empty(n, bool)
-        tmax = np.asarray(tmax, np.float32)
-        self._run_segments(lambda a, e: self.occluded_range(origins, directions, tmax, a, e, poses_R, poses_t, blocked), *self._chunks(n))
-        return blocked
 
     def occluded_range(self, origins, directions, tmax, first, end, poses_R, poses_t, blocked) -> None:
         """blocked[i] = something lies along ray i closer than tmax[i], for rows [first, end), on
