@@ -4,7 +4,9 @@ embreex has no instancing, so each BVH is built once: all static objects togethe
 space, and every moving object's mesh in its own model space. Per frame a query transforms the
 rays into each moving object's model space (a rigid transform keeps ray distances), and every
 later BVH is asked only for hits closer than the best so far (embree's `tfar` culls the rest).
-Ray batches are split across threads: `EmbreeScene.run` releases the GIL.
+The `*_range` queries work on a row range of the caller's arrays on the calling thread (the
+integrator runs one per image segment from its own threads: `EmbreeScene.run` releases the GIL);
+`intersect_static` splits its batch over this class's threads.
 """
 
 from __future__ import annotations
@@ -66,19 +68,15 @@ def _rays_into_model(o, d, tmax, R, t, centre, radius):
 
 
 @nb.njit(nogil=True, cache=True)
-def _static_hit_ids(prim_id, geom_id, tfar, static_objects, tri_offsets):
-    """Embree's (geomID, primID) → our object index and global triangle index; inf / −1 on a miss."""
-    n = prim_id.shape[0]
-    t = np.empty(n, np.float32)
-    obj = np.empty(n, np.int32)
-    prim = np.empty(n, np.int32)
-    for i in range(n):
+def _static_hit_ids(prim_id, geom_id, tfar, static_objects, tri_offsets, t, obj, prim):
+    """Embree's (geomID, primID) → our object index and global triangle index, written into
+    t, obj, prim; inf / −1 on a miss."""
+    for i in range(prim_id.shape[0]):
         if prim_id[i] >= 0:
             k = static_objects[geom_id[i]]
             t[i], obj[i], prim[i] = tfar[i], k, tri_offsets[k] + prim_id[i]
         else:
             t[i], obj[i], prim[i] = np.inf, -1, -1
-    return t, obj, prim
 
 
 def _embree_scene(vertices_list, faces_list) -> rtcore_scene.EmbreeScene:
@@ -122,70 +120,78 @@ class EmbreeAccel:
             self._pool = None
 
     # -- batching -------------------------------------------------------------------------------
-    def _map(self, fn, n: int, *arrays):
-        if self._pool is None or n < 2 * MIN_RAYS_PER_THREAD:
-            return [fn(*arrays)]
-        # a few chunks per thread: ray batches are not uniform in cost, so halves leave a core idle
-        chunks = min(4 * self.threads, max(self.threads, n // MIN_RAYS_PER_THREAD))
-        bounds = np.linspace(0, n, chunks + 1).astype(int)
-        chunks = [tuple(a[s:e] for a in arrays) for s, e in zip(bounds[:-1], bounds[1:])]
-        return list(self._pool.map(lambda c: fn(*c), chunks))
+    def _run_segments(self, fn, starts, counts) -> None:
+        """fn(first, end) for every non-empty segment, spread over the threads (a pool job per
+        segment, so uneven segments still balance). Results must not depend on the split."""
+        jobs = [(int(a), int(a + c)) for a, c in zip(starts, counts) if c > 0]
+        if self._pool is None or sum(e - a for a, e in jobs) < 2 * MIN_RAYS_PER_THREAD:
+            for a, e in jobs:
+                fn(a, e)
+        else:
+            for _ in self._pool.map(lambda job: fn(*job), jobs):
+                pass
+
+    def _chunks(self, n: int):
+        """Segments for a whole ray batch: a few per thread (ray batches are not uniform in cost)."""
+        chunks = min(4 * self.threads, max(1, n // MIN_RAYS_PER_THREAD))
+        bounds = np.linspace(0, n, chunks + 1).astype(np.int64)
+        return bounds[:-1], np.diff(bounds)
 
     # -- queries --------------------------------------------------------------------------------
-    def intersect(self, origins: np.ndarray, directions: np.ndarray, poses_R: np.ndarray, poses_t: np.ndarray,
-                  static_hits: Hits | None = None) -> Hits:
-        """origins, directions : (n, 3) float32 world space; poses_R (O, 3, 3), poses_t (O, 3):
-        model→world. `static_hits` (from `intersect_static` on the same rays) skips the static BVH."""
-        n = len(origins)
-        start = (static_hits.t, static_hits.obj, static_hits.prim, static_hits.u, static_hits.v) if static_hits else ()
-
-        def run(o, d, *prior):
-            t, obj, prim, u, v = (a.copy() for a in prior) if prior else self._trace_static(o, d)
-            for k, scene, (centre, radius) in zip(self.dynamic_objects, self.dynamic_scenes, self.dynamic_bounds):
-                index, om, dm, tm = _rays_into_model(o, d, t, poses_R[k], poses_t[k], centre, radius)
-                if index.size == 0:
-                    continue
-                res = scene.run(om, dm, dists=tm, output=True)
-                hit = res["primID"] >= 0
-                rows = index[hit]
-                obj[rows] = k
-                prim[rows] = self.tri_offsets[k] + res["primID"][hit]
-                t[rows], u[rows], v[rows] = res["tfar"][hit], res["u"][hit], res["v"][hit]
-            return t, obj, prim, u, v
-
-        return self._gather(self._map(run, n, origins, directions, *start))
+    def intersect_range(self, origins, directions, first, end, poses_R, poses_t, hits: Hits, static_done: bool = False) -> None:
+        """Closest hits of the rays in rows [first, end) of origins and directions, written into
+        the same rows of `hits`, on the calling thread. `static_done`: those rows of `hits`
+        already hold the static BVH's hits (only the moving objects are traced)."""
+        a, e = first, end
+        o, d = origins[a:e], directions[a:e]
+        t, obj, prim, u, v = hits.t[a:e], hits.obj[a:e], hits.prim[a:e], hits.u[a:e], hits.v[a:e]
+        if not static_done:
+            self._trace_static(o, d, t, obj, prim, u, v)
+        for k, scene, (centre, radius) in zip(self.dynamic_objects, self.dynamic_scenes, self.dynamic_bounds):
+            index, om, dm, tm = _rays_into_model(o, d, t, poses_R[k], poses_t[k], centre, radius)
+            if index.size == 0:
+                continue
+            res = scene.run(om, dm, dists=tm, output=True)
+            hit = res["primID"] >= 0
+            rows = index[hit]
+            obj[rows] = k
+            prim[rows] = self.tri_offsets[k] + res["primID"][hit]
+            t[rows], u[rows], v[rows] = res["tfar"][hit], res["u"][hit], res["v"][hit]
 
     def intersect_static(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         """Closest hits among the static objects only (they never move, so this can be cached)."""
-        return self._gather(self._map(self._trace_static, len(origins), origins, directions))
+        hits = empty_hits(len(origins))
 
-    def _trace_static(self, o, d):
+        def run(a, e):
+            self._trace_static(origins[a:e], directions[a:e], hits.t[a:e], hits.obj[a:e], hits.prim[a:e], hits.u[a:e], hits.v[a:e])
+
+        self._run_segments(run, *self._chunks(len(origins)))
+        return hits
+
+    def _trace_static(self, o, d, t, obj, prim, u, v) -> None:
         if self.static_scene is None:
-            m = len(o)
-            return (np.full(m, np.inf, np.float32), np.full(m, -1, np.int32), np.full(m, -1, np.int32),
-                    np.zeros(m, np.float32), np.zeros(m, np.float32))
+            t[:], obj[:], prim[:], u[:], v[:] = np.inf, -1, -1, 0, 0
+            return
         res = self.static_scene.run(o, d, output=True)
-        t, obj, prim = _static_hit_ids(res["primID"], res["geomID"], res["tfar"], self.static_objects, self.tri_offsets)
-        return t, obj, prim, res["u"], res["v"]
+        _static_hit_ids(res["primID"], res["geomID"], res["tfar"], self.static_objects, self.tri_offsets, t, obj, prim)
+        u[:], v[:] = res["u"], res["v"]
 
-    @staticmethod
-    def _gather(parts) -> Hits:
-        return Hits(*(np.concatenate(p) if len(parts) > 1 else p[0] for p in zip(*parts)))
+    def occluded_range(self, origins, directions, tmax, first, end, poses_R, poses_t, blocked) -> None:
+        """blocked[i] = something lies along ray i closer than tmax[i], for rows [first, end), on
+        the calling thread (other rows are left alone)."""
+        a, e = first, end
+        o, d, tm, blk = origins[a:e], directions[a:e], tmax[a:e], blocked[a:e]
+        if self.static_scene is not None:
+            blk[:] = self.static_scene.run(o, d, dists=tm.copy(), query="OCCLUDED") >= 0
+        else:
+            blk[:] = False
+        for k, scene, (centre, radius) in zip(self.dynamic_objects, self.dynamic_scenes, self.dynamic_bounds):
+            # rays already blocked get tmax 0, so the bounding-sphere test drops them
+            index, om, dm, tmk = _rays_into_model(o, d, np.where(blk, 0, tm), poses_R[k], poses_t[k], centre, radius)
+            if index.size:
+                blk[index] |= scene.run(om, dm, dists=tmk, query="OCCLUDED") >= 0
 
-    def occluded(self, origins, directions, tmax, poses_R, poses_t) -> np.ndarray:
-        """(n,) bool: something lies along the ray closer than tmax."""
-        n = len(origins)
 
-        def run(o, d, tm):
-            blocked = np.zeros(len(o), bool)
-            if self.static_scene is not None:
-                blocked |= self.static_scene.run(o, d, dists=tm.copy(), query="OCCLUDED") >= 0
-            for k, scene, (centre, radius) in zip(self.dynamic_objects, self.dynamic_scenes, self.dynamic_bounds):
-                # rays already blocked get tmax 0, so the bounding-sphere test drops them
-                index, om, dm, tmk = _rays_into_model(o, d, np.where(blocked, 0, tm), poses_R[k], poses_t[k], centre, radius)
-                if index.size:
-                    blocked[index] |= scene.run(om, dm, dists=tmk, query="OCCLUDED") >= 0
-            return blocked
-
-        parts = self._map(run, n, origins, directions, np.asarray(tmax, np.float32))
-        return np.concatenate(parts) if len(parts) > 1 else parts[0]
+def empty_hits(n: int) -> Hits:
+    """Uninitialised Hits for n rays (filled by the intersect calls)."""
+    return Hits(np.empty(n, np.float32), np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32))

@@ -2,14 +2,16 @@
 
 Per pass (1 sample per pixel, through the pixel centre): primary hits (traced once per frame and
 reused by every pass, since pixel-centre rays do not change), then per bounce: `shade` (emission
-with MIS, one NEE shadow ray, BSDF sampling, Russian roulette) → occlusion query for the shadow
-rays → compaction of the surviving paths → closest-hit query. With `max_bounces` = B a path has
+with MIS, one NEE shadow ray, BSDF sampling, Russian roulette, compaction of the shadow rays and
+surviving paths) → occlusion query for the shadow rays → closest-hit query. The wavefront runs
+per image segment, one thread taking a segment through all its bounces. With `max_bounces` = B a path has
 B + 1 vertices; the last one is lit by NEE alone, unless the scene has glossy lobes, where one
 more ray is traced from it so emitters it finds get MIS weights (`mis_last`).
 """
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
@@ -17,7 +19,7 @@ import numpy as np
 
 from dpmhw.errors import RenderError
 from dpmhw.render import kernels
-from dpmhw.render.accel import Hits
+from dpmhw.render.accel import Hits, empty_hits
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.frame import Frame
 from dpmhw.render.geometry import SceneGeometry
@@ -26,6 +28,7 @@ from dpmhw.transforms import Pose
 
 f32 = np.float32
 GLOSSY_ROUGHNESS = 0.5  # below this, a specular lobe is sharp enough that NEE alone is noisy
+SEGMENTS = 64  # image segments, traced independently (fixed: results must not depend on the thread count)
 
 
 @dataclass
@@ -39,11 +42,14 @@ class RayCounts:
 
 
 class PathIntegrator:
-    """Renders a Scene from its camera. Thread count applies to Embree queries."""
+    """Renders a Scene from its camera on `threads` threads (image segments, each taken through
+    shading and its Embree queries by one thread)."""
 
     def __init__(self, scene: Scene, threads: int = 2, mis_last: bool | None = None):
         self.scene = scene
         self.geometry = SceneGeometry(scene, threads=threads)
+        self.threads = max(1, int(threads))
+        self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="render") if self.threads > 1 else None
         r = scene.render
         self.width, self.height, self.max_bounces = r.width, r.height, r.max_bounces
         self.camera = PinholeCamera(scene.camera.K, scene.camera.dist, r.width, r.height, scene.camera.pose)
@@ -54,8 +60,12 @@ class PathIntegrator:
         self.counts = RayCounts()
         self._static_primary_key = None
         self._static_primary_hits = None
+        self._work: _Work | None = None
 
     def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
         self.geometry.close()
 
     def __enter__(self):
@@ -89,18 +99,24 @@ class PathIntegrator:
         gbuf = _GBuffer(npix)
         nonfinite = np.zeros(npix, np.int32)
         o, d = camera.generate_rays()
-        primary = self.geometry.accel.intersect(o, d, R, T, static_hits=self._static_primary(camera, o, d))
+        static_hits = self._static_primary(camera, o, d)
+        # without moving objects the cached hits are the primary hits; with them, the first pass
+        # completes them per segment (in its thread) into a work buffer the later passes reuse
+        moving = bool(self.geometry.accel.dynamic_objects)
+        primary = self._work_buffers(npix).primary if moving else static_hits
         self.counts.primary = npix
         done = 0
         for p in range(spp):
             if should_stop is not None and done > 0 and should_stop():
                 break
-            self._trace_pass(kernels.pass_key(seed, p), d, primary, R, T, camera, film, gbuf, nonfinite, p == 0)
+            self._trace_pass(kernels.pass_key(seed, p), o, d, static_hits if moving and p == 0 else None, primary,
+                             R, T, camera, film, gbuf, nonfinite, p == 0)
             done += 1
             if progress is not None:
                 progress(done, spp)
         H, W = self.height, self.width
-        emit, diff, spec = (film[k].reshape(H, W, 3) / f32(done) for k in ("emit", "diff", "spec"))
+        # x / 1 == x exactly: at 1 spp hand over the film arrays (fresh each frame) without copies
+        emit, diff, spec = (film[k].reshape(H, W, 3) / f32(done) if done > 1 else film[k].reshape(H, W, 3) for k in ("emit", "diff", "spec"))
         return Frame(
             radiance=emit + diff + spec, diffuse=diff, specular=spec,
             object_id=gbuf.id.reshape(H, W), model_position=gbuf.model.reshape(H, W, 3),
@@ -119,56 +135,98 @@ class PathIntegrator:
             self.counts.primary_static_traced = len(o)
         return self._static_primary_hits
 
-    def _trace_pass(self, key, primary_dirs, primary: Hits, R, T, camera, film, gbuf, nonfinite, write_gbuffer):
-        g = self.geometry
-        n = len(primary.t)
-        pixel = np.arange(n, dtype=np.int32)
-        rd, hits = primary_dirs, primary
-        beta = np.empty((n, 3), f32)  # at depth 0 the kernel reads none of these: it starts paths at 1
-        kd = np.empty((n, 3), f32)
-        prev_pdf = np.empty(n, f32)
-        prev_n = np.empty((n, 3), f32)
+    def _trace_pass(self, key, camera_o, primary_dirs, static_hits: Hits | None, primary: Hits, R, T, camera, film, gbuf,
+                    nonfinite, write_gbuffer):
+        """One sample per pixel. The image is cut into SEGMENTS row ranges; each is traced to the
+        end of its paths by one thread (shade → shadow rays → continuation rays → shade …), so a
+        segment's rays and hits are still in cache when the next stage reads them, and the
+        threads never wait for each other between stages. Segments write disjoint pixels."""
+        w = self._work_buffers(len(primary.t))
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
+
+        def run(segment):
+            first, count = segment
+            return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
+                                       film, gbuf, nonfinite, write_gbuffer, w)
+
+        segments = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
+        results = list(self._pool.map(run, segments)) if self._pool is not None else [run(s) for s in segments]
+        self.counts.occluded += sum(r[0] for r in results)
+        self.counts.intersect += sum(r[1] for r in results)
+
+    def _trace_segment(self, first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
+                       film, gbuf, nonfinite, write_gbuffer, w: "_Work") -> tuple[int, int]:
+        """All bounces of the paths through pixels [first, first + count); their rows in the
+        work buffers are the same range. `static_hits`: the camera rays' cached hits on static
+        objects, to complete with the moving objects into `primary` first (None: `primary` is
+        ready). Returns (shadow rays, continuation rays) traced."""
+        g = self.geometry
+        if static_hits is not None:
+            end = first + count
+            for name in ("t", "obj", "prim", "u", "v"):
+                getattr(primary, name)[first:end] = getattr(static_hits, name)[first:end]
+            g.accel.intersect_range(camera_o, primary_dirs, first, end, R, T, primary, static_done=True)
         last_depth = self.max_bounces + (1 if self.mis_last else 0)
+        rd, hits = primary_dirs, primary
+        rays = 0  # which of the two ray buffers the kernel writes continuation rays into
+        traced_shadow = traced_next = 0
         depth = 0
         while True:
-            m = len(pixel)
-            sh_o = np.empty((m, 3), f32)
-            sh_d = np.empty((m, 3), f32)
-            sh_tmax = np.empty(m, f32)
-            sh_c = np.empty((m, 6), f32)
-            sh_valid = np.empty(m, np.bool_)
-            nx_o = np.empty((m, 3), f32)
-            nx_d = np.empty((m, 3), f32)
-            alive = np.empty(m, np.bool_)
-            kernels.shade(
-                depth, self.max_bounces, self.mis_last, key, pixel, rd,
-                hits.t, hits.obj, hits.prim, hits.u, hits.v, beta, kd, prev_pdf, prev_n,
+            nx_o, nx_d = w.ray_o[rays], w.ray_d[rays]
+            n_shadow, n_next = kernels.shade(
+                depth, self.max_bounces, self.mis_last, key, first, count, w.pixel, rd,
+                hits.t, hits.obj, hits.prim, hits.u, hits.v, w.beta, w.kd, w.prev_pdf, w.prev_n,
                 g.tri,
                 R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
                 g.light_prim, g.light_obj, g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd,
                 film["emit"], film["diff"], film["spec"], nonfinite,
                 gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer,
-                sh_o, sh_d, sh_tmax, sh_c, sh_valid, nx_o, nx_d, alive,
+                w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, nx_o, nx_d,
             )
-            shadow = np.flatnonzero(sh_valid)
-            if shadow.size:
-                s_pix, s_o, s_d, s_tmax, s_c = kernels.gather_shadow_rays(shadow, pixel, sh_o, sh_d, sh_tmax, sh_c)
-                blocked = g.accel.occluded(s_o, s_d, s_tmax, R, T)
-                self.counts.occluded += shadow.size
-                kernels.add_unoccluded(s_pix, s_c, blocked, film["diff"], film["spec"])
-            if depth >= last_depth:
-                break
-            keep = np.flatnonzero(alive)
-            if keep.size == 0:
-                break
-            pixel, beta, kd, prev_pdf, prev_n, origins, rd = kernels.gather_paths(keep, pixel, beta, kd, prev_pdf, prev_n, nx_o, nx_d)
-            hits = g.accel.intersect(origins, rd, R, T)
-            self.counts.intersect += keep.size
+            if n_shadow:
+                g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, first + n_shadow, R, T, w.blocked)
+                kernels.add_unoccluded(first, n_shadow, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"])
+                traced_shadow += n_shadow
+            if depth >= last_depth or n_next == 0:
+                return traced_shadow, traced_next
+            g.accel.intersect_range(nx_o, nx_d, first, first + n_next, R, T, w.hits)
+            traced_next += n_next
+            rd, hits, rays, count = nx_d, w.hits, 1 - rays, n_next
             depth += 1
             if depth > 4096:
                 raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
+
+    def _work_buffers(self, n: int) -> "_Work":
+        if self._work is None or self._work.n != n:
+            self._work = _Work(n)
+        return self._work
+
+
+class _Work:
+    """Per-path working arrays, kept between frames (fresh multi-MB arrays cost page faults every
+    frame). Segment s owns rows [starts[s], starts[s] + full_counts[s]) of every array."""
+
+    def __init__(self, n: int):
+        self.n = n
+        size = -(-n // SEGMENTS)
+        self.starts = np.minimum(np.arange(SEGMENTS, dtype=np.int64) * size, n)
+        self.full_counts = np.minimum(self.starts + size, n) - self.starts
+        self.pixel = np.empty(n, np.int32)
+        self.beta = np.empty((n, 3), f32)
+        self.kd = np.empty((n, 3), f32)
+        self.prev_pdf = np.empty(n, f32)
+        self.prev_n = np.empty((n, 3), f32)
+        self.ray_o = (np.empty((n, 3), f32), np.empty((n, 3), f32))  # ping-pong: a kernel reads one, writes the other
+        self.ray_d = (np.empty((n, 3), f32), np.empty((n, 3), f32))
+        self.hits = empty_hits(n)
+        self.primary = empty_hits(n)  # camera hits, when objects move (the static ones are cached)
+        self.sh_o = np.empty((n, 3), f32)
+        self.sh_d = np.empty((n, 3), f32)
+        self.sh_tmax = np.empty(n, f32)
+        self.sh_c = np.empty((n, 6), f32)
+        self.sh_pix = np.empty(n, np.int32)
+        self.blocked = np.empty(n, np.bool_)
 
 
 class _GBuffer:

@@ -1,4 +1,4 @@
-"""The per-frame shading kernels, fused with numba (parallel, cached on disk).
+"""The per-frame shading kernels, fused with numba (serial and GIL-free, cached on disk).
 
 Chained numpy temporaries cost several times the arithmetic here, so each wavefront stage is one
 kernel over the active paths: surface interaction, emission with MIS, next-event estimation,
@@ -121,34 +121,38 @@ def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, ar, ag, ab, sr, sg, sb,
     return fd0, fd1, fd2, fs0, fs1, fs2, pdf
 
 
-@nb.njit(parallel=True, **_jit)
+@nb.njit(nogil=True, **_jit)
 def shade(
-    depth, max_bounces, mis_last, key, pixel, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v,
+    depth, max_bounces, mis_last, key, first, count, pixel, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v,
     beta, kd, prev_pdf, prev_n,
     tri,
     obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
     light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
     film_emit, film_diff, film_spec, nonfinite,
     gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
-    sh_o, sh_d, sh_tmax, sh_c, sh_valid,
-    nx_o, nx_d, alive,
+    sh_o, sh_d, sh_tmax, sh_c, sh_pix,
+    nx_o, nx_d,
 ):
-    """One wavefront step over the active paths (see module doc).
+    """One wavefront step over the paths in rows [first, first + count) (see module doc),
+    compacting as it goes. Serial and without the GIL: the integrator runs one image segment
+    per call, on several threads at once (at depth 0 the rows are pixels, path index = pixel
+    index, and `pixel` is only written).
 
     `tri` : (F, 24) float32 rows of v0, e1 = v1 − v0, e2 = v2 − v0, unit geometric normal and the
     three corner shading normals, all in model space: one hit touches two cache lines.
-    Writes the film at each path's pixel; a shadow ray per path (sh_o, sh_d, sh_tmax, with its
-    diffuse and specular contributions in sh_c[:, 0:3] and sh_c[:, 3:6], added if unoccluded);
-    and the continuation (nx_o, nx_d, alive, with beta, kd, prev_pdf, prev_n updated in place)."""
-    n = pixel.shape[0]
+    Writes the film at each path's pixel, and, packed from row `first`: the shadow rays (sh_o,
+    sh_d, sh_tmax, sh_pix, with their diffuse and specular contributions in sh_c[:, 0:3] and
+    sh_c[:, 3:6], added if unoccluded) and the surviving paths (pixel, beta, kd, prev_pdf, prev_n
+    compacted in place; their rays in nx_o, nx_d, which must not be `rd`). Compacting in place is
+    safe: row j ≤ k is written only after row k has been read. Returns (shadow rays, survivors)."""
     p_area = 1.0 - p_env
     has_bg = background[0] > 0.0 or background[1] > 0.0 or background[2] > 0.0
     last = depth >= max_bounces
     base_dim = depth * DIMS_PER_BOUNCE
-    for k in nb.prange(n):
-        pix = pixel[k]
-        sh_valid[k] = False
-        alive[k] = False
+    ns = first  # next shadow-ray row
+    nc = first  # next surviving-path row
+    for k in range(first, first + count):
+        pix = k if depth == 0 else pixel[k]
         d0, d1, d2 = rd[k, 0], rd[k, 1], rd[k, 2]
         ob = hit_obj[k]
         if depth == 0:
@@ -270,7 +274,7 @@ def shade(
             t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
             r = math.sqrt(u1)
             phi = 2.0 * math.pi * u2
-            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))
+            x, y, z = r * math.cos(np.float32(phi)), r * math.sin(np.float32(phi)), math.sqrt(max(0.0, 1.0 - u1))
             wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
             pdf_l = p_env * z * INV_PI
             li0, li1, li2 = background[0], background[1], background[2]
@@ -322,12 +326,13 @@ def shade(
                 cs0, cs1, cs2 = t0 - cd0, t1 - cd1, t2 - cd2
             if math.isfinite(cd0 + cd1 + cd2 + cs0 + cs1 + cs2):
                 if cd0 + cd1 + cd2 + cs0 + cs1 + cs2 > 0.0:
-                    sh_valid[k] = True
-                    sh_o[k, 0], sh_o[k, 1], sh_o[k, 2] = o0, o1, o2
-                    sh_d[k, 0], sh_d[k, 1], sh_d[k, 2] = wi0, wi1, wi2
-                    sh_tmax[k] = tmax
-                    sh_c[k, 0], sh_c[k, 1], sh_c[k, 2] = cd0, cd1, cd2
-                    sh_c[k, 3], sh_c[k, 4], sh_c[k, 5] = cs0, cs1, cs2
+                    sh_pix[ns] = pix
+                    sh_o[ns, 0], sh_o[ns, 1], sh_o[ns, 2] = o0, o1, o2
+                    sh_d[ns, 0], sh_d[ns, 1], sh_d[ns, 2] = wi0, wi1, wi2
+                    sh_tmax[ns] = tmax
+                    sh_c[ns, 0], sh_c[ns, 1], sh_c[ns, 2] = cd0, cd1, cd2
+                    sh_c[ns, 3], sh_c[ns, 4], sh_c[ns, 5] = cs0, cs1, cs2
+                    ns += 1
             else:
                 nonfinite[pix] += 1
         if not (continues or mis_last):
@@ -353,8 +358,8 @@ def shade(
             e0, e1, e2 = vy * a2 - vz * a1, vz * a0 - vx * a2, vx * a1 - vy * a0
             r = math.sqrt(u1)
             phi = 2.0 * math.pi * u2
-            q1 = r * math.cos(phi)
-            q2 = r * math.sin(phi)
+            q1 = r * math.cos(np.float32(phi))
+            q2 = r * math.sin(np.float32(phi))
             sv = 0.5 * (1.0 + vz)
             q2 = (1.0 - sv) * math.sqrt(max(0.0, 1.0 - q1 * q1)) + sv * q2
             q3 = math.sqrt(max(0.0, 1.0 - q1 * q1 - q2 * q2))
@@ -372,7 +377,7 @@ def shade(
         else:
             r = math.sqrt(u1)
             phi = 2.0 * math.pi * u2
-            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))
+            x, y, z = r * math.cos(np.float32(phi)), r * math.sin(np.float32(phi)), math.sqrt(max(0.0, 1.0 - u1))
             wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if cos_i <= 0.0 or _dot(wi0, wi1, wi2, g0, g1, g2) <= 0.0:
@@ -382,9 +387,9 @@ def shade(
             continue
         f0, f1, f2 = fd0 + fs0, fd1 + fs1, fd2 + fs2
         if depth == 0:  # split the path by the lobe weights at the first vertex
-            kd[k, 0] = fd0 / f0 if f0 > 0.0 else 1.0
-            kd[k, 1] = fd1 / f1 if f1 > 0.0 else 1.0
-            kd[k, 2] = fd2 / f2 if f2 > 0.0 else 1.0
+            kdr = fd0 / f0 if f0 > 0.0 else 1.0
+            kdg = fd1 / f1 if f1 > 0.0 else 1.0
+            kdb = fd2 / f2 if f2 > 0.0 else 1.0
         scale = cos_i / pdf_b
         nb0, nb1, nb2 = b0 * f0 * scale, b1 * f1 * scale, b2 * f2 * scale
         if depth + 1 >= RR_START_DEPTH:
@@ -397,68 +402,26 @@ def shade(
             continue
         if nb0 + nb1 + nb2 <= 0.0:
             continue
-        beta[k, 0], beta[k, 1], beta[k, 2] = nb0, nb1, nb2
-        prev_pdf[k] = pdf_b
-        prev_n[k, 0], prev_n[k, 1], prev_n[k, 2] = s0, s1, s2
-        nx_o[k, 0], nx_o[k, 1], nx_o[k, 2] = o0, o1, o2
-        nx_d[k, 0], nx_d[k, 1], nx_d[k, 2] = wi0, wi1, wi2
-        alive[k] = True
+        pixel[nc] = pix
+        beta[nc, 0], beta[nc, 1], beta[nc, 2] = nb0, nb1, nb2
+        kd[nc, 0], kd[nc, 1], kd[nc, 2] = kdr, kdg, kdb
+        prev_pdf[nc] = pdf_b
+        prev_n[nc, 0], prev_n[nc, 1], prev_n[nc, 2] = s0, s1, s2
+        nx_o[nc, 0], nx_o[nc, 1], nx_o[nc, 2] = o0, o1, o2
+        nx_d[nc, 0], nx_d[nc, 1], nx_d[nc, 2] = wi0, wi1, wi2
+        nc += 1
+    return ns - first, nc - first
 
 
-@nb.njit(parallel=True, **_jit)
-def add_unoccluded(pixel, contrib, blocked, film_diff, film_spec):
-    """Add each shadow ray's contribution where nothing blocked it."""
-    for k in nb.prange(pixel.shape[0]):
+@nb.njit(nogil=True, **_jit)
+def add_unoccluded(first, count, sh_pix, contrib, blocked, film_diff, film_spec):
+    """Add the contribution of each shadow ray in rows [first, first + count) that nothing blocked."""
+    for k in range(first, first + count):
         if not blocked[k]:
-            p = pixel[k]
+            p = sh_pix[k]
             film_diff[p, 0] += contrib[k, 0]
             film_diff[p, 1] += contrib[k, 1]
             film_diff[p, 2] += contrib[k, 2]
             film_spec[p, 0] += contrib[k, 3]
             film_spec[p, 1] += contrib[k, 4]
             film_spec[p, 2] += contrib[k, 5]
-
-
-@nb.njit(parallel=True, **_jit)
-def gather_shadow_rays(index, pixel, sh_o, sh_d, sh_tmax, sh_c):
-    """Compact the valid shadow rays (numpy fancy indexing costs several times more)."""
-    m = index.shape[0]
-    pix = np.empty(m, np.int32)
-    o = np.empty((m, 3), np.float32)
-    d = np.empty((m, 3), np.float32)
-    tmax = np.empty(m, np.float32)
-    c = np.empty((m, 6), np.float32)
-    for j in nb.prange(m):
-        i = index[j]
-        pix[j] = pixel[i]
-        tmax[j] = sh_tmax[i]
-        for a in range(3):
-            o[j, a] = sh_o[i, a]
-            d[j, a] = sh_d[i, a]
-        for a in range(6):
-            c[j, a] = sh_c[i, a]
-    return pix, o, d, tmax, c
-
-
-@nb.njit(parallel=True, **_jit)
-def gather_paths(index, pixel, beta, kd, prev_pdf, prev_n, nx_o, nx_d):
-    """Compact the surviving paths and their continuation rays."""
-    m = index.shape[0]
-    pix = np.empty(m, np.int32)
-    b = np.empty((m, 3), np.float32)
-    k = np.empty((m, 3), np.float32)
-    pdf = np.empty(m, np.float32)
-    pn = np.empty((m, 3), np.float32)
-    o = np.empty((m, 3), np.float32)
-    d = np.empty((m, 3), np.float32)
-    for j in nb.prange(m):
-        i = index[j]
-        pix[j] = pixel[i]
-        pdf[j] = prev_pdf[i]
-        for a in range(3):
-            b[j, a] = beta[i, a]
-            k[j, a] = kd[i, a]
-            pn[j, a] = prev_n[i, a]
-            o[j, a] = nx_o[i, a]
-            d[j, a] = nx_d[i, a]
-    return pix, b, k, pdf, pn, o, d
