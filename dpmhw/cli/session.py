@@ -88,6 +88,7 @@ def start(
     from dpmhw.session.factory import build_session
 
     def make_loop():
+        typer.echo("opening devices, loading the scene, readying the render kernels (a first run compiles them) …")
         loop = build_session(cfg, mock=mock).start()
         typer.echo(f"session started ({'mock devices' if mock else 'hardware'}); scene {cfg.scene.source}, "
                    f"render {loop.parts.renderer.width}×{loop.parts.renderer.height}")

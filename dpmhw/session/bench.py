@@ -283,13 +283,18 @@ def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...
     finally:
         loop.stop()
 
-    def frame_ms(key) -> list[float]:
+    def frame_ms(windows_: list[tuple[int, int]]) -> list[float]:
         return [r.stages_s["frame"] * 1e3 for r in records
-                if any(a <= r.t_start_ns and r.t_present_ns <= b for a, b in spans[key])]
+                if any(a <= r.t_start_ns and r.t_present_ns <= b for a, b in windows_)]
+
+    def ratio(x: list[float], y: list[float]) -> float | None:
+        px, py = _pct(x, (99,))[0], _pct(y, (99,))[0]
+        return None if not (px and py) else round(py / px, 3)
 
     out = []
     for mode in modes:
-        q, b = _pct(frame_ms((mode, False))), _pct(frame_ms((mode, True)))
+        quiet, busy = frame_ms(spans[mode, False]), frame_ms(spans[mode, True])
+        q, b = _pct(quiet), _pct(busy)
         requests, errors, cpu, response_ms = counts[mode]
         out.append({"case": f"{trajectory} API load", "api_mode": mode, "clients": clients, "rate_hz": rate_hz,
                     "client_priority": client_priority,
@@ -299,10 +304,13 @@ def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...
                     "client_cpu_ms_per_request": None if cpu["clients"] is None or not requests
                     else round(cpu["clients"] * 1e3 / requests, 3),
                     "windows": windows, "window_s": window_s, "requests": requests, "errors": errors,
-                    "unloaded_frames": len(frame_ms((mode, False))), "loaded_frames": len(frame_ms((mode, True))),
+                    "unloaded_frames": len(quiet), "loaded_frames": len(busy),
                     "unloaded_frame_ms": dict(zip(("p50", "p95", "p99"), q)),
                     "loaded_frame_ms": dict(zip(("p50", "p95", "p99"), b)),
-                    "p99_ratio": None if not (q[2] and b[2]) else round(b[2] / q[2], 3)})
+                    "p99_ratio": ratio(quiet, busy),
+                    # the noise floor: the same ratio between the odd and even unloaded windows
+                    "unloaded_split_p99_ratio": ratio(frame_ms(spans[mode, False][0::2]),
+                                                      frame_ms(spans[mode, False][1::2]))})
     return out
 
 
@@ -344,7 +352,8 @@ def format_table(bench: dict) -> str:
                      f"/frame.png ({load['requests']} requests, {load['errors']} errors; {load['windows']}+{load['windows']} "
                      f"alternating {load['window_s']:g} s windows; response p50/p99 {load['response_ms']['p50']}/"
                      f"{load['response_ms']['p99']} ms): frame time p50/p99 {b['p50']}/{b['p99']} ms loaded vs "
-                     f"{u['p50']}/{u['p99']} ms unloaded, p99 ratio {load['p99_ratio']}")
+                     f"{u['p50']}/{u['p99']} ms unloaded, p99 ratio {load['p99_ratio']} (unloaded vs unloaded: "
+                     f"{load['unloaded_split_p99_ratio']})")
     if not results:
         return "\n".join(lines)
     lines.append("latency: tracker mid-exposure → frame presented; reg: symmetric outline distance between the "

@@ -237,6 +237,22 @@ def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):
     return make_sink("window", display=config.sink.display, size=(shape[1], shape[0]))
 
 
+def warm_up(renderer, scene: Scene) -> None:
+    """Run every per-frame kernel once before the loop starts. On a fresh install the first call
+    compiles them (numba; tens of seconds, then cached on disk): inside the loop that would be a
+    stall the watchdog reports as a fault."""
+    from dpmhw.reuse import TemporalReuse
+
+    t0 = time.monotonic()
+    poses = scene.object_poses(0.0)
+    frame = renderer.render(time=0.0, seed=0, spp=1, poses=poses)
+    for mode in ("same-pixel", "motion"):
+        reuse = TemporalReuse(renderer.width, renderer.height, mode=mode)
+        for _ in range(2):  # the second frame takes the history path
+            reuse.update(frame.radiance, frame.object_id, frame.model_position, poses=poses, camera=renderer.camera)
+    log.info("render and reuse kernels ready in %.1f s", time.monotonic() - t0)
+
+
 def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: Any = None) -> SessionParts:
     """Open every part the config names (mocks first with `mock`); closes what it opened on error."""
     scene = prepare_scene(config)
@@ -252,6 +268,7 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
             from dpmhw.render.integrator import PathIntegrator
 
             renderer = PathIntegrator(scene, threads=config.render.threads)
+            warm_up(renderer, scene)
         if hasattr(renderer, "close"):
             closers.append(renderer.close)
         projector = None

@@ -50,3 +50,22 @@ def test_bindings_default_to_the_scene_and_unknown_objects_are_named():
     cfg = load_session_config(overrides=['bindings=[{rigid_body = 4, object = "teapot"}]'])
     with pytest.raises(SessionConfigError, match=r"bindings\[0\].object: no object named 'teapot'"):
         resolve_bindings(cfg, scene)
+
+
+def test_real_renderer_is_warmed_up_before_the_loop_starts(monkeypatch):
+    """The first kernel calls compile (numba): they must happen before the loop, not as its first
+    frame, which the watchdog would report as a stall."""
+    from dpmhw.render.integrator import PathIntegrator
+    from dpmhw.session.config import load_session_config
+    from dpmhw.session.factory import open_session_parts
+
+    calls = []
+    original = PathIntegrator.render
+    monkeypatch.setattr(PathIntegrator, "render", lambda self, *a, **kw: calls.append(kw) or original(self, *a, **kw))
+    cfg = load_session_config(overrides=["render.width=32", "render.height=24", "projector.kind=none", "sink.kind=none"])
+    parts = open_session_parts(cfg, mock=True)
+    try:
+        assert len(calls) == 1 and calls[0]["spp"] == 1
+    finally:
+        for close in (parts.tracker.stop, parts.sink.close, parts.renderer.close, *reversed(parts.closers)):
+            close()
