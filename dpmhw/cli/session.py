@@ -166,6 +166,7 @@ def bench_session(
     api_mode: Annotated[Optional[list[str]], typer.Option(help="How the API is served in the load case: process (as `session start` does), thread (inside the session process; for comparison). Repeatable; default both.")] = None,
     api_windows: Annotated[int, typer.Option(min=1, max=100, help="Unloaded/loaded window pairs per API mode.")] = 6,
     api_window_s: Annotated[float, typer.Option(min=0.5, max=60.0, help="Seconds per load window.")] = 3.0,
+    client_priority: Annotated[str, typer.Option(help="CPU priority of the load-client process: normal (the strict test: it competes with the loop like any local program), low, idle (as if the clients were on another machine).")] = "normal",
     api_only: Annotated[bool, typer.Option("--api-only", help="Only the API-load case (skip the registration cases).")] = False,
     trajectory: Annotated[Optional[list[str]], typer.Option(help="linear, rotate-oscillate (repeatable; default both).")] = None,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
@@ -182,10 +183,13 @@ def bench_session(
     for m in modes:
         if m not in ("process", "thread"):
             raise typer.BadParameter(f"--api-mode: expected process or thread, got {m!r}")
+    if client_priority not in ("normal", "low", "idle"):
+        raise typer.BadParameter(f"--client-priority: expected normal, low or idle, got {client_priority!r}")
     if api_only and not api_clients:
         raise typer.BadParameter("--api-only needs --api-clients ≥ 1")
     results = run_bench(trajectories, api_clients=api_clients, api_rate_hz=api_rate, api_modes=modes,
-                        api_windows=api_windows, api_window_s=api_window_s, cases=not api_only, seconds=seconds,
+                        api_windows=api_windows, api_window_s=api_window_s, api_client_priority=client_priority,
+                        cases=not api_only, seconds=seconds,
                         width=width, height=height, spp=spp, overrides=tuple(sets or ()),
                         progress=lambda label: typer.echo(f"running {label} …"))
     typer.echo(format_table(results))

@@ -5,10 +5,12 @@ DLPC900 + in-memory sink) for a few seconds and reports fps, motion-to-photon la
 frame-time percentiles from the loop's own metrics, plus the registration error of the presented
 frames against the simulated world's true pose at the moment each frame was presented.
 
-The API-load case serves one session with uvicorn on 127.0.0.1 and alternates windows without
-and with `clients` threads polling /status, /metrics and /frame.png (each at most `rate_hz`
-requests/s: bounded), so loaded and unloaded frame times come from the same session under the
-same machine conditions.
+The API-load case serves one session's API from its own process (`server.process.ApiProcess`, as
+`dpmhw session start` does) and then from a thread of the session's process, each time with a
+separate process of clients polling /status, /metrics and /frame.png (each at most `rate_hz`
+requests/s: bounded) during every other window, so loaded and unloaded frame times come from the
+same session under the same machine conditions. The p99 ratio comes with a 90 % interval
+(resampling whole windows) and the unloaded-vs-unloaded ratio as its noise floor.
 """
 
 from __future__ import annotations
@@ -291,6 +293,21 @@ def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...
         px, py = _pct(x, (99,))[0], _pct(y, (99,))[0]
         return None if not (px and py) else round(py / px, 3)
 
+    def ratio_interval(quiet_windows, busy_windows, draws: int = 2000) -> list[float] | None:
+        """90 % interval of the p99 ratio, resampling whole windows (frames in one window are
+        correlated; windows are the independent units)."""
+        per_q = [np.asarray(frame_ms([w])) for w in quiet_windows]
+        per_b = [np.asarray(frame_ms([w])) for w in busy_windows]
+        if not all(len(x) for x in per_q + per_b):
+            return None
+        rng = np.random.default_rng(0)
+        ratios = []
+        for _ in range(draws):
+            q = np.concatenate([per_q[i] for i in rng.integers(0, len(per_q), len(per_q))])
+            b = np.concatenate([per_b[i] for i in rng.integers(0, len(per_b), len(per_b))])
+            ratios.append(np.percentile(b, 99) / np.percentile(q, 99))
+        return [round(float(x), 3) for x in np.percentile(ratios, [5, 95])]
+
     out = []
     for mode in modes:
         quiet, busy = frame_ms(spans[mode, False]), frame_ms(spans[mode, True])
@@ -308,6 +325,7 @@ def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...
                     "unloaded_frame_ms": dict(zip(("p50", "p95", "p99"), q)),
                     "loaded_frame_ms": dict(zip(("p50", "p95", "p99"), b)),
                     "p99_ratio": ratio(quiet, busy),
+                    "p99_ratio_90ci": ratio_interval(spans[mode, False], spans[mode, True]),
                     # the noise floor: the same ratio between the odd and even unloaded windows
                     "unloaded_split_p99_ratio": ratio(frame_ms(spans[mode, False][0::2]),
                                                       frame_ms(spans[mode, False][1::2]))})
@@ -316,7 +334,7 @@ def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...
 
 def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int = 4, api_rate_hz: float = 10.0,
               api_modes: tuple[str, ...] = ("process", "thread"), api_windows: int = 6, api_window_s: float = 3.0,
-              cases: bool = True, progress=None, **kw) -> dict:
+              api_client_priority: str = "normal", cases: bool = True, progress=None, **kw) -> dict:
     """Every trajectory with prediction on and off (unless not `cases`), then (if `api_clients`)
     the API-load comparison for each of `api_modes`."""
     results = []
@@ -330,7 +348,7 @@ def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int =
             progress(f"API load: {api_clients} clients × {api_rate_hz:g} req/s, API served by {' then '.join(api_modes)}")
         size = {k: kw[k] for k in ("width", "height", "spp", "overrides") if k in kw}
         load = run_load_case(trajectories[-1], modes=api_modes, clients=api_clients, rate_hz=api_rate_hz,
-                             windows=api_windows, window_s=api_window_s, **size)
+                             client_priority=api_client_priority, windows=api_windows, window_s=api_window_s, **size)
     return {"cases": results, "api_load": load}
 
 
@@ -348,11 +366,13 @@ def format_table(bench: dict) -> str:
     for load in bench.get("api_load") or []:
         u, b = load["unloaded_frame_ms"], load["loaded_frame_ms"]
         where = "own process" if load["api_mode"] == "process" else "thread of the session process"
-        lines.append(f"API in its {where}: {load['clients']} clients × ≤{load['rate_hz']:g} req/s on /status, /metrics, "
+        lines.append(f"API in its {where}: {load['clients']} clients ({load['client_priority']} priority) × "
+                     f"≤{load['rate_hz']:g} req/s on /status, /metrics, "
                      f"/frame.png ({load['requests']} requests, {load['errors']} errors; {load['windows']}+{load['windows']} "
                      f"alternating {load['window_s']:g} s windows; response p50/p99 {load['response_ms']['p50']}/"
                      f"{load['response_ms']['p99']} ms): frame time p50/p99 {b['p50']}/{b['p99']} ms loaded vs "
-                     f"{u['p50']}/{u['p99']} ms unloaded, p99 ratio {load['p99_ratio']} (unloaded vs unloaded: "
+                     f"{u['p50']}/{u['p99']} ms unloaded, p99 ratio {load['p99_ratio']} (90 % interval "
+                     f"{load['p99_ratio_90ci']}; unloaded vs unloaded: "
                      f"{load['unloaded_split_p99_ratio']})")
     if not results:
         return "\n".join(lines)
