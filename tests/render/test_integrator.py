@@ -60,6 +60,17 @@ def test_same_seed_repeats_bit_for_bit_and_seeds_differ(make_scene, render):
     assert np.array_equal(a.radiance, single.radiance)
 
 
+def test_segmentation_does_not_change_the_image(make_scene, render, monkeypatch):
+    import dpmhw.render.integrator as integrator
+
+    scene = make_scene(ROOM.format(extra=""))
+    a = render(scene, spp=2, seed=7)
+    for pixels in (97, 10**9):  # many small segments, then one segment
+        monkeypatch.setattr(integrator, "SEGMENT_PIXELS", pixels)
+        b = render(scene, spp=2, seed=7)
+        assert np.array_equal(a.radiance, b.radiance) and np.array_equal(a.object_id, b.object_id)
+
+
 def test_error_falls_like_one_over_sqrt_spp(make_scene, render):
     scene = make_scene(ROOM.format(extra=""))
     reference = render(scene, spp=2048, seed=1000).radiance
