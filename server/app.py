@@ -1,7 +1,7 @@
 """The FastAPI app: assembled here, routes in `routers/`, shared dependencies in `deps.py`.
 
-    app = build_app(runtime=loop, token="…")    # in the session's process (tests, embedding)
-    ApiProcess(loop, token="…")                 # what `dpmhw session start` runs: server/process.py
+    app = build_app(runtime=loop, token="…")        # in the session's process (tests, embedding)
+    ApiProcess(token="…").start(loop)               # what `dpmhw session start` runs: server/process.py
 
 The service only reads the session's published snapshots and queues validated setting changes.
 Bind it to 127.0.0.1 unless the lab network needs more.

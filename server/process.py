@@ -223,7 +223,7 @@ class RemoteRuntime:
                  command_timeout_s: float = 2.0):
         self.status_slot = status_slot
         self.frame_slot = frame_slot
-        self.stale_after_ns = int(stale_after_s * 1e9)
+        self.stale_after_s = stale_after_s
         self.command_timeout_s = command_timeout_s
         self._conn = conn
         self._call_lock = threading.Lock()
@@ -233,7 +233,8 @@ class RemoteRuntime:
         self._frame: tuple[int, LatestFrame] | None = None
         self._own_settings: tuple[int, LiveSettings] | None = None  # from our last accepted PATCH
 
-    def _read(self) -> tuple[int, dict]:
+    def _read(self) -> tuple[dict, float]:
+        """The latest published payload (decoded once per publish) and seconds since it was published."""
         seq = self.status_slot.sequence()
         with self._cache_lock:
             if self._payload is None or self._payload[0] != seq:
@@ -242,28 +243,25 @@ class RemoteRuntime:
                     raise RuntimeUnavailable("the session has not published a status yet")
                 seq, published, _, data = got
                 self._payload = (seq, published, json.loads(data))
-            return self._payload[1], self._payload[2]
-
-    def _silent_for_s(self, published_ns: int) -> float:
-        return (time.monotonic_ns() - published_ns) / 1e9
+            _, published, payload = self._payload
+        return payload, (time.monotonic_ns() - published) / 1e9
 
     def status(self) -> dict:
-        published, payload = self._read()
-        out = dict(payload["status"])
-        silent = self._silent_for_s(published)
-        out["snapshot_age_s"] = round(silent, 3)
-        if silent * 1e9 > self.stale_after_ns and out.get("state") != "stopped":
+        payload, silent_s = self._read()
+        last = payload["status"]
+        out = dict(last, snapshot_age_s=round(silent_s, 3))
+        if silent_s > self.stale_after_s and last.get("state") != "stopped":
             out.update(state="fault", output_on=False,
-                       reason=f"the session process has not published for {silent:.1f} s (stuck or gone); "
-                              f"last state {payload['status'].get('state')}: {payload['status'].get('reason', '')}")
+                       reason=f"the session process has not published for {silent_s:.1f} s (stuck or gone); "
+                              f"last state {last.get('state')}: {last.get('reason', '')}")
         return out
 
     def ready(self) -> bool:
-        published, payload = self._read()
-        return bool(payload["ready"]) and self._silent_for_s(published) * 1e9 <= self.stale_after_ns
+        payload, silent_s = self._read()
+        return bool(payload["ready"]) and silent_s <= self.stale_after_s
 
     def settings(self) -> LiveSettings:
-        _, payload = self._read()
+        payload, _ = self._read()
         own = self._own_settings
         if own is not None and own[0] > payload["t_read_ns"]:
             return own[1]  # our change was accepted after that snapshot was taken

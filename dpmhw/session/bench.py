@@ -112,7 +112,7 @@ class _ApiLoad:
     def __init__(self, loop, mode: str, clients: int, rate_hz: float = 10.0, client_priority: str = "normal"):
         import multiprocessing
 
-        self.loop, self.mode = loop, mode
+        self.loop = loop
         ctx = multiprocessing.get_context("spawn")
         # clients send only while `active` is set (the load windows)
         self.ready, self.active, self.stop_event = ctx.Event(), ctx.Event(), ctx.Event()
@@ -252,8 +252,7 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
 
 def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...] = ("process", "thread"),
                   clients: int = 4, rate_hz: float = 10.0, client_priority: str = "normal", windows: int = 6,
-                  window_s: float = 3.0,
-                  warmup_s: float = 1.5, width: int = 256, height: int = 192, spp: int = 1,
+                  window_s: float = 3.0, warmup_s: float = 1.5, width: int = 256, height: int = 192, spp: int = 1,
                   overrides: tuple[str, ...] = ()) -> list[dict]:
     """Frame time with and without API load, in alternating windows of one session (the same
     machine conditions for both), for each way of serving the API (`_ApiLoad`)."""
@@ -285,50 +284,45 @@ def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...
     finally:
         loop.stop()
 
-    def frame_ms(windows_: list[tuple[int, int]]) -> list[float]:
-        return [r.stages_s["frame"] * 1e3 for r in records
-                if any(a <= r.t_start_ns and r.t_present_ns <= b for a, b in windows_)]
+    def frame_ms(a: int, b: int) -> np.ndarray:
+        return np.array([r.stages_s["frame"] * 1e3 for r in records if a <= r.t_start_ns and r.t_present_ns <= b])
 
-    def ratio(x: list[float], y: list[float]) -> float | None:
-        px, py = _pct(x, (99,))[0], _pct(y, (99,))[0]
-        return None if not (px and py) else round(py / px, 3)
+    def p99_ratio(quiet: list[np.ndarray], busy: list[np.ndarray]) -> float | None:
+        q, b = np.concatenate([[], *quiet]), np.concatenate([[], *busy])
+        return None if not (len(q) and len(b)) else round(float(np.percentile(b, 99) / np.percentile(q, 99)), 3)
 
-    def ratio_interval(quiet_windows, busy_windows, draws: int = 2000) -> list[float] | None:
+    def ratio_interval(quiet: list[np.ndarray], busy: list[np.ndarray], draws: int = 2000) -> list[float] | None:
         """90 % interval of the p99 ratio, resampling whole windows (frames in one window are
         correlated; windows are the independent units)."""
-        per_q = [np.asarray(frame_ms([w])) for w in quiet_windows]
-        per_b = [np.asarray(frame_ms([w])) for w in busy_windows]
-        if not all(len(x) for x in per_q + per_b):
+        if not all(len(x) for x in quiet + busy):
             return None
         rng = np.random.default_rng(0)
-        ratios = []
-        for _ in range(draws):
-            q = np.concatenate([per_q[i] for i in rng.integers(0, len(per_q), len(per_q))])
-            b = np.concatenate([per_b[i] for i in rng.integers(0, len(per_b), len(per_b))])
-            ratios.append(np.percentile(b, 99) / np.percentile(q, 99))
+        ratios = [p99_ratio([quiet[i] for i in rng.integers(0, len(quiet), len(quiet))],
+                            [busy[i] for i in rng.integers(0, len(busy), len(busy))]) for _ in range(draws)]
         return [round(float(x), 3) for x in np.percentile(ratios, [5, 95])]
+
+    def per_request_ms(cpu_s: float | None, requests: int) -> float | None:
+        return None if cpu_s is None or not requests else round(cpu_s * 1e3 / requests, 3)
 
     out = []
     for mode in modes:
-        quiet, busy = frame_ms(spans[mode, False]), frame_ms(spans[mode, True])
-        q, b = _pct(quiet), _pct(busy)
+        quiet_w = [frame_ms(*w) for w in spans[mode, False]]  # frame times per window
+        busy_w = [frame_ms(*w) for w in spans[mode, True]]
+        quiet, busy = np.concatenate([[], *quiet_w]), np.concatenate([[], *busy_w])
         requests, errors, cpu, response_ms = counts[mode]
         out.append({"case": f"{trajectory} API load", "api_mode": mode, "clients": clients, "rate_hz": rate_hz,
                     "client_priority": client_priority,
                     "response_ms": dict(zip(("p50", "p95", "p99"), _pct(response_ms))),
-                    "api_cpu_ms_per_request": None if cpu["api"] is None or not requests
-                    else round(cpu["api"] * 1e3 / requests, 3),
-                    "client_cpu_ms_per_request": None if cpu["clients"] is None or not requests
-                    else round(cpu["clients"] * 1e3 / requests, 3),
+                    "api_cpu_ms_per_request": per_request_ms(cpu["api"], requests),
+                    "client_cpu_ms_per_request": per_request_ms(cpu["clients"], requests),
                     "windows": windows, "window_s": window_s, "requests": requests, "errors": errors,
                     "unloaded_frames": len(quiet), "loaded_frames": len(busy),
-                    "unloaded_frame_ms": dict(zip(("p50", "p95", "p99"), q)),
-                    "loaded_frame_ms": dict(zip(("p50", "p95", "p99"), b)),
-                    "p99_ratio": ratio(quiet, busy),
-                    "p99_ratio_90ci": ratio_interval(spans[mode, False], spans[mode, True]),
+                    "unloaded_frame_ms": dict(zip(("p50", "p95", "p99"), _pct(quiet))),
+                    "loaded_frame_ms": dict(zip(("p50", "p95", "p99"), _pct(busy))),
+                    "p99_ratio": p99_ratio(quiet_w, busy_w),
+                    "p99_ratio_90ci": ratio_interval(quiet_w, busy_w),
                     # the noise floor: the same ratio between the odd and even unloaded windows
-                    "unloaded_split_p99_ratio": ratio(frame_ms(spans[mode, False][0::2]),
-                                                      frame_ms(spans[mode, False][1::2]))})
+                    "unloaded_split_p99_ratio": p99_ratio(quiet_w[0::2], quiet_w[1::2])})
     return out
 
 
