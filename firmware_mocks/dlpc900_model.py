@@ -53,6 +53,12 @@ MIN_EXPOSURE_US = {1: 105, 2: 304, 3: 394, 4: 823, 5: 1215, 6: 1487, 7: 1998, 8:
 SETTLE_NS = 300_000_000  # display-mode switch
 MAX_IMAGE_INDEX = 255  # image pattern index is bits 10:0 but the guide limits it to 0..255
 
+# DMD type (0x0206) -> native resolution. The DLP9000 is driven by two DLPC900s, each holding one
+# half of every pattern image (DLPU018: the primary the left half, the secondary the right).
+DMD_RESOLUTION = {1: (1920, 1080), 2: (2560, 1600)}
+DUAL_CONTROLLER_DMDS = {2}
+HW_SECONDARY_PRESENT = 0x10  # hardware status (0x1A0A) bit 4
+
 RESET_LED_ENABLE = 0x08
 RESET_LED_CURRENT = (0x97, 0x78, 0x7D)
 
@@ -136,6 +142,10 @@ class ImageDecodeError(ValueError):
         super().__init__(message)
 
 
+HEADER_SIZE = 48
+MAX_PADDING = 3  # zero bytes after end-of-image that the controller ignores (see docs/projector.md)
+
+
 def _read_count(buf: bytes, i: int) -> tuple[int, int]:
     b0 = buf[i]
     if b0 < 0x80:
@@ -145,34 +155,97 @@ def _read_count(buf: bytes, i: int) -> tuple[int, int]:
     return (b0 & 0x7F) | (buf[i + 1] << 7), i + 2
 
 
+def _pixels(raw: np.ndarray, at: int, n: int) -> np.ndarray:
+    b = raw[at:at + 3 * n].reshape(n, 3).astype(np.uint32)
+    return b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16)
+
+
 def decode_pattern_image(blob: bytes) -> np.ndarray:
     """Header + payload -> (H, W) uint32 image, as the controller would unpack it.
 
-    Raises ImageDecodeError for a bad signature, an unknown compression, a line that over- or
-    under-runs the width, a copy on the first line, a missing end-of-image or trailing lines.
+    Tolerated, because hardware-proven hosts send them (docs/projector.md): a header byte count
+    (offset 8) that is either the payload's length or the whole image's (header included), and up
+    to three zero bytes of padding after the end of the image. Raises ImageDecodeError for a bad
+    signature, an unknown compression, a line that over- or under-runs the width, a copy on the
+    first line, a missing end-of-image, trailing lines, or anything else after the image.
     """
-    if len(blob) < 48:
+    if len(blob) < HEADER_SIZE:
         raise ImageDecodeError(f"image shorter than its 48-byte header ({len(blob)} bytes)")
     if blob[:4] != b"Spld":
         raise ImageDecodeError("bad image signature (expected 'Spld')")
     width, height, nbytes = struct.unpack_from("<HHI", blob, 4)
     compression = blob[25]
-    payload = blob[48:]
+    payload = blob[HEADER_SIZE:]
     if width == 0 or height == 0:
         raise ImageDecodeError("zero image size", ERR_INVALID_PARAMETER)
-    if nbytes != len(payload):
-        raise ImageDecodeError(f"header says {nbytes} data bytes, {len(payload)} received", ERR_INVALID_PARAMETER)
     if compression == 0:
-        if len(payload) != 3 * width * height:
-            raise ImageDecodeError("uncompressed image size does not match width x height x 3")
-        b = np.frombuffer(payload, np.uint8).reshape(height, width, 3).astype(np.uint32)
-        return b[..., 0] | (b[..., 1] << 8) | (b[..., 2] << 16)
-    if compression != 2:
-        raise ImageDecodeError(f"compression {compression} is not emulated (only 0 and 2)")
-    return _decode_erle(payload, width, height)
+        end = 3 * width * height
+        if len(payload) < end:
+            raise ImageDecodeError(f"uncompressed image has {len(payload)} data bytes, "
+                                   f"{width}x{height}x3 = {end} needed")
+        img = _pixels(np.frombuffer(payload, np.uint8), 0, width * height).reshape(height, width)
+    elif compression == 1:
+        img, end = _decode_rle(payload, width, height)
+    elif compression == 2:
+        img, end = _decode_erle(payload, width, height)
+    else:
+        raise ImageDecodeError(f"compression {compression} (expected 0 none, 1 RLE or 2 enhanced RLE)")
+    tail = payload[end:]
+    if len(tail) > MAX_PADDING or any(tail):
+        raise ImageDecodeError(f"{len(tail)} bytes after the end of the image "
+                               f"(at most {MAX_PADDING} zero bytes of padding are accepted)", ERR_INVALID_PARAMETER)
+    accepted = {end, len(payload), HEADER_SIZE + end, HEADER_SIZE + len(payload)}
+    if nbytes not in accepted:
+        raise ImageDecodeError(f"header byte count {nbytes} matches neither the {end}-byte image data "
+                               f"nor the {HEADER_SIZE + end}-byte image with its header", ERR_INVALID_PARAMETER)
+    return img
 
 
-def _decode_erle(buf: bytes, width: int, height: int) -> np.ndarray:
+def _decode_rle(buf: bytes, width: int, height: int) -> tuple[np.ndarray, int]:
+    """Compression 1 (DLPU018 "24-bit RLE"): `n pixel` repeats (n = 1..255), `00 c` + c pixels
+    uncompressed (c >= 2), `00 00` end of line, `00 01` end of image. Every line starts on a
+    4-byte boundary: after an end of line the controller skips to the next multiple of 4, so the
+    bytes in between (padding) are not read. Returns the image and the offset after end-of-image."""
+    out = np.zeros((height, width), dtype=np.uint32)
+    raw = np.frombuffer(buf, dtype=np.uint8)
+    n_bytes = len(buf)
+    y = x = i = 0
+    while True:
+        if i >= n_bytes:
+            raise ImageDecodeError("image data ended without the end-of-image code (00 01)")
+        n = buf[i]
+        if n:  # repeat the next pixel n times
+            if i + 4 > n_bytes:
+                raise ImageDecodeError("repeat token truncated")
+            if y >= height or x + n > width:
+                raise ImageDecodeError(f"repeat of {n} overruns line {y} at column {x}")
+            out[y, x:x + n] = _pixels(raw, i + 1, 1)[0]
+            x, i = x + n, i + 4
+            continue
+        if i + 1 >= n_bytes:
+            raise ImageDecodeError("control code truncated")
+        c = buf[i + 1]
+        if c == 0:  # end of line; the next line starts at the next 4-byte boundary
+            if x != width:
+                raise ImageDecodeError(f"line {y} ended after {x} of {width} pixels")
+            y, x, i = y + 1, 0, (i + 2 + 3) & ~3
+            continue
+        if c == 1:  # end of image
+            if x == width:  # the last line may end with end-of-image instead of 00 00
+                y, x = y + 1, 0
+            if x != 0 or y != height:
+                raise ImageDecodeError(f"end of image after {y} of {height} lines")
+            return out, i + 2
+        if i + 2 + 3 * c > n_bytes:
+            raise ImageDecodeError("uncompressed block truncated")
+        if y >= height or x + c > width:
+            raise ImageDecodeError(f"uncompressed block of {c} overruns line {y} at column {x}")
+        out[y, x:x + c] = _pixels(raw, i + 2, c)
+        x, i = x + c, i + 2 + 3 * c
+
+
+def _decode_erle(buf: bytes, width: int, height: int) -> tuple[np.ndarray, int]:
+    """Compression 2 (enhanced RLE); returns the image and the offset after end-of-image."""
     out = np.zeros((height, width), dtype=np.uint32)
     raw = np.frombuffer(buf, dtype=np.uint8)
     y = x = 0
@@ -208,9 +281,7 @@ def _decode_erle(buf: bytes, width: int, height: int) -> np.ndarray:
                     y, x = y + 1, 0
                 if x != 0 or y != height:
                     raise ImageDecodeError(f"end of image after {y} of {height} lines")
-                if j != n_bytes:
-                    raise ImageDecodeError(f"{n_bytes - j} bytes after the end-of-image code")
-                return out
+                return out, j
             if y == 0:
                 raise ImageDecodeError("copy from the previous line on the first line")
             if y >= height or x + n > width:
@@ -223,8 +294,7 @@ def _decode_erle(buf: bytes, width: int, height: int) -> np.ndarray:
             raise ImageDecodeError("uncompressed block truncated")
         if y >= height or x + n > width:
             raise ImageDecodeError(f"uncompressed block of {n} overruns line {y} at column {x}")
-        b = raw[j:j + 3 * n].reshape(n, 3).astype(np.uint32)
-        out[y, x:x + n] = b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16)
+        out[y, x:x + n] = _pixels(raw, j, n)
         x, i = x + n, j + 3 * n
 
 
@@ -241,12 +311,19 @@ class DLPC900Model:
 
     `execute(opcode, data, read)` returns the reply payload or raises CommandError; the USB layer
     turns that into reply reports and latches the error code for 0x0100.
+
+    With a two-controller DMD (`dmd_type=2`, DLP9000) the model is the pair: 0x1A2A/0x1A2B load
+    the primary's half (the left `width // 2` columns) into `images`, 0x1A2C/0x1A2D the
+    secondary's (the right half) into `images_secondary`; a sequence needs both halves.
+    `width` and `height` default to the DMD type's native resolution.
     """
 
-    def __init__(self, *, width: int = 1920, height: int = 1080, dmd_type: int = 1,
+    def __init__(self, *, width: int | None = None, height: int | None = None, dmd_type: int = 1,
                  tag: str = "DLPC900 emulator", clock: Callable[[], int] = time.monotonic_ns,
                  firmware: tuple[tuple[int, int, int], ...] = ((5, 3, 0), (5, 1, 0), (2, 0, 0), (3, 1, 0))):
-        self.width, self.height = width, height
+        native = DMD_RESOLUTION.get(dmd_type, DMD_RESOLUTION[1])
+        self.width = native[0] if width is None else width
+        self.height = native[1] if height is None else height
         self.dmd_type = dmd_type
         self.tag = tag
         self.clock = clock
@@ -279,11 +356,20 @@ class DLPC900Model:
         self._lut_dirty = False
         self.images: dict[int, np.ndarray] = {}
         self.images_secondary: dict[int, np.ndarray] = {}
-        self._load: _ImageLoad | None = None
-        self.hw_status = 0x01  # init OK
+        self._loads: dict[bool, _ImageLoad | None] = {False: None, True: None}  # per controller
+        self.hw_status = 0x01 | (HW_SECONDARY_PRESENT if self.dual_controller else 0)  # init OK
         self.error_code = 0
         self.error_description = ""
         self._timeline: RecentLog = RecentLog()  # DisplayedPattern of finished runs
+
+    @property
+    def dual_controller(self) -> bool:
+        return self.dmd_type in DUAL_CONTROLLER_DMDS
+
+    @property
+    def image_width(self) -> int:
+        """Width of the images one controller holds: half the DMD on a two-controller DMD."""
+        return self.width // 2 if self.dual_controller else self.width
 
     @property
     def dark(self) -> bool:
@@ -488,6 +574,9 @@ class DLPC900Model:
             e = self.lut[k]
             if self.display_mode == 3 and e.image_index not in self.images:
                 raise CommandError(ERR_ITEM_NOT_PRESENT, f"LUT entry {k} names image {e.image_index}, not loaded")
+            if self.display_mode == 3 and self.dual_controller and e.image_index not in self.images_secondary:
+                raise CommandError(ERR_ITEM_NOT_PRESENT,
+                                   f"LUT entry {k} names image {e.image_index}, not loaded on the secondary controller")
         if self.sequencer != "running":
             self.sequencer = "running"
             self.hw_status &= ~0x40
@@ -507,11 +596,13 @@ class DLPC900Model:
             raise CommandError(ERR_NOT_ALLOWED, "image load needs pattern on-the-fly mode (3)")
         if self.sequencer != "stopped":
             raise CommandError(ERR_NOT_ALLOWED, "stop the sequence before loading images")
+        if secondary and not self.dual_controller:
+            raise CommandError(ERR_NOT_ALLOWED, "no secondary controller: this DMD has one DLPC900")
         if index > MAX_IMAGE_INDEX:
             raise CommandError(ERR_IMAGE_ADDRESS, f"image index {index} > {MAX_IMAGE_INDEX}")
-        if size < 48 or size > 48 + 4 * self.width * self.height + 5 * self.height + 3:
+        if size < 48 or size > 48 + 4 * self.image_width * self.height + 5 * self.height + 3:
             raise CommandError(ERR_OUT_OF_MEMORY, f"image of {size} bytes does not fit")
-        self._load = _ImageLoad(index, size, secondary)
+        self._loads[secondary] = _ImageLoad(index, size, secondary)
 
     def _w_image_data(self, secondary: bool, d: bytes) -> None:
         if len(d) < 2:
@@ -520,24 +611,26 @@ class DLPC900Model:
         chunk = d[2:]
         if n != len(chunk) or n > 504:
             raise CommandError(ERR_INVALID_PARAMETER, f"image data: count {n} but {len(chunk)} bytes (max 504)")
-        load = self._load
-        if load is None or load.secondary != secondary:
-            raise CommandError(ERR_NOT_ALLOWED, "image data without a load init (0x1A2A/0x1A2C)")
+        load = self._loads[secondary]
+        if load is None:
+            raise CommandError(ERR_NOT_ALLOWED, f"image data without a load init (0x{0x1A2C if secondary else 0x1A2A:04X})")
         if len(load.buf) + n > load.expected:
-            self._load = None
+            self._loads[secondary] = None
             raise CommandError(ERR_INVALID_PARAMETER, "more image data than announced")
         load.buf += chunk
         if len(load.buf) == load.expected:
-            self._load = None
+            self._loads[secondary] = None
             try:
                 img = decode_pattern_image(bytes(load.buf))
             except ImageDecodeError as exc:
                 raise CommandError(exc.code, str(exc)) from None
-            if (img.shape[1], img.shape[0]) != (self.width, self.height):
+            want = (self.image_width, self.height)
+            if (img.shape[1], img.shape[0]) != want:
+                half = " (half of a two-controller DMD)" if self.dual_controller else ""
                 raise CommandError(ERR_INVALID_PARAMETER,
-                                   f"image is {img.shape[1]}x{img.shape[0]}, DMD is {self.width}x{self.height}")
+                                   f"image is {img.shape[1]}x{img.shape[0]}, expected {want[0]}x{want[1]}{half}")
             (self.images_secondary if secondary else self.images)[load.index] = img
-            self.events.append((self.clock(), f"image {load.index} loaded"))
+            self.events.append((self.clock(), f"{'secondary ' if secondary else ''}image {load.index} loaded"))
 
     def _w_lut_config(self, d: bytes) -> None:
         n, repeat = struct.unpack("<HI", d)
@@ -590,10 +683,17 @@ class DLPC900Model:
         self.led_current = tuple(d)
 
     # ---- what the DMD showed ------------------------------------------------------------
+    def dmd_image(self, image_index: int) -> np.ndarray:
+        """(H, W) uint32 image across the whole DMD: on a two-controller DMD the primary's half
+        on the left, the secondary's on the right."""
+        if not self.dual_controller:
+            return self.images[image_index]
+        return np.hstack([self.images[image_index], self.images_secondary[image_index]])
+
     def dmd_pattern(self, lut_index: int) -> np.ndarray:
         """(H, W) uint8 values the DMD shows for one LUT entry (bit-depth-wide field of its image)."""
         e = self.lut[lut_index]
-        img = self.images[e.image_index]
+        img = self.dmd_image(e.image_index)
         return ((img >> e.bit_position) & ((1 << e.bit_depth) - 1)).astype(np.uint8)
 
     def _close_timeline(self) -> None:

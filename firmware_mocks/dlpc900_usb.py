@@ -85,6 +85,7 @@ class EmulatedDLPC900:
         self.generation = 0
         self._partial: bytearray | None = None
         self._need = 0
+        self._overlong: tuple[int, int, int] | None = None  # (flags, seq, opcode) of a message being discarded
         self._in: deque[bytes] = deque()
         self.raw_out: RecentLog = RecentLog()  # the OUT reports as received (the newest ones)
         self.raw_in: RecentLog = RecentLog()  # the IN reports as sent (the newest ones)
@@ -102,7 +103,7 @@ class EmulatedDLPC900:
         self.plugged = True
         self.generation += 1
         self.address += 1
-        self._partial, self._in = None, deque()
+        self._partial, self._overlong, self._in = None, None, deque()
         self.claimed = False
         if power_cycle:
             self.model.power_on()
@@ -145,7 +146,13 @@ class EmulatedDLPC900:
             raise _usb_error(errno.EPIPE)
 
     def receive(self, report: bytes) -> None:
-        """One OUT report from the host: start or continue a message, run it when complete."""
+        """One OUT report from the host: start or continue a message, run it when complete.
+
+        The length field frames a message: the reports after its first one are its continuation,
+        never commands of their own. A message longer than the 512-byte command buffer is not
+        stored, but its continuation is still counted off and discarded; once it has all arrived
+        the controller answers once, with error 8.
+        """
         self.raw_out.append(bytes(report))
         if self._partial is None:
             if len(report) < 6:
@@ -156,15 +163,22 @@ class EmulatedDLPC900:
             if length < 2:
                 self._reply_error(report[0], report[1], 0, 3, f"length field {length} < 2")
                 return
-            if total > CMD_BUFFER:
-                self._reply_error(report[0], report[1], report[4] | (report[5] << 8), 8,
-                                  f"message of {total} bytes exceeds the 512-byte command buffer")
-                return
             self._partial, self._need = bytearray(), total
-        self._partial += report[: self._need - len(self._partial)]
-        if len(self._partial) >= self._need:
+            if total > CMD_BUFFER:
+                self._overlong = (report[0], report[1], report[4] | (report[5] << 8))
+        if self._overlong is None:
+            self._partial += report[: self._need - len(self._partial)]
+            got = len(self._partial)
+        else:  # count the bytes, keep none of them
+            self._need -= min(len(report), self._need)
+            got = 0
+        if got >= self._need:
             msg, self._partial = bytes(self._partial), None
-            self._run(msg)
+            if self._overlong is None:
+                self._run(msg)
+                return
+            (flags, seq, opcode), self._overlong = self._overlong, None
+            self._reply_error(flags, seq, opcode, 8, "message exceeds the 512-byte command buffer")
 
     def _latch(self, code: int, description: str) -> None:
         self.model.error_code = code
@@ -356,7 +370,7 @@ class DLPC900Backend(usb.backend.IBackend):
 
     def reset_device(self, dev_handle):
         dev = self._live(dev_handle)
-        dev._partial, dev._in = None, deque()
+        dev._partial, dev._overlong, dev._in = None, None, deque()
 
     # transfers
     def intr_write(self, dev_handle, ep, intf, data, timeout):
@@ -419,18 +433,21 @@ class DLPC900Backend(usb.backend.IBackend):
 
 @contextlib.contextmanager
 def usb_emulation(*serials: str, clock: Callable[[], int] = time.monotonic_ns,
-                  width: int = 1920, height: int = 1080) -> Iterator[EmulatedDLPC900]:
+                  width: int | None = None, height: int | None = None, dmd_type: int = 1) -> Iterator[EmulatedDLPC900]:
     """Put emulated DLPC900s on pyusb's default bus for the duration of the block.
 
     Yields the first device (its `.model`, fault methods, `.backend`); the backend's `.devices`
-    lists all of them. On exit pyusb's own backends are restored.
+    lists all of them. On exit pyusb's own backends are restored. `dmd_type` as 0x0206 reports
+    it (1 DLP6500, 2 DLP9000 with two controllers); `width` and `height` default to its native
+    resolution.
     """
     import usb.backend.libusb0 as libusb0
     import usb.backend.libusb1 as libusb1
     import usb.backend.openusb as openusb
 
     serials = serials or ("EMU0001",)
-    devices = [EmulatedDLPC900(s, address=5 + 3 * i, model=DLPC900Model(clock=clock, width=width, height=height))
+    devices = [EmulatedDLPC900(s, address=5 + 3 * i, model=DLPC900Model(clock=clock, width=width, height=height,
+                                                                      dmd_type=dmd_type))
                for i, s in enumerate(serials)]
     backend = DLPC900Backend(devices)
     for d in devices:
