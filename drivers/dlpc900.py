@@ -56,7 +56,7 @@ INTERFACE = 0
 class _Sequence:
     """What `upload_patterns` sent, kept so `reconnect()` can send it again."""
 
-    images: list[EncodedImage]
+    images: list[tuple[EncodedImage, ...]]  # per image index: the image, or (left, right) halves
     entries: list[tuple[int, PatternTiming, int, int]]  # (lut index, timing, image index, bit position)
     repeat: int
 
@@ -148,7 +148,12 @@ class DLPC900:
         self.reconnect_attempts = reconnect_attempts
         self.reconnect_backoff_s = reconnect_backoff_s
         self._seq = 0
+        # Held per command, and across a whole image upload: a status poll from another thread
+        # between an image's chunks and its error read would overwrite the error code the upload
+        # reads back. `blank()` sets `_abort_upload` so an upload in progress stops at its next
+        # chunk instead of keeping the projector lit until it is done.
         self._lock = threading.RLock()
+        self._abort_upload = threading.Event()
         self._in_error_read = False
         # Set while a multi-command exchange runs (a restore, a sequence upload): a disconnect
         # then surfaces to that exchange, which starts over, instead of retrying one command
@@ -394,19 +399,28 @@ class DLPC900:
     def lut_configuration(self) -> tuple[int, int]:
         return struct.unpack("<HI", self._read(Cmd.LUT_CONFIGURE))
 
+    def dual_controller(self) -> bool:
+        """True when the DMD is driven by two DLPC900s (DLP9000), each taking half of every
+        image: the hardware status reports the secondary controller, or 0x0206 names a DLP9000."""
+        return self.hardware_status().secondary_controller_present or self.hardware_config().dmd == 2
+
     def load_image(self, index: int, image: EncodedImage, *, secondary: bool = False) -> None:
-        """Pattern-on-the-fly image upload: init (0x1A2A) then ≤504-byte chunks (0x1A2B) sent
-        without replies, as TI's host code does; the error code is read once at the end."""
+        """Pattern-on-the-fly image upload: init (0x1A2A, or 0x1A2C for the secondary controller)
+        then ≤504-byte chunks (0x1A2B / 0x1A2D) sent without replies, as TI's host code does; the
+        error code is read once at the end. Holds the lock throughout (see `_lock`)."""
         if not 0 <= index <= 255:
             raise ValueError(f"image index: expected 0..255, got {index}")
         init = Cmd.IMAGE_LOAD_INIT_SECONDARY if secondary else Cmd.IMAGE_LOAD_INIT
         data_cmd = Cmd.IMAGE_DATA_SECONDARY if secondary else Cmd.IMAGE_DATA
         blob = image.data
-        self._write(init, struct.pack("<HI", index, len(blob)))
-        for off in range(0, len(blob), IMAGE_CHUNK):
-            chunk = blob[off:off + IMAGE_CHUNK]
-            self.transact(data_cmd, struct.pack("<H", len(chunk)) + chunk, reply=False)
-        self.check_error(data_cmd)
+        with self._lock:
+            self._write(init, struct.pack("<HI", index, len(blob)))
+            for off in range(0, len(blob), IMAGE_CHUNK):
+                if self._abort_upload.is_set():
+                    raise DLPC900Error(f"DLPC900: image {index} upload abandoned: blank() was called")
+                chunk = blob[off:off + IMAGE_CHUNK]
+                self.transact(data_cmd, struct.pack("<H", len(chunk)) + chunk, reply=False)
+            self.check_error(data_cmd)
 
     def upload_patterns(self, patterns: np.ndarray | Sequence[np.ndarray], timing: PatternTiming | None = None, *,
                         exposure_us: int | None = None, repeat: int = 0, start: bool = False) -> list[EncodedImage]:
@@ -417,6 +431,14 @@ class DLPC900:
         configuration, images in reverse order, and start if asked. Exposure is checked
         before anything is sent. A list of arrays packs each group into its own images: keep
         column and row Gray codes apart and each image compresses ~500x instead of ~1x.
+
+        On a two-controller DMD (`dual_controller()`, DLP9000) every image is split column-wise:
+        the left half goes to the primary controller (0x1A2A/0x1A2B), the right half to the
+        secondary (0x1A2C/0x1A2D), each with its own header of half the width (DLPU018).
+
+        No other command on this object interleaves with the upload: it holds the lock from the
+        first command to the last. Returns per image index the EncodedImage sent, or on a
+        two-controller DMD the (left, right) pair.
         """
         if timing is None:
             if exposure_us is None:
@@ -432,27 +454,34 @@ class DLPC900:
         per = 24 // timing.bit_depth
         if sum((len(g) + per - 1) // per for g in groups) > 256:
             raise ValueError("patterns: more than 256 images needed")
-        images: list[EncodedImage] = []
-        entries: list[tuple[int, PatternTiming, int, int]] = []
-        for g in groups:
-            for i in range(0, len(g), per):
-                chunk = g[i:i + per]
-                for j in range(len(chunk)):
-                    entries.append((len(entries), timing, len(images), j * timing.bit_depth))
-                images.append(encode_image(pack_patterns(chunk, timing.bit_depth)))
-        seq = _Sequence(images, entries, repeat)
-        # A retried single command cannot continue an upload the power-cycled controller forgot
-        # (image data without its load init): after an unplug the whole sequence is sent again.
-        try:
-            with self._whole_exchange():
-                self._send_sequence(seq, start)
-        except DLPC900Disconnected:
-            if not self.auto_reconnect:
-                raise
-            self.reconnect()
-            with self._whole_exchange():
-                self._send_sequence(seq, start)
-        return images
+        with self._lock:
+            halves = 2 if self.dual_controller() else 1
+            width = groups[0].shape[2]
+            if width % halves:
+                raise ValueError(f"patterns: a two-controller DMD takes an even width, got {width}")
+            images: list[tuple[EncodedImage, ...]] = []
+            entries: list[tuple[int, PatternTiming, int, int]] = []
+            for g in groups:
+                for i in range(0, len(g), per):
+                    chunk = g[i:i + per]
+                    for j in range(len(chunk)):
+                        entries.append((len(entries), timing, len(images), j * timing.bit_depth))
+                    packed = pack_patterns(chunk, timing.bit_depth)
+                    images.append(tuple(encode_image(np.ascontiguousarray(half))
+                                        for half in np.hsplit(packed, halves)))
+            seq = _Sequence(images, entries, repeat)
+            # A retried single command cannot continue an upload the power-cycled controller forgot
+            # (image data without its load init): after an unplug the whole sequence is sent again.
+            try:
+                with self._whole_exchange():
+                    self._send_sequence(seq, start)
+            except DLPC900Disconnected:
+                if not self.auto_reconnect:
+                    raise
+                self.reconnect()
+                with self._whole_exchange():
+                    self._send_sequence(seq, start)
+        return [pair if halves == 2 else pair[0] for pair in images]
 
     def _send_sequence(self, seq: _Sequence, start: bool) -> None:
         self.stop()
@@ -461,7 +490,8 @@ class DLPC900:
             self.define_pattern(index, timing, image_index=image_index, bit_position=bit)
         self.configure_lut(len(seq.entries), seq.repeat)
         for i in reversed(range(len(seq.images))):  # images load in reverse order
-            self.load_image(i, seq.images[i])
+            for half, image in enumerate(seq.images[i]):  # primary (left), then secondary (right)
+                self.load_image(i, image, secondary=half == 1)
         self.configured.display_mode = int(DisplayMode.PATTERN_ON_THE_FLY)
         self.configured.sequence = seq
         if start:
@@ -576,7 +606,10 @@ class DLPC900:
         """
         # Blanking must be quick: with auto_reconnect a lost link is not to be met with a full
         # restore (re-uploading images takes seconds) before going dark, so retries are ours here.
+        # An upload on another thread holds the lock; it stops at its next chunk when asked.
+        self._abort_upload.set()
         with self._lock, self._whole_exchange():
+            self._abort_upload.clear()
             try:
                 return self._blank()
             except DLPC900Disconnected:
@@ -639,7 +672,7 @@ class DLPC900:
             raise DLPC900Disconnected(f"DLPC900: not back after {self.reconnect_attempts} attempts: {last}",
                                       _errno.ENODEV) from last
         if restore:
-            with self._whole_exchange():
+            with self._lock, self._whole_exchange():
                 self._restore(resume)
 
     @contextlib.contextmanager

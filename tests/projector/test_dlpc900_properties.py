@@ -50,11 +50,11 @@ def test_random_bit_planes_survive_packing_and_codec(n, h, w, seed):
 
 
 @settings(max_examples=200, deadline=None)
-@given(payload=st.binary(max_size=300), w=st.integers(1, 40), h=st.integers(1, 5))
-def test_mock_decoder_is_total_on_garbage(payload, w, h):
+@given(payload=st.binary(max_size=300), w=st.integers(1, 40), h=st.integers(1, 5), compression=st.sampled_from([0, 1, 2]))
+def test_mock_decoder_is_total_on_garbage(payload, w, h, compression):
     """Arbitrary payloads decode to an image or raise ImageDecodeError, nothing else."""
     try:
-        img = decode_pattern_image(image_header(w, h, len(payload)) + payload)
+        img = decode_pattern_image(image_header(w, h, len(payload), compression) + payload)
     except ImageDecodeError:
         return
     assert img.shape == (h, w)
