@@ -1,8 +1,10 @@
 """Pattern images for the DLPC900's pattern-on-the-fly mode: bit-plane packing, enhanced RLE, header.
 
 The controller stores patterns as 24-bit images; each pixel is a 24-bit value sent as three
-bytes, least significant byte first, and pattern k of an image occupies bit position k (for
-1-bit patterns) or bits [p, p + depth) for deeper ones (DLPU018 "pattern number mapping").
+bytes, most significant byte first (the third byte holds bit positions 0-7, as in the header's
+"BB GG RR" background and in every hardware-proven host; docs/projector.md), and pattern k of
+an image occupies bit position k (for 1-bit patterns) or bits [p, p + depth) for deeper ones
+(DLPU018 "pattern number mapping").
 
 Enhanced RLE (DLPU018 §2.4.4, "Enhanced Run-Length Encoding"), the only compression worth
 sending over a 64-byte-report USB 1.1 link:
@@ -103,6 +105,12 @@ def pack_patterns(patterns: np.ndarray, bit_depth: int = 1) -> np.ndarray:
             | (planes[2].astype(np.uint32) << 16))
 
 
+def _wire_bytes(px: np.ndarray) -> np.ndarray:
+    """(N, 3) bytes of 24-bit pixels (little-endian uint32 input) in wire order: bits 23-16,
+    15-8, then 7-0."""
+    return px.view(np.uint8).reshape(-1, 4)[:, 2::-1]
+
+
 def _count_bytes(n: np.ndarray) -> np.ndarray:
     return np.where(n < 128, 1, 2)
 
@@ -132,7 +140,7 @@ def erle_encode(image: np.ndarray) -> bytes:
     if w > MAX_COUNT:
         raise ValueError(f"image: width {w} exceeds the encodable count {MAX_COUNT}")
     px = px.astype("<u4", copy=False)
-    pix_bytes = px.view(np.uint8).reshape(h * w, 4)[:, :3]  # (H*W, 3), LSB first
+    pix_bytes = _wire_bytes(px)  # (H*W, 3)
 
     copy_row = np.zeros(h, dtype=bool)
     copy_row[1:] = np.all(px[1:] == px[:-1], axis=1)
@@ -203,9 +211,8 @@ def erle_encode(image: np.ndarray) -> bytes:
 
 
 def raw_encode(image: np.ndarray) -> bytes:
-    """Uncompressed payload (compression 0): three bytes per pixel, LSB first, row-major."""
-    px = np.ascontiguousarray(image).astype("<u4", copy=False)
-    return px.view(np.uint8).reshape(-1, 4)[:, :3].tobytes()
+    """Uncompressed payload (compression 0): three bytes per pixel, most significant first, row-major."""
+    return _wire_bytes(np.ascontiguousarray(image).astype("<u4", copy=False)).tobytes()
 
 
 def encode_image(image: np.ndarray, compression: int | str = "auto",

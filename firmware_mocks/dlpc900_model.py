@@ -50,7 +50,10 @@ ERROR_NAMES = {
 # Minimum exposure (µs) per bit depth for a DLP6500. 1, 2, 4, 8 bits from protocols.md; the
 # others from the DLPC900 datasheet's pattern-rate table (DLP6500, no LED modulation).
 MIN_EXPOSURE_US = {1: 105, 2: 304, 3: 394, 4: 823, 5: 1215, 6: 1487, 7: 1998, 8: 4046}
-SETTLE_NS = 300_000_000  # display-mode switch
+# DLPU018 (0x1A1B): once sync is locked, the switch to video pattern mode (2) takes about 300 ms,
+# and reading the mode back sooner may not return it. It names no such delay for the other modes.
+SETTLE_NS = 300_000_000
+SETTLING_MODES = {2}
 MAX_IMAGE_INDEX = 255  # image pattern index is bits 10:0 but the guide limits it to 0..255
 
 # DMD type (0x0206) -> native resolution. The DLP9000 is driven by two DLPC900s, each holding one
@@ -143,7 +146,9 @@ class ImageDecodeError(ValueError):
 
 
 HEADER_SIZE = 48
-MAX_PADDING = 3  # zero bytes after end-of-image that the controller ignores (see docs/projector.md)
+# Zero bytes after the end of the image that the controller ignores, per compression: a public
+# host pads every image to a 4-byte boundary, TI's reference plain-RLE encoder to a 16-byte one.
+MAX_PADDING = {0: 3, 1: 15, 2: 3}
 
 
 def _read_count(buf: bytes, i: int) -> tuple[int, int]:
@@ -156,16 +161,18 @@ def _read_count(buf: bytes, i: int) -> tuple[int, int]:
 
 
 def _pixels(raw: np.ndarray, at: int, n: int) -> np.ndarray:
+    """n 24-bit pixels from 3n bytes. A pixel's most significant byte comes first: its last byte
+    holds bit positions 0-7 (docs/projector.md, "Pixel byte order")."""
     b = raw[at:at + 3 * n].reshape(n, 3).astype(np.uint32)
-    return b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16)
+    return (b[:, 0] << 16) | (b[:, 1] << 8) | b[:, 2]
 
 
 def decode_pattern_image(blob: bytes) -> np.ndarray:
     """Header + payload -> (H, W) uint32 image, as the controller would unpack it.
 
     Tolerated, because hardware-proven hosts send them (docs/projector.md): a header byte count
-    (offset 8) that is either the payload's length or the whole image's (header included), and up
-    to three zero bytes of padding after the end of the image. Raises ImageDecodeError for a bad
+    (offset 8) that is either the payload's length or the whole image's (header included), and
+    zero padding after the end of the image (up to 3 bytes; 15 for plain RLE). Raises ImageDecodeError for a bad
     signature, an unknown compression, a line that over- or under-runs the width, a copy on the
     first line, a missing end-of-image, trailing lines, or anything else after the image.
     """
@@ -191,9 +198,9 @@ def decode_pattern_image(blob: bytes) -> np.ndarray:
     else:
         raise ImageDecodeError(f"compression {compression} (expected 0 none, 1 RLE or 2 enhanced RLE)")
     tail = payload[end:]
-    if len(tail) > MAX_PADDING or any(tail):
-        raise ImageDecodeError(f"{len(tail)} bytes after the end of the image "
-                               f"(at most {MAX_PADDING} zero bytes of padding are accepted)", ERR_INVALID_PARAMETER)
+    if len(tail) > MAX_PADDING[compression] or any(tail):
+        raise ImageDecodeError(f"{len(tail)} bytes after the end of the image (at most "
+                               f"{MAX_PADDING[compression]} zero bytes of padding are accepted)", ERR_INVALID_PARAMETER)
     accepted = {end, len(payload), HEADER_SIZE + end, HEADER_SIZE + len(payload)}
     if nbytes not in accepted:
         raise ImageDecodeError(f"header byte count {nbytes} matches neither the {end}-byte image data "
@@ -260,7 +267,7 @@ def _decode_erle(buf: bytes, width: int, height: int) -> tuple[np.ndarray, int]:
                 raise ImageDecodeError("repeat token truncated")
             if y >= height or x + n > width:
                 raise ImageDecodeError(f"repeat of {n} overruns line {y} at column {x}")
-            out[y, x:x + n] = buf[i] | (buf[i + 1] << 8) | (buf[i + 2] << 16)
+            out[y, x:x + n] = _pixels(raw, i, 1)[0]
             x += n
             i += 3
             continue
@@ -535,7 +542,7 @@ class DLPC900Model:
         if mode != self.display_mode:
             self._mode_from = self.settled_display_mode
             self.display_mode = mode
-            self._mode_settled_at = self.clock() + SETTLE_NS
+            self._mode_settled_at = self.clock() + (SETTLE_NS if mode in SETTLING_MODES else 0)
             self.lut.clear()
             self.lut_config = None
             self.events.append((self.clock(), f"display mode {mode}"))

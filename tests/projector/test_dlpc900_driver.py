@@ -41,9 +41,9 @@ def test_display_mode_waits_for_settle_and_reads_back(dlp, emu, clock):
 
 
 def test_display_mode_without_settle_is_caught_by_read_back(dlp, emu):
-    dlp.settle_s = 0  # the emulated switch still takes 300 ms of (fake) time
+    dlp.settle_s = 0  # the emulated switch to video pattern mode still takes 300 ms of (fake) time
     with pytest.raises(DLPC900Error, match="reads back 0"):
-        dlp.set_display_mode(DisplayMode.PRE_STORED_PATTERN)
+        dlp.set_display_mode(DisplayMode.VIDEO_PATTERN)
 
 
 def test_pattern_sequence_start_pause_stop(dlp, emu, clock, gray):

@@ -7,7 +7,8 @@ mock that share a mistake cannot agree on it here. Each test checks what the DMD
 bit plane by bit plane.
 
 The test image is 8 x 3 pixels holding three 1-bit patterns (pattern k on bit k):
-P0 lights columns 0-3, P1 lights row 1, P2 lights column 7. Pixel values, LSB first on the wire:
+P0 lights columns 0-3, P1 lights row 1, P2 lights column 7. Pixel values (each sent
+most significant byte first, so bit positions 0-7 travel in a pixel's third byte):
 
     row 0:  1 1 1 1 0 0 0 4
     row 1:  3 3 3 3 2 2 2 6
@@ -30,7 +31,7 @@ P[2][:, 7] = 1
 
 
 def px(v: int) -> bytes:
-    return v.to_bytes(3, "little")
+    return v.to_bytes(3, "big")  # most significant byte first
 
 
 def header(width: int, height: int, count: int, compression: int, signature: bytes = b"\x53\x70\x6C\x64") -> bytes:
@@ -99,16 +100,16 @@ class RawHost:
         failed, _ = self.command(opcode, data)
         assert not failed and self.error() == 0, f"0x{opcode:04X} rejected with error {self.error()}"
 
-    def setup_lut(self, clock) -> None:
-        """Pattern-on-the-fly mode and three 1-bit white patterns, pattern k = image 0 bit k."""
+    def setup_lut(self, bits: tuple[int, ...] = (0, 1, 2)) -> None:
+        """Pattern-on-the-fly mode (no settling time: DLPU018 names one only for video pattern
+        mode) and 1-bit white patterns, pattern k = image 0 bit `bits[k]`."""
         self.write_ok(0x1A1B, b"\x03")
-        clock.advance(300_000_000)  # the mode switch takes ~300 ms
-        for k in range(3):
+        for k, bit in enumerate(bits):
             # u16 index, u24 exposure (1000 µs), options (white = 7 << 4, 1-bit), u24 dark,
             # trigger-out-2 byte, u16 image index | bit position << 11
             self.write_ok(0x1A34, k.to_bytes(2, "little") + (1000).to_bytes(3, "little") + b"\x70"
-                          + bytes(3) + b"\x00" + (0 | k << 11).to_bytes(2, "little"))
-        self.write_ok(0x1A31, (3).to_bytes(2, "little") + (0).to_bytes(4, "little"))
+                          + bytes(3) + b"\x00" + (0 | bit << 11).to_bytes(2, "little"))
+        self.write_ok(0x1A31, len(bits).to_bytes(2, "little") + (0).to_bytes(4, "little"))
 
     def load(self, blob: bytes, *, secondary: bool = False, announce: int | None = None) -> int:
         """0x1A2A (0x1A2C) with the whole length, 0x1A2B (0x1A2D) chunks; returns the error code."""
@@ -128,10 +129,10 @@ class RawHost:
 
 
 @pytest.fixture(params=[True, False], ids=["ack-every-write", "ti-no-replies"])
-def host(request, emu, clock):
+def host(request, emu):
     emu.model.width, emu.model.height = W, H
     h = RawHost(reply_to_writes=request.param, chunk=32)  # several chunks per image
-    h.setup_lut(clock)
+    h.setup_lut()
     return h
 
 
@@ -158,9 +159,12 @@ def test_erle_in_every_byte_count_convention_shows_the_patterns(host, emu, count
     assert emu.model.sequencer == "running"
 
 
-@pytest.mark.parametrize("count", [len(RLE), len(RLE) + 2, 48 + len(RLE), 48 + len(RLE) + 2])
-def test_plain_rle_with_line_alignment_shows_the_patterns(host, emu, count):
-    assert host.load(header(W, H, count, 1) + RLE + b"\x00\x00") == 0
+@pytest.mark.parametrize("count,tail", [
+    (len(RLE), b""), (len(RLE) + 2, bytes(2)), (48 + len(RLE), bytes(2)), (48 + len(RLE) + 2, bytes(2)),
+    (len(RLE) + 10, bytes(10)),  # padded to a 16-byte boundary, as TI's reference encoder does
+])
+def test_plain_rle_with_line_alignment_shows_the_patterns(host, emu, count, tail):
+    assert host.load(header(W, H, count, 1) + RLE + tail) == 0
     assert host.start() == 0
     _shows_the_patterns(emu.model)
 
@@ -170,6 +174,18 @@ def test_uncompressed_shows_the_patterns(host, emu, count, tail):
     assert host.load(header(W, H, count, 0) + RAW + tail) == 0
     assert host.start() == 0
     _shows_the_patterns(emu.model)
+
+
+@pytest.mark.parametrize("pixel,bit", [(b"\x00\x00\x01", 0), (b"\x00\x00\x80", 7), (b"\x00\x01\x00", 8),
+                                       (b"\x01\x00\x00", 16), (b"\x80\x00\x00", 23)])
+def test_a_pixels_last_byte_carries_bit_positions_0_to_7(emu, pixel, bit):
+    """Pixels travel most significant byte first, as every hardware-proven host sends them."""
+    emu.model.width, emu.model.height = 1, 1
+    host = RawHost(reply_to_writes=False)
+    host.setup_lut(bits=(bit, (bit + 1) % 24, (bit + 8) % 24))
+    assert host.load(header(1, 1, 7, 2) + b"\x01" + pixel + b"\x00\x01\x00") == 0
+    assert host.start() == 0
+    assert [int(emu.model.dmd_pattern(k)[0, 0]) for k in range(3)] == [1, 0, 0]
 
 
 ROW0_OVERRUN = b"\x05" + px(1) + b"\x03" + px(0) + b"\x01" + px(4) + b"\x00\x00"   # 9 pixels
@@ -187,11 +203,12 @@ ROW0_UNDERRUN = b"\x04" + px(1) + b"\x02" + px(0) + b"\x01" + px(4) + b"\x00\x00
     (header(W, H, 48 + len(ERLE) + 2, 2) + ERLE + PAD, 6),                       # count matches neither
     (header(W, H, len(RLE), 1) + RLE[:14] + RLE[16:], 9),                        # RLE line not aligned
     (header(W, H, len(RLE) - 2, 1) + RLE[:-2], 9),                               # RLE without end-of-image
+    (header(W, H, len(RLE), 1) + RLE + bytes(16), 6),                            # RLE: 16 bytes of padding
     (header(W, H, len(RAW) - 3, 0) + RAW[:-3], 9),                               # raw pixels short
     (header(W, H, len(ERLE), 3) + ERLE, 9),                                      # unknown compression
     (header(W, 2, len(ERLE), 2) + ERLE, 9),                                      # trailing lines
 ], ids=["signature", "overrun", "underrun", "no-eoi", "4-pad", "nonzero-pad", "count+1", "whole+2",
-        "rle-unaligned", "rle-no-eoi", "raw-short", "compression-3", "extra-line"])
+        "rle-unaligned", "rle-no-eoi", "rle-16-pad", "raw-short", "compression-3", "extra-line"])
 def test_what_the_firmware_rejects_is_still_rejected(host, emu, blob, code):
     assert host.load(blob) == code
     assert 0 not in emu.model.images
@@ -214,10 +231,10 @@ def dual(clock):
         yield emu
 
 
-def test_two_controllers_show_both_halves(dual, clock):
+def test_two_controllers_show_both_halves(dual):
     host = RawHost(reply_to_writes=False)
     assert host.command(0x1A0A, read=True)[1][0] & 0x10  # hardware status: secondary controller present
-    host.setup_lut(clock)
+    host.setup_lut()
     assert host.load(header(W, H, 48 + len(ERLE) + 3, 2) + ERLE + PAD) == 0
     assert host.start() == 7  # the secondary's half is missing
     assert host.load(header(W, H, len(RIGHT), 2) + RIGHT, secondary=True) == 0
@@ -230,25 +247,25 @@ def test_two_controllers_show_both_halves(dual, clock):
         assert np.array_equal(dual.model.dmd_pattern(k), full[k]), k
 
 
-def test_a_full_width_image_is_refused_by_each_controller(dual, clock):
+def test_a_full_width_image_is_refused_by_each_controller(dual):
     host = RawHost(reply_to_writes=True)
-    host.setup_lut(clock)
+    host.setup_lut()
     data = (bytes([2 * W]) + px(0) + b"\x00\x00") * H + b"\x00\x01\x00"  # 16 black pixels a line
     wide = header(2 * W, H, len(data), 2) + data
     assert host.load(wide) == 6
     assert host.load(wide, secondary=True) == 6
 
 
-def test_secondary_load_on_a_single_controller_is_not_allowed(emu, clock):
+def test_secondary_load_on_a_single_controller_is_not_allowed(emu):
     emu.model.width, emu.model.height = W, H
     host = RawHost(reply_to_writes=True)
-    host.setup_lut(clock)
+    host.setup_lut()
     assert host.load(header(W, H, len(ERLE), 2) + ERLE, secondary=True) == 5
 
 
 # ---- framing: the continuation of an over-long message is never run as commands --------------
 
-def test_overlong_message_continuation_is_discarded_not_executed(emu, clock):
+def test_overlong_message_continuation_is_discarded_not_executed(emu):
     host = RawHost(reply_to_writes=True)
     # Every 64 bytes of this body look like a complete "display mode 3, reply wanted" command,
     # so a controller that took continuation reports for new commands would switch mode.

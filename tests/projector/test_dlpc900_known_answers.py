@@ -68,7 +68,7 @@ A, B, C = 0x060504, 0x0C0B0A, 0xBC9A78
 
 
 def _px(v: int) -> bytes:
-    return v.to_bytes(3, "little")
+    return v.to_bytes(3, "big")  # most significant byte first
 
 
 def test_erle_repeat_single_copy_and_end_codes():
