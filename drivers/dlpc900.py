@@ -423,7 +423,8 @@ class DLPC900:
             self.check_error(data_cmd)
 
     def upload_patterns(self, patterns: np.ndarray | Sequence[np.ndarray], timing: PatternTiming | None = None, *,
-                        exposure_us: int | None = None, repeat: int = 0, start: bool = False) -> list[EncodedImage]:
+                        exposure_us: int | None = None, repeat: int = 0,
+                        start: bool = False) -> list[EncodedImage | tuple[EncodedImage, EncodedImage]]:
         """Show `patterns` ((n, H, W) bool or uint8) in pattern-on-the-fly mode, in order.
 
         Packs 24 // bit_depth patterns per 24-bit image, encodes them (enhanced RLE, or raw if

@@ -160,9 +160,13 @@ def _read_count(buf: bytes, i: int) -> tuple[int, int]:
     return (b0 & 0x7F) | (buf[i + 1] << 7), i + 2
 
 
+# A pixel's three bytes come most significant first: the last one holds bit positions 0-7, as
+# every hardware-proven host sends them (docs/projector.md).
+def _pixel(buf: bytes, at: int) -> int:
+    return (buf[at] << 16) | (buf[at + 1] << 8) | buf[at + 2]
+
+
 def _pixels(raw: np.ndarray, at: int, n: int) -> np.ndarray:
-    """n 24-bit pixels from 3n bytes. A pixel's most significant byte comes first: its last byte
-    holds bit positions 0-7 (docs/projector.md, "Pixel byte order")."""
     b = raw[at:at + 3 * n].reshape(n, 3).astype(np.uint32)
     return (b[:, 0] << 16) | (b[:, 1] << 8) | b[:, 2]
 
@@ -172,9 +176,10 @@ def decode_pattern_image(blob: bytes) -> np.ndarray:
 
     Tolerated, because hardware-proven hosts send them (docs/projector.md): a header byte count
     (offset 8) that is either the payload's length or the whole image's (header included), and
-    zero padding after the end of the image (up to 3 bytes; 15 for plain RLE). Raises ImageDecodeError for a bad
-    signature, an unknown compression, a line that over- or under-runs the width, a copy on the
-    first line, a missing end-of-image, trailing lines, or anything else after the image.
+    zero padding after the end of the image (up to 3 bytes; 15 for plain RLE). Raises
+    ImageDecodeError for a bad signature, an unknown compression, a line that over- or under-runs
+    the width, a copy on the first line, a missing end-of-image, trailing lines, or anything else
+    after the image.
     """
     if len(blob) < HEADER_SIZE:
         raise ImageDecodeError(f"image shorter than its 48-byte header ({len(blob)} bytes)")
@@ -226,7 +231,7 @@ def _decode_rle(buf: bytes, width: int, height: int) -> tuple[np.ndarray, int]:
                 raise ImageDecodeError("repeat token truncated")
             if y >= height or x + n > width:
                 raise ImageDecodeError(f"repeat of {n} overruns line {y} at column {x}")
-            out[y, x:x + n] = _pixels(raw, i + 1, 1)[0]
+            out[y, x:x + n] = _pixel(buf, i + 1)
             x, i = x + n, i + 4
             continue
         if i + 1 >= n_bytes:
@@ -267,7 +272,7 @@ def _decode_erle(buf: bytes, width: int, height: int) -> tuple[np.ndarray, int]:
                 raise ImageDecodeError("repeat token truncated")
             if y >= height or x + n > width:
                 raise ImageDecodeError(f"repeat of {n} overruns line {y} at column {x}")
-            out[y, x:x + n] = _pixels(raw, i, 1)[0]
+            out[y, x:x + n] = (buf[i] << 16) | (buf[i + 1] << 8) | buf[i + 2]  # as _pixel, inlined: per token
             x += n
             i += 3
             continue
