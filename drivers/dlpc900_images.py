@@ -2,7 +2,7 @@
 
 The controller stores patterns as 24-bit images; each pixel is a 24-bit value sent as three
 bytes, most significant byte first (the third byte holds bit positions 0-7, as in the header's
-"BB GG RR" background and in every hardware-proven host; docs/projector.md), and pattern k of
+"BB GG RR" background and in hardware-proven hosts; docs/projector.md), and pattern k of
 an image occupies bit position k (for 1-bit patterns) or bits [p, p + depth) for deeper ones
 (DLPU018 "pattern number mapping").
 

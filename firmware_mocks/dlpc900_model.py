@@ -161,7 +161,7 @@ def _read_count(buf: bytes, i: int) -> tuple[int, int]:
 
 
 # A pixel's three bytes come most significant first: the last one holds bit positions 0-7, as
-# every hardware-proven host sends them (docs/projector.md).
+# hardware-proven hosts send them (docs/projector.md).
 def _pixel(buf: bytes, at: int) -> int:
     return (buf[at] << 16) | (buf[at + 1] << 8) | buf[at + 2]
 

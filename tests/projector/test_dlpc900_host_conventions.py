@@ -179,7 +179,7 @@ def test_uncompressed_shows_the_patterns(host, emu, count, tail):
 @pytest.mark.parametrize("pixel,bit", [(b"\x00\x00\x01", 0), (b"\x00\x00\x80", 7), (b"\x00\x01\x00", 8),
                                        (b"\x01\x00\x00", 16), (b"\x80\x00\x00", 23)])
 def test_a_pixels_last_byte_carries_bit_positions_0_to_7(emu, pixel, bit):
-    """Pixels travel most significant byte first, as every hardware-proven host sends them."""
+    """Pixels travel most significant byte first, as hardware-proven hosts send them."""
     emu.model.width, emu.model.height = 1, 1
     host = RawHost(reply_to_writes=False)
     host.setup_lut(bits=(bit, (bit + 1) % 24, (bit + 8) % 24))
