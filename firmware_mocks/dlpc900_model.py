@@ -625,7 +625,8 @@ class DLPC900Model:
             raise CommandError(ERR_INVALID_PARAMETER, f"image data: count {n} but {len(chunk)} bytes (max 504)")
         load = self._loads[secondary]
         if load is None:
-            raise CommandError(ERR_NOT_ALLOWED, f"image data without a load init (0x{0x1A2C if secondary else 0x1A2A:04X})")
+            init = 0x1A2C if secondary else 0x1A2A
+            raise CommandError(ERR_NOT_ALLOWED, f"image data without a load init (0x{init:04X})")
         if len(load.buf) + n > load.expected:
             self._loads[secondary] = None
             raise CommandError(ERR_INVALID_PARAMETER, "more image data than announced")
