@@ -32,7 +32,8 @@ def _register() -> None:
     from dpmhw.cli import bench  # noqa: F401
     import importlib
 
-    for optional in ("dpmhw.cli.mock", "dpmhw.cli.calibrate", "dpmhw.cli.projector", "dpmhw.cli.session"):
+    for optional in ("dpmhw.cli.mock", "dpmhw.cli.calibrate", "dpmhw.cli.projector", "dpmhw.cli.session",
+                     "dpmhw.cli.tracker"):
         try:
             importlib.import_module(optional)
         except ModuleNotFoundError as exc:  # a group another issue has not landed yet
