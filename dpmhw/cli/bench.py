@@ -9,6 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli import bench_app
+from dpmhw.progress import Progress
 
 
 @bench_app.command("render")
@@ -47,8 +48,6 @@ def bench_quality(
     temporal reuse (static table vs the paper's Table 1, dynamic per-frame error), with costs."""
     import dataclasses
 
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
-
     from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
 
     if part not in ("static", "dynamic", "all"):
@@ -70,16 +69,8 @@ def bench_quality(
             raise typer.BadParameter(f"--dynamic-times: expected times ≥ 0, got {dynamic_times!r}")
         changes["dynamic_eval_times"] = times
     cfg = dataclasses.replace(cfg, **changes)
-    with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TimeRemainingColumn(), transient=True) as bar:
-        tasks: dict[str, int] = {}
-
-        def progress(desc: str, done: int, total: int) -> None:
-            if desc not in tasks:
-                tasks[desc] = bar.add_task(desc, total=total)
-            bar.update(tasks[desc], completed=done)
-
-        result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=progress)
+    with Progress() as bar:
+        result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=bar.callback)
     typer.echo(format_table(result))
     for f in result.get("files", []):
         typer.echo(f"wrote {f}")

@@ -12,6 +12,7 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli import app
+from dpmhw.progress import Progress
 
 
 @app.command()
@@ -35,8 +36,6 @@ def render(
 ) -> None:
     """Render one frame, or K frames through temporal reuse. Ctrl-C stops after the current pass
     (or frame) and still writes what is finished."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
-
     from dpmhw.errors import DpmhwError
     from dpmhw.render.integrator import PathIntegrator
     from dpmhw.scene_file import load_scene
@@ -82,14 +81,11 @@ def render(
     previous = signal.signal(signal.SIGINT, on_sigint)
     started = _time.perf_counter()
     try:
-        with PathIntegrator(sc, threads=threads) as integrator, Progress(
-            "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-            TimeRemainingColumn(), transient=True,
-        ) as bar:
-            task = bar.add_task(f"rendering {sc.render.width}×{sc.render.height}", total=spp)
+        with PathIntegrator(sc, threads=threads) as integrator, Progress() as bar:
+            task = bar.task(f"rendering {sc.render.width}×{sc.render.height}, passes", total=spp)
             result = integrator.render(
                 time=t, seed=seed, spp=spp,
-                progress=lambda done, total: bar.update(task, completed=done),
+                progress=lambda done, total: task.update(done, total),
                 should_stop=lambda: stop["requested"],
             )
     finally:
@@ -126,7 +122,6 @@ def _render_sequence(scene_arg, sc, out: Path, out_dir, start_frame: float, fram
     """K frames at `spp` each (seed S+k) through one TemporalReuse; the last output goes to
     `out`, every output to `out_dir` if given. Ctrl-C stops after the current frame."""
     import numpy as np
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     from dpmhw.render.integrator import PathIntegrator
     from dpmhw.reuse import TemporalReuse
@@ -145,11 +140,8 @@ def _render_sequence(scene_arg, sc, out: Path, out_dir, start_frame: float, fram
     started = _time.perf_counter()
     render_ms, reuse_ms, nonfinite, last = [], [], 0, None
     try:
-        with PathIntegrator(sc, threads=threads) as integrator, Progress(
-            "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-            TimeRemainingColumn(), transient=True,
-        ) as bar:
-            task = bar.add_task(f"{frames} frames {sc.render.width}×{sc.render.height}, reuse {settings.label}", total=frames)
+        with PathIntegrator(sc, threads=threads) as integrator, Progress() as bar:
+            task = bar.task(f"{sc.render.width}×{sc.render.height} frames, reuse {settings.label}", total=frames)
             for step in run_sequence(integrator, sc, frames, [reuser], seed=seed, start_frame=start_frame, spp=spp,
                                      should_stop=lambda: stop["requested"]):
                 last = step
@@ -158,7 +150,7 @@ def _render_sequence(scene_arg, sc, out: Path, out_dir, start_frame: float, fram
                 nonfinite += step.frame.nonfinite_samples
                 if out_dir is not None:
                     _write(Path(out_dir) / f"frame_{step.index:05d}{out.suffix.lower()}", step.outputs[0], exposure, tonemap)
-                bar.update(task, completed=step.index + 1)
+                task.update(step.index + 1)
     finally:
         signal.signal(signal.SIGINT, previous)
     elapsed = _time.perf_counter() - started

@@ -187,11 +187,22 @@ def bench_session(
         raise typer.BadParameter(f"--client-priority: expected normal, low or idle, got {client_priority!r}")
     if api_only and not api_clients:
         raise typer.BadParameter("--api-only needs --api-clients ≥ 1")
-    results = run_bench(trajectories, api_clients=api_clients, api_rate_hz=api_rate, api_modes=modes,
-                        api_windows=api_windows, api_window_s=api_window_s, api_client_priority=client_priority,
-                        cases=not api_only, seconds=seconds,
-                        width=width, height=height, spp=spp, overrides=tuple(sets or ()),
-                        progress=lambda label: typer.echo(f"running {label} …"))
+    from dpmhw.progress import Progress
+
+    steps = (0 if api_only else 2 * len(trajectories)) + (1 if api_clients else 0)  # run_bench's progress() calls
+    with Progress() as bar:
+        task = bar.task("bench session", total=steps)
+        started: list[str] = []
+
+        def on_step(label: str) -> None:
+            task.update(len(started), description=f"bench session: {label}")
+            started.append(label)
+
+        results = run_bench(trajectories, api_clients=api_clients, api_rate_hz=api_rate, api_modes=modes,
+                            api_windows=api_windows, api_window_s=api_window_s, api_client_priority=client_priority,
+                            cases=not api_only, seconds=seconds,
+                            width=width, height=height, spp=spp, overrides=tuple(sets or ()), progress=on_step)
+        task.update(steps, description="bench session")
     typer.echo(format_table(results))
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
