@@ -39,6 +39,15 @@ def _register() -> None:
         except ModuleNotFoundError as exc:  # a group another issue has not landed yet
             if exc.name != optional:
                 raise
+    _plain_help(app)
+
+
+def _plain_help(typer_app: typer.Typer) -> None:
+    """Help as plain text for every group: Rich markup would eat bracketed text such as
+    "[default: …]" from help strings, and plain help reads the same in a terminal and a log."""
+    typer_app.rich_markup_mode = None
+    for group in typer_app.registered_groups:
+        _plain_help(group.typer_instance)
 
 
 def main() -> None:

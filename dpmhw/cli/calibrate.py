@@ -11,6 +11,7 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli import app
+from dpmhw.cli.choices import SinkKind
 from dpmhw.progress import Progress
 
 calibrate_app = typer.Typer(no_args_is_help=True, help="Calibrate the projector (intrinsics, lens shift, pose in the tracker frame).")
@@ -87,7 +88,7 @@ def capture(
     board: Annotated[str, typer.Option("--board", help="Chessboard inner corners COLSxROWS.")] = "9x6",
     square: Annotated[float, typer.Option("--square", help="Square side in metres.")] = 0.03,
     camera: Annotated[str, typer.Option("--camera", help="cv2.VideoCapture source: device index, URL or image sequence.")] = "0",
-    sink: Annotated[str, typer.Option("--sink", help="Frame sink: window (projector display), file or recording.")] = "window",
+    sink: Annotated[SinkKind, typer.Option("--sink", help="Frame sink: window (projector display), file or recording.")] = SinkKind("window"),
     display: Annotated[int, typer.Option("--display", help="Display index of the projector (window sink).")] = 1,
     settle: Annotated[float, typer.Option("--settle", help="Seconds to wait after each pattern.")] = 0.15,
     discard: Annotated[int, typer.Option("--discard", min=0, help="Buffered camera frames to drop before each grab.")] = 2,
@@ -113,7 +114,7 @@ def capture(
         from drivers.frame_sinks import make_sink
 
         kwargs = {"window": {"display": display, "size": (w, h)}, "file": {"path": out / "_shown"}, "recording": {"shape": (h, w)}}
-        frame_sink = make_sink(sink, **kwargs.get(sink, {}))
+        frame_sink = make_sink(sink.value, **kwargs.get(sink.value, {}))
         try:
             with Progress() as bar:
                 task = bar.task(f"capturing {pose}, patterns", total=PatternSet(w, h).count)
