@@ -171,6 +171,7 @@ def bench_session(
     api_only: Annotated[bool, typer.Option("--api-only", help="Only the API-load case (skip the registration cases).")] = False,
     trajectory: Annotated[Optional[list[BenchTrajectory]], typer.Option(help="Repeatable; default: linear and rotate-oscillate.")] = None,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
+    plot: Annotated[Path, typer.Option(help="Plot of registration error and latency over time and the frame-time histogram (PNG).")] = Path("bench-session/bench-session.png"),
     sets: SetOpt = None,
 ) -> None:
     """Registration error vs ground truth with/without prediction, fps, latency, frame time under API load."""
@@ -196,7 +197,12 @@ def bench_session(
                             cases=not api_only, seconds=seconds,
                             width=width, height=height, spp=spp, overrides=tuple(sets or ()), progress=on_step)
         task.update(steps, description="bench session")
+    series = {c["case"]: c.pop("series") for c in results["cases"] if "series" in c}
     typer.echo(format_table(results))
+    if series:
+        from dpmhw.session.bench_plots import plot_bench_session
+
+        typer.echo(f"wrote {plot_bench_session(results['cases'], series, plot)}")
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(results, indent=2))
