@@ -222,15 +222,25 @@ function kv(obj) {
     const dt = document.createElement("dt"); dt.textContent = k.replace(/_/g, " ");
     const dd = document.createElement("dd");
     dd.textContent = Array.isArray(v) ? (v.length ? v.join(", ") : "none") : typeof v === "number" ? String(Math.round(v * 1000) / 1000) : String(v);
-    if ((k === "stale" || k === "parked" || k === "standby" || k === "hardware_faults" || k === "error") && v && (!Array.isArray(v) || v.length)) dd.className = "bad";
+    if ((k === "stale" || k === "malformed" && v > 0 || k === "parked" || k === "standby" || k === "hardware_faults" || k === "error") && v && (!Array.isArray(v) || v.length)) dd.className = "bad";
     dl.appendChild(dt); dl.appendChild(dd);
   }
   return dl;
 }
 
+let trackerSeen = null;  // {frames, t}: the tracker's rate is the change of its frame count between polls
+
 function renderDevices(devices) {
   const box = $("devices");
   box.textContent = "";
+  const tr = devices.tracker;
+  if (tr && typeof tr.frames === "number") {
+    const now = performance.now();
+    if (trackerSeen && now > trackerSeen.t && tr.frames >= trackerSeen.frames) {
+      tr.rate_hz = (tr.frames - trackerSeen.frames) / ((now - trackerSeen.t) / 1000);
+    }
+    trackerSeen = { frames: tr.frames, t: now };
+  }
   for (const [name, d] of Object.entries(devices)) {
     const div = document.createElement("div");
     div.className = "device";

@@ -109,6 +109,7 @@ def test_live_frame_updates_and_state_is_in_words(page, tmp_path):
     assert wait_for(lambda: _text(page, "state") == "Projecting", 20), _text(page, "state")  # tracking may lag under load
     assert wait_for(lambda: page.find_elements(By.CSS_SELECTOR, "#stages tbody tr"), 10)
     assert "render" in _text(page, "stages") and "streaming" in _text(page, "devices")
+    assert wait_for(lambda: "rate hz" in _text(page, "devices"), 10)  # computed from the tracker's frame count
     page.save_screenshot(str(tmp_path / "operator-page.png"))
     assert (tmp_path / "operator-page.png").stat().st_size > 10_000
 
@@ -156,3 +157,16 @@ def test_blank_then_resume_from_the_page(page, session_url, tmp_path):
     assert wait_for(lambda: _text(page, "state") == "Projecting", 10)
     page.find_element(By.ID, "reset-history").click()
     assert wait_for(lambda: "history reset" in _text(page, "message"), 10)
+
+
+def test_docs_and_redoc_render_from_local_assets(browser, session_url):
+    browser.get(session_url + "/docs")
+    assert wait_for(lambda: "dpmhw session" in " ".join(e.text for e in browser.find_elements(By.CSS_SELECTOR, ".swagger-ui .info")), 20)
+    assert browser.find_elements(By.CSS_SELECTOR, ".opblock"), "Swagger UI drew no operations"
+    browser.get(session_url + "/redoc")
+    assert wait_for(lambda: "PATCH" in browser.find_element(By.TAG_NAME, "body").text.upper()
+                    and "settings" in browser.find_element(By.TAG_NAME, "body").text, 30)
+    urls = browser.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
+    # ReDoc's "API docs by Redocly" footer badge is the one remote image; it hides itself offline.
+    remote = [u for u in urls if not u.startswith((session_url, "data:", "blob:"))]
+    assert urls and remote in ([], ["https://cdn.redoc.ly/redoc/logo-mini.svg"]), urls
