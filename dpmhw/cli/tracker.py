@@ -26,12 +26,7 @@ def _f(v, digits: int = 1) -> str:
 def _table(watch, title: str):
     from rich.table import Table
 
-    link = watch.link()
-    offset = "–" if link["clock_offset_s"] is None else f"{link['clock_offset_s']:+.6f} s"
-    caption = (f"link {link['state']}{' (' + link['reason'] + ')' if link['reason'] else ''} · frames {link['frames']} · "
-               f"malformed {link['malformed']} · missed {link['frames_missed']} · out of order {link['out_of_order']} · "
-               f"reconnects {link['reconnects']} · clock offset host−device {offset}")
-    table = Table(title=title, caption=caption)
+    table = Table(title=title, caption=_link_text(watch.link()))
     for col in ("body", "samples", "invalid", "rate Hz", "latency p50 ms", "latency p99 ms", "position m", "age ms"):
         table.add_column(col, justify="right", no_wrap=col == "position m")
     for r in watch.rows():
@@ -41,12 +36,15 @@ def _table(watch, title: str):
     return table
 
 
-def _lines(watch) -> list[str]:
-    link = watch.link()
+def _link_text(link: dict) -> str:
     offset = "–" if link["clock_offset_s"] is None else f"{link['clock_offset_s']:+.6f} s"
-    out = [f"link {link['state']}{' (' + link['reason'] + ')' if link['reason'] else ''}: frames {link['frames']}, "
-           f"malformed {link['malformed']}, missed {link['frames_missed']}, out of order {link['out_of_order']}, "
-           f"reconnects {link['reconnects']}, clock offset host−device {offset}"]
+    return (f"link {link['state']}{' (' + link['reason'] + ')' if link['reason'] else ''}: frames {link['frames']}, "
+            f"malformed {link['malformed']}, missed {link['frames_missed']}, out of order {link['out_of_order']}, "
+            f"reconnects {link['reconnects']}, clock offset host−device {offset}")
+
+
+def _lines(watch) -> list[str]:
+    out = [_link_text(watch.link())]
     for r in watch.rows():
         pos = "occluded" if r["position_m"] is None else "(" + ", ".join(f"{v:+.3f}" for v in r["position_m"]) + ") m"
         out.append(f"  body {r['body']}: {r['samples']} samples ({r['invalid']} invalid), {_f(r['rate_hz'])} Hz, "
