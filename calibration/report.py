@@ -1,76 +1,74 @@
-"""PNG report of a procam calibration: per-view error bars and residual vectors (OpenCV drawing)."""
+"""PNG report of a procam calibration, drawn with matplotlib: per-view stereo RMS bars (camera
+and projector, rejected views marked) and the residual vector field of the final model on each
+device's image plane, with axes in pixels."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from calibration.procam import ProcamResult
 
-CAM = (200, 120, 30)  # BGR
-PROJ = (30, 120, 230)
-INK = (40, 40, 40)
+__all__ = ["CAMERA_COLOUR", "PROJECTOR_COLOUR", "report_figure", "write_report"]
+
+CAMERA_COLOUR, PROJECTOR_COLOUR = "#1f77b4", "#e6550d"
 
 
-def _text(img, s, org, scale=0.45, color=INK):
-    cv2.putText(img, s, org, cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
+def report_figure(result: ProcamResult):
+    """A matplotlib Figure (no pyplot state, so it is safe in any thread or server)."""
+    from matplotlib.figure import Figure
 
-
-def render_report(result: ProcamResult, *, width: int = 1200) -> np.ndarray:
-    """(H, W, 3) uint8 BGR image: bars of per-view stereo RMS (camera, projector) on top,
-    residual vectors of the final model for both devices below (arrows exaggerated)."""
-    names = result.stereo_data.get("names", [])
     rows = result.views_table()
-    bar_h, panel_h = 300, 420
-    img = np.full((bar_h + panel_h + 40, width, 3), 255, np.uint8)
-    _text(img, f"stereo RMS {result.stereo_rms:.3f} px   camera {result.camera.rms:.3f} px   projector {result.projector.rms:.3f} px",
-          (10, 20), 0.55)
-    # -- bars
-    n = max(1, len(rows))
-    x0, y0, y1 = 60, 40, bar_h - 40
-    vals = [v for r in rows if r["stereo_rms_px"] for v in r["stereo_rms_px"]] + [1e-3]
-    vmax = max(0.05, 1.2 * max(vals))
-    cv2.line(img, (x0, y1), (width - 10, y1), INK, 1)
-    for frac in (0.0, 0.5, 1.0):
-        y = int(y1 - frac * (y1 - y0))
-        _text(img, f"{frac * vmax:.2f}", (5, y + 4), 0.4)
-    slot = (width - x0 - 20) / n
+    fig = Figure(figsize=(12, 8.5), dpi=100, layout="constrained")
+    grid = fig.add_gridspec(2, 2, height_ratios=[1, 1.35])
+    fig.suptitle(f"Projector–camera calibration: stereo RMS {result.stereo_rms:.3f} px "
+                 f"(camera {result.camera.rms:.3f} px, projector {result.projector.rms:.3f} px)")
+
+    bars = fig.add_subplot(grid[0, :])
+    x = np.arange(len(rows))
+    cam = [r["stereo_rms_px"][0] if r["stereo_rms_px"] else np.nan for r in rows]
+    proj = [r["stereo_rms_px"][1] if r["stereo_rms_px"] else np.nan for r in rows]
+    bars.bar(x - 0.2, cam, 0.4, label="camera", color=CAMERA_COLOUR)
+    bars.bar(x + 0.2, proj, 0.4, label="projector", color=PROJECTOR_COLOUR)
     for i, r in enumerate(rows):
-        xs = int(x0 + i * slot + slot * 0.15)
-        bw = max(2, int(slot * 0.3))
-        if r["stereo_rms_px"]:
-            for j, (v, col) in enumerate(zip(r["stereo_rms_px"], (CAM, PROJ))):
-                h = int(min(v, vmax) / vmax * (y1 - y0))
-                cv2.rectangle(img, (xs + j * bw, y1 - h), (xs + (j + 1) * bw, y1), col, -1)
+        if not r["used"]:
+            bars.annotate("rejected", (i, 0), xytext=(0, 4), textcoords="offset points", ha="center",
+                          rotation=90, va="bottom", color="crimson", fontsize=8)
+    bars.set_xticks(x, [r["name"] for r in rows], rotation=45 if len(rows) > 8 else 0, ha="right" if len(rows) > 8 else "center")
+    bars.set_xlabel("board pose (view)")
+    bars.set_ylabel("RMS reprojection error (px)")
+    bars.set_title("Per-view error of the final stereo model")
+    bars.legend(loc="upper right")
+    bars.grid(axis="y", alpha=0.3)
+
+    res = result.residuals() if result.stereo_data.get("names") else {"camera": [], "projector": []}
+    for k, (who, lens, colour) in enumerate((("camera", result.camera, CAMERA_COLOUR),
+                                              ("projector", result.projector, PROJECTOR_COLOUR))):
+        ax = fig.add_subplot(grid[1, k])
+        if res[who]:
+            pts = np.concatenate([p for p, _ in res[who]])
+            d = np.concatenate([r for _, r in res[who]])
+            rms = float(np.sqrt((d ** 2).sum(axis=1).mean()))
+            gain = 0.02 * lens.width / max(rms, 1e-9)  # an RMS-sized residual draws 2 % of the image width
+            ax.quiver(pts[:, 0], pts[:, 1], d[:, 0], d[:, 1], color=colour, angles="xy", scale_units="xy",
+                      scale=1 / gain, width=0.002)
+            ax.scatter(pts[:, 0], pts[:, 1], s=1, color="0.3")
+            ax.set_title(f"{who} residuals, RMS {rms:.3f} px (arrows ×{gain:.0f})")
         else:
-            _text(img, "rejected", (xs, y1 - 10), 0.35, (0, 0, 200))
-        _text(img, r["name"][-8:], (xs, y1 + 15), 0.3)
-    _text(img, "camera", (width - 200, 40), 0.45, CAM)
-    _text(img, "projector", (width - 120, 40), 0.45, PROJ)
-    # -- residual panels
-    res = result.residuals() if names else {"camera": [], "projector": []}
-    pw = (width - 30) // 2
-    for k, (who, lens, col) in enumerate((("camera", result.camera, CAM), ("projector", result.projector, PROJ))):
-        ox, oy = 10 + k * (pw + 10), bar_h + 10
-        s = min(pw / lens.width, (panel_h - 20) / lens.height)
-        cv2.rectangle(img, (ox, oy), (ox + int(lens.width * s), oy + int(lens.height * s)), INK, 1)
-        allr = np.concatenate([r for _, r in res[who]]) if res[who] else np.zeros((1, 2))
-        rms = float(np.sqrt((allr**2).sum(axis=1).mean()))
-        gain = 0.05 * lens.width * s / max(rms, 1e-6) / 3  # an RMS residual draws 1/60 of the panel width
-        for pts, r in res[who]:
-            for p, d in zip(pts, r):
-                a = (int(ox + p[0] * s), int(oy + p[1] * s))
-                b = (int(a[0] + d[0] * gain), int(a[1] + d[1] * gain))
-                cv2.line(img, a, b, col, 1, cv2.LINE_AA)
-                cv2.circle(img, a, 1, INK, -1)
-        _text(img, f"{who} residuals x{gain / s:.0f} (RMS {rms:.3f} px)", (ox + 5, oy + int(lens.height * s) + 18), 0.45)
-    return img
+            ax.set_title(f"{who} residuals: no view was used")
+        ax.set_xlim(0, lens.width)
+        ax.set_ylim(lens.height, 0)  # image rows grow downwards
+        ax.set_aspect("equal")
+        ax.set_xlabel(f"{who} x (px)")
+        ax.set_ylabel(f"{who} y (px)")
+    return fig
 
 
 def write_report(result: ProcamResult, path: str | Path) -> Path:
     path = Path(path)
-    if not cv2.imwrite(str(path), render_report(result)):
-        raise OSError(f"{path}: could not write the PNG report")
+    try:
+        report_figure(result).savefig(path)
+    except (OSError, ValueError) as exc:
+        raise OSError(f"{path}: could not write the report: {exc}") from None
     return path

@@ -278,11 +278,12 @@ class SyntheticRig:
         R, t = self.views[i]
         return Rw @ R, Rw @ t + tw
 
-    def write(self, out_dir: str | Path, *, tracker_noise: float = 0.0) -> Path:
+    def write(self, out_dir: str | Path, *, tracker_noise: float = 0.0, progress=None) -> Path:
         """Write a capture folder (see :mod:`calibration.capture`) plus ``truth.json``.
 
         Also writes ``tracker_poses.json`` (world_from_board per pose, as a tracked rigid body
-        would report it), with optional Gaussian position noise in metres.
+        would report it), with optional Gaussian position noise in metres. ``progress(done, total)``
+        is called after each pose.
         """
         from calibration.capture import write_capture_meta
 
@@ -298,6 +299,8 @@ class SyntheticRig:
                 cv2.imwrite(str(d / f"{j:03d}.png"), img)
             R, t = self.world_from_board(i)
             poses.append({"pose": d.name, "R": R.tolist(), "t": (t + rng.normal(0, tracker_noise, 3)).tolist()})
+            if progress is not None:
+                progress(i + 1, len(self.views))
         (out / "truth.json").write_text(json.dumps(self.truth(), indent=1))
         (out / "tracker_poses.json").write_text(json.dumps({"units": "m", "world_from_board": poses}, indent=1))
         return out

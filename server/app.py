@@ -16,6 +16,7 @@ from fastapi.responses import JSONResponse
 
 from dpmhw import __version__
 from server.deps import Runtime, RuntimeUnavailable
+from server.pages import add_pages
 from server.routers import session, settings, status
 
 __all__ = ["build_app"]
@@ -25,7 +26,8 @@ def build_app(runtime: Runtime, *, token: str | None = None) -> FastAPI:
     """The service over `runtime`; `token` guards the mutating routes (None reads DPMHW_API_TOKEN;
     no token at all: they all answer 401). The caller owns the runtime's lifetime."""
     app = FastAPI(title="dpmhw session", version=__version__,
-                  description="Status, settings and control of a dynamic projection mapping session.")
+                  description="Status, settings and control of a dynamic projection mapping session.",
+                  docs_url=None, redoc_url=None)  # served from local files by add_pages
     app.state.runtime = runtime
     app.state.png_cache = status.PngCache()  # per app: each presented frame is encoded once
     app.state.token = token if token is not None else os.environ.get("DPMHW_API_TOKEN", "")
@@ -37,4 +39,5 @@ def build_app(runtime: Runtime, *, token: str | None = None) -> FastAPI:
     app.include_router(status.router)
     app.include_router(settings.router)
     app.include_router(session.router)
+    add_pages(app)  # the operator page at / and offline /docs, /redoc
     return app

@@ -9,6 +9,8 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli import bench_app
+from dpmhw.cli.choices import QualityPart
+from dpmhw.progress import Progress
 
 
 @bench_app.command("render")
@@ -36,7 +38,7 @@ def bench_quality(
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Write the results as JSON here.")] = None,
     out_dir: Annotated[Path, typer.Option(help="Plots (PNG) and image strips go here.")] = Path("bench-quality"),
     cache_dir: Annotated[Optional[Path], typer.Option(help="Reference cache [default: $DPMHW_CACHE/references or ~/.cache/dpmhw/references].")] = None,
-    part: Annotated[str, typer.Option(help="static | dynamic | all")] = "all",
+    part: Annotated[QualityPart, typer.Option(help="Which half of the benchmark to run.")] = QualityPart("all"),
     scale: Annotated[Optional[float], typer.Option(min=0.01, max=1.0, help="Override the resolution scale.")] = None,
     ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Override the static reference spp.")] = None,
     dynamic_ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Override the dynamic references' spp.")] = None,
@@ -47,14 +49,10 @@ def bench_quality(
     temporal reuse (static table vs the paper's Table 1, dynamic per-frame error), with costs."""
     import dataclasses
 
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
-
     from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
 
-    if part not in ("static", "dynamic", "all"):
-        raise typer.BadParameter(f"--part must be static, dynamic or all, got {part!r}")
     cfg = QualityConfig.quick() if quick else QualityConfig()
-    changes = dict(threads=threads, parts=("static", "dynamic") if part == "all" else (part,))
+    changes = dict(threads=threads, parts=("static", "dynamic") if part.value == "all" else (part.value,))
     if scale is not None:
         changes["scale"] = scale
     if ref_spp is not None:
@@ -70,16 +68,8 @@ def bench_quality(
             raise typer.BadParameter(f"--dynamic-times: expected times ≥ 0, got {dynamic_times!r}")
         changes["dynamic_eval_times"] = times
     cfg = dataclasses.replace(cfg, **changes)
-    with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TimeRemainingColumn(), transient=True) as bar:
-        tasks: dict[str, int] = {}
-
-        def progress(desc: str, done: int, total: int) -> None:
-            if desc not in tasks:
-                tasks[desc] = bar.add_task(desc, total=total)
-            bar.update(tasks[desc], completed=done)
-
-        result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=progress)
+    with Progress() as bar:
+        result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=bar.callback)
     typer.echo(format_table(result))
     for f in result.get("files", []):
         typer.echo(f"wrote {f}")

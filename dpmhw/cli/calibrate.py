@@ -11,6 +11,8 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli import app
+from dpmhw.cli.choices import SinkKind
+from dpmhw.progress import Progress
 
 calibrate_app = typer.Typer(no_args_is_help=True, help="Calibrate the projector (intrinsics, lens shift, pose in the tracker frame).")
 app.add_typer(calibrate_app, name="calibrate")
@@ -86,7 +88,7 @@ def capture(
     board: Annotated[str, typer.Option("--board", help="Chessboard inner corners COLSxROWS.")] = "9x6",
     square: Annotated[float, typer.Option("--square", help="Square side in metres.")] = 0.03,
     camera: Annotated[str, typer.Option("--camera", help="cv2.VideoCapture source: device index, URL or image sequence.")] = "0",
-    sink: Annotated[str, typer.Option("--sink", help="Frame sink: window (projector display), file or recording.")] = "window",
+    sink: Annotated[SinkKind, typer.Option("--sink", help="Frame sink: window (projector display), file or recording.")] = SinkKind("window"),
     display: Annotated[int, typer.Option("--display", help="Display index of the projector (window sink).")] = 1,
     settle: Annotated[float, typer.Option("--settle", help="Seconds to wait after each pattern.")] = 0.15,
     discard: Annotated[int, typer.Option("--discard", min=0, help="Buffered camera frames to drop before each grab.")] = 2,
@@ -112,11 +114,12 @@ def capture(
         from drivers.frame_sinks import make_sink
 
         kwargs = {"window": {"display": display, "size": (w, h)}, "file": {"path": out / "_shown"}, "recording": {"shape": (h, w)}}
-        frame_sink = make_sink(sink, **kwargs.get(sink, {}))
+        frame_sink = make_sink(sink.value, **kwargs.get(sink.value, {}))
         try:
-            with typer.progressbar(length=PatternSet(w, h).count, label=pose) as bar:
+            with Progress() as bar:
+                task = bar.task(f"capturing {pose}, patterns", total=PatternSet(w, h).count)
                 capture_live(frame_sink, out, pose, w, h, spec, camera=int(camera) if camera.isdigit() else camera,
-                             settle_s=settle, discard=discard, progress=lambda i, n: bar.update(1))
+                             settle_s=settle, discard=discard, progress=lambda i, n: task.advance())
         finally:
             frame_sink.close()
     except CalibrationError as exc:
@@ -130,10 +133,11 @@ def _observe_capture(capture: Path, options):
 
     meta = open_capture(capture)
     obs = []
-    with typer.progressbar(length=len(meta.poses), label="decoding poses") as bar:
+    with Progress() as bar:
+        task = bar.task("decoding poses", total=len(meta.poses))
         for name, frames in iter_poses(meta):
             obs.append(observe(name, frames, meta.board, (meta.projector_width, meta.projector_height), options))
-            bar.update(1)
+            task.advance()
     return meta, obs
 
 
@@ -181,7 +185,7 @@ def _print_result(result, cal) -> None:
                f"(sigma fx {sc['fx']:.2f}, cy {sc['cy']:.2f})  RMS {result.camera.rms:.3f} px")
     typer.echo(f"projector fx {Kp[0, 0]:.2f} fy {Kp[1, 1]:.2f} cx {Kp[0, 2]:.2f} cy {Kp[1, 2]:.2f}  "
                f"(sigma fx {sp['fx']:.2f}, cy {sp['cy']:.2f})  RMS {result.projector.rms:.3f} px")
-    typer.echo(f"stereo RMS {result.stereo_rms:.3f} px; projector at {1000 * cal.t} mm in the camera frame")
+    typer.echo(f"stereo RMS {result.stereo_rms:.3f} px; projector at ({', '.join(f'{v:.1f}' for v in 1000 * cal.t)}) mm in the camera frame")
     typer.echo(f"{'view':<12} {'used':<5} {'camera px':>9} {'projector px':>12}  reason")
     for v in result.views_table():
         st = v["stereo_rms_px"] or [float('nan')] * 2
@@ -274,7 +278,9 @@ def synth(
     t0 = time.perf_counter()
     rig = make_rig(seed, views, camera_size=(cw, ch), projector_size=(pw, ph), projector_cy=projector_cy,
                    noise_sigma=noise, blur_sigma=blur, bow=bow, supersample=supersample)
-    rig.write(out, tracker_noise=tracker_noise_mm / 1000.0)
+    with Progress() as bar:
+        task = bar.task(f"rendering {views} synthetic poses", total=views)
+        rig.write(out, tracker_noise=tracker_noise_mm / 1000.0, progress=task.update)
     typer.echo(f"wrote {views} poses x {rig.patterns.count} frames ({cw}x{ch} camera, {pw}x{ph} projector) to {out} "
                f"in {time.perf_counter() - t0:.1f} s")
     if solve:

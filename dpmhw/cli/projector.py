@@ -64,10 +64,24 @@ def _print_rows(rows: list[dict], as_json: bool) -> None:
                    f"idle={r['idle']} standby={r['standby']} parked={r['parked']} faults={faults}")
 
 
+def _require_usb_backend() -> None:
+    """Exit 1 naming the cause when pyusb has no backend: an empty list would read as "no projector"."""
+    import usb.core
+
+    try:
+        usb.core.find(idVendor=0xFFFF, idProduct=0xFFFF)  # any query raises NoBackendError without libusb
+    except usb.core.NoBackendError:
+        typer.echo("error: cannot look for projectors: pyusb found no USB backend; install libusb-1.0 "
+                   "(apt install libusb-1.0-0)", err=True)
+        raise typer.Exit(1) from None
+
+
 @projector_app.command("list")
-def list_cmd(mock: MockOpt = False, as_json: Annotated[bool, typer.Option("--json")] = False) -> None:
+def list_cmd(mock: MockOpt = False, as_json: Annotated[bool, typer.Option("--json", help="Print JSON rows.")] = False) -> None:
     """Attached projectors with firmware version and status."""
     with _bus(mock):
+        if not mock:
+            _require_usb_backend()
         _print_rows(_describe_all(), as_json)
 
 
@@ -112,7 +126,7 @@ def _register_devices() -> None:
         return
 
     @app.command("devices")
-    def devices(mock: MockOpt = False, as_json: Annotated[bool, typer.Option("--json")] = False) -> None:
+    def devices(mock: MockOpt = False, as_json: Annotated[bool, typer.Option("--json", help="Print JSON rows.")] = False) -> None:
         """Attached devices (projectors: firmware version and status)."""
         list_cmd(mock=mock, as_json=as_json)
 

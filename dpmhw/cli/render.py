@@ -12,12 +12,14 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli import app
+from dpmhw.cli.choices import ReuseMode, Tonemap
+from dpmhw.progress import Progress
 
 
 @app.command()
 def render(
     scene: Annotated[str, typer.Argument(help="Scene file (TOML) or built-in name: paper-static, paper-dynamic, dpm-bunny.")] = "paper-static",
-    out: Annotated[Path, typer.Option("--out", "-o", help=".npy = float32 (H, W, 3) linear radiance; .png = sRGB.")] = Path("frame.png"),
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help=".npy = float32 (H, W, 3) linear radiance; .png = sRGB; the parameters go to FILE.png.json (FILE.npy.json) beside it [default: frame.png; with --frames and --out-dir: none, the frames go to DIR only].")] = None,
     spp: Annotated[Optional[int], typer.Option(min=1, help="Samples (passes) per pixel [default: 16; 1 per frame with --frames].")] = None,
     seed: Annotated[int, typer.Option(min=0, help="Same seed, same image, bit for bit.")] = 0,
     frame: Annotated[Optional[int], typer.Option(min=0, help="Frame index on the scene's timeline (t = frame / fps).")] = None,
@@ -26,37 +28,33 @@ def render(
     mesh: Annotated[Optional[Path], typer.Option(help="Mesh to use for built-in scenes' bunny.")] = None,
     threads: Annotated[int, typer.Option(min=1, help="Threads for Embree queries.")] = 2,
     frames: Annotated[Optional[int], typer.Option(min=1, help="Render K frames of the timeline (frame k: seed S+k, t = (F+k)/fps) through temporal reuse.")] = None,
-    reuse: Annotated[str, typer.Option(help="With --frames: off | same-pixel (paper's method 2) | motion (method 1).")] = "same-pixel",
+    reuse: Annotated[ReuseMode, typer.Option(help="With --frames: off, same-pixel (paper's method 2) or motion (method 1).")] = ReuseMode("same-pixel"),
     alpha: Annotated[float, typer.Option(help="With --frames: EMA weight of the new frame, in (0, 1].")] = 0.2,
     warmup: Annotated[bool, typer.Option("--warmup", help="With --frames: α_eff = max(α, 1/n) after each reset.")] = False,
     split_screen: Annotated[bool, typer.Option("--split-screen", help="With --frames: left half plain, right half reused.")] = False,
-    out_dir: Annotated[Optional[Path], typer.Option(help="With --frames: write every frame here as frame_00000<suffix of --out>.")] = None,
-    tonemap: Annotated[str, typer.Option(help="Tone-mapping operator for .png output: clip | reinhard.")] = "clip",
+    out_dir: Annotated[Optional[Path], typer.Option(help="With --frames: write every frame here as frame_00000.png (or the suffix of --out), and the parameters as frames.json.")] = None,
+    tonemap: Annotated[Tonemap, typer.Option(help="Tone-mapping operator for .png output.")] = Tonemap("clip"),
 ) -> None:
     """Render one frame, or K frames through temporal reuse. Ctrl-C stops after the current pass
     (or frame) and still writes what is finished."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
-
     from dpmhw.errors import DpmhwError
     from dpmhw.render.integrator import PathIntegrator
     from dpmhw.scene_file import load_scene
 
     if frame is not None and time is not None:
         raise typer.BadParameter("give --frame or --time, not both")
-    if out.suffix.lower() not in (".npy", ".png"):
+    if out is None and not (frames is not None and out_dir is not None):
+        out = Path("frame.png")
+    if out is not None and out.suffix.lower() not in (".npy", ".png"):
         raise typer.BadParameter(f"--out must end in .npy or .png, got {out.name}")
-    from dpmhw.postprocess import TONEMAPS
-
-    if tonemap not in TONEMAPS:
-        raise typer.BadParameter(f"--tonemap must be one of {', '.join(TONEMAPS)}, got {tonemap!r}")
+    tonemap = tonemap.value
     if frames is not None:
         from dpmhw.reuse import ReuseError, ReuseSettings
 
         try:
-            settings = ReuseSettings(alpha, reuse, warmup, split_screen)
-        except ReuseError as exc:
-            typer.secho(f"error: {exc}", fg="red", err=True)
-            raise typer.Exit(2)
+            settings = ReuseSettings(alpha, reuse.value, warmup, split_screen)
+        except ReuseError as exc:  # alpha out of range: name the option, not the library's field
+            raise typer.BadParameter(str(exc).removeprefix("alpha: "), param_hint="--alpha") from None
     elif out_dir is not None or split_screen or warmup:
         raise typer.BadParameter("--out-dir, --split-screen and --warmup need --frames")
     spp = spp if spp is not None else (1 if frames is not None else 16)
@@ -82,20 +80,17 @@ def render(
     previous = signal.signal(signal.SIGINT, on_sigint)
     started = _time.perf_counter()
     try:
-        with PathIntegrator(sc, threads=threads) as integrator, Progress(
-            "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-            TimeRemainingColumn(), transient=True,
-        ) as bar:
-            task = bar.add_task(f"rendering {sc.render.width}×{sc.render.height}", total=spp)
+        with PathIntegrator(sc, threads=threads) as integrator, Progress() as bar:
+            task = bar.task(f"rendering {sc.render.width}×{sc.render.height}, passes", total=spp)
             result = integrator.render(
                 time=t, seed=seed, spp=spp,
-                progress=lambda done, total: bar.update(task, completed=done),
+                progress=lambda done, total: task.update(done, total),
                 should_stop=lambda: stop["requested"],
             )
     finally:
         signal.signal(signal.SIGINT, previous)
     elapsed = _time.perf_counter() - started
-    _write(out, result.radiance, exposure)
+    _write(out, result.radiance, exposure, tonemap)
     meta = {
         "scene": str(scene), "spp": result.spp, "spp_requested": spp, "seed": seed, "time": t,
         "width": sc.render.width, "height": sc.render.height, "max_bounces": sc.render.max_bounces,
@@ -121,15 +116,16 @@ def _write(out: Path, radiance, exposure: float, tonemap: str = "clip") -> None:
     tmp.replace(out)  # never leave a half-written reference behind
 
 
-def _render_sequence(scene_arg, sc, out: Path, out_dir, start_frame: float, frames: int, spp: int, seed: int, settings,
+def _render_sequence(scene_arg, sc, out: Path | None, out_dir, start_frame: float, frames: int, spp: int, seed: int, settings,
                      exposure: float, tonemap: str, threads: int) -> None:
     """K frames at `spp` each (seed S+k) through one TemporalReuse; the last output goes to
-    `out`, every output to `out_dir` if given. Ctrl-C stops after the current frame."""
+    `out` if given, every output to `out_dir` if given. Ctrl-C stops after the current frame."""
     import numpy as np
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     from dpmhw.render.integrator import PathIntegrator
     from dpmhw.reuse import TemporalReuse
+
+    suffix = (out or Path("frame.png")).suffix.lower()
     from dpmhw.sequence import run_sequence
 
     stop = {"requested": False}
@@ -145,11 +141,8 @@ def _render_sequence(scene_arg, sc, out: Path, out_dir, start_frame: float, fram
     started = _time.perf_counter()
     render_ms, reuse_ms, nonfinite, last = [], [], 0, None
     try:
-        with PathIntegrator(sc, threads=threads) as integrator, Progress(
-            "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-            TimeRemainingColumn(), transient=True,
-        ) as bar:
-            task = bar.add_task(f"{frames} frames {sc.render.width}×{sc.render.height}, reuse {settings.label}", total=frames)
+        with PathIntegrator(sc, threads=threads) as integrator, Progress() as bar:
+            task = bar.task(f"{sc.render.width}×{sc.render.height} frames, reuse {settings.label}", total=frames)
             for step in run_sequence(integrator, sc, frames, [reuser], seed=seed, start_frame=start_frame, spp=spp,
                                      should_stop=lambda: stop["requested"]):
                 last = step
@@ -157,12 +150,13 @@ def _render_sequence(scene_arg, sc, out: Path, out_dir, start_frame: float, fram
                 reuse_ms.append(step.reuse_ms[0])
                 nonfinite += step.frame.nonfinite_samples
                 if out_dir is not None:
-                    _write(Path(out_dir) / f"frame_{step.index:05d}{out.suffix.lower()}", step.outputs[0], exposure, tonemap)
-                bar.update(task, completed=step.index + 1)
+                    _write(Path(out_dir) / f"frame_{step.index:05d}{suffix}", step.outputs[0], exposure, tonemap)
+                task.update(step.index + 1)
     finally:
         signal.signal(signal.SIGINT, previous)
     elapsed = _time.perf_counter() - started
-    _write(out, last.outputs[0], exposure, tonemap)
+    if out is not None:
+        _write(out, last.outputs[0], exposure, tonemap)
     meta = {
         "scene": str(scene_arg), "frames": len(render_ms), "frames_requested": frames, "spp_per_frame": spp, "seed": seed,
         "seeds": [seed, seed + len(render_ms) - 1], "start_frame": start_frame, "time": last.time, "fps": sc.render.fps,
@@ -172,8 +166,10 @@ def _render_sequence(scene_arg, sc, out: Path, out_dir, start_frame: float, fram
         "nonfinite_samples": nonfinite, "nonfinite_reuse_inputs": reuser.nonfinite_total,
         "seconds": round(elapsed, 3), "notes": sc.notes, "out_dir": None if out_dir is None else str(out_dir),
     }
-    out.with_name(out.name + ".json").write_text(json.dumps(meta, indent=2))
-    typer.echo(f"wrote {out} (frame {len(render_ms)}/{frames}, reuse {settings.label}, t = {last.time:.6f} s, "
+    sidecar = out.with_name(out.name + ".json") if out is not None else Path(out_dir) / "frames.json"
+    sidecar.write_text(json.dumps(meta, indent=2))
+    wrote = f"{out}" if out is not None else f"{len(render_ms)} frames to {out_dir}"
+    typer.echo(f"wrote {wrote} (frame {len(render_ms)}/{frames}, reuse {settings.label}, t = {last.time:.6f} s, "
                f"render {meta['render_ms_median']:.1f} ms + reuse {meta['reuse_ms_median']:.1f} ms per frame, {elapsed:.1f} s)")
     if nonfinite:
         typer.secho(f"warning: {nonfinite} non-finite samples were dropped (a renderer bug; please report)", fg="red", err=True)

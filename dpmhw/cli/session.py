@@ -18,6 +18,7 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli import app, bench_app
+from dpmhw.cli.choices import ApiMode, BenchTrajectory, ClientPriority
 
 session_app = typer.Typer(no_args_is_help=True, help="Projection sessions: tracker → prediction → render → projector.")
 app.add_typer(session_app, name="session")
@@ -163,36 +164,45 @@ def bench_session(
     spp: Annotated[int, typer.Option(min=1, max=64)] = 1,
     api_clients: Annotated[int, typer.Option(min=0, max=64, help="Concurrent API clients for the load case (0: skip it).")] = 4,
     api_rate: Annotated[float, typer.Option(min=0.0, max=1000.0, help="Requests per second per API client (0: as fast as possible).")] = 10.0,
-    api_mode: Annotated[Optional[list[str]], typer.Option(help="How the API is served in the load case: process (as `session start` does), thread (inside the session process; for comparison). Repeatable; default both.")] = None,
+    api_mode: Annotated[Optional[list[ApiMode]], typer.Option(help="How the API is served in the load case: process (as `session start` does), thread (inside the session process; for comparison). Repeatable; default both.")] = None,
     api_windows: Annotated[int, typer.Option(min=1, max=100, help="Unloaded/loaded window pairs per API mode.")] = 6,
     api_window_s: Annotated[float, typer.Option(min=0.5, max=60.0, help="Seconds per load window.")] = 3.0,
-    client_priority: Annotated[str, typer.Option(help="CPU priority of the load-client process: normal (the strict test: it competes with the loop like any local program), low, idle (as if the clients were on another machine).")] = "normal",
+    client_priority: Annotated[ClientPriority, typer.Option(help="CPU priority of the load-client process: normal (the strict test: it competes with the loop like any local program), low, idle (as if the clients were on another machine).")] = ClientPriority("normal"),
     api_only: Annotated[bool, typer.Option("--api-only", help="Only the API-load case (skip the registration cases).")] = False,
-    trajectory: Annotated[Optional[list[str]], typer.Option(help="linear, rotate-oscillate (repeatable; default both).")] = None,
+    trajectory: Annotated[Optional[list[BenchTrajectory]], typer.Option(help="Repeatable; default: linear and rotate-oscillate.")] = None,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
+    plot: Annotated[Path, typer.Option(help="Plot of registration error and latency over time and the frame-time histogram (PNG).")] = Path("bench-session/bench-session.png"),
     sets: SetOpt = None,
 ) -> None:
     """Registration error vs ground truth with/without prediction, fps, latency, frame time under API load."""
     from dpmhw.session.bench import format_table, run_bench
 
-    trajectories = tuple(trajectory or ("linear", "rotate-oscillate"))
-    for t in trajectories:
-        if t not in ("linear", "rotate-oscillate", "static"):
-            raise typer.BadParameter(f"--trajectory: expected linear, rotate-oscillate or static, got {t!r}")
-    modes = tuple(api_mode or ("process", "thread"))
-    for m in modes:
-        if m not in ("process", "thread"):
-            raise typer.BadParameter(f"--api-mode: expected process or thread, got {m!r}")
-    if client_priority not in ("normal", "low", "idle"):
-        raise typer.BadParameter(f"--client-priority: expected normal, low or idle, got {client_priority!r}")
+    trajectories = tuple(t.value for t in trajectory) if trajectory else ("linear", "rotate-oscillate")
+    modes = tuple(m.value for m in api_mode) if api_mode else ("process", "thread")
     if api_only and not api_clients:
         raise typer.BadParameter("--api-only needs --api-clients ≥ 1")
-    results = run_bench(trajectories, api_clients=api_clients, api_rate_hz=api_rate, api_modes=modes,
-                        api_windows=api_windows, api_window_s=api_window_s, api_client_priority=client_priority,
-                        cases=not api_only, seconds=seconds,
-                        width=width, height=height, spp=spp, overrides=tuple(sets or ()),
-                        progress=lambda label: typer.echo(f"running {label} …"))
+    from dpmhw.progress import Progress
+
+    steps = (0 if api_only else 2 * len(trajectories)) + (1 if api_clients else 0)  # run_bench's progress() calls
+    with Progress() as bar:
+        task = bar.task("bench session", total=steps)
+        started: list[str] = []
+
+        def on_step(label: str) -> None:
+            task.update(len(started), description=f"bench session: {label}")
+            started.append(label)
+
+        results = run_bench(trajectories, api_clients=api_clients, api_rate_hz=api_rate, api_modes=modes,
+                            api_windows=api_windows, api_window_s=api_window_s, api_client_priority=client_priority.value,
+                            cases=not api_only, seconds=seconds,
+                            width=width, height=height, spp=spp, overrides=tuple(sets or ()), progress=on_step)
+        task.update(steps, description="bench session")
+    series = {c["case"]: c.pop("series") for c in results["cases"] if "series" in c}
     typer.echo(format_table(results))
+    if series:
+        from dpmhw.session.bench_plots import plot_bench_session
+
+        typer.echo(f"wrote {plot_bench_session(results['cases'], series, plot)}")
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(results, indent=2))

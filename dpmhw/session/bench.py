@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dpmhw.session.bench_plots import bench_series
 from dpmhw.session.config import load_session_config
 from dpmhw.tracking import wait_for
 from dpmhw.transforms import Pose
@@ -247,6 +248,7 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         "evaluated_frames": len(errors), "render_size": [width, height], "spp": spp,
         "projector_size": [scene.render.width, scene.render.height],
     }
+    out["series"] = bench_series(records, frame_ms, latency_ms, errors, step)  # for the plots; not a JSON row
     return out
 
 

@@ -264,7 +264,7 @@ def load_session_config(path: str | Path | None = None, overrides: list[str] | d
     if overrides:
         over = parse_overrides(overrides) if isinstance(overrides, list) else overrides
         data = _merge(data, over)
-        source += " + command line" if path is not None else ""
+        source = f"{source} + command line" if path is not None else "command line"
     data.setdefault("base_dir", base_dir)
     try:
         return SessionConfig.model_validate(data)

@@ -36,8 +36,9 @@ def test_synth_solve_writes_files_and_reports_against_truth(synth_run):
         assert (out / name).is_file(), name
     assert len(list((out / "pose_000").glob("*.png"))) == 38
     report = cv2.imread(str(out / "report.png"))
-    assert report.shape[1] == 1200
-    for bgr in ((200, 120, 30), (30, 120, 230)):  # camera and projector bars/residuals are drawn
+    assert report.shape[:2] == (850, 1200)
+    for hex_rgb in ("1f77b4", "e6550d"):  # camera and projector bars/residuals are drawn
+        bgr = [int(hex_rgb[i:i + 2], 16) for i in (4, 2, 0)]
         assert (np.abs(report.astype(int) - bgr).sum(axis=2) < 10).sum() > 200
     assert "against ground truth" in result.output and "held-out projector reprojection" in result.output
     assert "time per stage" in result.output

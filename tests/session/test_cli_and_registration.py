@@ -82,9 +82,11 @@ def test_bench_session_command(runner, tmp_path):
     out = tmp_path / "bench.json"
     r = runner.invoke(app, ["bench", "session", "--seconds", "1", "--trajectory", "linear", "--api-clients", "2",
                             "--api-windows", "1", "--api-window-s", "1", "--width", "64", "--height", "48",
-                            "--json", str(out)])
+                            "--json", str(out), "--plot", str(tmp_path / "bench.png")])
     assert r.exit_code == 0, r.output
+    assert (tmp_path / "bench.png").stat().st_size > 10_000
     results = json.loads(out.read_text())
+    assert not any("series" in x for x in results["cases"])  # plotted, not written as rows
     assert [x["prediction"] for x in results["cases"]] == [True, False]
     assert all(x["frames"] > 2 and x["registration_px"]["p50"] is not None for x in results["cases"])
     assert [x["api_mode"] for x in results["api_load"]] == ["process", "thread"]

@@ -1,0 +1,182 @@
+"""The operator page in headless Chromium (the OS package) against `dpmhw session start --mock`.
+
+Skipped where /usr/bin/chromium or chromedriver is missing, except under CI (CI=true), where
+`.ci/run` installs them and a missing browser is a failure.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import threading
+import urllib.request
+
+import pytest
+
+from dpmhw.tracking import wait_for
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", shutil.which("chromedriver") or "/usr/bin/chromedriver"
+TOKEN = "browser-test-token"
+
+if not (os.path.exists(CHROMIUM) and os.path.exists(CHROMEDRIVER)):
+    if os.environ.get("CI"):
+        pytest.fail("CI needs /usr/bin/chromium and chromedriver (apt-get install chromium chromium-driver)", pytrace=False)
+    pytest.skip("no /usr/bin/chromium + chromedriver (apt-get install chromium chromium-driver)", allow_module_level=True)
+
+webdriver = pytest.importorskip("selenium.webdriver")
+from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
+from selenium.webdriver.chrome.service import Service  # noqa: E402
+from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.common.keys import Keys  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def session_url():
+    args = ["session", "start", "--mock", "--status-every", "0", "--port", "0",
+            "--set", "render.width=64", "--set", "render.height=48"]
+    proc = subprocess.Popen([sys.executable, "-c", "from dpmhw.cli import main; main()", *args],
+                            env={**os.environ, "DPMHW_API_TOKEN": TOKEN},
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
+    try:
+        if not wait_for(lambda: any("API on http://" in line for line in lines), 120):
+            pytest.fail("session did not start:\n" + "".join(lines))
+        url = next(m.group(1) for line in lines if (m := re.search(r"API on (http://\S+)", line)))
+        if not wait_for(lambda: _get(url, "/status").get("state") == "running", 60):
+            pytest.fail(f"session never ran: {_get(url, '/status')}")
+        yield url
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=10)
+        reader.join(timeout=10)
+        proc.stdout.close()
+
+
+def _get(url: str, path: str) -> dict:
+    with urllib.request.urlopen(url + path, timeout=5) as r:
+        return json.loads(r.read())
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = CHROMIUM
+    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run", "--window-size=1280,1000",
+                 f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}"):
+        opts.add_argument(flag)
+    driver = webdriver.Chrome(options=opts, service=Service(CHROMEDRIVER))
+    driver.set_page_load_timeout(30)
+    yield driver
+    driver.quit()
+
+
+@pytest.fixture
+def page(browser, session_url):
+    browser.get(session_url + "/")
+    browser.execute_script("sessionStorage.clear()")
+    browser.refresh()
+    assert wait_for(lambda: browser.find_elements(By.ID, "set-alpha"), 20), "controls were not built from /settings"
+    return browser
+
+
+def _text(driver, element_id: str) -> str:
+    return _css_text(driver, "#" + element_id)
+
+
+def _css_text(driver, selector: str) -> str:
+    """Text of the matching elements; the page redraws parts of itself, so a stale read is retried."""
+    for _ in range(10):
+        try:
+            return " ".join(e.text for e in driver.find_elements(By.CSS_SELECTOR, selector))
+        except StaleElementReferenceException:
+            continue
+    return ""
+
+
+def _enter_token(driver) -> None:
+    driver.find_element(By.ID, "token").send_keys(TOKEN, Keys.ENTER)
+    assert wait_for(lambda: "token set" in _text(driver, "token-state"), 5)
+
+
+def test_live_frame_updates_and_state_is_in_words(page, tmp_path):
+    img = page.find_element(By.ID, "frame")
+    assert wait_for(lambda: img.get_attribute("data-frame-number"), 20)
+    first = int(img.get_attribute("data-frame-number"))
+    assert wait_for(lambda: int(img.get_attribute("data-frame-number") or 0) > first, 20), "the frame never changed"
+    assert wait_for(lambda: page.execute_script("return arguments[0].naturalWidth", img) == 64, 10)
+    assert wait_for(lambda: _text(page, "state") == "Projecting", 20), _text(page, "state")  # tracking may lag under load
+    assert wait_for(lambda: page.find_elements(By.CSS_SELECTOR, "#stages tbody tr"), 10)
+    assert "render" in _text(page, "stages") and "streaming" in _text(page, "devices")
+    assert wait_for(lambda: "rate hz" in _text(page, "devices"), 10)  # computed from the tracker's frame count
+    page.save_screenshot(str(tmp_path / "operator-page.png"))
+    assert (tmp_path / "operator-page.png").stat().st_size > 10_000
+
+
+def test_alpha_slider_changes_the_live_setting(page, session_url, tmp_path):
+    _enter_token(page)
+    before = _get(session_url, "/settings")["alpha"]
+    slider = page.find_element(By.ID, "set-alpha")
+    slider.send_keys(Keys.END)  # the slider's maximum: 1.0
+    assert wait_for(lambda: _get(session_url, "/settings")["alpha"] == 1.0, 10), _text(page, "message")
+    assert wait_for(lambda: "alpha = 1 accepted" in _text(page, "message"), 10), _text(page, "message")
+    slider.send_keys(Keys.HOME)
+    assert wait_for(lambda: _get(session_url, "/settings")["alpha"] == pytest.approx(0.01), 10), _text(page, "message")
+    page.find_element(By.ID, "set-reuse_mode").send_keys("same-pixel")
+    assert wait_for(lambda: _get(session_url, "/settings")["reuse_mode"] == "same-pixel", 10), _text(page, "message")
+    assert before != 0.01
+    page.save_screenshot(str(tmp_path / "after-alpha.png"))
+
+
+def test_rejections_show_the_api_reason(page, session_url):
+    page.find_element(By.ID, "blank").click()  # no token entered in this browser session
+    assert wait_for(lambda: "rejected (401)" in _text(page, "message"), 10)
+    assert "bearer token" in _text(page, "message")
+    assert "operator" not in [c["name"] for c in _get(session_url, "/status")["causes"]]
+    _enter_token(page)
+    spp = page.find_element(By.ID, "set-spp")
+    spp.clear()
+    spp.send_keys("65", Keys.TAB)  # above the API's bound: refused with its reason
+    assert wait_for(lambda: "rejected (422)" in _text(page, "message"), 10)
+    assert "spp" in _text(page, "message") and "64" in _text(page, "message")
+    assert _get(session_url, "/settings")["spp"] == 1
+
+
+def test_blank_then_resume_from_the_page(page, session_url, tmp_path):
+    _enter_token(page)
+    page.find_element(By.ID, "blank").click()
+    assert wait_for(lambda: _text(page, "state") == "Dark (on purpose)", 10), _text(page, "state")
+    assert _get(session_url, "/status")["state"] == "blanked"
+    assert "operator" in _text(page, "causes")
+    img = page.find_element(By.ID, "frame")
+    assert wait_for(lambda: img.get_attribute("data-blank") == "true", 10)
+    page.save_screenshot(str(tmp_path / "blanked.png"))
+    page.find_element(By.ID, "resume").click()
+    assert wait_for(lambda: _get(session_url, "/status")["state"] == "running", 15)
+    assert wait_for(lambda: _text(page, "state") == "Projecting", 20)
+    page.find_element(By.ID, "reset-history").click()
+    assert wait_for(lambda: "history reset" in _text(page, "message"), 10)
+
+
+def test_docs_and_redoc_render_from_local_assets(browser, session_url):
+    browser.get(session_url + "/docs")
+    assert wait_for(lambda: "dpmhw session" in _css_text(browser, ".swagger-ui .info"), 20)
+    assert browser.find_elements(By.CSS_SELECTOR, ".opblock"), "Swagger UI drew no operations"
+    browser.get(session_url + "/redoc")
+    assert wait_for(lambda: "PATCH" in _css_text(browser, "body").upper() and "settings" in _css_text(browser, "body"), 30)
+    urls = browser.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
+    # ReDoc's "API docs by Redocly" footer badge is the one remote image; it hides itself offline.
+    remote = [u for u in urls if not u.startswith((session_url, "data:", "blob:"))]
+    assert urls and remote in ([], ["https://cdn.redoc.ly/redoc/logo-mini.svg"]), urls
