@@ -18,7 +18,7 @@ I/O-free like `session/safety.py`:
 
 Ray budget: a sample costs at most `rays_per_sample` rays (camera + one shadow ray per vertex +
 continuations; `rays_per_sample_bound`). Samples are granted in priority order (every tile's
-first sample before anyone's second, and within a step by V descending, refresh tiles first)
+first sample before anyone's second; within a step the tile unshaded longest first, then by V)
 while the running total stays within `ray_budget`: the bound Σ spp · shaded pixels ·
 rays_per_sample ≤ ray_budget holds by construction, so the traced rays never exceed it.
 """
@@ -135,11 +135,11 @@ class TilePolicy:
     def __init__(self, height: int, width: int, settings: PolicySettings = PolicySettings()):
         self.height, self.width, self.settings = int(height), int(width), settings
         self._level: np.ndarray | None = None
-        self._idle: np.ndarray | None = None
+        self._age: np.ndarray | None = None  # frames since each tile was last shaded
         self.frame = 0
 
     def reset(self) -> None:
-        self._level = self._idle = None
+        self._level = self._age = None
         self.frame = 0
 
     def _levels(self, v: np.ndarray) -> np.ndarray:
@@ -154,24 +154,22 @@ class TilePolicy:
             raise LodSettingsError(f"visibility: expected tiles {pixels.shape} for {self.width}×{self.height}, got {v.shape}")
         up = self._levels(v)
         if self._level is None or self._level.shape != v.shape:
-            self._level, self._idle = up.copy(), np.zeros(v.shape, np.int64)
-        prev = self._level
+            self._level, self._age = up.copy(), np.zeros(v.shape, np.int64)
+        prev, age = self._level, self._age
         level = np.where(up >= prev, up, np.minimum(prev, self._levels(v + s.hysteresis)))
         self._level = level
-        # staggered refresh of history-only tiles
-        idle = np.where(level == 0, self._idle + 1, 0)
         index = np.arange(level.size).reshape(level.shape)
-        refresh = (level == 0) & (idle >= s.refresh_frames) & ((index + self.frame) % s.refresh_frames == 0)
-        idle[refresh] = 0
-        self._idle = idle
+        refresh = (level == 0) & (age >= s.refresh_frames) & ((index + self.frame) % s.refresh_frames == 0)
         self.frame += 1
         render_level = np.where(refresh, 1, level)
         rate = RATES[render_level] if s.shading_rate else np.where(render_level > 0, 1, 0).astype(np.uint8)
         shaded = np.where(rate > 0, -(-pixels // np.maximum(rate, 1).astype(np.int64) ** 2), 0)  # ⌈pixels / rate²⌉
         spp_level = render_level if s.adaptive_spp else np.minimum(render_level, 1)
-        priority = np.where(refresh, np.inf, v)
-        granted = allocate(spp_level, priority, shaded, s.ray_budget, s.rays_per_sample)
+        # longest-unshaded first (V is bounded by 1e4, so age dominates): under a tight budget every
+        # wanted tile takes its turn instead of the most visible ones starving the rest
+        granted = allocate(spp_level, age * 1e5 + v, shaded, s.ray_budget, s.rays_per_sample)
         spp = SPPS[granted]
         rate = np.where(spp > 0, rate, 0).astype(np.uint8)
+        self._age = np.where(spp > 0, 0, age + 1)
         ray_bound = int((spp.astype(np.int64) * shaded).sum() * s.rays_per_sample)
         return TileDecisions(rate, spp, shaded, refresh & (spp > 0), ray_bound, tile)

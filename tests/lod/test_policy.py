@@ -122,3 +122,15 @@ def test_settings_errors_name_the_field():
         PolicySettings(ray_budget=-1)
     with pytest.raises(LodSettingsError, match="visibility"):
         TilePolicy(32, 32).decide(vmap(np.zeros((1, 1))))
+
+
+def test_a_tight_budget_takes_turns_instead_of_starving_tiles():
+    """Budget for half the visible tiles at 1 spp: within two frames every tile was shaded."""
+    v = np.linspace(10, 90, 16).reshape(4, 4)
+    pol = TilePolicy(64, 64, PolicySettings(shading_rate=False, ray_budget=8 * 256 * 4, rays_per_sample=4, dilate=0))
+    seen = np.zeros((4, 4), bool)
+    for _ in range(2):
+        d = pol.decide(vmap(v))
+        assert (d.spp > 0).sum() == 8 and d.ray_bound <= 8 * 256 * 4
+        seen |= d.spp > 0
+    assert seen.all()
