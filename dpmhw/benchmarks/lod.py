@@ -20,6 +20,8 @@ Methods
   renderer takes per-object BVHs, a new choice builds a new PathIntegrator: that build is outside
   the timed frame and counted in `lod_switches`.
 - all: spp and mesh-LOD together.
+- mesh-coarsest (diagnostic, not a method): every mesh at its coarsest level all the time, the
+  most mesh LOD could save here, whatever it costs in error.
 - shading-rate is left out: shading a tile at 1/2 or 1/4 resolution needs the joint bilateral
   upsampling of issue 11 (`dpmhw/reconstruct/`), not on this branch. The policy computes the
   rates (`TileDecisions.rate`); nothing here pretends to render them.
@@ -52,7 +54,7 @@ from dpmhw.reuse import TemporalReuse
 from dpmhw.scene_file import Scene, load_scene
 from dpmhw.sequence import scaled_scene
 
-METHODS = ("none", "spp", "mesh-LOD", "all")
+METHODS = ("none", "spp", "mesh-LOD", "all", "mesh-coarsest")
 OMITTED = {"shading-rate": "needs the joint bilateral upsampling of issue 11 (dpmhw/reconstruct/), not on this branch"}
 REFERENCE_SEED = 1_000_003
 
@@ -140,7 +142,7 @@ class _Run:
         self.reuse = TemporalReuse(self.W, self.H, alpha=cfg.alpha)
         self.levels = levels
         self.integrators: dict[tuple, PathIntegrator] = {}
-        self.choice = tuple([0] * len(scene.objects))
+        self.choice = tuple(len(lv) - 1 if name == "mesh-coarsest" and lv is not None else 0 for lv in levels)
         self.integrator = self._integrator(self.choice)
         self.rays_per_sample = rays_per_sample_bound(r.max_bounces, self.integrator.mis_last)
         self.budget = int(cfg.budget * self.W * self.H * self.rays_per_sample)
@@ -334,7 +336,7 @@ def write_figures(rows: list[dict], images: dict, out_dir: Path) -> list[str]:
             ax.set_xlabel("x (px)")
         files.append(_save(fig, out_dir / f"lod-map-{name}.png"))
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    markers = {"none": "o", "spp": "s", "mesh-LOD": "^", "all": "D"}
+    markers = {"none": "o", "spp": "s", "mesh-LOD": "^", "all": "D", "mesh-coarsest": "x"}
     for i, name in enumerate(dict.fromkeys(r["scene"] for r in rows)):
         for r in (r for r in rows if r["scene"] == name):
             for ax, key in zip(axes, ("psnr_db", "flip")):
