@@ -27,7 +27,10 @@ Methods
   rates (`TileDecisions.rate`); nothing here pretends to render them.
 
 frame_ms covers, per frame: visibility map, decisions, level choice, the render calls and the
-scatter of their pixels (not reuse or post-processing, which every method does the same way).
+scatter of their pixels (not reuse or post-processing, which every method does the same way);
+lod_ms is the first three, render_ms the time inside the render calls (with `render_pixels`
+that includes the bridge's per-call set-up: the integrator reallocates its work buffers for
+every new pixel count).
 rays_per_frame = camera + continuation + shadow rays, as `bench render` counts them.
 """
 
@@ -154,6 +157,7 @@ class _Run:
         self.prev = None  # (output radiance, depth, object_id) of the last frame
         self.lod_switches = 0
         self.last: dict = {}
+        self.render_s = 0.0  # seconds inside render calls this frame
 
     def _integrator(self, choice: tuple) -> PathIntegrator:
         if choice not in self.integrators:
@@ -170,6 +174,7 @@ class _Run:
         t_frame, seed = k / self.scene.render.fps, k
         spent = 0.0
         vmap = dec = None
+        self.render_s = 0.0
         start = _time.perf_counter()
         if self.prev is not None and (self.adaptive_spp or self.mesh_lod):
             prev_out, prev_depth, prev_id = self.prev
@@ -185,9 +190,13 @@ class _Run:
                     start = _time.perf_counter()
         if self.adaptive_spp and vmap is not None:
             dec = self.policy.decide(vmap)
+            lod_s = spent + _time.perf_counter() - start
             radiance, object_id, depth, rays = self._render_tiles(dec, t_frame, seed)
         else:
+            lod_s = spent + _time.perf_counter() - start
+            r0 = _time.perf_counter()
             frame = self.integrator.render(time=t_frame, seed=seed)
+            self.render_s += _time.perf_counter() - r0
             c = self.integrator.counts
             radiance, object_id, depth, rays = frame.radiance, frame.object_id, frame.depth, c.primary + c.intersect + c.occluded
         spent += _time.perf_counter() - start
@@ -196,7 +205,7 @@ class _Run:
         self.last = dict(vmap=vmap, decisions=dec, choice=self.choice, output=out)
         if dec is not None and rays > self.budget:
             raise AssertionError(f"{self.name}: {rays} rays traced over the budget of {self.budget}")
-        return dict(ms=spent * 1e3, rays=int(rays), triangles=int(self.integrator.geometry.triangle_count), output=out, time=t_frame)
+        return dict(ms=spent * 1e3, lod_ms=lod_s * 1e3, render_ms=self.render_s * 1e3, rays=int(rays), triangles=int(self.integrator.geometry.triangle_count), output=out, time=t_frame)
 
     def _render_tiles(self, dec: TileDecisions, t_frame: float, seed: int):
         prev_out, prev_depth, prev_id = self.prev
@@ -209,7 +218,9 @@ class _Run:
             pixels = np.flatnonzero(spp == s)
             if pixels.size == 0:
                 continue
+            r0 = _time.perf_counter()
             frame, c = render_pixels(self.integrator, pixels, s, t_frame, seed)
+            self.render_s += _time.perf_counter() - r0
             radiance[pixels] = frame.radiance.reshape(-1, 3)
             object_id[pixels] = frame.object_id.reshape(-1)
             depth[pixels] = frame.depth.reshape(-1)
@@ -275,12 +286,12 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                 psnr_db=float(np.mean([e[0] for e in errs])), ssim=float(np.mean([e[1] for e in errs])),
                 flip=float(np.mean([e[2] for e in errs])),
                 frame_ms_min=float(min(f["ms"] for f in timed)), frame_ms_max=float(max(f["ms"] for f in timed)),
+                lod_ms=float(np.median([f["lod_ms"] for f in timed])), render_ms=float(np.median([f["render_ms"] for f in timed])),
                 ray_budget=r.budget if r.adaptive_spp else None, lod_switches=r.lod_switches,
                 mesh_levels=",".join(str(c) for c in r.choice), width=scene.render.width, height=scene.render.height,
                 frames=cfg.frames, eval_frames=cfg.eval_frames, ref_spp=cfg.ref_spp, level_build_s=round(build_s, 2),
             ))
-        images[name] = dict(run=runs[METHODS.index("all")].last, reference=ref_u8[-1], scene=scene, levels=levels,
-                            safe_depths=runs[METHODS.index("all")].selector.safe_depths)
+        images[name] = dict(run=runs[METHODS.index("all")].last, scene=scene, levels=levels)
     finally:
         for r in runs:
             r.close()
@@ -346,7 +357,8 @@ def write_figures(rows: list[dict], images: dict, out_dir: Path) -> list[str]:
     axes[0].set_ylabel("PSNR (dB) against the converged reference ↑")
     axes[1].set_ylabel("mean FLIP against the converged reference ↓")
     for ax in axes:
-        ax.set_xlabel("frame time, median (ms; shared 2-core machine)")
+        ax.set_xscale("log")
+        ax.set_xlabel("frame time, median (ms, log scale; shared 2-core machine)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, ncol=2)
     fig.suptitle("Contrast-driven LOD: speed against error (shading-rate omitted: needs issue 11's upsampling)")

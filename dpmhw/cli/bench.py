@@ -97,6 +97,7 @@ def bench_lod(
     cache_dir: Annotated[Optional[Path], typer.Option(help="Reference cache [default: $DPMHW_CACHE/references or ~/.cache/dpmhw/references].")] = None,
     scenes: Annotated[Optional[str], typer.Option(help="Comma-separated scenes [default: paper-dynamic,dpm-bunny].")] = None,
     frames: Annotated[Optional[int], typer.Option(min=3, help="Frames per method and scene.")] = None,
+    eval_frames: Annotated[Optional[int], typer.Option(min=1, help="Last frames compared with references (each costs a reference render).")] = None,
     ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Reference spp.")] = None,
     budget: Annotated[float, typer.Option(min=0.0, max=4.0, help="Ray budget of the adaptive-spp methods, × a 1-spp frame's worst case.")] = 0.5,
     viewer_distance: Annotated[float, typer.Option(help="Audience distance from the surface, metres.")] = 1.5,
@@ -121,7 +122,7 @@ def bench_lod(
         changes["scenes"] = tuple(s.strip() for s in scenes.split(",") if s.strip())
     if frames is not None:
         changes["frames"] = frames
-        changes["eval_frames"] = min(cfg.eval_frames, frames - 1)
+    changes["eval_frames"] = min(eval_frames or cfg.eval_frames, changes.get("frames", cfg.frames) - 1)
     if ref_spp is not None:
         changes["ref_spp"] = ref_spp
     cfg = dataclasses.replace(cfg, **changes)

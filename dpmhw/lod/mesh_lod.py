@@ -34,7 +34,7 @@ from embreex import mesh_construction, rtcore_scene
 from scipy.spatial import cKDTree
 
 from dpmhw.lod.csf import A_PEAK, sensitivity
-from dpmhw.lod.visibility import LodSettingsError, VisibilitySettings, _check
+from dpmhw.lod.visibility import LodSettingsError, VisibilitySettings, check_number
 from dpmhw.meshes import TriangleMesh, clean
 from dpmhw.transforms import Pose
 
@@ -136,10 +136,10 @@ class MeshLodSettings:
     step: float = 1.15
 
     def __post_init__(self):
-        object.__setattr__(self, "invisible_error_px", _check("invisible_error_px", self.invisible_error_px, 0.0, 1e3, lo_open=True))
-        object.__setattr__(self, "hysteresis", _check("hysteresis", self.hysteresis, 0.0, 0.99))
-        object.__setattr__(self, "far_m", _check("far_m", self.far_m, 0.0, 1e4, lo_open=True))
-        object.__setattr__(self, "step", _check("step", self.step, 1.0, 4.0, lo_open=True))
+        object.__setattr__(self, "invisible_error_px", check_number("invisible_error_px", self.invisible_error_px, 0.0, 1e3, lo_open=True))
+        object.__setattr__(self, "hysteresis", check_number("hysteresis", self.hysteresis, 0.0, 0.99))
+        object.__setattr__(self, "far_m", check_number("far_m", self.far_m, 0.0, 1e4, lo_open=True))
+        object.__setattr__(self, "step", check_number("step", self.step, 1.0, 4.0, lo_open=True))
 
 
 @nb.njit(nogil=True, cache=True)

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dpmhw.lod.visibility import LodSettingsError, VisibilityMap, _check
+from dpmhw.lod.visibility import LodSettingsError, VisibilityMap, check_number
 
 RATES = np.array([0, 4, 2, 1], np.uint8)  # level → pixel pitch per axis (0: history only)
 SPPS = np.array([0, 1, 2, 4], np.uint8)  # level → samples per shaded pixel
@@ -54,16 +54,16 @@ class PolicySettings:
     rays_per_sample: int = 4  # rays_per_sample_bound(1, False)
 
     def __post_init__(self):
-        t = tuple(_check(f"thresholds[{i}]", x, -1e4, 1e4) for i, x in enumerate(self.thresholds))
+        t = tuple(check_number(f"thresholds[{i}]", x, -1e4, 1e4) for i, x in enumerate(self.thresholds))
         if len(t) != 3 or not (t[0] <= t[1] <= t[2]):
             raise LodSettingsError(f"thresholds: expected three ascending values, got {self.thresholds!r}")
         object.__setattr__(self, "thresholds", t)
-        object.__setattr__(self, "hysteresis", _check("hysteresis", self.hysteresis, 0.0, 1e4))
-        object.__setattr__(self, "dilate", _check("dilate", self.dilate, 0, 16, integer=True))
-        object.__setattr__(self, "refresh_frames", _check("refresh_frames", self.refresh_frames, 1, 1e6, integer=True))
-        object.__setattr__(self, "rays_per_sample", _check("rays_per_sample", self.rays_per_sample, 1, 1e3, integer=True))
+        object.__setattr__(self, "hysteresis", check_number("hysteresis", self.hysteresis, 0.0, 1e4))
+        object.__setattr__(self, "dilate", check_number("dilate", self.dilate, 0, 16, integer=True))
+        object.__setattr__(self, "refresh_frames", check_number("refresh_frames", self.refresh_frames, 1, 1e6, integer=True))
+        object.__setattr__(self, "rays_per_sample", check_number("rays_per_sample", self.rays_per_sample, 1, 1e3, integer=True))
         if self.ray_budget is not None:
-            object.__setattr__(self, "ray_budget", _check("ray_budget", self.ray_budget, 0, 1e15, integer=True))
+            object.__setattr__(self, "ray_budget", check_number("ray_budget", self.ray_budget, 0, 1e15, integer=True))
 
 
 @dataclass

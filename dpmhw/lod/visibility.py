@@ -37,7 +37,8 @@ class LodSettingsError(DpmhwError, ValueError):
     """A level-of-detail setting is out of range; the message names the field."""
 
 
-def _check(name: str, value, lo: float, hi: float, lo_open: bool = False, integer: bool = False):
+def check_number(name: str, value, lo: float, hi: float, lo_open: bool = False, integer: bool = False):
+    """`value` as a float (or int) within [lo, hi] ((lo, hi] with lo_open), else LodSettingsError naming `name`."""
     try:
         x = float(value)
     except (TypeError, ValueError):
@@ -61,11 +62,11 @@ class VisibilitySettings:
     block: int = 2
 
     def __post_init__(self):
-        object.__setattr__(self, "viewer_distance_m", _check("viewer_distance_m", self.viewer_distance_m, 0.0, 1e4, lo_open=True))
-        object.__setattr__(self, "alpha_v", _check("alpha_v", self.alpha_v, -1e4, 1e4))
-        object.__setattr__(self, "peak_sensitivity", _check("peak_sensitivity", self.peak_sensitivity, 1.0, 1e4))
-        tile = _check("tile", self.tile, 2, 256, integer=True)
-        block = _check("block", self.block, 1, tile, integer=True)
+        object.__setattr__(self, "viewer_distance_m", check_number("viewer_distance_m", self.viewer_distance_m, 0.0, 1e4, lo_open=True))
+        object.__setattr__(self, "alpha_v", check_number("alpha_v", self.alpha_v, -1e4, 1e4))
+        object.__setattr__(self, "peak_sensitivity", check_number("peak_sensitivity", self.peak_sensitivity, 1.0, 1e4))
+        tile = check_number("tile", self.tile, 2, 256, integer=True)
+        block = check_number("block", self.block, 1, tile, integer=True)
         if tile % block:
             raise LodSettingsError(f"block: must divide tile ({tile}), got {block}")
         object.__setattr__(self, "tile", tile)
