@@ -77,3 +77,70 @@ def bench_quality(
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(result, indent=2))
         typer.echo(f"wrote {json_path}")
+
+
+@bench_app.command("lod")
+def bench_lod(
+    quick: Annotated[bool, typer.Option("--quick", help="Quarter resolution (256×192), 6 frames, 64-spp references: a few minutes.")] = False,
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="Write the rows as JSON here.")] = None,
+    out_dir: Annotated[Path, typer.Option(help="Visibility-map and ms-vs-error figures (PNG) go here.")] = Path("bench-lod"),
+    cache_dir: Annotated[Optional[Path], typer.Option(help="Reference cache [default: $DPMHW_CACHE/references or ~/.cache/dpmhw/references].")] = None,
+    scenes: Annotated[Optional[str], typer.Option(help="Comma-separated scenes [default: paper-dynamic,dpm-bunny].")] = None,
+    frames: Annotated[Optional[int], typer.Option(min=3, help="Frames per method and scene.")] = None,
+    eval_frames: Annotated[Optional[int], typer.Option(min=1, help="Last frames compared with references (each costs a reference render).")] = None,
+    ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Reference spp.")] = None,
+    budget: Annotated[float, typer.Option(min=0.0, max=4.0, help="Ray budget of the adaptive-spp methods, × a 1-spp frame's worst case.")] = 0.5,
+    viewer_distance: Annotated[float, typer.Option(help="Audience distance from the surface, metres.")] = 1.5,
+    alpha_v: Annotated[float, typer.Option(help="α_v added to the visibility (1/contrast units).")] = 0.0,
+    threads: Annotated[int, typer.Option(min=1)] = 2,
+) -> None:
+    """Contrast-driven LOD, speed against error: rows {scene, method, frame_ms, rays_per_frame,
+    triangles, psnr_db, ssim, flip} for none / spp / mesh-LOD / all against converged references."""
+    import dataclasses
+    import sys
+    import time
+
+    from dpmhw.benchmarks.lod import LodBenchConfig, format_table, run_lod
+    from dpmhw.lod.visibility import LodSettingsError, VisibilitySettings
+
+    cfg = LodBenchConfig.quick() if quick else LodBenchConfig()
+    try:
+        changes = dict(budget=budget, threads=threads, visibility=VisibilitySettings(viewer_distance_m=viewer_distance, alpha_v=alpha_v))
+    except LodSettingsError as e:
+        raise typer.BadParameter(str(e)) from None
+    if scenes is not None:
+        changes["scenes"] = tuple(s.strip() for s in scenes.split(",") if s.strip())
+    if frames is not None:
+        changes["frames"] = frames
+    changes["eval_frames"] = min(eval_frames or cfg.eval_frames, changes.get("frames", cfg.frames) - 1)
+    if ref_spp is not None:
+        changes["ref_spp"] = ref_spp
+    cfg = dataclasses.replace(cfg, **changes)
+    last_log = [0.0]
+
+    def log_progress(desc: str, done: int, total: int) -> None:  # not a terminal: a line every 10 s
+        if time.monotonic() - last_log[0] > 10 or done == total:
+            last_log[0] = time.monotonic()
+            typer.echo(f"{desc}: {done}/{total}", err=True)
+
+    if sys.stderr.isatty():
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+        with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=True) as bar:
+            tasks: dict[str, int] = {}
+
+            def progress(desc: str, done: int, total: int) -> None:
+                if desc not in tasks:
+                    tasks[desc] = bar.add_task(desc, total=total)
+                bar.update(tasks[desc], completed=done)
+
+            result = run_lod(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=progress)
+    else:
+        result = run_lod(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=log_progress)
+    typer.echo(format_table(result))
+    for f in result["files"]:
+        typer.echo(f"wrote {f}")
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(result["rows"], indent=2))
+        typer.echo(f"wrote {json_path}")
