@@ -97,8 +97,6 @@ def bench_lod(
     """Contrast-driven LOD, speed against error: rows {scene, method, frame_ms, rays_per_frame,
     triangles, psnr_db, ssim, flip} for none / spp / mesh-LOD / all against converged references."""
     import dataclasses
-    import sys
-    import time
 
     from dpmhw.benchmarks.lod import LodBenchConfig, format_table, run_lod
     from dpmhw.lod.visibility import LodSettingsError, VisibilitySettings
@@ -116,27 +114,8 @@ def bench_lod(
     if ref_spp is not None:
         changes["ref_spp"] = ref_spp
     cfg = dataclasses.replace(cfg, **changes)
-    last_log = [0.0]
-
-    def log_progress(desc: str, done: int, total: int) -> None:  # not a terminal: a line every 10 s
-        if time.monotonic() - last_log[0] > 10 or done == total:
-            last_log[0] = time.monotonic()
-            typer.echo(f"{desc}: {done}/{total}", err=True)
-
-    if sys.stderr.isatty():
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
-        with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=True) as bar:
-            tasks: dict[str, int] = {}
-
-            def progress(desc: str, done: int, total: int) -> None:
-                if desc not in tasks:
-                    tasks[desc] = bar.add_task(desc, total=total)
-                bar.update(tasks[desc], completed=done)
-
-            result = run_lod(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=progress)
-    else:
-        result = run_lod(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=log_progress)
+    with Progress() as bar:
+        result = run_lod(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=bar.callback)
     typer.echo(format_table(result))
     for f in result["files"]:
         typer.echo(f"wrote {f}")
