@@ -18,27 +18,28 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from dpmhw.render import kernels
+from dpmhw.render.accel import empty_hits
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene
 
 
 class _TimedScene:
-    """Proxy for an EmbreeScene that adds up the seconds spent in `run`, per thread."""
+    """Wraps an accel query method and adds up the seconds spent in it, per thread."""
 
-    def __init__(self, scene, clock: dict):
-        self._scene, self._clock = scene, clock
+    def __init__(self, fn, clock: dict):
+        self._fn, self._clock = fn, clock
 
-    def run(self, *args, **kwargs):
+    def __call__(self, *args, **kwargs):
         start = time.perf_counter()
         try:
-            return self._scene.run(*args, **kwargs)
+            return self._fn(*args, **kwargs)
         finally:
             ident = threading.get_ident()
             self._clock[ident] = self._clock.get(ident, 0.0) + time.perf_counter() - start
 
 
-def _replay(scene, batches, query: str, threads: int, repeats: int = 5) -> float:
-    """Median rays/s of `scene.run` over the given (origins, directions, tmax) batches."""
+def _replay(accel, R, T, batches, query: str, threads: int, repeats: int = 5) -> float:
+    """Median rays/s of the accel's queries over the given (origins, directions, tmax) batches."""
     total = sum(len(b[0]) for b in batches)
     rates = []
     with ThreadPoolExecutor(threads) as pool:
@@ -46,8 +47,10 @@ def _replay(scene, batches, query: str, threads: int, repeats: int = 5) -> float
             start = time.perf_counter()
             for o, d, tm in batches:
                 bounds = np.linspace(0, len(o), 4 * threads + 1).astype(int)  # a few chunks per thread
+                hits, blocked = empty_hits(len(o)), np.zeros(len(o), bool)
                 jobs = [
-                    pool.submit(scene.run, o[a:b], d[a:b], dists=tm[a:b].copy(), query=query, output=(query == "INTERSECT"))
+                    pool.submit(accel.intersect_range, o, d, a, b, R, T, hits) if query == "INTERSECT"
+                    else pool.submit(accel.occluded_range, o, d, tm, a, b, R, T, blocked)
                     for a, b in zip(bounds[:-1], bounds[1:])
                 ]
                 for job in jobs:
@@ -61,9 +64,8 @@ def bench_render(scene_name: str = "paper-static", frames: int = 9, threads: int
     integrator = PathIntegrator(scene, threads=threads)
     accel = integrator.geometry.accel
     clock: dict[int, float] = {}
-    if accel.static_scene is not None:
-        accel.static_scene = _TimedScene(accel.static_scene, clock)
-    accel.dynamic_scenes = [_TimedScene(s, clock) for s in accel.dynamic_scenes]
+    for name in ("intersect_range", "occluded_range", "intersect_static"):
+        setattr(accel, name, _TimedScene(getattr(accel, name), clock))
     shade_seconds = [0.0]  # summed over the threads that run it
     shade = kernels.shade
 
@@ -121,10 +123,11 @@ def bench_render(scene_name: str = "paper-static", frames: int = 9, threads: int
 def _raw_throughput(integrator: PathIntegrator, threads: int) -> dict:
     """Replay one frame's camera, continuation and shadow rays through the static BVH."""
     accel = integrator.geometry.accel
-    scene = getattr(accel.static_scene, "_scene", accel.static_scene)
-    if scene is None:  # every object moves: use the first moving object's BVH
-        scene = getattr(accel.dynamic_scenes[0], "_scene", accel.dynamic_scenes[0])
+    for name in ("intersect_range", "occluded_range", "intersect_static"):
+        if isinstance(getattr(accel, name), _TimedScene):
+            setattr(accel, name, getattr(accel, name)._fn)
     o, d = integrator.camera.generate_rays()
+    R, T = integrator.geometry.poses(integrator.scene.object_poses(0.0))
     captured = {"INTERSECT": [(o, d, np.full(len(o), np.inf, np.float32))], "OCCLUDED": []}
     intersect, occluded = accel.intersect_range, accel.occluded_range
 
@@ -141,12 +144,12 @@ def _raw_throughput(integrator: PathIntegrator, threads: int) -> dict:
     try:
         integrator.render(time=0.0, seed=12345)
     finally:
-        del accel.intersect_range, accel.occluded_range
+        accel.intersect_range, accel.occluded_range = intersect, occluded
     # one batch per query type (the frame traces them in per-segment pieces, on both threads at once)
     batches = {q: [tuple(np.concatenate(a) for a in zip(*v))] if v else [] for q, v in captured.items()}
     return {
-        "closest_hit_rays_per_s": _replay(scene, batches["INTERSECT"], "INTERSECT", threads),
-        "occlusion_rays_per_s": _replay(scene, batches["OCCLUDED"], "OCCLUDED", threads),
+        "closest_hit_rays_per_s": _replay(accel, R, T, batches["INTERSECT"], "INTERSECT", threads),
+        "occlusion_rays_per_s": _replay(accel, R, T, batches["OCCLUDED"], "OCCLUDED", threads),
         "replayed_rays": {q: int(sum(len(b[0]) for b in v)) for q, v in captured.items()},
     }
 
