@@ -23,6 +23,7 @@ from dpmhw.render.accel import Hits, empty_hits
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.frame import Frame
 from dpmhw.render.geometry import SceneGeometry
+from dpmhw.render.traversal import RtcAccel
 from dpmhw.scene_file import Scene
 from dpmhw.transforms import Pose
 
@@ -34,6 +35,7 @@ GLOSSY_ROUGHNESS = 0.5  # below this, a specular lobe is sharp enough that NEE a
 # threads. Random numbers hash the pixel, so segmentation never changes the image.
 SEGMENT_PIXELS = 6144
 MAX_SEGMENTS = 64
+PACKETS = (True, True)  # measured: packets beat single rays for every query type here (README)
 
 
 @dataclass
@@ -66,6 +68,11 @@ class PathIntegrator:
         self._static_primary_key = None
         self._static_primary_hits = None
         self._work: _Work | None = None
+        # (continuation, shadow) rays as 16-wide packets of consecutive paths, or single rays
+        self.packets = PACKETS
+        # one compiled call per segment (with the C API); False: Python between the stages (the
+        # embreex fallback, and the benchmark's per-stage timing)
+        self.fused = True
 
     def close(self) -> None:
         if self._pool is not None:
@@ -149,11 +156,34 @@ class PathIntegrator:
         w = self._work_buffers(len(primary.t))
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
+        accel = self.geometry.accel
+        if self.fused and isinstance(accel, RtcAccel):  # queries from inside the kernel: one native call per segment
+            g = self.geometry
+            scn = (g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area, g.light_prim, g.light_obj,
+                   g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd)
+            films = (film["emit"], film["diff"], film["spec"], nonfinite)
+            gb = (gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer)
+            work = (w.pixel, w.beta, w.kd, w.prev_pdf, w.prev_n, w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.blocked,
+                    w.ray_o[0], w.ray_d[0], w.ray_o[1], w.ray_d[1], w.hits.t, w.hits.obj, w.hits.prim, w.hits.u, w.hits.v)
+            if static_hits is not None:  # rows are completed in place: start from the cached static hits
+                for name in ("t", "obj", "prim", "u", "v"):
+                    getattr(primary, name)[:] = getattr(static_hits, name)
+            prim = (primary.t, primary.obj, primary.prim, primary.u, primary.v)
+            depth_limit = self.max_bounces + (1 if self.mis_last else 0)
 
-        def run(segment):
-            first, count = segment
-            return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
-                                       film, gbuf, nonfinite, write_gbuffer, w)
+            def run(segment):
+                first, count = segment
+                traced = kernels.trace_segment(accel.acc, accel.acc_moving, self.packets, depth_limit, self.max_bounces, self.mis_last,
+                                               key, first, count, primary_dirs, prim, static_hits is not None, camera_o,
+                                               scn, films, gb, work)
+                if traced[0] < 0:
+                    raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
+                return traced
+        else:
+            def run(segment):
+                first, count = segment
+                return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
+                                           film, gbuf, nonfinite, write_gbuffer, w)
 
         segments = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
         results = list(self._pool.map(run, segments)) if self._pool is not None else [run(s) for s in segments]
@@ -171,7 +201,7 @@ class PathIntegrator:
             end = first + count
             for name in ("t", "obj", "prim", "u", "v"):
                 getattr(primary, name)[first:end] = getattr(static_hits, name)[first:end]
-            g.accel.intersect_range(camera_o, primary_dirs, first, end, R, T, primary, static_done=True)
+            g.accel.intersect_range(camera_o, primary_dirs, first, end, R, T, primary, static_done=True, packets=self.packets[0])
         last_depth = self.max_bounces + (1 if self.mis_last else 0)
         rd, hits = primary_dirs, primary
         rays = 0  # which of the two ray buffers the kernel writes continuation rays into
@@ -190,12 +220,12 @@ class PathIntegrator:
                 w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, nx_o, nx_d,
             )
             if n_shadow:
-                g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, first + n_shadow, R, T, w.blocked)
+                g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, first + n_shadow, R, T, w.blocked, packets=self.packets[1])
                 kernels.add_unoccluded(first, n_shadow, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"])
                 traced_shadow += n_shadow
             if depth >= last_depth or n_next == 0:
                 return traced_shadow, traced_next
-            g.accel.intersect_range(nx_o, nx_d, first, first + n_next, R, T, w.hits)
+            g.accel.intersect_range(nx_o, nx_d, first, first + n_next, R, T, w.hits, packets=self.packets[0])
             traced_next += n_next
             rd, hits, rays, count = nx_d, w.hits, 1 - rays, n_next
             depth += 1

@@ -17,6 +17,8 @@ import math
 import numba as nb
 import numpy as np
 
+from dpmhw.render import traversal
+
 INV_PI = 1.0 / math.pi
 DIMS_PER_BOUNCE = 8
 MIN_ALPHA = 1e-3  # GGX α floor: mirror-like lobes stay finite
@@ -425,3 +427,59 @@ def add_unoccluded(first, count, sh_pix, contrib, blocked, film_diff, film_spec)
             film_spec[p, 0] += contrib[k, 3]
             film_spec[p, 1] += contrib[k, 4]
             film_spec[p, 2] += contrib[k, 5]
+
+
+@nb.njit(nogil=True, **_jit)
+def trace_segment(acc, acc_moving, packets, depth_limit, max_bounces, mis_last, key, first, count, primary_dirs, primary, complete_primary,
+                  camera_o, scn, film, gb, work):
+    """All bounces of the paths through pixels [first, first + count) in one call, with Embree
+    queried from inside (traversal): shade → shadow rays → continuation rays → shade …, no
+    Python between the stages. `primary` = (t, obj, prim, u, v) of the camera rays; with
+    `complete_primary` those rows hold the static hits only, and the moving objects are traced
+    first (from camera_o along primary_dirs). `packets` = (continuation, shadow): 16-wide
+    packets of consecutive rows, or single rays. Tuples, see the integrator: scn (scene tables),
+    film (emit, diff, spec, nonfinite), gb (G-buffer arrays and write flag), work (per-path
+    arrays, kept between frames). Returns (shadow rays, continuation rays), or (−1, −1) if a
+    path outlived 4096 bounces."""
+    tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd = scn
+    film_emit, film_diff, film_spec, nonfinite = film
+    gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer = gb
+    (pixel, beta, kd, prev_pdf, prev_n, sh_o, sh_d, sh_tmax, sh_c, sh_pix, blocked,
+     ray_o0, ray_d0, ray_o1, ray_d1, h_t, h_obj, h_prim, h_u, h_v) = work
+    p_t, p_obj, p_prim, p_u, p_v = primary
+    end = first + count
+    if complete_primary:
+        traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], True)
+    traced_shadow = traced_next = 0
+    depth = 0
+    while True:
+        nx_o, nx_d = (ray_o0, ray_d0) if depth % 2 == 0 else (ray_o1, ray_d1)
+        rd = ray_d1 if depth % 2 == 0 else ray_d0  # (unused at depth 0: the camera rays)
+        if depth == 0:
+            n_shadow, n_next = shade(
+                0, max_bounces, mis_last, key, first, count, pixel, primary_dirs, p_t, p_obj, p_prim, p_u, p_v,
+                beta, kd, prev_pdf, prev_n, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
+                light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
+                film_emit, film_diff, film_spec, nonfinite,
+                gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
+                sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d)
+        else:
+            n_shadow, n_next = shade(
+                depth, max_bounces, mis_last, key, first, count, pixel, rd, h_t, h_obj, h_prim, h_u, h_v,
+                beta, kd, prev_pdf, prev_n, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
+                light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
+                film_emit, film_diff, film_spec, nonfinite,
+                gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, False,
+                sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d)
+        if n_shadow:
+            traversal.occluded_range(acc, R, T, sh_o, sh_d, sh_tmax, first, first + n_shadow, blocked, packets[1])
+            add_unoccluded(first, n_shadow, sh_pix, sh_c, blocked, film_diff, film_spec)
+            traced_shadow += n_shadow
+        if depth >= depth_limit or n_next == 0:
+            return traced_shadow, traced_next
+        traversal.closest_range(acc, R, T, nx_o, nx_d, first, first + n_next, h_t, h_obj, h_prim, h_u, h_v, packets[0], False)
+        traced_next += n_next
+        count = n_next
+        depth += 1
+        if depth > 4096:
+            return -1, -1

@@ -38,8 +38,10 @@ RTC_GEOMETRY_TYPE_TRIANGLE = 0
 RTC_BUFFER_TYPE_INDEX, RTC_BUFFER_TYPE_VERTEX = 0, 1
 RTC_FORMAT_UINT3, RTC_FORMAT_FLOAT3 = 0x5003, 0x9003
 RTC_SCENE_FLAG_ROBUST = 1 << 2
-# The robust flag (watertight traversal and intersection) is kept: dropping it changed grazing
-# and corner hits (see the module tests and README "Where a frame's time goes").
+# The robust flag (watertight traversal and intersection) stays on, by measurement: without it
+# queries ran 18-20 % faster, and the furnace, closed-box and grazing render tests still passed,
+# but 5302 of 60,000 rays aimed from inside a closed box at its edges and corners escaped
+# (tests/render/test_rtc.py::test_no_leak_through_edges_and_corners); with it, none.
 ROBUST = True
 
 _lib: ctypes.CDLL | None = None
