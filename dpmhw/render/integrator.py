@@ -142,7 +142,8 @@ class PathIntegrator:
         """Primary hits on static objects depend only on the camera pose: trace them once per pose."""
         key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
         if self._static_primary_key != key:
-            self._static_primary_hits = self.geometry.accel.intersect_static(o, d)
+            accel = self.geometry.accel
+            self._static_primary_hits = accel.intersect_static(o, d, width=self.width) if isinstance(accel, RtcAccel) else accel.intersect_static(o, d)
             self._static_primary_key = key
             self.counts.primary_static_traced = len(o)
         return self._static_primary_hits

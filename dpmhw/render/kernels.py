@@ -429,7 +429,9 @@ def add_unoccluded(first, count, sh_pix, contrib, blocked, film_diff, film_spec)
             film_spec[p, 2] += contrib[k, 5]
 
 
-@nb.njit(nogil=True, **_jit)
+# Without fast-math: LLVM inlines the ray queries here, and a fast-math caller would let it fuse
+# their float32 transforms into FMAs (moving objects' hits would change in the last bit).
+@nb.njit(nogil=True, cache=True, error_model="numpy")
 def trace_segment(acc, acc_moving, packets, depth_limit, max_bounces, mis_last, key, first, count, primary_dirs, primary, complete_primary,
                   camera_o, scn, film, gb, work):
     """All bounces of the paths through pixels [first, first + count) in one call, with Embree

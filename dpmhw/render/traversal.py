@@ -112,34 +112,38 @@ def _load16(f, iv, j, o0, o1, o2, d0, d1, d2, tfar):
 
 
 @nb.njit(nogil=True, cache=True)
-def closest16(acc, R, T, f, iv, valid, o, d, a, n, t, obj, prim, u, v, resume):
-    """Closest hits of rays o[a + i], d[a + i] (i < n ≤ 16) as one packet, written to rows
-    a + i of t, obj, prim, u, v (same values as closest1). `resume`: those rows already hold
+def closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, resume):
+    """Closest hits of the rays in rows[:n] (n ≤ 16) of o, d as one packet, written to the same
+    rows of t, obj, prim, u, v (same values as closest1). `resume`: those rows already hold
     the best hits so far (else they start empty)."""
     scenes, static_objects, tri_offsets, dyn_obj, dyn_sphere = acc
     for i in range(16):
         valid[i] = -1 if i < n else 0
     if not resume:
         for i in range(n):
-            t[a + i], obj[a + i], prim[a + i], u[a + i], v[a + i] = np.inf, -1, -1, 0.0, 0.0
+            r = rows[i]
+            t[r], obj[r], prim[r], u[r], v[r] = np.inf, -1, -1, 0.0, 0.0
     if scenes[0] != 0:
         for i in range(n):
-            _load16(f, iv, i, o[a + i, 0], o[a + i, 1], o[a + i, 2], d[a + i, 0], d[a + i, 1], d[a + i, 2], NO_HIT_TFAR)
+            r = rows[i]
+            _load16(f, iv, i, o[r, 0], o[r, 1], o[r, 2], d[r, 0], d[r, 1], d[r, 2], NO_HIT_TFAR)
             iv[288 + i], iv[304 + i], iv[272 + i] = rtc.INVALID, rtc.INVALID, rtc.INVALID
         rtc.rtcIntersect16(valid.ctypes.data, scenes[0], f.ctypes.data, 0)
         for i in range(n):
             g = iv[288 + i]
             if g != rtc.INVALID:
+                r = rows[i]
                 k = static_objects[g]
-                t[a + i], obj[a + i], prim[a + i], u[a + i], v[a + i] = f[128 + i], k, tri_offsets[k] + iv[272 + i], f[240 + i], f[256 + i]
+                t[r], obj[r], prim[r], u[r], v[r] = f[128 + i], k, tri_offsets[k] + iv[272 + i], f[240 + i], f[256 + i]
     for j in range(dyn_obj.shape[0]):
         k = dyn_obj[j]
         any_lane = False
         for i in range(n):
-            o0, o1, o2, d0, d1, d2 = o[a + i, 0], o[a + i, 1], o[a + i, 2], d[a + i, 0], d[a + i, 1], d[a + i, 2]
-            if _near(o0, o1, o2, d0, d1, d2, t[a + i], R[k], T[k], dyn_sphere[j], dyn_sphere[j, 3]):
+            r = rows[i]
+            o0, o1, o2, d0, d1, d2 = o[r, 0], o[r, 1], o[r, 2], d[r, 0], d[r, 1], d[r, 2]
+            if _near(o0, o1, o2, d0, d1, d2, t[r], R[k], T[k], dyn_sphere[j], dyn_sphere[j, 3]):
                 m0, m1, m2, e0, e1, e2 = _into_model(o0, o1, o2, d0, d1, d2, R[k], T[k])
-                _load16(f, iv, i, m0, m1, m2, e0, e1, e2, t[a + i])
+                _load16(f, iv, i, m0, m1, m2, e0, e1, e2, t[r])
                 iv[288 + i], iv[304 + i], iv[272 + i] = rtc.INVALID, rtc.INVALID, rtc.INVALID
                 valid[i] = -1
                 any_lane = True
@@ -149,7 +153,8 @@ def closest16(acc, R, T, f, iv, valid, o, d, a, n, t, obj, prim, u, v, resume):
             rtc.rtcIntersect16(valid.ctypes.data, scenes[1 + j], f.ctypes.data, 0)
             for i in range(n):
                 if valid[i] != 0 and iv[288 + i] != rtc.INVALID:
-                    t[a + i], obj[a + i], prim[a + i], u[a + i], v[a + i] = f[128 + i], k, tri_offsets[k] + iv[272 + i], f[240 + i], f[256 + i]
+                    r = rows[i]
+                    t[r], obj[r], prim[r], u[r], v[r] = f[128 + i], k, tri_offsets[k] + iv[272 + i], f[240 + i], f[256 + i]
 
 
 @nb.njit(nogil=True, cache=True)
@@ -191,8 +196,12 @@ def closest_range(acc, R, T, o, d, first, end, t, obj, prim, u, v, packets, resu
     (`resume`: the rows already hold the best hits so far)."""
     if packets:
         f, iv, valid = scratch16()
+        rows = np.empty(16, np.int64)
         for a in range(first, end, 16):
-            closest16(acc, R, T, f, iv, valid, o, d, a, min(16, end - a), t, obj, prim, u, v, resume)
+            n = min(16, end - a)
+            for i in range(n):
+                rows[i] = a + i
+            closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, resume)
     else:
         f, iv = scratch1()
         for i in range(first, end):
@@ -202,6 +211,22 @@ def closest_range(acc, R, T, o, d, first, end, t, obj, prim, u, v, packets, resu
                 t0, ob0, p0, u0, v0 = np.float32(np.inf), -1, -1, np.float32(0.0), np.float32(0.0)
             t[i], obj[i], prim[i], u[i], v[i] = closest1(acc, R, T, f, iv, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2],
                                                           t0, ob0, p0, u0, v0)
+
+
+@nb.njit(nogil=True, cache=True)
+def closest_tiles(acc, R, T, o, d, width, height, tile_row0, tile_row1, t, obj, prim, u, v):
+    """Closest hits of camera rays (row-major, width × height) in 4×4 pixel tiles, one packet
+    each, for the tile rows [tile_row0, tile_row1) (neighbouring pixels' rays are coherent)."""
+    f, iv, valid = scratch16()
+    rows = np.empty(16, np.int64)
+    for ty in range(tile_row0, tile_row1):
+        for tx in range(0, width, 4):
+            n = 0
+            for y in range(4 * ty, min(4 * ty + 4, height)):
+                for x in range(tx, min(tx + 4, width)):
+                    rows[n] = y * width + x
+                    n += 1
+            closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, False)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -265,9 +290,9 @@ class RtcAccel:
             s.close()
         self._scenes = []
 
-    def _split(self, fn, n: int) -> None:
-        """fn(first, end) over a few chunks per thread (the kernels release the GIL)."""
-        chunks = max(1, min(4 * self.threads, n // 4096))
+    def _split(self, fn, n: int, grain: int = 4096) -> None:
+        """fn(first, end) over a few chunks of [0, n) per thread (the kernels release the GIL)."""
+        chunks = max(1, min(4 * self.threads, n // grain))
         bounds = np.linspace(0, n, chunks + 1).astype(np.int64)
         jobs = [(int(a), int(e)) for a, e in zip(bounds[:-1], bounds[1:]) if e > a]
         if self._pool is None or len(jobs) < 2:
@@ -284,13 +309,20 @@ class RtcAccel:
     def occluded_range(self, origins, directions, tmax, first, end, poses_R, poses_t, blocked, packets: bool = False) -> None:
         occluded_range(self.acc, poses_R, poses_t, origins, directions, tmax, first, end, blocked, packets)
 
-    def intersect_static(self, origins: np.ndarray, directions: np.ndarray, packets: bool = True):
-        """Closest hits among the static objects only (every moving object ignored)."""
+    def intersect_static(self, origins: np.ndarray, directions: np.ndarray, width: int | None = None):
+        """Closest hits among the static objects only (every moving object ignored). With the
+        image `width` (rays row-major, one per pixel), as 4×4 pixel tiles; else 16 rows at a time."""
         from dpmhw.render.accel import empty_hits
 
-        hits = empty_hits(len(origins))
+        n = len(origins)
+        hits = empty_hits(n)
         R = np.zeros((len(self.tri_offsets), 3, 3), np.float32)
         T = np.zeros((len(self.tri_offsets), 3), np.float32)
-        self._split(lambda a, e: closest_range(self.acc_static, R, T, origins, directions, a, e, hits.t, hits.obj, hits.prim, hits.u, hits.v, packets),
-                    len(origins))
+        h = (hits.t, hits.obj, hits.prim, hits.u, hits.v)
+        if width and n % width == 0:
+            height = n // width
+            tile_rows = -(-height // 4)
+            self._split(lambda a, e: closest_tiles(self.acc_static, R, T, origins, directions, width, height, a, e, *h), tile_rows, grain=16)
+        else:
+            self._split(lambda a, e: closest_range(self.acc_static, R, T, origins, directions, a, e, *h, True), n)
         return hits
