@@ -32,6 +32,7 @@ def render(
     split_screen: Annotated[bool, typer.Option("--split-screen", help="With --frames: left half plain, right half reused.")] = False,
     out_dir: Annotated[Optional[Path], typer.Option(help="With --frames: write every frame here as frame_00000<suffix of --out>.")] = None,
     tonemap: Annotated[str, typer.Option(help="Tone-mapping operator for .png output: clip | reinhard.")] = "clip",
+    pixel_sampling: Annotated[str, typer.Option(help="Single frame: jitter (converges to the pixel integral) | centre (pixel centres).")] = "jitter",
 ) -> None:
     """Render one frame, or K frames through temporal reuse. Ctrl-C stops after the current pass
     (or frame) and still writes what is finished."""
@@ -49,6 +50,8 @@ def render(
 
     if tonemap not in TONEMAPS:
         raise typer.BadParameter(f"--tonemap must be one of {', '.join(TONEMAPS)}, got {tonemap!r}")
+    if pixel_sampling not in ("jitter", "centre"):
+        raise typer.BadParameter(f"--pixel-sampling must be jitter or centre, got {pixel_sampling!r}")
     if frames is not None:
         from dpmhw.reuse import ReuseError, ReuseSettings
 
@@ -82,7 +85,7 @@ def render(
     previous = signal.signal(signal.SIGINT, on_sigint)
     started = _time.perf_counter()
     try:
-        with PathIntegrator(sc, threads=threads) as integrator, Progress(
+        with PathIntegrator(sc, threads=threads, pixel_sampling=pixel_sampling) as integrator, Progress(
             "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
             TimeRemainingColumn(), transient=True,
         ) as bar:
@@ -145,7 +148,7 @@ def _render_sequence(scene_arg, sc, out: Path, out_dir, start_frame: float, fram
     started = _time.perf_counter()
     render_ms, reuse_ms, nonfinite, last = [], [], 0, None
     try:
-        with PathIntegrator(sc, threads=threads) as integrator, Progress(
+        with PathIntegrator(sc, threads=threads, pixel_sampling=pixel_sampling) as integrator, Progress(
             "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
             TimeRemainingColumn(), transient=True,
         ) as bar:
