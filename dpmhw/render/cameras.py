@@ -84,4 +84,3 @@ class PinholeCamera:
         yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
         px = np.stack([self.K[0, 0] * xd + self.K[0, 2], self.K[1, 1] * yd + self.K[1, 2]], axis=1)
         return px, z > 1e-12
-

@@ -176,7 +176,7 @@ def occluded16(acc, R, T, f, iv, valid, o, d, tmax, a, n, blocked):
         any_lane = False
         for i in range(n):
             o0, o1, o2, d0, d1, d2 = o[a + i, 0], o[a + i, 1], o[a + i, 2], d[a + i, 0], d[a + i, 1], d[a + i, 2]
-            if i < n and not blocked[a + i] and _near(o0, o1, o2, d0, d1, d2, tmax[a + i], R[k], T[k], dyn_sphere[j], dyn_sphere[j, 3]):
+            if not blocked[a + i] and _near(o0, o1, o2, d0, d1, d2, tmax[a + i], R[k], T[k], dyn_sphere[j], dyn_sphere[j, 3]):
                 m0, m1, m2, e0, e1, e2 = _into_model(o0, o1, o2, d0, d1, d2, R[k], T[k])
                 _load16(f, iv, i, m0, m1, m2, e0, e1, e2, tmax[a + i])
                 valid[i] = -1
