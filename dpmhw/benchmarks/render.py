@@ -54,18 +54,19 @@ def bench_render(scene_name: str = "paper-static", frames: int = 9, threads: int
             integrator.render(time=k / fps, seed=k)
         rows = []
         for k in range(frames):
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.process_time()
             integrator.render(time=k / fps, seed=k)
-            elapsed = time.perf_counter() - start
+            elapsed, cpu = time.perf_counter() - start, time.process_time() - start_cpu
             c = integrator.counts
-            rows.append(dict(ms=elapsed * 1e3, camera=c.primary, static_camera_traced=c.primary_static_traced,
+            rows.append(dict(ms=elapsed * 1e3, cpu_ms=cpu * 1e3, camera=c.primary, static_camera_traced=c.primary_static_traced,
                              continuation=c.intersect, shadow=c.occluded))
-        cold = []
+        cold, cold_cpu = [], []
         for k in range(max(3, frames // 3)):  # camera moved every frame: static camera hits re-traced
             integrator._static_primary_key = None
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.process_time()
             integrator.render(time=k / fps, seed=k)
             cold.append((time.perf_counter() - start) * 1e3)
+            cold_cpu.append((time.process_time() - start_cpu) * 1e3)
         split = _staged_split(integrator, frames, fps)
         raw = _raw_throughput(integrator, threads)
     finally:
@@ -81,6 +82,8 @@ def bench_render(scene_name: str = "paper-static", frames: int = 9, threads: int
         "backend": type(accel).__name__, "fused": bool(integrator.fused), "packets": list(integrator.packets),
         "frame_ms_median": med["ms"], "frame_ms_min": min(r["ms"] for r in rows), "frame_ms_max": max(r["ms"] for r in rows),
         "frame_ms_cold_camera_median": float(np.median(cold)),
+        # CPU-seconds of all threads per frame: steadier than wall time on a shared machine
+        "frame_cpu_ms_median": med["cpu_ms"], "frame_cpu_ms_cold_camera_median": float(np.median(cold_cpu)),
         "inside_embree_ms_median": split["embree_ms"], "inside_embree_fraction": split["embree_ms"] / split["ms"],
         "shade_kernel_ms_median": split["shade_ms"], "staged_frame_ms_median": split["ms"],
         "rays_per_frame": {"camera": int(med["camera"]), "continuation": int(med["continuation"]), "shadow": int(med["shadow"]), "total": int(rays)},
@@ -191,6 +194,7 @@ def format_table(r: dict) -> str:
         "",
         f"{'1-spp frame, camera fixed (median)':44s} {r['frame_ms_median']:8.1f} ms   (min {r['frame_ms_min']:.1f}, max {r['frame_ms_max']:.1f})",
         f"{'1-spp frame, camera moved every frame':44s} {r['frame_ms_cold_camera_median']:8.1f} ms",
+        f"{'  CPU time, camera fixed / moved':44s} {r['frame_cpu_ms_median']:8.1f} / {r['frame_cpu_ms_cold_camera_median']:.1f} CPU-ms",
         f"{'  inside Embree (staged frames, timed queries)':44s} {r['inside_embree_ms_median']:8.1f} ms   ({100 * r['inside_embree_fraction']:.0f} % of the frame)",
         f"{'  shading kernel (thread-seconds / threads)':44s} {r['shade_kernel_ms_median']:8.1f} ms   (staged frame {r['staged_frame_ms_median']:.1f} ms)",
         f"{'rays per frame: camera / continuation / shadow':44s} {rays['camera']:,} / {rays['continuation']:,} / {rays['shadow']:,}",
