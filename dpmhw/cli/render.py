@@ -148,7 +148,7 @@ def _render_sequence(scene_arg, sc, out: Path, out_dir, start_frame: float, fram
     started = _time.perf_counter()
     render_ms, reuse_ms, nonfinite, last = [], [], 0, None
     try:
-        with PathIntegrator(sc, threads=threads, pixel_sampling=pixel_sampling) as integrator, Progress(
+        with PathIntegrator(sc, threads=threads) as integrator, Progress(
             "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
             TimeRemainingColumn(), transient=True,
         ) as bar:

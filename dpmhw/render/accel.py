@@ -160,8 +160,9 @@ class EmbreeAccel:
             prim[rows] = self.tri_offsets[k] + res["primID"][hit]
             t[rows], u[rows], v[rows] = res["tfar"][hit], res["u"][hit], res["v"][hit]
 
-    def intersect_static(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
-        """Closest hits among the static objects only (they never move, so this can be cached)."""
+    def intersect_static(self, origins: np.ndarray, directions: np.ndarray, width: int | None = None) -> Hits:
+        """Closest hits among the static objects only (they never move, so this can be cached).
+        `width` (the image's, for RtcAccel's pixel tiles) is ignored."""
         hits = empty_hits(len(origins))
 
         def run(a, e):

@@ -7,9 +7,10 @@ segment, one thread taking a segment through all its bounces; with Embree's C AP
 chain of a segment is one compiled call (`kernels.trace_segment`, queries from inside).
 Pixel sampling: "centre" traces the pixel centres (static hits cached per camera pose, reused by
 every pass); "jitter" traces a random point of each pixel on every pass (deterministic from
-seed, pass and pixel), so the passes converge to the pixel integral under a box filter. With `max_bounces` = B a path has
-B + 1 vertices; the last one is lit by NEE alone, unless the scene has glossy lobes, where one
-more ray is traced from it so emitters it finds get MIS weights (`mis_last`).
+seed, pass and pixel), so the passes converge to the pixel integral under a box filter.
+With `max_bounces` = B a path has B + 1 vertices; the last one is lit by NEE alone, unless the
+scene has glossy lobes, where one more ray is traced from it so emitters it finds get MIS weights
+(`mis_last`).
 """
 
 from __future__ import annotations
@@ -161,8 +162,7 @@ class PathIntegrator:
         """Primary hits on static objects depend only on the camera pose: trace them once per pose."""
         key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
         if self._static_primary_key != key:
-            accel = self.geometry.accel
-            self._static_primary_hits = accel.intersect_static(o, d, width=self.width) if isinstance(accel, RtcAccel) else accel.intersect_static(o, d)
+            self._static_primary_hits = self.geometry.accel.intersect_static(o, d, width=self.width)
             self._static_primary_key = key
             self.counts.primary_static_traced = len(o)
         return self._static_primary_hits
