@@ -26,12 +26,15 @@ import numba as nb
 import numpy as np
 from numba import types
 
-# RTCRayHit / RTCRay word offsets (4-byte words)
-R_ORG, R_TNEAR, R_DIR, R_TIME, R_TFAR, R_MASK, R_ID, R_FLAGS = 0, 3, 4, 7, 8, 9, 10, 11
-H_NG, H_U, H_V, H_PRIM, H_GEOM, H_INST = 12, 15, 16, 17, 18, 19
-RAYHIT_WORDS, RAY_WORDS = 24, 12
-# 16-wide packets: field f of lane j at word 16 * f + j
-P16_RAYHIT_WORDS, P16_RAY_WORDS = 336, 192
+# RTCRayHit / RTCRay word offsets (4-byte words): org 0-2, tnear 3, dir 4-6, time 7, tfar 8,
+# mask 9, id 10, flags 11, then the hit: Ng 12-14, u 15, v 16, primID 17, geomID 18, instID 19
+R_TNEAR, R_TIME, R_TFAR, R_MASK, R_ID, R_FLAGS = 3, 7, 8, 9, 10, 11
+H_U, H_V, H_PRIM, H_GEOM, H_INST = 15, 16, 17, 18, 19
+RAYHIT_WORDS = 24
+# 16-wide packets: field f (in the order above) of lane j at word 16 * f + j
+P_TFAR, P_MASK, P_ID, P_FLAGS = 128, 144, 160, 176
+P_U, P_V, P_PRIM, P_GEOM, P_INST = 240, 256, 272, 288, 304
+P16_RAYHIT_WORDS = 336
 INVALID = -1  # RTC_INVALID_GEOMETRY_ID (0xFFFFFFFF) as int32; also "all mask bits"
 
 RTC_GEOMETRY_TYPE_TRIANGLE = 0
@@ -187,7 +190,7 @@ def intersect1(scene, f, iv, o0, o1, o2, d0, d1, d2, tfar):
 
 @nb.njit(inline="always", nogil=True, cache=True)
 def occluded1(scene, f, iv, o0, o1, o2, d0, d1, d2, tfar):
-    """Is anything in scene along the ray closer than tfar? (RAY_WORDS scratch f / iv)."""
+    """Is anything in scene along the ray closer than tfar? (the same scratch f / iv)."""
     f[0], f[1], f[2], f[R_TNEAR] = o0, o1, o2, 0.0
     f[4], f[5], f[6], f[R_TIME] = d0, d1, d2, 0.0
     f[R_TFAR] = tfar

@@ -107,8 +107,8 @@ def occluded1(acc, R, T, f, iv, o0, o1, o2, d0, d1, d2, tmax):
 def _load16(f, iv, j, o0, o1, o2, d0, d1, d2, tfar):
     f[j], f[16 + j], f[32 + j], f[48 + j] = o0, o1, o2, 0.0
     f[64 + j], f[80 + j], f[96 + j], f[112 + j] = d0, d1, d2, 0.0
-    f[128 + j] = tfar
-    iv[144 + j], iv[160 + j], iv[176 + j] = rtc.INVALID, 0, 0
+    f[rtc.P_TFAR + j] = tfar
+    iv[rtc.P_MASK + j], iv[rtc.P_ID + j], iv[rtc.P_FLAGS + j] = rtc.INVALID, 0, 0
 
 
 @nb.njit(nogil=True, cache=True)
@@ -127,14 +127,14 @@ def closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, resume
         for i in range(n):
             r = rows[i]
             _load16(f, iv, i, o[r, 0], o[r, 1], o[r, 2], d[r, 0], d[r, 1], d[r, 2], NO_HIT_TFAR)
-            iv[288 + i], iv[304 + i], iv[272 + i] = rtc.INVALID, rtc.INVALID, rtc.INVALID
+            iv[rtc.P_GEOM + i], iv[rtc.P_INST + i], iv[rtc.P_PRIM + i] = rtc.INVALID, rtc.INVALID, rtc.INVALID
         rtc.rtcIntersect16(valid.ctypes.data, scenes[0], f.ctypes.data, 0)
         for i in range(n):
-            g = iv[288 + i]
+            g = iv[rtc.P_GEOM + i]
             if g != rtc.INVALID:
                 r = rows[i]
                 k = static_objects[g]
-                t[r], obj[r], prim[r], u[r], v[r] = f[128 + i], k, tri_offsets[k] + iv[272 + i], f[240 + i], f[256 + i]
+                t[r], obj[r], prim[r], u[r], v[r] = f[rtc.P_TFAR + i], k, tri_offsets[k] + iv[rtc.P_PRIM + i], f[rtc.P_U + i], f[rtc.P_V + i]
     for j in range(dyn_obj.shape[0]):
         k = dyn_obj[j]
         any_lane = False
@@ -144,7 +144,7 @@ def closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, resume
             if _near(o0, o1, o2, d0, d1, d2, t[r], R[k], T[k], dyn_sphere[j], dyn_sphere[j, 3]):
                 m0, m1, m2, e0, e1, e2 = _into_model(o0, o1, o2, d0, d1, d2, R[k], T[k])
                 _load16(f, iv, i, m0, m1, m2, e0, e1, e2, t[r])
-                iv[288 + i], iv[304 + i], iv[272 + i] = rtc.INVALID, rtc.INVALID, rtc.INVALID
+                iv[rtc.P_GEOM + i], iv[rtc.P_INST + i], iv[rtc.P_PRIM + i] = rtc.INVALID, rtc.INVALID, rtc.INVALID
                 valid[i] = -1
                 any_lane = True
             else:
@@ -152,9 +152,9 @@ def closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, resume
         if any_lane:
             rtc.rtcIntersect16(valid.ctypes.data, scenes[1 + j], f.ctypes.data, 0)
             for i in range(n):
-                if valid[i] != 0 and iv[288 + i] != rtc.INVALID:
+                if valid[i] != 0 and iv[rtc.P_GEOM + i] != rtc.INVALID:
                     r = rows[i]
-                    t[r], obj[r], prim[r], u[r], v[r] = f[128 + i], k, tri_offsets[k] + iv[272 + i], f[240 + i], f[256 + i]
+                    t[r], obj[r], prim[r], u[r], v[r] = f[rtc.P_TFAR + i], k, tri_offsets[k] + iv[rtc.P_PRIM + i], f[rtc.P_U + i], f[rtc.P_V + i]
 
 
 @nb.njit(nogil=True, cache=True)
@@ -170,7 +170,7 @@ def occluded16(acc, R, T, f, iv, valid, o, d, tmax, a, n, blocked):
             _load16(f, iv, i, o[a + i, 0], o[a + i, 1], o[a + i, 2], d[a + i, 0], d[a + i, 1], d[a + i, 2], tmax[a + i])
         rtc.rtcOccluded16(valid.ctypes.data, scenes[0], f.ctypes.data, 0)
         for i in range(n):
-            blocked[a + i] = f[128 + i] == -math.inf
+            blocked[a + i] = f[rtc.P_TFAR + i] == -math.inf
     for j in range(dyn_obj.shape[0]):
         k = dyn_obj[j]
         any_lane = False
@@ -186,7 +186,7 @@ def occluded16(acc, R, T, f, iv, valid, o, d, tmax, a, n, blocked):
         if any_lane:
             rtc.rtcOccluded16(valid.ctypes.data, scenes[1 + j], f.ctypes.data, 0)
             for i in range(n):
-                if valid[i] != 0 and f[128 + i] == -math.inf:
+                if valid[i] != 0 and f[rtc.P_TFAR + i] == -math.inf:
                     blocked[a + i] = True
 
 
