@@ -10,7 +10,7 @@ import enum
 from dpmhw.postprocess import TONEMAPS
 from dpmhw.reuse import MODES
 
-__all__ = ["ApiMode", "BenchTrajectory", "ClientPriority", "NatNetVersion", "QualityPart", "ReuseMode",
+__all__ = ["ApiMode", "BenchTrajectory", "ClientPriority", "NatNetVersion", "PixelSampling", "QualityPart", "ReuseMode",
            "SerialModel", "SinkKind", "Tonemap", "Trajectory"]
 
 
@@ -28,3 +28,4 @@ Trajectory = _choices("Trajectory", ("static", "linear", "circular", "rotate-osc
 NatNetVersion = _choices("NatNetVersion", ("3.0", "3.1", "4.0", "4.1", "4.2"))
 SerialModel = _choices("SerialModel", ("LY", "PA", "LU"))
 SinkKind = _choices("SinkKind", ("window", "file", "recording"))
+PixelSampling = _choices("PixelSampling", ("jitter", "centre"))  # dpmhw.render.integrator.PIXEL_SAMPLING

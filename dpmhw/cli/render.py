@@ -12,7 +12,7 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli import app
-from dpmhw.cli.choices import ReuseMode, Tonemap
+from dpmhw.cli.choices import PixelSampling, ReuseMode, Tonemap
 from dpmhw.progress import Progress
 
 
@@ -34,6 +34,7 @@ def render(
     split_screen: Annotated[bool, typer.Option("--split-screen", help="With --frames: left half plain, right half reused.")] = False,
     out_dir: Annotated[Optional[Path], typer.Option(help="With --frames: write every frame here as frame_00000.png (or the suffix of --out), and the parameters as frames.json.")] = None,
     tonemap: Annotated[Tonemap, typer.Option(help="Tone-mapping operator for .png output.")] = Tonemap("clip"),
+    pixel_sampling: Annotated[PixelSampling, typer.Option(help="Single frame: jitter (converges to the pixel integral) or centre (pixel centres).")] = PixelSampling("jitter"),
 ) -> None:
     """Render one frame, or K frames through temporal reuse. Ctrl-C stops after the current pass
     (or frame) and still writes what is finished."""
@@ -80,7 +81,7 @@ def render(
     previous = signal.signal(signal.SIGINT, on_sigint)
     started = _time.perf_counter()
     try:
-        with PathIntegrator(sc, threads=threads) as integrator, Progress() as bar:
+        with PathIntegrator(sc, threads=threads, pixel_sampling=pixel_sampling.value) as integrator, Progress() as bar:
             task = bar.task(f"rendering {sc.render.width}×{sc.render.height}, passes", total=spp)
             result = integrator.render(
                 time=t, seed=seed, spp=spp,

@@ -138,10 +138,12 @@ class EmbreeAccel:
         return bounds[:-1], np.diff(bounds)
 
     # -- queries --------------------------------------------------------------------------------
-    def intersect_range(self, origins, directions, first, end, poses_R, poses_t, hits: Hits, static_done: bool = False) -> None:
+    def intersect_range(self, origins, directions, first, end, poses_R, poses_t, hits: Hits, static_done: bool = False,
+                        packets: bool = False) -> None:
         """Closest hits of the rays in rows [first, end) of origins and directions, written into
         the same rows of `hits`, on the calling thread. `static_done`: those rows of `hits`
-        already hold the static BVH's hits (only the moving objects are traced)."""
+        already hold the static BVH's hits (only the moving objects are traced). `packets` is
+        ignored (embreex traces one ray per call)."""
         a, e = first, end
         o, d = origins[a:e], directions[a:e]
         t, obj, prim, u, v = hits.t[a:e], hits.obj[a:e], hits.prim[a:e], hits.u[a:e], hits.v[a:e]
@@ -158,8 +160,9 @@ class EmbreeAccel:
             prim[rows] = self.tri_offsets[k] + res["primID"][hit]
             t[rows], u[rows], v[rows] = res["tfar"][hit], res["u"][hit], res["v"][hit]
 
-    def intersect_static(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
-        """Closest hits among the static objects only (they never move, so this can be cached)."""
+    def intersect_static(self, origins: np.ndarray, directions: np.ndarray, width: int | None = None) -> Hits:
+        """Closest hits among the static objects only (they never move, so this can be cached).
+        `width` (the image's, for RtcAccel's pixel tiles) is ignored."""
         hits = empty_hits(len(origins))
 
         def run(a, e):
@@ -176,7 +179,7 @@ class EmbreeAccel:
         _static_hit_ids(res["primID"], res["geomID"], res["tfar"], self.static_objects, self.tri_offsets, t, obj, prim)
         u[:], v[:] = res["u"], res["v"]
 
-    def occluded_range(self, origins, directions, tmax, first, end, poses_R, poses_t, blocked) -> None:
+    def occluded_range(self, origins, directions, tmax, first, end, poses_R, poses_t, blocked, packets: bool = False) -> None:
         """blocked[i] = something lies along ray i closer than tmax[i], for rows [first, end), on
         the calling thread (other rows are left alone)."""
         a, e = first, end

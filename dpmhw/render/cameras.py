@@ -1,8 +1,12 @@
 """OpenCV pinhole + distortion cameras (a projector is one): pixel → ray and point → pixel.
 
 Same convention as `cv2.projectPoints`: camera x right, y down, z forward; pixel (0, 0) is the
-centre of the top-left pixel. Lens distortion is inverted once per pixel (iteratively, to 1e-12)
-when the camera is built, so per-frame ray generation is one rotation.
+centre of the top-left pixel, which covers [−0.5, 0.5]². Lens distortion is inverted once per
+pixel (iteratively, to 1e-12) when the camera is built, so per-frame ray generation is one
+rotation. Rays through any point of a pixel (pixel jitter) interpolate the undistorted image
+plane bilinearly between the pixel's corners, which are inverted the same way: exact without
+distortion, and within the distortion's curvature over one pixel with it
+(`kernels.jittered_directions`).
 """
 
 from __future__ import annotations
@@ -24,19 +28,29 @@ class PinholeCamera:
         self.width, self.height = int(width), int(height)
         self.pose = pose
         self._dirs_cam = self._pixel_directions()
+        self._corners = None
+
+    def _ideal(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        """Pixel coordinates → undistorted normalised image coordinates (n, 2), float64."""
+        pixels = np.stack([xs.ravel(), ys.ravel()], axis=1).reshape(-1, 1, 2).astype(np.float64)
+        if np.any(self.dist != 0):
+            return cv2.undistortPoints(pixels, self.K, self.dist, R=np.eye(3), P=np.eye(3), criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+        return np.stack([(pixels[:, 0, 0] - self.K[0, 2]) / self.K[0, 0], (pixels[:, 0, 1] - self.K[1, 2]) / self.K[1, 1]], axis=1)
 
     def _pixel_directions(self) -> np.ndarray:
         """(H*W, 3) float32 unit directions in camera space through pixel centres, row-major."""
-        ys, xs = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
-        pixels = np.stack([xs.ravel(), ys.ravel()], axis=1).reshape(-1, 1, 2)
-        if np.any(self.dist != 0):
-            ideal = cv2.undistortPoints(pixels, self.K, self.dist, R=np.eye(3), P=np.eye(3), criteria=_UNDISTORT_CRITERIA)
-            xy = ideal.reshape(-1, 2)
-        else:
-            xy = np.stack([(pixels[:, 0, 0] - self.K[0, 2]) / self.K[0, 0], (pixels[:, 0, 1] - self.K[1, 2]) / self.K[1, 1]], axis=1)
+        ys, xs = np.mgrid[0 : self.height, 0 : self.width]
+        xy = self._ideal(xs, ys)
         d = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return d.astype(np.float32)
+
+    def pixel_corners(self) -> np.ndarray:
+        """(H + 1, W + 1, 2) float32 undistorted image coordinates of the pixel corners (built once)."""
+        if self._corners is None:
+            ys, xs = np.mgrid[0 : self.height + 1, 0 : self.width + 1] - 0.5
+            self._corners = self._ideal(xs, ys).reshape(self.height + 1, self.width + 1, 2).astype(np.float32)
+        return self._corners
 
     def with_pose(self, pose: Pose) -> "PinholeCamera":
         """The same intrinsics at another pose, without recomputing the undistortion."""

@@ -14,7 +14,8 @@ class Frame:
     radiance = emitted + diffuse + specular, where `emitted` is what the camera sees directly
     (lights, background), and `diffuse` / `specular` is the light reflected at the first hit,
     split by the lobe that reflected it (not demodulated: divide by albedo to demodulate).
-    The G-buffer describes the first hit through each pixel centre: object_id (−1 background),
+    The G-buffer describes the first hit through each pixel centre (with pixel jitter: through
+    the first pass's point in the pixel): object_id (−1 background),
     model_position (hit point in the object's own coordinates, for reprojection), position and
     normal (world, the normal faces the viewer), depth (camera z), albedo, specular_albedo,
     roughness.

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dpmhw.render import rtc
 from dpmhw.render.accel import EmbreeAccel
 from dpmhw.render.kernels import MIN_ALPHA
 from dpmhw.scene_file import Scene
@@ -19,6 +20,16 @@ f32 = np.float32
 
 def _luminance(rgb: np.ndarray) -> np.ndarray:
     return rgb @ np.array([0.2126, 0.7152, 0.0722])
+
+
+def make_accel(objects, tri_offsets, threads: int):
+    """Embree through its C API from the kernels (RtcAccel), or embreex's one-ray path when
+    libembree4 cannot be loaded (rtc.load warns once)."""
+    if rtc.load():
+        from dpmhw.render.traversal import RtcAccel
+
+        return RtcAccel(objects, tri_offsets, threads=threads)
+    return EmbreeAccel(objects, tri_offsets, threads=threads)
 
 
 class SceneGeometry:
@@ -84,7 +95,7 @@ class SceneGeometry:
         # One shadow ray per vertex: the environment or the area lights, half and half when both exist.
         self.p_env = 0.0 if not has_bg else (1.0 if not light_prim else 0.5)
         self.background = background.astype(f32)
-        self.accel = EmbreeAccel(objects, self.tri_offsets, threads=threads)
+        self.accel = make_accel(objects, self.tri_offsets, threads)
 
     def poses(self, poses: list[Pose]) -> tuple[np.ndarray, np.ndarray]:
         """Per-object model→world rotation (O, 3, 3) and translation (O, 3), float32."""

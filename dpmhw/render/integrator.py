@@ -1,12 +1,16 @@
 """Wavefront path tracer: Embree for every ray query, fused numba kernels for everything else.
 
-Per pass (1 sample per pixel, through the pixel centre): primary hits (traced once per frame and
-reused by every pass, since pixel-centre rays do not change), then per bounce: `shade` (emission
-with MIS, one NEE shadow ray, BSDF sampling, Russian roulette, compaction of the shadow rays and
-surviving paths) → occlusion query for the shadow rays → closest-hit query. The wavefront runs
-per image segment, one thread taking a segment through all its bounces. With `max_bounces` = B a path has
-B + 1 vertices; the last one is lit by NEE alone, unless the scene has glossy lobes, where one
-more ray is traced from it so emitters it finds get MIS weights (`mis_last`).
+Per pass (1 sample per pixel): primary hits, then per bounce: `shade` (emission with MIS, one
+NEE shadow ray, BSDF sampling, Russian roulette, compaction of the shadow rays and surviving
+paths) → occlusion query for the shadow rays → closest-hit query. The wavefront runs per image
+segment, one thread taking a segment through all its bounces; with Embree's C API the whole
+chain of a segment is one compiled call (`kernels.trace_segment`, queries from inside).
+Pixel sampling: "centre" traces the pixel centres (static hits cached per camera pose, reused by
+every pass); "jitter" traces a random point of each pixel on every pass (deterministic from
+seed, pass and pixel), so the passes converge to the pixel integral under a box filter.
+With `max_bounces` = B a path has B + 1 vertices; the last one is lit by NEE alone, unless the
+scene has glossy lobes, where one more ray is traced from it so emitters it finds get MIS weights
+(`mis_last`).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from dpmhw.render.accel import Hits, empty_hits
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.frame import Frame
 from dpmhw.render.geometry import SceneGeometry
+from dpmhw.render.traversal import RtcAccel
 from dpmhw.scene_file import Scene
 from dpmhw.transforms import Pose
 
@@ -34,6 +39,8 @@ GLOSSY_ROUGHNESS = 0.5  # below this, a specular lobe is sharp enough that NEE a
 # threads. Random numbers hash the pixel, so segmentation never changes the image.
 SEGMENT_PIXELS = 6144
 MAX_SEGMENTS = 64
+PIXEL_SAMPLING = ("centre", "jitter")
+PACKETS = (True, True)  # measured: packets beat single rays for every query type here (README)
 
 
 @dataclass
@@ -44,13 +51,20 @@ class RayCounts:
     primary_static_traced: int = 0  # camera rays traced against the static BVH in this call
     intersect: int = 0  # continuation rays (closest hit)
     occluded: int = 0  # shadow rays
+    primary_traced: int = 0  # camera rays traced in full (pixel jitter: every pass)
 
 
 class PathIntegrator:
     """Renders a Scene from its camera on `threads` threads (image segments, each taken through
     shading and its Embree queries by one thread)."""
 
-    def __init__(self, scene: Scene, threads: int = 2, mis_last: bool | None = None):
+    def __init__(self, scene: Scene, threads: int = 2, mis_last: bool | None = None, pixel_sampling: str = "centre"):
+        if pixel_sampling not in PIXEL_SAMPLING:
+            raise ValueError(f"pixel_sampling: expected one of {', '.join(PIXEL_SAMPLING)}, got {pixel_sampling!r}")
+        # "centre": one ray through each pixel centre (camera hits on static objects cached per
+        # camera pose); "jitter": through a random point of the pixel on every pass, so the
+        # passes converge to the pixel's integral (box filter); camera rays traced every pass
+        self.pixel_sampling = pixel_sampling
         self.scene = scene
         self.geometry = SceneGeometry(scene, threads=threads)
         self.threads = max(1, int(threads))
@@ -61,11 +75,18 @@ class PathIntegrator:
         if mis_last is None:
             mis_last = any(np.any(o.specular > 0) and o.roughness < GLOSSY_ROUGHNESS for o in scene.objects)
         self.mis_last = bool(mis_last)
+        # diffuse/specular split of the film only where some object has a specular lobe
+        self.split = bool(any(np.any(o.specular > 0) for o in scene.objects))
         self.use_viewer = not np.allclose(scene.viewer_position, scene.camera.pose.t)
         self.counts = RayCounts()
         self._static_primary_key = None
         self._static_primary_hits = None
         self._work: _Work | None = None
+        # (continuation, shadow) rays as 16-wide packets of consecutive paths, or single rays
+        self.packets = PACKETS
+        # one compiled call per segment (with the C API); False: Python between the stages (the
+        # embreex fallback, and the benchmark's per-stage timing)
+        self.fused = True
 
     def close(self) -> None:
         if self._pool is not None:
@@ -104,18 +125,24 @@ class PathIntegrator:
         gbuf = _GBuffer(npix)
         nonfinite = np.zeros(npix, np.int32)
         o, d = camera.generate_rays()
-        static_hits = self._static_primary(camera, o, d)
-        # without moving objects the cached hits are the primary hits; with them, the first pass
-        # completes them per segment (in its thread) into a work buffer the later passes reuse
-        moving = bool(self.geometry.accel.dynamic_objects)
-        primary = self._work_buffers(npix).primary if moving else static_hits
+        jitter = self.pixel_sampling == "jitter"
+        if jitter:  # every pass traces its own camera rays in full, into the work buffers
+            static_hits, moving, primary = None, False, self._work_buffers(npix).primary
+        else:
+            static_hits = self._static_primary(camera, o, d)
+            # without moving objects the cached hits are the primary hits; with them, the first
+            # pass completes them per segment (in its thread) into a work buffer later passes reuse
+            moving = bool(self.geometry.accel.dynamic_objects)
+            primary = self._work_buffers(npix).primary if moving else static_hits
         self.counts.primary = npix
         done = 0
         for p in range(spp):
             if should_stop is not None and done > 0 and should_stop():
                 break
             self._trace_pass(kernels.pass_key(seed, p), o, d, static_hits if moving and p == 0 else None, primary,
-                             R, T, camera, film, gbuf, nonfinite, p == 0)
+                             R, T, camera, film, gbuf, nonfinite, p == 0, kernels.jitter_key(seed, p) if jitter else None)
+            if jitter:
+                self.counts.primary_traced += npix
             done += 1
             if progress is not None:
                 progress(done, spp)
@@ -135,13 +162,13 @@ class PathIntegrator:
         """Primary hits on static objects depend only on the camera pose: trace them once per pose."""
         key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
         if self._static_primary_key != key:
-            self._static_primary_hits = self.geometry.accel.intersect_static(o, d)
+            self._static_primary_hits = self.geometry.accel.intersect_static(o, d, width=self.width)
             self._static_primary_key = key
             self.counts.primary_static_traced = len(o)
         return self._static_primary_hits
 
     def _trace_pass(self, key, camera_o, primary_dirs, static_hits: Hits | None, primary: Hits, R, T, camera, film, gbuf,
-                    nonfinite, write_gbuffer):
+                    nonfinite, write_gbuffer, jitter_key=None):
         """One sample per pixel. The image is cut into row ranges (segments); each is traced to the
         end of its paths by one thread (shade → shadow rays → continuation rays → shade …), so a
         segment's rays and hits are still in cache when the next stage reads them, and the
@@ -149,11 +176,41 @@ class PathIntegrator:
         w = self._work_buffers(len(primary.t))
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
+        accel = self.geometry.accel
+        corners, cam_R = camera.pixel_corners(), camera.pose.R.astype(f32)
+        if jitter_key is not None:  # camera rays through random points of the pixels, into the work buffer
+            primary_dirs = w.cam_d
+        if self.fused and isinstance(accel, RtcAccel):  # queries from inside the kernel: one native call per segment
+            g = self.geometry
+            scn = (g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area, g.light_prim, g.light_obj,
+                   g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd)
+            films = (film["emit"], film["diff"], film["spec"], nonfinite)
+            gb = (gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer)
+            work = (w.pixel, w.beta, w.kd, w.prev_pdf, w.prev_env, w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.blocked,
+                    w.ray_o[0], w.ray_d[0], w.ray_o[1], w.ray_d[1], w.hits.t, w.hits.obj, w.hits.prim, w.hits.u, w.hits.v)
+            if static_hits is not None:  # rows are completed in place: start from the cached static hits
+                for name in ("t", "obj", "prim", "u", "v"):
+                    getattr(primary, name)[:] = getattr(static_hits, name)
+            prim = (primary.t, primary.obj, primary.prim, primary.u, primary.v)
+            depth_limit = self.max_bounces + (1 if self.mis_last else 0)
+            jitter = (jitter_key is not None, np.uint64(jitter_key or 0), corners, cam_R, self.width, w.cam_d)
 
-        def run(segment):
-            first, count = segment
-            return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
-                                       film, gbuf, nonfinite, write_gbuffer, w)
+            def run(segment):
+                first, count = segment
+                traced = kernels.trace_segment(accel.acc, accel.acc_moving, self.packets, self.split, depth_limit, self.max_bounces, self.mis_last,
+                                               key, first, count, primary_dirs, prim, static_hits is not None, camera_o,
+                                               scn, films, gb, work, jitter)
+                if traced[0] < 0:
+                    raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
+                return traced
+        else:
+            def run(segment):
+                first, count = segment
+                if jitter_key is not None:
+                    kernels.jittered_directions(corners, cam_R, self.width, jitter_key, first, first + count, primary_dirs)
+                    accel.intersect_range(camera_o, primary_dirs, first, first + count, R, T, primary, packets=self.packets[0])
+                return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
+                                           film, gbuf, nonfinite, write_gbuffer, w)
 
         segments = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
         results = list(self._pool.map(run, segments)) if self._pool is not None else [run(s) for s in segments]
@@ -171,7 +228,7 @@ class PathIntegrator:
             end = first + count
             for name in ("t", "obj", "prim", "u", "v"):
                 getattr(primary, name)[first:end] = getattr(static_hits, name)[first:end]
-            g.accel.intersect_range(camera_o, primary_dirs, first, end, R, T, primary, static_done=True)
+            g.accel.intersect_range(camera_o, primary_dirs, first, end, R, T, primary, static_done=True, packets=self.packets[0])
         last_depth = self.max_bounces + (1 if self.mis_last else 0)
         rd, hits = primary_dirs, primary
         rays = 0  # which of the two ray buffers the kernel writes continuation rays into
@@ -181,21 +238,21 @@ class PathIntegrator:
             nx_o, nx_d = w.ray_o[rays], w.ray_d[rays]
             n_shadow, n_next = kernels.shade(
                 depth, self.max_bounces, self.mis_last, key, first, count, w.pixel, rd,
-                hits.t, hits.obj, hits.prim, hits.u, hits.v, w.beta, w.kd, w.prev_pdf, w.prev_n,
+                hits.t, hits.obj, hits.prim, hits.u, hits.v, w.beta, w.kd, w.prev_pdf, w.prev_env,
                 g.tri,
                 R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
                 g.light_prim, g.light_obj, g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd,
                 film["emit"], film["diff"], film["spec"], nonfinite,
                 gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer,
-                w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, nx_o, nx_d,
+                w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, nx_o, nx_d, self.split,
             )
             if n_shadow:
-                g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, first + n_shadow, R, T, w.blocked)
-                kernels.add_unoccluded(first, n_shadow, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"])
+                g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, first + n_shadow, R, T, w.blocked, packets=self.packets[1])
+                kernels.add_unoccluded(first, n_shadow, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"], self.split)
                 traced_shadow += n_shadow
             if depth >= last_depth or n_next == 0:
                 return traced_shadow, traced_next
-            g.accel.intersect_range(nx_o, nx_d, first, first + n_next, R, T, w.hits)
+            g.accel.intersect_range(nx_o, nx_d, first, first + n_next, R, T, w.hits, packets=self.packets[0])
             traced_next += n_next
             rd, hits, rays, count = nx_d, w.hits, 1 - rays, n_next
             depth += 1
@@ -222,10 +279,11 @@ class _Work:
         self.beta = np.empty((n, 3), f32)
         self.kd = np.empty((n, 3), f32)
         self.prev_pdf = np.empty(n, f32)
-        self.prev_n = np.empty((n, 3), f32)
+        self.prev_env = np.empty(n, f32)  # environment-light pdf of the path's ray (MIS)
         self.ray_o = (np.empty((n, 3), f32), np.empty((n, 3), f32))  # ping-pong: a kernel reads one, writes the other
         self.ray_d = (np.empty((n, 3), f32), np.empty((n, 3), f32))
         self.hits = empty_hits(n)
+        self.cam_d = np.empty((n, 3), f32)  # jittered camera rays of the current pass
         self.primary = empty_hits(n)  # camera hits, when objects move (the static ones are cached)
         self.sh_o = np.empty((n, 3), f32)
         self.sh_d = np.empty((n, 3), f32)

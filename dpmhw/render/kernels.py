@@ -17,6 +17,8 @@ import math
 import numba as nb
 import numpy as np
 
+from dpmhw.render import traversal
+
 INV_PI = 1.0 / math.pi
 DIMS_PER_BOUNCE = 8
 MIN_ALPHA = 1e-3  # GGX α floor: mirror-like lobes stay finite
@@ -46,6 +48,14 @@ def rand(key, pixel, dim):
     """Uniform float in [0, 1) from (pass key, pixel index, dimension)."""
     x = _mix64(key ^ (np.uint64(pixel) * GOLDEN + np.uint64(dim)))
     return np.float32(x >> S40) * np.float32(1.0 / 16777216.0)
+
+
+JITTER_SALT = 0x6A09E667F3BCC908  # the pixel-jitter stream: independent of the path dimensions
+
+
+def jitter_key(seed: int, pass_index: int) -> np.uint64:
+    """The per-pass key of the pixel-jitter random numbers."""
+    return np.uint64(int(pass_key(seed, pass_index)) ^ JITTER_SALT)
 
 
 def pass_key(seed: int, pass_index: int) -> np.uint64:
@@ -124,14 +134,14 @@ def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, ar, ag, ab, sr, sg, sb,
 @nb.njit(nogil=True, **_jit)
 def shade(
     depth, max_bounces, mis_last, key, first, count, pixel, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v,
-    beta, kd, prev_pdf, prev_n,
+    beta, kd, prev_pdf, prev_env,
     tri,
     obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
     light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
     film_emit, film_diff, film_spec, nonfinite,
     gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
     sh_o, sh_d, sh_tmax, sh_c, sh_pix,
-    nx_o, nx_d,
+    nx_o, nx_d, split,
 ):
     """One wavefront step over the paths in rows [first, first + count) (see module doc),
     compacting as it goes. Serial and without the GIL: the integrator runs one image segment
@@ -142,9 +152,14 @@ def shade(
     three corner shading normals, all in model space: one hit touches two cache lines.
     Writes the film at each path's pixel, and, packed from row `first`: the shadow rays (sh_o,
     sh_d, sh_tmax, sh_pix, with their diffuse and specular contributions in sh_c[:, 0:3] and
-    sh_c[:, 3:6], added if unoccluded) and the surviving paths (pixel, beta, kd, prev_pdf, prev_n
+    sh_c[:, 3:6], added if unoccluded) and the surviving paths (pixel, beta, kd, prev_pdf, prev_env
     compacted in place; their rays in nx_o, nx_d, which must not be `rd`). Compacting in place is
-    safe: row j ≤ k is written only after row k has been read. Returns (shadow rays, survivors)."""
+    safe: row j ≤ k is written only after row k has been read. Returns (shadow rays, survivors).
+
+    Per path only what the next vertex needs is kept: the BSDF pdf of its ray (prev_pdf) and the
+    environment light's pdf of that direction (prev_env), both for MIS. `split` False (no object
+    has a specular lobe): every path is diffuse, so kd, film_spec and sh_c[:, 3:6] are neither
+    read nor written."""
     p_area = 1.0 - p_env
     has_bg = background[0] > 0.0 or background[1] > 0.0 or background[2] > 0.0
     last = depth >= max_bounces
@@ -155,12 +170,13 @@ def shade(
         pix = k if depth == 0 else pixel[k]
         d0, d1, d2 = rd[k, 0], rd[k, 1], rd[k, 2]
         ob = hit_obj[k]
+        kdr, kdg, kdb = 1.0, 1.0, 1.0
         if depth == 0:
             b0 = b1 = b2 = 1.0
-            kdr, kdg, kdb = 1.0, 1.0, 1.0
         else:
             b0, b1, b2 = beta[k, 0], beta[k, 1], beta[k, 2]
-            kdr, kdg, kdb = kd[k, 0], kd[k, 1], kd[k, 2]
+            if split:
+                kdr, kdg, kdb = kd[k, 0], kd[k, 1], kd[k, 2]
         tri_i = 0
         u = v = 0.0
         g0 = g1 = g2 = 0.0
@@ -172,8 +188,7 @@ def shade(
                     film_emit[pix, 1] += background[1]
                     film_emit[pix, 2] += background[2]
                 else:
-                    cos_prev = _dot(prev_n[k, 0], prev_n[k, 1], prev_n[k, 2], d0, d1, d2)
-                    pl = p_env * max(cos_prev, 0.0) * INV_PI
+                    pl = prev_env[k]
                     pb = prev_pdf[k]
                     w = pb * pb / (pb * pb + pl * pl)
                     le0, le1, le2 = background[0] * w, background[1] * w, background[2] * w
@@ -198,12 +213,17 @@ def shade(
         if depth > 0 and (le0 > 0.0 or le1 > 0.0 or le2 > 0.0):
             c0, c1, c2 = b0 * le0, b1 * le1, b2 * le2
             if math.isfinite(c0 + c1 + c2):
-                film_diff[pix, 0] += c0 * kdr
-                film_diff[pix, 1] += c1 * kdg
-                film_diff[pix, 2] += c2 * kdb
-                film_spec[pix, 0] += c0 * (1.0 - kdr)
-                film_spec[pix, 1] += c1 * (1.0 - kdg)
-                film_spec[pix, 2] += c2 * (1.0 - kdb)
+                if split:
+                    film_diff[pix, 0] += c0 * kdr
+                    film_diff[pix, 1] += c1 * kdg
+                    film_diff[pix, 2] += c2 * kdb
+                    film_spec[pix, 0] += c0 * (1.0 - kdr)
+                    film_spec[pix, 1] += c1 * (1.0 - kdg)
+                    film_spec[pix, 2] += c2 * (1.0 - kdb)
+                else:
+                    film_diff[pix, 0] += c0
+                    film_diff[pix, 1] += c1
+                    film_diff[pix, 2] += c2
             else:
                 nonfinite[pix] += 1
         if ob < 0 or depth > max_bounces:
@@ -318,7 +338,7 @@ def shade(
             scale = cos_i * w / pdf_l
             cd0, cd1, cd2 = fd0 * li0 * scale * b0, fd1 * li1 * scale * b1, fd2 * li2 * scale * b2
             cs0, cs1, cs2 = fs0 * li0 * scale * b0, fs1 * li1 * scale * b1, fs2 * li2 * scale * b2
-            if depth > 0:  # deeper vertices inherit the first vertex's diffuse/specular split
+            if depth > 0 and split:  # deeper vertices inherit the first vertex's diffuse/specular split
                 t0 = cd0 + cs0
                 t1 = cd1 + cs1
                 t2 = cd2 + cs2
@@ -331,7 +351,8 @@ def shade(
                     sh_d[ns, 0], sh_d[ns, 1], sh_d[ns, 2] = wi0, wi1, wi2
                     sh_tmax[ns] = tmax
                     sh_c[ns, 0], sh_c[ns, 1], sh_c[ns, 2] = cd0, cd1, cd2
-                    sh_c[ns, 3], sh_c[ns, 4], sh_c[ns, 5] = cs0, cs1, cs2
+                    if split:
+                        sh_c[ns, 3], sh_c[ns, 4], sh_c[ns, 5] = cs0, cs1, cs2
                     ns += 1
             else:
                 nonfinite[pix] += 1
@@ -386,7 +407,7 @@ def shade(
         if not pdf_b > 0.0:
             continue
         f0, f1, f2 = fd0 + fs0, fd1 + fs1, fd2 + fs2
-        if depth == 0:  # split the path by the lobe weights at the first vertex
+        if depth == 0 and split:  # split the path by the lobe weights at the first vertex
             kdr = fd0 / f0 if f0 > 0.0 else 1.0
             kdg = fd1 / f1 if f1 > 0.0 else 1.0
             kdb = fd2 / f2 if f2 > 0.0 else 1.0
@@ -404,9 +425,10 @@ def shade(
             continue
         pixel[nc] = pix
         beta[nc, 0], beta[nc, 1], beta[nc, 2] = nb0, nb1, nb2
-        kd[nc, 0], kd[nc, 1], kd[nc, 2] = kdr, kdg, kdb
+        if split:
+            kd[nc, 0], kd[nc, 1], kd[nc, 2] = kdr, kdg, kdb
         prev_pdf[nc] = pdf_b
-        prev_n[nc, 0], prev_n[nc, 1], prev_n[nc, 2] = s0, s1, s2
+        prev_env[nc] = p_env * cos_i * INV_PI
         nx_o[nc, 0], nx_o[nc, 1], nx_o[nc, 2] = o0, o1, o2
         nx_d[nc, 0], nx_d[nc, 1], nx_d[nc, 2] = wi0, wi1, wi2
         nc += 1
@@ -414,7 +436,7 @@ def shade(
 
 
 @nb.njit(nogil=True, **_jit)
-def add_unoccluded(first, count, sh_pix, contrib, blocked, film_diff, film_spec):
+def add_unoccluded(first, count, sh_pix, contrib, blocked, film_diff, film_spec, split):
     """Add the contribution of each shadow ray in rows [first, first + count) that nothing blocked."""
     for k in range(first, first + count):
         if not blocked[k]:
@@ -422,6 +444,91 @@ def add_unoccluded(first, count, sh_pix, contrib, blocked, film_diff, film_spec)
             film_diff[p, 0] += contrib[k, 0]
             film_diff[p, 1] += contrib[k, 1]
             film_diff[p, 2] += contrib[k, 2]
-            film_spec[p, 0] += contrib[k, 3]
-            film_spec[p, 1] += contrib[k, 4]
-            film_spec[p, 2] += contrib[k, 5]
+            if split:
+                film_spec[p, 0] += contrib[k, 3]
+                film_spec[p, 1] += contrib[k, 4]
+                film_spec[p, 2] += contrib[k, 5]
+
+
+@nb.njit(nogil=True, **_jit)
+def jittered_directions(corners, R, width, key, first, end, out):
+    """World directions of camera rays through a random point of each pixel in [first, end)
+    (row-major pixel index), written to out[pixel]: each pass samples the pixel's footprint
+    uniformly, so the passes average to the box-filtered pixel integral. The point is
+    (rand(key, pixel, 0), rand(key, pixel, 1)) with the pass's jitter key: it depends only on
+    the seed, the pass and the pixel. `corners`: PinholeCamera.pixel_corners(); R camera→world."""
+    for pix in range(first, end):
+        y, x = pix // width, pix % width
+        jx, jy = rand(key, pix, 0), rand(key, pix, 1)
+        w00, w01, w10, w11 = (1 - jx) * (1 - jy), jx * (1 - jy), (1 - jx) * jy, jx * jy
+        cx = w00 * corners[y, x, 0] + w01 * corners[y, x + 1, 0] + w10 * corners[y + 1, x, 0] + w11 * corners[y + 1, x + 1, 0]
+        cy = w00 * corners[y, x, 1] + w01 * corners[y, x + 1, 1] + w10 * corners[y + 1, x, 1] + w11 * corners[y + 1, x + 1, 1]
+        d0 = R[0, 0] * cx + R[0, 1] * cy + R[0, 2]
+        d1 = R[1, 0] * cx + R[1, 1] * cy + R[1, 2]
+        d2 = R[2, 0] * cx + R[2, 1] * cy + R[2, 2]
+        inv = 1.0 / np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        out[pix, 0], out[pix, 1], out[pix, 2] = d0 * inv, d1 * inv, d2 * inv
+
+
+# Without fast-math: LLVM inlines the ray queries here, and a fast-math caller would let it fuse
+# their float32 transforms into FMAs (moving objects' hits would change in the last bit).
+@nb.njit(nogil=True, cache=True, error_model="numpy")
+def trace_segment(acc, acc_moving, packets, split, depth_limit, max_bounces, mis_last, key, first, count, primary_dirs, primary, complete_primary,
+                  camera_o, scn, film, gb, work, jitter):
+    """All bounces of the paths through pixels [first, first + count) in one call, with Embree
+    queried from inside (traversal): shade → shadow rays → continuation rays → shade …, no
+    Python between the stages. `primary` = (t, obj, prim, u, v) of the camera rays; with
+    `complete_primary` those rows hold the static hits only, and the moving objects are traced
+    first (from camera_o along primary_dirs). `packets` = (continuation, shadow): 16-wide
+    packets of consecutive rows, or single rays. Tuples, see the integrator: scn (scene tables),
+    film (emit, diff, spec, nonfinite), gb (G-buffer arrays and write flag), work (per-path
+    arrays, kept between frames). `jitter` = (on, jitter key, pixel corners, camera rotation,
+    image width, cam_d): when on, the camera rays are generated through a random point of each
+    pixel into cam_d (which `primary_dirs` must then be) and traced here in full. Returns (shadow rays,
+    continuation rays), or (−1, −1) if a path outlived 4096 bounces."""
+    tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd = scn
+    film_emit, film_diff, film_spec, nonfinite = film
+    gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer = gb
+    (pixel, beta, kd, prev_pdf, prev_env, sh_o, sh_d, sh_tmax, sh_c, sh_pix, blocked,
+     ray_o0, ray_d0, ray_o1, ray_d1, h_t, h_obj, h_prim, h_u, h_v) = work
+    p_t, p_obj, p_prim, p_u, p_v = primary
+    end = first + count
+    jitter_on, jkey, corners, cam_R, width, cam_d = jitter
+    if jitter_on:
+        jittered_directions(corners, cam_R, width, jkey, first, end, cam_d)
+        traversal.closest_range(acc, R, T, camera_o, cam_d, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], False)
+    elif complete_primary:
+        traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], True)
+    traced_shadow = traced_next = 0
+    depth = 0
+    while True:
+        nx_o, nx_d = (ray_o0, ray_d0) if depth % 2 == 0 else (ray_o1, ray_d1)
+        rd = ray_d1 if depth % 2 == 0 else ray_d0  # (unused at depth 0: the camera rays)
+        if depth == 0:
+            n_shadow, n_next = shade(
+                0, max_bounces, mis_last, key, first, count, pixel, primary_dirs, p_t, p_obj, p_prim, p_u, p_v,
+                beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
+                light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
+                film_emit, film_diff, film_spec, nonfinite,
+                gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
+                sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d, split)
+        else:
+            n_shadow, n_next = shade(
+                depth, max_bounces, mis_last, key, first, count, pixel, rd, h_t, h_obj, h_prim, h_u, h_v,
+                beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
+                light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
+                film_emit, film_diff, film_spec, nonfinite,
+                gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, False,
+                sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d, split)
+        if n_shadow:
+            traversal.occluded_range(acc, R, T, sh_o, sh_d, sh_tmax, first, first + n_shadow, blocked, packets[1])
+            add_unoccluded(first, n_shadow, sh_pix, sh_c, blocked, film_diff, film_spec, split)
+            traced_shadow += n_shadow
+        if depth >= depth_limit or n_next == 0:
+            return traced_shadow, traced_next
+        traversal.closest_range(acc, R, T, nx_o, nx_d, first, first + n_next, h_t, h_obj, h_prim, h_u, h_v, packets[0], False)
+        traced_next += n_next
+        count = n_next
+        depth += 1
+        if depth > 4096:
+            return -1, -1

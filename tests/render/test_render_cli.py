@@ -59,3 +59,15 @@ def test_bench_render_reports_rays_and_embree_share(tmp_path, make_scene):
     assert result["raw_embree"]["closest_hit_rays_per_s"] > 0
     assert 0.8 * rays["shadow"] < result["raw_embree"]["replayed_rays"]["OCCLUDED"] < 1.25 * rays["shadow"]
     assert "Mrays/s" in format_table(result)
+
+
+def test_render_command_jitters_by_default_and_names_a_bad_pixel_sampling(tmp_path, make_scene):
+    scene = make_scene(ROOM.format(extra=""))
+    _register()
+    runner = CliRunner()
+    out = tmp_path / "j.npy"
+    assert runner.invoke(app, ["render", str(tmp_path / "scene.toml"), "--spp", "2", "--seed", "4", "--out", str(out)]).exit_code == 0
+    with PathIntegrator(scene, pixel_sampling="jitter") as integrator:
+        np.testing.assert_array_equal(np.load(out), integrator.render(spp=2, seed=4).radiance)
+    result = runner.invoke(app, ["render", str(tmp_path / "scene.toml"), "--pixel-sampling", "corner", "--out", str(out)])
+    assert result.exit_code == 2 and "--pixel-sampling" in result.output
