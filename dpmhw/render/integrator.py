@@ -40,6 +40,7 @@ GLOSSY_ROUGHNESS = 0.5  # below this, a specular lobe is sharp enough that NEE a
 SEGMENT_PIXELS = 6144
 MAX_SEGMENTS = 64
 PIXEL_SAMPLING = ("centre", "jitter")
+_NO_CORNERS = np.zeros((1, 1, 2), np.float32)
 PACKETS = (True, True)  # measured: packets beat single rays for every query type here (README)
 
 
@@ -177,7 +178,8 @@ class PathIntegrator:
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
         accel = self.geometry.accel
-        corners, cam_R = camera.pixel_corners(), camera.pose.R.astype(f32)
+        corners = camera.pixel_corners() if jitter_key is not None else _NO_CORNERS  # centre sampling reads none
+        cam_R = camera.pose.R.astype(f32)
         if jitter_key is not None:  # camera rays through random points of the pixels, into the work buffer
             primary_dirs = w.cam_d
         if self.fused and isinstance(accel, RtcAccel):  # queries from inside the kernel: one native call per segment
