@@ -41,7 +41,7 @@ from dpmhw import __version__
 from dpmhw.metrics import equivalent_spp, psnr, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.render.integrator import PathIntegrator
-from dpmhw.reuse import TemporalReuse
+from dpmhw.reconstruct.reuse import TemporalReuse
 from dpmhw.scene_file import Scene, load_scene
 from dpmhw.sequence import run_sequence, scaled_scene, with_fps
 

@@ -50,7 +50,7 @@ def render(
     if tonemap not in TONEMAPS:
         raise typer.BadParameter(f"--tonemap must be one of {', '.join(TONEMAPS)}, got {tonemap!r}")
     if frames is not None:
-        from dpmhw.reuse import ReuseError, ReuseSettings
+        from dpmhw.reconstruct.reuse import ReuseError, ReuseSettings
 
         try:
             settings = ReuseSettings(alpha, reuse, warmup, split_screen)
@@ -129,7 +129,7 @@ def _render_sequence(scene_arg, sc, out: Path, out_dir, start_frame: float, fram
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     from dpmhw.render.integrator import PathIntegrator
-    from dpmhw.reuse import TemporalReuse
+    from dpmhw.reconstruct.reuse import TemporalReuse
     from dpmhw.sequence import run_sequence
 
     stop = {"requested": False}

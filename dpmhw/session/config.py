@@ -30,7 +30,7 @@ __all__ = [
     "format_validation_error",
 ]
 
-REUSE_MODES = ("off", "same-pixel", "motion")  # dpmhw.reuse.MODES
+REUSE_MODES = ("off", "same-pixel", "motion")  # dpmhw.reconstruct.reuse.MODES
 
 
 class SessionConfigError(DpmhwError, ValueError):

@@ -241,7 +241,7 @@ def warm_up(renderer, scene: Scene) -> None:
     """Run every per-frame kernel once before the loop starts. On a fresh install the first call
     compiles them (numba; tens of seconds, then cached on disk): inside the loop that would be a
     stall the watchdog reports as a fault."""
-    from dpmhw.reuse import TemporalReuse
+    from dpmhw.reconstruct.reuse import TemporalReuse
 
     t0 = time.monotonic()
     poses = scene.object_poses(0.0)

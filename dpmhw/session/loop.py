@@ -28,7 +28,7 @@ from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
 from dpmhw.session.metrics import LoopMetrics
 from dpmhw.session.prediction import PosePredictor
-from dpmhw.session.reuse_stage import ReuseStage
+from dpmhw.reconstruct.stage import ReuseStage
 from dpmhw.session.safety import SafetyMonitor, SessionState
 from dpmhw.tracking import Tracker, TrackerState
 from dpmhw.transforms import Pose

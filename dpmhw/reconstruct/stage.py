@@ -1,4 +1,4 @@
-"""The loop's temporal-reuse stage: `dpmhw.reuse.TemporalReuse` driven by the live settings.
+"""The loop's temporal-reuse stage: `dpmhw.reconstruct.reuse.TemporalReuse` driven by the live settings.
 
 The loop owns one history for its render size; a change of alpha, mode or split screen from
 the operator takes effect on the next frame. A mode change resets the history (the two modes
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dpmhw.reuse import ReuseSettings, TemporalReuse
+from dpmhw.reconstruct.reuse import ReuseSettings, TemporalReuse
 
 __all__ = ["ReuseStage"]
 
