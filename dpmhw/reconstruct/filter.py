@@ -24,7 +24,7 @@ import numba as nb
 import numpy as np
 
 from dpmhw.reconstruct.guides import Guides
-from dpmhw.reconstruct.weights import FILTER_MODES, fast_exp_neg, fast_lobe_weight, fast_normal_weight
+from dpmhw.reconstruct.weights import FASTMATH, FILTER_MODES, fast_exp_neg, fast_lobe_weight, fast_normal_weight
 
 DEPTH_GATE = 0.1  # relative depth difference beyond which two pixels never blend
 DEPTH_SIGMA = 0.03  # relative depth scale of the smooth depth weight
@@ -42,7 +42,7 @@ def mode_code(mode: str) -> int:
     return FILTER_MODES.index(mode)
 
 
-@nb.njit(inline="always", fastmath=True)
+@nb.njit(inline="always", fastmath=FASTMATH)
 def depth_weight(zi, zj):
     """1 at equal depth, smooth below `DEPTH_GATE`, exactly 0 beyond it."""
     d = abs(zi - zj)
@@ -52,7 +52,7 @@ def depth_weight(zi, zj):
     return fast_exp_neg(-0.5 * r * r)
 
 
-@nb.njit(parallel=True, cache=True, fastmath=True)
+@nb.njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _filter_kernel(mode, radius, spatial, W, H, gid, z, nrm, axis, sharp, dif, spe, out_d, out_s, wsum):
     for y in nb.prange(H):
         for x in range(W):
@@ -115,6 +115,11 @@ def _filter_kernel(mode, radius, spatial, W, H, gid, z, nrm, axis, sharp, dif, s
             wsum[i] = wd_sum
 
 
+def finite_rgb(a) -> np.ndarray:
+    """Contiguous (n, 3) float32 with NaN/Inf replaced by 0."""
+    return np.nan_to_num(np.ascontiguousarray(a, np.float32).reshape(-1, 3), nan=0.0, posinf=0.0, neginf=0.0)
+
+
 def spatial_kernel(radius: int = RADIUS, sigma: float = SPATIAL_SIGMA) -> np.ndarray:
     r = np.arange(-radius, radius + 1, dtype=np.float64)
     return np.exp(-(r[:, None] ** 2 + r[None, :] ** 2) / (2 * sigma * sigma))
@@ -131,12 +136,13 @@ def cross_bilateral(diffuse: np.ndarray, specular: np.ndarray, guides: Guides, m
     """
     code = mode_code(mode)
     n = guides.width * guides.height
-    d = np.ascontiguousarray(diffuse, np.float32).reshape(-1, 3)
-    s = np.ascontiguousarray(specular, np.float32).reshape(-1, 3)
+    # NaN/Inf → 0 here, not in the kernel: fast-math may drop the kernel's own finiteness tests
+    d = finite_rgb(diffuse)
+    s = finite_rgb(specular)
     if d.shape[0] != n or s.shape[0] != n:
         raise FilterError(f"filter: expected {n} pixels ({guides.width}×{guides.height}), got {d.shape[0]} and {s.shape[0]}")
     if code == 0:
-        return np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0), np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0), np.ones(n, np.float32)
+        return d, s, np.ones(n, np.float32)
     spatial = _SPATIAL if radius == RADIUS else spatial_kernel(radius)
     out_d = np.empty_like(d)
     out_s = np.empty_like(s)

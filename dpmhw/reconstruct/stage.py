@@ -150,7 +150,6 @@ class ReconstructStage:
         t3 = self._now()
         st["filter"] = t3 - t2
 
-        emitted = np.nan_to_num(emitted, nan=0.0, posinf=0.0, neginf=0.0)
         upsample(low, d, s, emitted, self.native, filter, box, self.background, self._radiance, self._wsum, self._unresolved)
         t4 = self._now()
         st["upsample"] = t4 - t3

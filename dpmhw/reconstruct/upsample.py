@@ -29,14 +29,14 @@ import math
 import numba as nb
 import numpy as np
 
-from dpmhw.reconstruct.filter import depth_weight, mode_code
+from dpmhw.reconstruct.filter import finite_rgb, depth_weight, mode_code
 from dpmhw.reconstruct.guides import Guides
-from dpmhw.reconstruct.weights import fast_exp_neg, fast_lobe_weight, fast_normal_weight
+from dpmhw.reconstruct.weights import FASTMATH, fast_exp_neg, fast_lobe_weight, fast_normal_weight
 
 FALLBACK_RADIUS = 2
 
 
-@nb.njit(inline="always", fastmath=True)
+@nb.njit(inline="always", fastmath=FASTMATH)
 def _tap(mode, zi, n0, n1, n2, a0, a1, a2, si, lz, ln, la, ls, j):
     """(diffuse, specular) guide weights of low-resolution tap j."""
     wz = depth_weight(zi, lz[j])
@@ -48,7 +48,7 @@ def _tap(mode, zi, n0, n1, n2, a0, a1, a2, si, lz, ln, la, ls, j):
     return wd, wd
 
 
-@nb.njit(parallel=True, cache=True, fastmath=True)
+@nb.njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _upsample_kernel(mode, w, h, lid, lz, ln, la, ls, ld, lsp, le, W, H, gid, z, nrm, axis, sharp, alb, spec,
                      background, y0, y1, x0, x1, out, wsum, unresolved):
     sx = w / W
@@ -162,7 +162,7 @@ def upsample(low: Guides, diffuse: np.ndarray, specular: np.ndarray, emitted: np
     n_low = low.width * low.height
     arrays = []
     for name, a in (("diffuse", diffuse), ("specular", specular), ("emitted", emitted)):
-        a = np.ascontiguousarray(a, np.float32).reshape(-1, 3)
+        a = finite_rgb(a)
         if a.shape[0] != n_low:
             raise ValueError(f"upsample: {name} has {a.shape[0]} pixels, the shading guides {n_low}")
         arrays.append(a)

@@ -36,6 +36,8 @@ DIFFUSE_LAMBDA = DIFFUSE_LAMBDA_BAR * KAPPA / (KAPPA - DIFFUSE_LAMBDA_BAR)
 MIN_NDOTV = 0.1  # grazing views: the warped lobe's sharpness is capped, not infinite
 
 FILTER_MODES = ("off", "normal", "lobe")
+# fast-math without "no NaN / no Inf": the kernels test finiteness to keep NaN out of the image
+FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
 def smoothed_sharpness(lam, kappa: float = KAPPA):
@@ -74,7 +76,7 @@ def normal_weight(n_i, n_j, sigma_n2: float = SIGMA_N2):
     return np.exp((cos - 1.0) / sigma_n2)
 
 
-@nb.njit(inline="always", fastmath=True)
+@nb.njit(inline="always", fastmath=FASTMATH)
 def fast_exp_neg(e):
     """exp(e) for e ≤ 0 by (1 + e/1024)^1024 (ten squarings), clamped at 0; |error| < 3e-4."""
     x = 1.0 + e * (1.0 / 1024.0)
@@ -85,7 +87,7 @@ def fast_exp_neg(e):
     return x
 
 
-@nb.njit(inline="always", fastmath=True)
+@nb.njit(inline="always", fastmath=FASTMATH)
 def fast_lobe_weight(cos_ij, a, b):
     """Lobe weight from ξᵢ·ξⱼ and the smoothed sharpnesses λ̄ᵢ, λ̄ⱼ (both ≥ LAMBDA_BAR_MIN), β = 20."""
     s = a + b
@@ -97,7 +99,7 @@ def fast_lobe_weight(cos_ij, a, b):
     return u8 * u2 * fast_exp_neg(BETA * a * b / s * (min(cos_ij, 1.0) - 1.0))
 
 
-@nb.njit(inline="always", fastmath=True)
+@nb.njit(inline="always", fastmath=FASTMATH)
 def fast_normal_weight(cos_ij):
     return fast_exp_neg((min(cos_ij, 1.0) - 1.0) * (1.0 / SIGMA_N2))
 
