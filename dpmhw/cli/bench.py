@@ -36,7 +36,7 @@ def bench_quality(
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Write the results as JSON here.")] = None,
     out_dir: Annotated[Path, typer.Option(help="Plots (PNG) and image strips go here.")] = Path("bench-quality"),
     cache_dir: Annotated[Optional[Path], typer.Option(help="Reference cache [default: $DPMHW_CACHE/references or ~/.cache/dpmhw/references].")] = None,
-    part: Annotated[str, typer.Option(help="static | dynamic | all")] = "all",
+    part: Annotated[str, typer.Option(help="static | dynamic | native | all")] = "all",
     scale: Annotated[Optional[float], typer.Option(min=0.01, max=1.0, help="Override the resolution scale.")] = None,
     ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Override the static reference spp.")] = None,
     dynamic_ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Override the dynamic references' spp.")] = None,
@@ -44,17 +44,18 @@ def bench_quality(
     threads: Annotated[int, typer.Option(min=1)] = 2,
 ) -> None:
     """Speed against error: PSNR/SSIM against converged references for plain path tracing and
-    temporal reuse (static table vs the paper's Table 1, dynamic per-frame error), with costs."""
+    temporal reuse (static table vs the paper's Table 1, dynamic per-frame error), and native
+    reconstruction rows (filters, shading scales; PSNR/SSIM/FLIP), with costs."""
     import dataclasses
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
 
-    if part not in ("static", "dynamic", "all"):
-        raise typer.BadParameter(f"--part must be static, dynamic or all, got {part!r}")
+    if part not in ("static", "dynamic", "native", "all"):
+        raise typer.BadParameter(f"--part must be static, dynamic, native or all, got {part!r}")
     cfg = QualityConfig.quick() if quick else QualityConfig()
-    changes = dict(threads=threads, parts=("static", "dynamic") if part == "all" else (part,))
+    changes = dict(threads=threads, parts=("static", "dynamic", "native") if part == "all" else (part,))
     if scale is not None:
         changes["scale"] = scale
     if ref_spp is not None:
