@@ -56,17 +56,20 @@ class ReconstructStage:
     viewer : the eye position (lobe axes are reflections of the direction to it)
     gbuffer : a `render.gbuffer.NativeGBuffer` (needed when the sizes differ; at equal sizes the
         shading frame's own G-buffer is the native one)
+    gbuffer_mode : "edges" (trace only near the shading frame's discontinuities) or "trace"
+        (every pixel of the moving objects' region); see `render.gbuffer`
     clock : monotonic nanoseconds, for the sub-stage timings
     """
 
     def __init__(self, native_size, shading_size, *, background=(0.0, 0.0, 0.0), viewer=(0.0, 0.0, 0.0),
-                 warmup: bool = False, gbuffer=None, clock=time.monotonic_ns):
+                 warmup: bool = False, gbuffer=None, gbuffer_mode: str = "edges", clock=time.monotonic_ns):
         self.W, self.H = (int(v) for v in native_size)
         self.w, self.h = (int(v) for v in shading_size)
         if (self.w, self.h) != (self.W, self.H) and gbuffer is None:
             raise ValueError("ReconstructStage: shading size differs from the native size but no native G-buffer was given")
         self.gbuffer = gbuffer
         self.clock = clock  # ns; the loop's injectable clock
+        self.gbuffer_mode = gbuffer_mode
         self.background = np.asarray(background, np.float32).reshape(3)
         self.viewer = np.asarray(viewer, np.float32).reshape(3)
         self.warmup = warmup
@@ -123,7 +126,7 @@ class ReconstructStage:
         # native G-buffer (moving objects' region re-traced) and its guides
         if self.gbuffer is not None:
             g = self.gbuffer
-            box = g.update(poses if poses is not None else [])
+            box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
             if g.changed_box[1] > g.changed_box[0] and g.changed_box[3] > g.changed_box[2]:
                 self.native.update(g.id, g.position, g.normal, g.depth, g.albedo, g.spec_albedo, g.roughness,
                                    self.viewer, g.changed_box)

@@ -7,6 +7,15 @@ each object's bounding sphere projected with the current pose, plus `ROI_MARGIN_
 that left the region get their static attributes back. Pixels that show nothing cost nothing
 after the first frame.
 
+Inside the region, `update(poses, shading=frame)` (mode "edges", the loop's default) traces only
+the pixels near a discontinuity of the shading-resolution frame just rendered for the same
+poses: a native pixel whose 2×2 shading taps all show the same moving object at depths within
+`EDGE_DEPTH_REL` of each other takes its attributes bilinearly from those taps; one whose taps
+all show the same static object (or all nothing) and whose cached static hit agrees keeps the
+cached attributes; every other pixel (silhouettes, depth steps, other objects) is traced. Mode
+"trace" traces every pixel of the region (exact; the reference the "edges" mode is measured
+against in docs/temporal-reuse.md).
+
 Chosen over rasterising the moving objects (the issue's alternative): ray casting reuses the
 renderer's BVHs, triangle tables and hit conventions (bit-identical attributes to the
 renderer's G-buffer at the same pixel), needs no second geometry path and no GPU, and its
@@ -33,10 +42,11 @@ from dpmhw.scene_file import Scene
 from dpmhw.transforms import Pose
 
 ROI_MARGIN_PX = 4  # plus 1 % of the box size: pose prediction error, distortion
+EDGE_DEPTH_REL = 0.02  # 2×2 shading taps further apart in depth than this: trace the native pixel
+MODES = ("edges", "trace")
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _attributes(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, viewer, use_viewer, cam_fwd,
+def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, viewer, use_viewer, cam_fwd,
                 g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough):
     """G-buffer attributes of the hits of rays `index` (pixel numbers); same formulas as the
     renderer's first vertex (`kernels.shade` at depth 0)."""
@@ -97,12 +107,90 @@ def _attributes(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, viewe
         g_rough[p] = math.sqrt(alpha[ob])
 
 
+def _serial_and_parallel(py_func):
+    """(serial, parallel) compilations; the serial one is a renamed copy (own cache entry)."""
+    import types
+
+    serial = types.FunctionType(py_func.__code__, py_func.__globals__, py_func.__name__ + "_serial")
+    serial.__qualname__ = py_func.__qualname__ + "_serial"
+    return nb.njit(cache=True, nogil=True)(serial), nb.njit(parallel=True, cache=True, nogil=True)(py_func)
+
+
+_attribute_kernels = _serial_and_parallel(_attributes_py)
+PARALLEL_MIN_PIXELS = 32768  # below this, waking the worker threads costs more than the work
+
+
 @nb.njit(parallel=True, cache=True)
 def _gather(index, d_all, t_all, obj_all, prim_all, u_all, v_all, d, t, obj, prim, u, v):
     for k in nb.prange(index.shape[0]):
         p = index[k]
         d[k, 0], d[k, 1], d[k, 2] = d_all[p, 0], d_all[p, 1], d_all[p, 2]
         t[k], obj[k], prim[k], u[k], v[k] = t_all[p], obj_all[p], prim_all[p], u_all[p], v_all[p]
+
+
+@nb.njit(parallel=True, cache=True, nogil=True)
+def _classify(W, H, y0, y1, x0, x1, w, h, lid, lpos, lnrm, ldep, lalb, lspec, lrough, dynamic,
+              s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough,
+              g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough, static_px, trace):
+    """Per native pixel of the box: interpolate (1), keep static (2) or trace (0, flag in `trace`)."""
+    sx = w / W
+    sy = h / H
+    for y in nb.prange(y0, y1):
+        v = (y + 0.5) * sy - 0.5
+        ty = min(max(int(np.floor(v)), 0), h - 2) if h > 1 else 0
+        fy = min(max(v - ty, 0.0), 1.0)
+        for x in range(x0, x1):
+            p = y * W + x
+            u = (x + 0.5) * sx - 0.5
+            tx = min(max(int(np.floor(u)), 0), w - 2) if w > 1 else 0
+            fx = min(max(u - tx, 0.0), 1.0)
+            j00 = ty * w + tx
+            j01 = j00 + (1 if w > 1 else 0)
+            j10 = j00 + (w if h > 1 else 0)
+            j11 = j10 + (1 if w > 1 else 0)
+            o = lid[j00]
+            same = lid[j01] == o and lid[j10] == o and lid[j11] == o
+            trace[p] = False
+            if same and (o < 0 or not dynamic[o]):
+                if s_id[p] == o:  # static or empty, and the cache agrees: keep it
+                    if static_px[p]:
+                        continue
+                    static_px[p] = True
+                    g_id[p] = s_id[p]
+                    g_depth[p] = s_dep[p]
+                    g_rough[p] = s_rough[p]
+                    for c in range(3):
+                        g_pos[p, c] = s_pos[p, c]
+                        g_normal[p, c] = s_nrm[p, c]
+                        g_alb[p, c] = s_alb[p, c]
+                        g_spec[p, c] = s_spec[p, c]
+                    continue
+            elif same:
+                z0, z1, z2, z3 = ldep[j00], ldep[j01], ldep[j10], ldep[j11]
+                zmin = min(min(z0, z1), min(z2, z3))
+                zmax = max(max(z0, z1), max(z2, z3))
+                if zmax - zmin <= EDGE_DEPTH_REL * zmin:
+                    w00 = (1 - fx) * (1 - fy)
+                    w01 = fx * (1 - fy)
+                    w10 = (1 - fx) * fy
+                    w11 = fx * fy
+                    static_px[p] = False
+                    g_id[p] = o
+                    g_depth[p] = w00 * z0 + w01 * z1 + w10 * z2 + w11 * z3
+                    g_rough[p] = lrough[j00]
+                    n0 = n1 = n2 = 0.0
+                    for c in range(3):
+                        g_pos[p, c] = w00 * lpos[j00, c] + w01 * lpos[j01, c] + w10 * lpos[j10, c] + w11 * lpos[j11, c]
+                        nc = w00 * lnrm[j00, c] + w01 * lnrm[j01, c] + w10 * lnrm[j10, c] + w11 * lnrm[j11, c]
+                        g_normal[p, c] = nc
+                        g_alb[p, c] = lalb[j00, c]
+                        g_spec[p, c] = lspec[j00, c]
+                    nl = np.sqrt(g_normal[p, 0] ** 2 + g_normal[p, 1] ** 2 + g_normal[p, 2] ** 2)
+                    if nl > 1e-12:
+                        for c in range(3):
+                            g_normal[p, c] /= nl
+                        continue
+            trace[p] = True
 
 
 @nb.njit(cache=True)
@@ -157,6 +245,8 @@ class NativeGBuffer:
             centre = (v.min(axis=0) + v.max(axis=0)) / 2
             self._spheres.append((centre, float(np.linalg.norm(v - centre, axis=1).max()) * 1.001 + 1e-9))
         self._o, self._d = self.camera.generate_rays()
+        self._is_dynamic = np.array([o.is_dynamic for o in scene.objects], np.bool_)
+        self._trace_flags = np.zeros(self.width * self.height, np.bool_)
         self.rays_traced = 0  # camera rays traced in the last update (for the benchmark)
         self._trace_static()
         self._prev_box: tuple[int, int, int, int] | None = None
@@ -177,16 +267,30 @@ class NativeGBuffer:
         R, T = self.geometry.poses(self.scene.object_poses(0.0))
         self._attributes(index, self._d, hits, R, T)
         self._static = {k: getattr(self, k).copy() for k in ("id", "position", "normal", "depth", "albedo", "spec_albedo", "roughness")}
+        self.static_px = np.ones(len(index), np.bool_)  # the pixel holds its cached static attributes
+        self._static["static_px"] = self.static_px.copy()
         self._static_lit = _bbox(self.id.reshape(self.height, self.width) >= 0)
         self.rays_traced = len(index)
 
     def _attributes(self, index, d, hits, R, T) -> None:
         g = self.geometry
-        _attributes(index, d, hits.t, hits.obj, hits.prim, hits.u, hits.v, g.tri, R, T, g.obj_albedo, g.obj_specular,
+        _attribute_kernels[len(index) >= PARALLEL_MIN_PIXELS](index, d, hits.t, hits.obj, hits.prim, hits.u, hits.v, g.tri, R, T, g.obj_albedo, g.obj_specular,
                     g.obj_alpha, self.viewer, self.use_viewer, self.cam_fwd, self.id, self.position, self.normal,
                     self.depth, self.albedo, self.spec_albedo, self.roughness)
 
     # ---- per frame -------------------------------------------------------------------------
+    def _interpolate(self, box, f) -> np.ndarray:
+        """Fill the box from the shading frame where it is smooth; returns the pixels to trace."""
+        h, w = f.object_id.shape
+        st = self._static
+        trace = self._trace_flags
+        _classify(self.width, self.height, *box, w, h, _flat(f.object_id, np.int32, 1), _flat(f.position), _flat(f.normal),
+                  _flat(f.depth, np.float32, 1), _flat(f.albedo), _flat(f.specular_albedo), _flat(f.roughness, np.float32, 1),
+                  self._is_dynamic, st["id"], st["position"], st["normal"], st["depth"], st["albedo"], st["spec_albedo"],
+                  st["roughness"], self.id, self.position, self.normal, self.depth, self.albedo, self.spec_albedo,
+                  self.roughness, self.static_px, trace)
+        return _flagged(trace, self.width, *box)
+
     def roi(self, poses: list[Pose]) -> tuple[int, int, int, int] | None:
         """Box (y0, y1, x0, x1) holding every moving object's projected bounding sphere (None: none visible)."""
         boxes = []
@@ -212,8 +316,12 @@ class NativeGBuffer:
             return None
         return box
 
-    def update(self, poses: list[Pose]) -> tuple[int, int, int, int]:
-        """Re-trace the moving objects' region for `poses`; returns `lit_box`."""
+    def update(self, poses: list[Pose], shading=None, mode: str = "edges") -> tuple[int, int, int, int]:
+        """Bring the region of the moving objects to `poses`; returns `lit_box`. `shading`: the
+        renderer `Frame` of the same poses at the shading resolution (mode "edges" traces only
+        near its discontinuities; without it every pixel of the region is traced)."""
+        if mode not in MODES:
+            raise ValueError(f"gbuffer mode: expected one of {', '.join(MODES)}, got {mode!r}")
         self.rays_traced = 0
         box = self.roi(poses) if self.dynamic else None
         prev = self._prev_box
@@ -222,7 +330,7 @@ class NativeGBuffer:
                 for k, a in self._static.items():
                     _restore_kernel(getattr(self, k), a, self.width, *part)
         if box is not None:
-            self._trace_box(box, poses)
+            self._trace_box(box, poses, shading if mode == "edges" else None)
         self._prev_box = box
         changed = [b for b in (prev, box) if b is not None]
         self.changed_box = (0, self.height, 0, self.width) if self._first else _union(changed)
@@ -230,9 +338,14 @@ class NativeGBuffer:
         self.lit_box = _union([b for b in (self._static_lit, box) if b is not None])
         return self.lit_box
 
-    def _trace_box(self, box, poses) -> None:
-        index = _box_pixels(self.width, *box)
+    def _trace_box(self, box, poses, shading=None) -> None:
+        if shading is None:
+            index = _box_pixels(self.width, *box)
+        else:
+            index = self._interpolate(box, shading)
         n = len(index)
+        if n == 0:
+            return
         o = np.ascontiguousarray(np.broadcast_to(self._o[0], (n, 3)))  # one projector position
         d = np.empty((n, 3), np.float32)
         hits = empty_hits(n)
@@ -252,6 +365,7 @@ class NativeGBuffer:
                 run(j)
         else:
             list(self._pool.map(run, range(len(chunks) - 1)))
+        self.static_px[index] = False
         self._attributes(index, d, hits, R, T)
         self.rays_traced = n
 
@@ -262,6 +376,28 @@ def _restore_kernel(dst, src, W, y0, y1, x0, x1):
         a = y * W + x0
         e = y * W + x1
         dst[a:e] = src[a:e]
+
+
+def _flat(a, dtype=np.float32, cols=3) -> np.ndarray:
+    a = np.ascontiguousarray(a, dtype)
+    return a.reshape(-1) if cols == 1 else a.reshape(-1, cols)
+
+
+@nb.njit(cache=True)
+def _flagged(flags, W, y0, y1, x0, x1):
+    n = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            if flags[y * W + x]:
+                n += 1
+    out = np.empty(n, np.int64)
+    k = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            if flags[y * W + x]:
+                out[k] = y * W + x
+                k += 1
+    return out
 
 
 def _minus(a, b) -> list[tuple[int, int, int, int]]:

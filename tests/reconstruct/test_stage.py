@@ -92,3 +92,27 @@ def test_native_gbuffer_matches_the_renderers_and_retraces_only_the_roi():
     finally:
         g.close()
         r.close()
+
+
+def test_edges_mode_traces_only_near_discontinuities_and_agrees_with_full_tracing():
+    native = scale_to(load_scene("dpm-bunny"), 256, 192)
+    r = PathIntegrator(shading_scene(native, 0.25), threads=1)
+    edges = NativeGBuffer(native, r.geometry, 256, 192, threads=1)
+    full = NativeGBuffer(native, r.geometry, 256, 192, threads=1)
+    try:
+        for t in (0.0, 0.4, 0.8):
+            poses = native.object_poses(t)
+            frame = r.render(time=t, poses=poses)
+            edges.update(poses, shading=frame)
+            full.update(poses, mode="trace")
+            lit = int((full.id >= 0).sum())
+            assert edges.rays_traced < 0.5 * full.rays_traced
+            assert (edges.id != full.id).sum() <= 0.01 * lit
+            both = (full.id >= 0) & (edges.id == full.id)
+            cos = (edges.normal[both] * full.normal[both]).sum(axis=1)
+            assert np.median(cos) > np.cos(np.radians(10))  # interpolated inside: a few degrees
+            assert np.allclose(edges.depth[both], full.depth[both], rtol=0.02)
+    finally:
+        edges.close()
+        full.close()
+        r.close()
