@@ -108,12 +108,12 @@ def _upsample_kernel(mode, w, h, lid, lz, ln, la, ls, ld, lsp, le, W, H, gid, z,
                         j = ty * w + tx
                         if lid[j] != o:
                             continue
-                        b = fast_exp_neg(-0.5 * ((tx - u) * (tx - u) + (ty - v) * (ty - v)))
                         wd, ws = _tap(mode, zi, n0, n1, n2, a0, a1, a2, si, lz, ln, la, ls, j)
-                        wd = wd * b + 1e-12 * b  # any same-object tap beats none (depth gate aside)
-                        ws = ws * b + 1e-12 * b
-                        if depth_weight(zi, lz[j]) <= 0.0:
-                            continue
+                        if wd <= 0.0 and ws <= 0.0 and depth_weight(zi, lz[j]) <= 0.0:
+                            continue  # across a depth step: never
+                        b = fast_exp_neg(-0.5 * ((tx - u) * (tx - u) + (ty - v) * (ty - v)))
+                        wd = (wd + 1e-12) * b  # any same-object tap on this side of a depth step beats none
+                        ws = (ws + 1e-12) * b
                         d0 += wd * ld[j, 0]
                         d1 += wd * ld[j, 1]
                         d2 += wd * ld[j, 2]
