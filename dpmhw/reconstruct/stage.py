@@ -83,6 +83,7 @@ class ReconstructStage:
         self._wsum = np.zeros(n, np.float32)
         self._unresolved = np.zeros(n, np.bool_)
         self._base: tuple[float, np.ndarray] | None = None
+        self._native_roi = "none yet"  # the moving objects' box this stage's native guides last followed
         self.last_weight_sum = self._wsum  # diffuse weight sums of the last frame (lit box only)
 
     def _now(self) -> float:
@@ -127,9 +128,13 @@ class ReconstructStage:
         if self.gbuffer is not None:
             g = self.gbuffer
             box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
-            if g.changed_box[1] > g.changed_box[0] and g.changed_box[3] > g.changed_box[2]:
-                self.native.update(g.id, g.position, g.normal, g.depth, g.albedo, g.spec_albedo, g.roughness,
-                                   self.viewer, g.changed_box)
+            # this stage's native guides: everything once, then its last and the current region
+            dirty = [(0, self.H, 0, self.W)] if self._native_roi == "none yet" else [self._native_roi, g.roi_box]
+            self._native_roi = g.roi_box
+            for b in dirty:
+                if b is not None and b[1] > b[0] and b[3] > b[2]:
+                    self.native.update(g.id, g.position, g.normal, g.depth, g.albedo, g.spec_albedo, g.roughness,
+                                       self.viewer, b)
         else:
             box = (0, self.H, 0, self.W)
         t1 = self._now()

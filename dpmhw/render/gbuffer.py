@@ -209,7 +209,9 @@ class NativeGBuffer:
 
     `update(poses)` brings it to the given object poses and returns the box (y0, y1, x0, x1) of
     the pixels that may show something (`lit_box`); `changed_box` is the box whose attributes
-    changed in that call (the caller recomputes what it derives from them only there).
+    changed in that call, `roi_box` the moving objects' box (None: none). A consumer that derives
+    data from the attributes recomputes the union of its previous and the current `roi_box`
+    (and everything the first time): with several consumers, `changed_box` belongs to the last.
     Arrays are flat, (W*H, ...), row-major.
     """
 
@@ -252,6 +254,7 @@ class NativeGBuffer:
         self._prev_box: tuple[int, int, int, int] | None = None
         self.changed_box = (0, self.height, 0, self.width)
         self.lit_box = self._static_lit
+        self.roi_box: tuple[int, int, int, int] | None = None  # the moving objects' box of the last update
         self._first = True
 
     def close(self) -> None:
@@ -332,6 +335,7 @@ class NativeGBuffer:
         if box is not None:
             self._trace_box(box, poses, shading if mode == "edges" else None)
         self._prev_box = box
+        self.roi_box = box
         changed = [b for b in (prev, box) if b is not None]
         self.changed_box = (0, self.height, 0, self.width) if self._first else _union(changed)
         self._first = False

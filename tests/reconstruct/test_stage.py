@@ -117,3 +117,23 @@ def test_edges_mode_traces_only_near_discontinuities_and_agrees_with_full_tracin
         edges.close()
         full.close()
         r.close()
+
+
+def test_stages_sharing_one_native_gbuffer_each_see_the_static_scene():
+    """The session warms up with throw-away stages on the loop's G-buffer; the loop's own stage
+    must still see every static pixel (a static scene has no moving region to refresh)."""
+    native = scale_to(load_scene("paper-static"), 64, 48)
+    r = PathIntegrator(shading_scene(native, 0.5), threads=1)
+    g = NativeGBuffer(native, r.geometry, 64, 48, threads=1)
+    try:
+        frame = r.render(time=0.0, seed=0)
+        images = []
+        for _ in range(2):
+            stage = ReconstructStage((64, 48), (32, 24), background=native.render.background,
+                                     viewer=native.viewer_position, gbuffer=g)
+            images.append(stage.apply(frame, mode="same-pixel", alpha=0.2, filter="lobe", poses=native.object_poses(0.0),
+                                      camera=r.camera).image)
+        assert np.array_equal(images[0], images[1]) and (images[1].sum(axis=2) > 0).mean() > 0.9
+    finally:
+        g.close()
+        r.close()
