@@ -84,7 +84,7 @@ class ReconstructStage:
         self._unresolved = np.zeros(n, np.bool_)
         self._base: tuple[float, np.ndarray] | None = None
         self._native_roi = "none yet"  # the moving objects' box this stage's native guides last followed
-        self.last_weight_sum = self._wsum  # diffuse weight sums of the last frame (lit box only)
+        self._exact: bool | None = None  # which path the last frame took
 
     def _now(self) -> float:
         return self.clock() / 1e9
@@ -115,9 +115,13 @@ class ReconstructStage:
         if frame.shape != (self.h, self.w):
             raise ValueError(f"frame: expected the shading size {self.w}×{self.h}, got {frame.shape[1]}×{frame.shape[0]}")
         self._settings(mode, alpha, split_screen)
+        exact = code == 0 and (self.w, self.h) == (self.W, self.H)
+        if self._exact is not None and exact != self._exact:
+            self.reset()  # the other path's history stopped being updated: it shows another moment
+        self._exact = exact
         t0 = self._now()
         st: dict[str, float] = {}
-        if code == 0 and (self.w, self.h) == (self.W, self.H):
+        if exact:
             radiance = self.reuse.update_frame(frame, poses=poses, camera=camera)
             t1 = self._now()
             image = encode_srgb8(np.ascontiguousarray(radiance.reshape(-1, 3)), self.W, exposure)

@@ -137,3 +137,14 @@ def test_stages_sharing_one_native_gbuffer_each_see_the_static_scene():
     finally:
         g.close()
         r.close()
+
+
+def test_switching_the_filter_live_restarts_the_history_of_the_other_path():
+    scene = scale_to(load_scene("dpm-bunny"), 64, 48)
+    stage = ReconstructStage((64, 48), (64, 48), background=scene.render.background, viewer=scene.viewer_position)
+    frames = _frames(scene, 3)
+    for (frame, poses, camera), filt in zip(frames, ("off", "lobe", "off")):
+        out = stage.apply(frame, mode="same-pixel", alpha=0.2, filter=filt, poses=poses, camera=camera)
+    fresh = TemporalReuse(64, 48, alpha=0.2, mode="same-pixel")
+    frame, poses, camera = frames[2]
+    assert np.array_equal(out.image, to_srgb8(fresh.update_frame(frame, poses=poses, camera=camera)))
