@@ -14,7 +14,7 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 
 from dpmhw.render.frame import Frame
-from dpmhw.reuse import TemporalReuse
+from dpmhw.reconstruct.reuse import TemporalReuse
 from dpmhw.scene_file import Scene
 
 

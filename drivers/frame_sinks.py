@@ -119,9 +119,11 @@ class FileSink:
 class WindowSink:
     """Borderless full-screen window on display `display`, fed to the projector's video input.
 
-    Needs pygame-ce (`pip install dpmhw[display]`). Frames must match the window size exactly
-    (the projector's native resolution); nothing is scaled. `present` waits for the target
-    time, blits and flips, and returns the time the flip returned.
+    Needs pygame-ce (`pip install dpmhw[display]`). The window is always full-screen at the
+    display's current mode, which must be the projector's native resolution: `size` is the
+    session's output size, and a display of another size is refused here, at start (a frame
+    of the wrong size would cover a corner of the projector's image). Nothing is scaled.
+    `present` waits for the target time, blits and flips, and returns the time the flip returned.
     """
 
     def __init__(self, display: int = 0, *, size: tuple[int, int] | None = None, clock: Clock = time.monotonic_ns,
@@ -138,9 +140,13 @@ class WindowSink:
         if not 0 <= display < n:
             pygame.display.quit()
             raise ValueError(f"display: {display} does not exist ({n} display(s) attached)")
-        native = pygame.display.get_desktop_sizes()[display]
+        native = tuple(pygame.display.get_desktop_sizes()[display])
         w, h = size or native
-        flags = pygame.NOFRAME | (pygame.FULLSCREEN if (w, h) == tuple(native) else 0)
+        if (w, h) != native:
+            pygame.display.quit()
+            raise ValueError(f"display {display} runs at {native[0]}×{native[1]}, but the session outputs {w}×{h} "
+                             "(set the display to the projector's native mode, or render.width/height to match)")
+        flags = pygame.NOFRAME | pygame.FULLSCREEN
         pygame.display.set_caption(title)
         self._surface = pygame.display.set_mode((w, h), flags, display=display)
         pygame.mouse.set_visible(False)

@@ -53,7 +53,7 @@ from dpmhw.metrics import psnr, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.render.accel import Hits
 from dpmhw.render.integrator import PathIntegrator
-from dpmhw.reuse import TemporalReuse
+from dpmhw.reconstruct.reuse import TemporalReuse
 from dpmhw.scene_file import Scene, load_scene
 from dpmhw.sequence import scaled_scene
 

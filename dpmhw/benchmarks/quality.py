@@ -1,4 +1,4 @@
-"""`dpmhw bench quality`: speed against error for plain path tracing and temporal reuse.
+"""`dpmhw bench quality`: speed against error for plain path tracing, temporal reuse and native reconstruction.
 
 Every image is compared with a converged reference *after* post-processing (exposure 1, clip,
 sRGB, uint8: what the projector would show) with PSNR and SSIM as defined in dpmhw.metrics.
@@ -13,6 +13,10 @@ Dynamic scene (paper-dynamic): the same motion on a 947-fps timeline (the paper'
 and a 60-fps one; per sampled frame, error of plain 1 spp and of every mode × α × warm-up,
 over the whole image and over the moving objects only (where lag and ghosting live), each
 against its own reference at that time.
+
+Native (the `native` part, `native_quality`): reconstruction at the projector's size, 1 spp /
+reuse / ½ and ¼ shading + upsampling, each with no, normal-aware and lobe-aware filtering,
+with FLIP beside PSNR and SSIM, as flat rows.
 
 References are rendered once and cached on disk (`cache_dir`), keyed by a digest of the scene's
 content (resolution, camera, meshes, materials, motion), time, spp, seed and a digest of the
@@ -41,7 +45,7 @@ from dpmhw import __version__
 from dpmhw.metrics import equivalent_spp, psnr, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.render.integrator import PathIntegrator
-from dpmhw.reuse import TemporalReuse
+from dpmhw.reconstruct.reuse import TemporalReuse
 from dpmhw.scene_file import Scene, load_scene
 from dpmhw.sequence import run_sequence, scaled_scene, with_fps
 
@@ -66,12 +70,19 @@ class QualityConfig:
     dynamic_history_frames: int = 0  # frames rendered before the first eval time; 0 → ceil(8 / min α) (steady state)
     modes: tuple[str, ...] = ("same-pixel", "motion")
     threads: int = 2
-    parts: tuple[str, ...] = ("static", "dynamic")
+    parts: tuple[str, ...] = ("static", "dynamic", "native")
+    # native reconstruction rows (dpmhw.benchmarks.native_quality): modest references, short timelines
+    native_scale: float = 1.0
+    native_ref_spp: int = 64
+    native_static_frames: int = 16
+    native_eval_frames: int = 2
+    native_eval_times: tuple[float, ...] = (0.3, 0.5)
+    native_history_frames: int = 12
 
     @classmethod
     def quick(cls) -> "QualityConfig":
         return cls(scale=0.25, ref_spp=1000, dynamic_ref_spp=256, static_spp=(1, 2, 4, 8, 16, 20, 32, 40), spp_repeats=3,
-                   eval_frames=4, dynamic_eval_times=(0.2, 0.35, 0.5))
+                   eval_frames=4, dynamic_eval_times=(0.2, 0.35, 0.5), native_scale=0.5, native_ref_spp=32)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -98,9 +109,12 @@ def scene_digest(scene: Scene) -> str:
 
 
 def renderer_digest() -> str:
-    """sha256 of dpmhw/render/*.py: a renderer change invalidates cached references."""
+    """sha256 of dpmhw/render/*.py: a renderer change invalidates cached references (not
+    gbuffer.py: the native G-buffer never changes a path-traced image)."""
     h = hashlib.sha256(__version__.encode())
     for p in sorted((Path(__file__).resolve().parents[1] / "render").glob("*.py")):
+        if p.name == "gbuffer.py":
+            continue
         h.update(p.name.encode() + p.read_bytes())
     return h.hexdigest()[:16]
 
@@ -357,6 +371,10 @@ def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path
         result["static"] = run_static(cfg, cache, progress, images)
     if "dynamic" in cfg.parts:
         result["dynamic"] = run_dynamic(cfg, cache, progress, images)
+    if "native" in cfg.parts:
+        from dpmhw.benchmarks.native_quality import run_native
+
+        result["native"] = run_native(cfg, cache, progress, images)
     result["references"] = dict(cache_dir=str(cache.dir), rendered=cache.rendered, cache_hits=cache.hits)
     result["seconds"] = round(_time.perf_counter() - started, 1)
     result["loadavg_start_end"] = [list(load0), list(os.getloadavg())]
@@ -373,19 +391,46 @@ def write_figures(result: dict, images: dict, out_dir: Path) -> list[str]:
     files = []
     if "static" in result:
         names = ["reference", "1 spp", "reuse", "9 spp"]  # reuse: same-pixel at the α nearest 0.2
-        strip = np.concatenate([images[n] for n in names if n in images], axis=1)
+        labels = {"reuse": "1 spp + reuse α≈0.2"}
+        strip = np.concatenate([labelled(images[n], labels.get(n, n)) for n in names if n in images], axis=1)
         write_png(out_dir / "static_strip.png", strip)
         files.append(str(out_dir / "static_strip.png"))
     for fps_label, imgs in images.get("dynamic", {}).items():
         ref = imgs["reference"].astype(np.int16)
-        tiles = list(imgs.values())
-        errs = [np.clip(np.abs(im.astype(np.int16) - ref) * 4, 0, 255).astype(np.uint8) for im in tiles[1:]]
+        tiles = [labelled(im, name) for name, im in imgs.items()]
+        errs = [labelled(np.clip(np.abs(im.astype(np.int16) - ref) * 4, 0, 255).astype(np.uint8), f"|error| × 4: {name}")
+                for name, im in list(imgs.items())[1:]]
         grid = np.concatenate([np.concatenate(tiles, axis=1), np.concatenate([np.zeros_like(tiles[0])] + errs, axis=1)], axis=0)
         p = out_dir / f"dynamic_strip_{fps_label.replace(' ', '')}.png"
         write_png(p, grid)
         files.append(str(p))
-    files += _plots(result, out_dir)
+    for key, imgs in images.items():
+        if key.startswith("native "):
+            names = ["reference", "1 spp + off", "native + reuse 0.2 + lobe", "1/4 + reuse 0.2 + off", "1/4 + reuse 0.2 + lobe"]
+            p = out_dir / f"{key.replace(' ', '_')}_strip.png"
+            write_png(p, np.concatenate([labelled(imgs[n], n) for n in names if n in imgs], axis=1))
+            files.append(str(p))
+    if "static" in result or "dynamic" in result:
+        files += _plots(result, out_dir)
+    if "native" in result:
+        from dpmhw.benchmarks.native_quality import native_plot
+
+        files.append(native_plot(result, out_dir))
     return files
+
+
+def labelled(image: np.ndarray, text: str) -> np.ndarray:
+    """A copy of an (H, W, 3) uint8 RGB panel with `text` on a dark band at its top left."""
+    import cv2
+
+    out = np.array(image, copy=True)
+    scale = max(0.4, out.shape[0] / 768 * 0.9)
+    thick = max(1, int(round(scale * 2)))
+    text = text.replace("α", "a").replace("≈", "~").replace("×", "x")  # Hershey fonts are ASCII
+    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
+    out[: h + base + 8, : w + 10] //= 3
+    cv2.putText(out, text, (5, h + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), thick, cv2.LINE_AA)
+    return out
 
 
 def _save(fig, path: Path) -> str:
@@ -481,6 +526,10 @@ def format_table(result: dict) -> str:
             per = " ".join(f"{p:6.2f}" for p in r["psnr_samples"])
             lines.append(f"{r['label']:34s} {per:>34s} {r['psnr_moving_mean']:7.2f} {r['ssim']:6.3f} {r['reuse_ms']:7.2f} {r['total_ms']:8.1f}")
         lines.append("")
+    if "native" in result:
+        from dpmhw.benchmarks.native_quality import format_native
+
+        lines += format_native(result)
     lines.append(f"references: {result['references']['rendered']} rendered, {result['references']['cache_hits']} from cache "
                  f"({result['references']['cache_dir']}); {result['seconds']} s; load average start/end "
                  f"{result['loadavg_start_end'][0][0]:.1f}/{result['loadavg_start_end'][1][0]:.1f}")

@@ -46,13 +46,14 @@ def bench_quality(
     threads: Annotated[int, typer.Option(min=1)] = 2,
 ) -> None:
     """Speed against error: PSNR/SSIM against converged references for plain path tracing and
-    temporal reuse (static table vs the paper's Table 1, dynamic per-frame error), with costs."""
+    temporal reuse (static table vs the paper's Table 1, dynamic per-frame error), and native
+    reconstruction rows (filters, shading scales; PSNR/SSIM/FLIP), with costs."""
     import dataclasses
 
     from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
 
     cfg = QualityConfig.quick() if quick else QualityConfig()
-    changes = dict(threads=threads, parts=("static", "dynamic") if part.value == "all" else (part.value,))
+    changes = dict(threads=threads, parts=("static", "dynamic", "native") if part.value == "all" else (part.value,))
     if scale is not None:
         changes["scale"] = scale
     if ref_spp is not None:

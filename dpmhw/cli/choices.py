@@ -8,7 +8,7 @@ from __future__ import annotations
 import enum
 
 from dpmhw.postprocess import TONEMAPS
-from dpmhw.reuse import MODES
+from dpmhw.reconstruct.reuse import MODES
 
 __all__ = ["ApiMode", "BenchTrajectory", "ClientPriority", "NatNetVersion", "PixelSampling", "QualityPart", "ReuseMode",
            "SerialModel", "SinkKind", "Tonemap", "Trajectory"]
@@ -20,7 +20,7 @@ def _choices(name: str, values) -> type[enum.Enum]:
 
 ReuseMode = _choices("ReuseMode", MODES)
 Tonemap = _choices("Tonemap", TONEMAPS)
-QualityPart = _choices("QualityPart", ("static", "dynamic", "all"))
+QualityPart = _choices("QualityPart", ("static", "dynamic", "native", "all"))
 BenchTrajectory = _choices("BenchTrajectory", ("linear", "rotate-oscillate", "static"))
 ApiMode = _choices("ApiMode", ("process", "thread"))
 ClientPriority = _choices("ClientPriority", ("normal", "low", "idle"))

@@ -50,7 +50,7 @@ def render(
         raise typer.BadParameter(f"--out must end in .npy or .png, got {out.name}")
     tonemap = tonemap.value
     if frames is not None:
-        from dpmhw.reuse import ReuseError, ReuseSettings
+        from dpmhw.reconstruct.reuse import ReuseError, ReuseSettings
 
         try:
             settings = ReuseSettings(alpha, reuse.value, warmup, split_screen)
@@ -124,7 +124,7 @@ def _render_sequence(scene_arg, sc, out: Path | None, out_dir, start_frame: floa
     import numpy as np
 
     from dpmhw.render.integrator import PathIntegrator
-    from dpmhw.reuse import TemporalReuse
+    from dpmhw.reconstruct.reuse import TemporalReuse
 
     suffix = (out or Path("frame.png")).suffix.lower()
     from dpmhw.sequence import run_sequence

@@ -159,8 +159,8 @@ def show_config(config: ConfigOpt = None, sets: SetOpt = None) -> None:
 @bench_app.command("session")
 def bench_session(
     seconds: Annotated[float, typer.Option(min=0.5, help="Measured seconds per case (after warm-up).")] = 4.0,
-    width: Annotated[int, typer.Option(min=8, help="Render width (the projector is 1024 wide; errors are in its pixels).")] = 256,
-    height: Annotated[int, typer.Option(min=6)] = 192,
+    width: Annotated[int, typer.Option(min=0, help="Output width; 0: the projector's native size (errors are in its pixels). Shading resolution: --set render.shading_scale=…")] = 0,
+    height: Annotated[int, typer.Option(min=0)] = 0,
     spp: Annotated[int, typer.Option(min=1, max=64)] = 1,
     api_clients: Annotated[int, typer.Option(min=0, max=64, help="Concurrent API clients for the load case (0: skip it).")] = 4,
     api_rate: Annotated[float, typer.Option(min=0.0, max=1000.0, help="Requests per second per API client (0: as fast as possible).")] = 10.0,

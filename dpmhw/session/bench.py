@@ -190,9 +190,18 @@ class _ApiLoad:
             self.sock.close()
 
 
-def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 256, height: int = 192,
+STAGE_KEYS = ("gbuffer", "render", "reuse", "filter", "upsample", "post", "present", "frame")
+
+
+def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 0, height: int = 0,
              spp: int = 1, max_eval_frames: int = 120, overrides: tuple[str, ...] = ()) -> dict:
-    """Run one mocked session and measure it (see module doc)."""
+    """Run one mocked session and measure it (see module doc). width/height: the output size
+    (0: the projector's native size); the shading scale and filter come from `overrides`.
+
+    The row is flat (docs/session.md, "Session benchmark JSON"): scene, method, shading_scale,
+    filter, alpha, output_width, output_height, fps, fps_median (1 / median present interval),
+    latency_ms_p50/p95/p99, frame_ms_p50/p95/p99, registration_px_p50/p99 (and _max_, measured-pose and
+    vertex variants), <stage>_ms_p50 for every loop stage, frame counts."""
     from dpmhw.render.cameras import PinholeCamera
     from dpmhw.session.factory import build_session, prepare_scene
     from dpmhw.session.registration import registration_error
@@ -234,27 +243,40 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     frame_ms = [r.stages_s["frame"] * 1e3 for r in records]
     latency_ms = [(r.t_present_ns + display_ns - r.sample_t_ns[body]) / 1e6 for r in records]
     span_s = (records[-1].t_present_ns - records[0].t_present_ns) / 1e9
+    intervals_s = np.diff([r.t_present_ns for r in records]) / 1e9
     out = {
-        "case": case.label, "trajectory": case.trajectory, "prediction": case.prediction,
+        "case": case.label, "scene": cfg.scene.source, "method": _method(cfg), "trajectory": case.trajectory,
+        "prediction": case.prediction, "shading_scale": cfg.render.shading_scale, "filter": cfg.render.filter,
+        "alpha": cfg.reuse.alpha, "reuse_mode": cfg.reuse.mode, "spp": spp,
+        "output_width": status["output_size"][0], "output_height": status["output_size"][1],
+        "shading_width": status["render_size"][0], "shading_height": status["render_size"][1],
         "frames": len(records), "fps": round((len(records) - 1) / span_s, 2) if span_s > 0 else 0.0,
-        "latency_ms": dict(zip(("p50", "p95", "p99"), _pct(latency_ms))),
-        "frame_ms": dict(zip(("p50", "p95", "p99"), _pct(frame_ms))),
-        "render_ms_p50": status["stages_ms"]["render"]["p50_ms"],
-        "horizon_ms_mean": status["prediction_horizon_ms"]["mean"],
-        "registration_px": dict(zip(("p50", "p99"), _pct([e.mean_px for e in errors], (50, 99)))),
-        "registration_max_px": dict(zip(("p50", "p99"), _pct([e.max_px for e in errors], (50, 99)))),
-        "registration_measured_pose_px": dict(zip(("p50", "p99"), _pct([e.mean_px for e in measured], (50, 99)))),
-        "vertex_px": dict(zip(("p50", "p99"), _pct([e.vertex_px for e in errors], (50, 99)))),
-        "evaluated_frames": len(errors), "render_size": [width, height], "spp": spp,
-        "projector_size": [scene.render.width, scene.render.height],
+        "fps_median": round(1.0 / float(np.median(intervals_s)), 2) if len(intervals_s) and np.median(intervals_s) > 0 else 0.0,
     }
+    for prefix, values, qs in (("latency_ms", latency_ms, (50, 95, 99)), ("frame_ms", frame_ms, (50, 95, 99)),
+                               ("registration_px", [e.mean_px for e in errors], (50, 99)),
+                               ("registration_max_px", [e.max_px for e in errors], (50, 99)),
+                               ("registration_measured_pose_px", [e.mean_px for e in measured], (50, 99)),
+                               ("vertex_px", [e.vertex_px for e in errors], (50, 99))):
+        out.update({f"{prefix}_p{q}": v for q, v in zip(qs, _pct(values, qs))})
+    for stage in STAGE_KEYS:
+        out[f"{stage}_ms_p50"] = _pct([r.stages_s.get(stage, np.nan) * 1e3 for r in records], (50,))[0]
+    out.update({"horizon_ms_mean": status["prediction_horizon_ms"]["mean"], "evaluated_frames": len(errors),
+                "projector_width": scene.render.width, "projector_height": scene.render.height})
     out["series"] = bench_series(records, frame_ms, latency_ms, errors, step)  # for the plots; not a JSON row
     return out
 
 
+def _method(cfg) -> str:
+    """Short name of the reconstruction a session ran, e.g. "1/4 + reuse 0.2 + lobe"."""
+    scale = {1.0: "native", 0.5: "1/2", 0.25: "1/4"}[cfg.render.shading_scale]
+    reuse = "" if cfg.reuse.mode == "off" else f" + reuse {cfg.reuse.alpha:g}"
+    return f"{scale}{reuse} + {cfg.render.filter}"
+
+
 def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...] = ("process", "thread"),
                   clients: int = 4, rate_hz: float = 10.0, client_priority: str = "normal", windows: int = 6,
-                  window_s: float = 3.0, warmup_s: float = 1.5, width: int = 256, height: int = 192, spp: int = 1,
+                  window_s: float = 3.0, warmup_s: float = 1.5, width: int = 0, height: int = 0, spp: int = 1,
                   overrides: tuple[str, ...] = ()) -> list[dict]:
     """Frame time with and without API load, in alternating windows of one session (the same
     machine conditions for both), for each way of serving the API (`_ApiLoad`)."""
@@ -350,15 +372,20 @@ def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int =
 
 def format_table(bench: dict) -> str:
     results = bench["cases"]
-    head = (f"{'case':<34} {'fps':>6} {'lat p50':>8} {'p95':>7} {'p99':>7} {'frame p99':>9} "
+    head = (f"{'case':<34} {'fps':>6} {'fps med':>7} {'lat p50':>8} {'p95':>7} {'p99':>7} {'frame p99':>9} "
             f"{'reg p50':>8} {'reg p99':>8} {'vert p50':>8} {'unpred p50':>10} {'p99':>7}")
     lines = [head, "-" * len(head)] if results else []
     for r in results:
-        lat, fr, reg, vert = r["latency_ms"], r["frame_ms"], r["registration_px"], r["vertex_px"]
-        meas = r["registration_measured_pose_px"]
-        lines.append(f"{r['case']:<34} {r['fps']:>6.1f} {lat['p50']:>8.1f} {lat['p95']:>7.1f} {lat['p99']:>7.1f} "
-                     f"{fr['p99']:>9.1f} {reg['p50']:>8.2f} {reg['p99']:>8.2f} {vert['p50']:>8.2f} "
-                     f"{meas['p50']:>10.2f} {meas['p99']:>7.2f}")
+        lines.append(f"{r['case']:<34} {r['fps']:>6.1f} {r['fps_median']:>7.1f} {r['latency_ms_p50']:>8.1f} "
+                     f"{r['latency_ms_p95']:>7.1f} {r['latency_ms_p99']:>7.1f} "
+                     f"{r['frame_ms_p99']:>9.1f} {r['registration_px_p50']:>8.2f} {r['registration_px_p99']:>8.2f} "
+                     f"{r['vertex_px_p50']:>8.2f} {r['registration_measured_pose_px_p50']:>10.2f} "
+                     f"{r['registration_measured_pose_px_p99']:>7.2f}")
+    if results:
+        lines.append("per-stage p50 ms (" + ", ".join(STAGE_KEYS) + "):")
+        for r in results:
+            lines.append(f"  {r['case']:<32} {r['method']:<24} " + " ".join(
+                f"{r[f'{k}_ms_p50']:.2f}" if r[f"{k}_ms_p50"] is not None else "-" for k in STAGE_KEYS))
     for load in bench.get("api_load") or []:
         u, b = load["unloaded_frame_ms"], load["loaded_frame_ms"]
         where = "own process" if load["api_mode"] == "process" else "thread of the session process"
@@ -374,6 +401,7 @@ def format_table(bench: dict) -> str:
         return "\n".join(lines)
     lines.append("latency: tracker mid-exposure → frame presented; reg: symmetric outline distance between the "
                  "silhouette shown and the true one at present time, in projector pixels "
-                 f"({results[0]['projector_size'][0]}×{results[0]['projector_size'][1]}); vert: mean vertex displacement; "
+                 f"({results[0]['projector_width']}×{results[0]['projector_height']}; output "
+                 f"{results[0]['output_width']}×{results[0]['output_height']}); vert: mean vertex displacement; "
                  "unpred: reg of the same frames had they shown the measured (unpredicted) pose")
     return "\n".join(lines)

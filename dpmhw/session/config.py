@@ -30,7 +30,7 @@ __all__ = [
     "format_validation_error",
 ]
 
-REUSE_MODES = ("off", "same-pixel", "motion")  # dpmhw.reuse.MODES
+REUSE_MODES = ("off", "same-pixel", "motion")  # dpmhw.reconstruct.reuse.MODES
 
 
 class SessionConfigError(DpmhwError, ValueError):
@@ -47,14 +47,31 @@ class SceneSection(_Section):
     calibration: str = Field("", description="projector calibration file; replaces the scene's camera")
 
 
+SHADING_SCALES = (1.0, 0.5, 0.25)
+FILTER_MODES = ("off", "normal", "lobe")  # dpmhw.reconstruct.weights.FILTER_MODES
+
+
 class RenderSection(_Section):
-    width: int = Field(256, ge=0, le=16384, description="render width in pixels; 0 keeps the scene's")
-    height: int = Field(192, ge=0, le=16384, description="render height in pixels; 0 keeps the scene's")
+    width: int = Field(0, ge=0, le=16384, description="output width in pixels; 0 = the projector's native width "
+                                                      "(calibration or scene camera). Only for a virtual projector "
+                                                      "on the mocks: a real display must match it")
+    height: int = Field(0, ge=0, le=16384, description="output height in pixels; 0 = the projector's native height")
+    shading_scale: float = Field(0.25, description="shading resolution per axis relative to the output: 1, 0.5 or 0.25; "
+                                                   "the frame is upsampled to the output size (dpmhw.reconstruct)")
+    filter: Literal["off", "normal", "lobe"] = Field("lobe", description="cross-bilateral filter: off, normal-aware or "
+                                                                          "specular-lobe-aware (live setting)")
     spp: int = Field(1, ge=1, le=64)
     threads: int = Field(2, ge=1, le=256)
     exposure: float = Field(1.0, gt=0.0, le=1e4)
     seed: int = Field(0, ge=0)
     target_fps: float = Field(30.0, gt=0.0, le=10000.0, description="a frame slower than 1/target_fps is a deadline miss")
+
+    @field_validator("shading_scale")
+    @classmethod
+    def _scale(cls, v: float) -> float:
+        if v not in SHADING_SCALES:
+            raise ValueError(f"expected one of {', '.join(f'{s:g}' for s in SHADING_SCALES)}")
+        return v
 
     @model_validator(mode="after")
     def _both_or_neither(self) -> "RenderSection":
@@ -181,7 +198,7 @@ class SessionConfig(_Section):
     def live_settings(self) -> "LiveSettings":
         return LiveSettings(
             alpha=self.reuse.alpha, reuse_mode=self.reuse.mode, spp=self.render.spp,
-            split_screen=self.reuse.split_screen, prediction=self.prediction.enabled,
+            split_screen=self.reuse.split_screen, prediction=self.prediction.enabled, filter=self.render.filter,
         )
 
 
@@ -195,6 +212,7 @@ class LiveSettings(BaseModel):
     spp: int = Field(1, ge=1, le=64, description="samples per pixel per frame")
     split_screen: bool = False
     prediction: bool = True
+    filter: Literal["off", "normal", "lobe"] = Field("lobe", description="cross-bilateral filter of the reconstruction")
 
 
 def format_validation_error(source: str, exc: ValidationError) -> str:

@@ -46,7 +46,8 @@ def scale_to(scene: Scene, width: int, height: int) -> Scene:
 
 
 def prepare_scene(config: SessionConfig) -> Scene:
-    """Load the scene, apply the calibration file and the render-size override."""
+    """Load the scene, apply the calibration file and the output-size override: the scene's
+    camera is the projector at its native (output) size."""
     sc = config.scene
     source = sc.source
     from dpmhw.scene_file import BUILTIN_SCENES
@@ -234,23 +235,35 @@ def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):
         if not config.sink.path:
             raise SessionConfigError("sink.path: a file sink needs a path (a folder for PNGs or a video file)")
         return make_sink("file", path=str(config.resolve(config.sink.path)), fps=config.render.target_fps)
-    return make_sink("window", display=config.sink.display, size=(shape[1], shape[0]))
+    try:
+        return make_sink("window", display=config.sink.display, size=(shape[1], shape[0]))
+    except ValueError as exc:  # e.g. the display's mode is not the projector's native size
+        raise SessionConfigError(f"sink: {exc}") from None
 
 
-def warm_up(renderer, scene: Scene) -> None:
+def shading_scene(scene: Scene, scale: float) -> Scene:
+    """The scene at the shading resolution: `scale` of the native size per axis (at least 1 px)."""
+    r = scene.render
+    return scale_to(scene, max(1, round(r.width * scale)), max(1, round(r.height * scale)))
+
+
+def warm_up(renderer, scene: Scene, gbuffer=None) -> None:
     """Run every per-frame kernel once before the loop starts. On a fresh install the first call
     compiles them (numba; tens of seconds, then cached on disk): inside the loop that would be a
-    stall the watchdog reports as a fault."""
-    from dpmhw.reuse import TemporalReuse
+    stall the watchdog reports as a fault. `scene` is the native one."""
+    from dpmhw.reconstruct.stage import ReconstructStage
 
     t0 = time.monotonic()
     poses = scene.object_poses(0.0)
     frame = renderer.render(time=0.0, seed=0, spp=1, poses=poses)
+    native = (scene.render.width, scene.render.height)
     for mode in ("same-pixel", "motion"):
-        reuse = TemporalReuse(renderer.width, renderer.height, mode=mode)
-        for _ in range(2):  # the second frame takes the history path
-            reuse.update(frame.radiance, frame.object_id, frame.model_position, poses=poses, camera=renderer.camera)
-    log.info("render and reuse kernels ready in %.1f s", time.monotonic() - t0)
+        for filt in ("off", "lobe"):
+            stage = ReconstructStage(native, (renderer.width, renderer.height), background=scene.render.background,
+                                     viewer=scene.viewer_position, gbuffer=gbuffer)
+            for _ in range(2):  # the second frame takes the history path
+                stage.apply(frame, mode=mode, alpha=0.2, filter=filt, poses=poses, camera=renderer.camera)
+    log.info("render and reconstruction kernels ready in %.1f s", time.monotonic() - t0)
 
 
 def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: Any = None) -> SessionParts:
@@ -264,18 +277,27 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
         if mock:
             rig, over = start_mock_rig(config, scene, bindings)
             closers.append(rig.stack.close)
+        gbuffer = None
         if renderer is None:
             from dpmhw.render.integrator import PathIntegrator
 
-            renderer = PathIntegrator(scene, threads=config.render.threads)
-            warm_up(renderer, scene)
-        if hasattr(renderer, "close"):
+            renderer = PathIntegrator(shading_scene(scene, config.render.shading_scale), threads=config.render.threads)
+            if hasattr(renderer, "close"):
+                closers.append(renderer.close)
+            if (renderer.width, renderer.height) != (scene.render.width, scene.render.height):
+                from dpmhw.render.gbuffer import NativeGBuffer
+
+                gbuffer = NativeGBuffer(scene, renderer.geometry, scene.render.width, scene.render.height,
+                                        threads=config.render.threads)
+                closers.append(gbuffer.close)
+            warm_up(renderer, scene, gbuffer)
+        elif hasattr(renderer, "close"):
             closers.append(renderer.close)
         projector = None
         if config.projector.kind == "dlpc900":
             projector = DLPC900Control.open(config)
             closers.append(projector.close)
-        sink = open_sink(config, mock, (renderer.height, renderer.width))
+        sink = open_sink(config, mock, (scene.render.height, scene.render.width))
         closers.append(sink.close)
         tracker = open_tracker(config, **over)
         tracker.start()
@@ -294,8 +316,8 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
                 log.exception("cleanup after a failed start")
         raise
     # the loop closes tracker, sink, renderer and projector itself; the rig last
-    return SessionParts(scene, renderer, tracker, sink, bindings, projector, recorder, rig,
-                        closers=[rig.stack.close] if rig is not None else [])
+    return SessionParts(scene, renderer, tracker, sink, bindings, projector, recorder, rig, gbuffer,
+                        closers=([gbuffer.close] if gbuffer is not None else []) + ([rig.stack.close] if rig is not None else []))
 
 
 def build_session(config: SessionConfig, *, mock: bool = False, renderer: Any = None, frame_log: int = 0) -> SessionLoop:

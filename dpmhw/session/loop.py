@@ -1,4 +1,5 @@
-"""The real-time loop: latest pose → prediction → render → reuse → post → present, with safety.
+"""The real-time loop: latest pose → prediction → render (shading resolution) → reuse → filter /
+upsample (native) → post → present, with safety.
 
 One thread runs the frames; a watchdog thread blanks the projector if that thread stalls; a
 health thread reads device status (USB reads can block) so the loop never waits on them. The
@@ -23,12 +24,12 @@ from typing import Any, Callable, Protocol
 import numpy as np
 
 from dpmhw.frame_sink import FrameSink
-from dpmhw.postprocess import to_srgb8
+from dpmhw.postprocess import NonFiniteFrameError
+from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
 from dpmhw.session.metrics import LoopMetrics
 from dpmhw.session.prediction import PosePredictor
-from dpmhw.session.reuse_stage import ReuseStage
 from dpmhw.session.safety import SafetyMonitor, SessionState
 from dpmhw.tracking import Tracker, TrackerState
 from dpmhw.transforms import Pose
@@ -78,6 +79,7 @@ class SessionParts:
     projector: ProjectorControl | None = None
     recorder: Any = None  # dpmhw.session.recording.SessionRecorder
     mock: Any = None  # the mock rig (world, servers, emulated devices) in --mock sessions
+    gbuffer: Any = None  # dpmhw.render.gbuffer.NativeGBuffer when the renderer shades below the native size
     closers: list[Callable[[], None]] = field(default_factory=list)
 
 
@@ -122,7 +124,11 @@ class SessionLoop:
         self.metrics = LoopMetrics(config.metrics.window, 1.0 / config.render.target_fps)
         self.predictor = PosePredictor(config.prediction.history, config.prediction.max_horizon_ms / 1e3,
                                        config.prediction.model)
-        self.reuse = ReuseStage(parts.renderer.width, parts.renderer.height, config.reuse.warmup)
+        scene = parts.scene
+        self.output_size = (scene.render.width, scene.render.height)  # the projector's native (W, H)
+        self.reconstruct = ReconstructStage(self.output_size, (parts.renderer.width, parts.renderer.height),
+                                            background=scene.render.background, viewer=scene.viewer_position,
+                                            warmup=config.reuse.warmup, gbuffer=parts.gbuffer, clock=clock)
         self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
         self.frame_log: list[FrameRecord] | None = [] if frame_log else None
         self._frame_log_max = frame_log
@@ -285,7 +291,7 @@ class SessionLoop:
         if pending is not None:
             self._settings = pending
         if reset:
-            self.reuse.reset()
+            self.reconstruct.reset()
             self.predictor.reset()
             self.metrics.count("history_resets")
         return self._settings
@@ -364,19 +370,17 @@ class SessionLoop:
         t2 = self.clock()
         stages["render"] = (t2 - t1) / 1e9
         try:
-            radiance = self.reuse.apply(frame, settings.reuse_mode, settings.alpha, settings.split_screen,
-                                        poses=poses, camera=getattr(self.parts.renderer, "camera", None))
-        except Exception as exc:
-            return self._stage_failed("render", "reuse_errors", f"temporal reuse failed: {type(exc).__name__}: {exc}")
-        t3 = self.clock()
-        stages["reuse"] = (t3 - t2) / 1e9
-        try:
-            image = to_srgb8(radiance, self.config.render.exposure)
-        except ValueError as exc:
+            out = self.reconstruct.apply(frame, mode=settings.reuse_mode, alpha=settings.alpha, filter=settings.filter,
+                                         split_screen=settings.split_screen, exposure=self.config.render.exposure,
+                                         poses=poses, camera=getattr(self.parts.renderer, "camera", None))
+        except NonFiniteFrameError as exc:
             return self._stage_failed("render", None, f"post-processing refused the frame: {exc}")
+        except Exception as exc:
+            return self._stage_failed("render", "reuse_errors", f"reconstruction failed: {type(exc).__name__}: {exc}")
+        image = out.image
         image.setflags(write=False)
+        stages.update(out.stages_s)
         t4 = self.clock()
-        stages["post"] = (t4 - t3) / 1e9
         if not self._sync_output():
             self.metrics.count("frames_withheld")  # rendered while dark (keeps causes observable)
             return False
@@ -434,7 +438,7 @@ class SessionLoop:
                 except Exception as exc:
                     self.safety.update("projector", True, f"cannot light the projector: {type(exc).__name__}: {exc}", "fault")
                     return
-            self.reuse.reset()  # history from before the dark spell describes another moment
+            self.reconstruct.reset()  # history from before the dark spell describes another moment
             self._output_on = True
             self.metrics.count("resumes")
 
@@ -448,7 +452,7 @@ class SessionLoop:
             self.metrics.count("blanks")
             log.warning("projection dark: %s", reason)
             if not from_watchdog:
-                black = np.zeros((self.parts.renderer.height, self.parts.renderer.width, 3), np.uint8)
+                black = np.zeros((self.output_size[1], self.output_size[0], 3), np.uint8)
                 black.setflags(write=False)
                 try:
                     t = self.parts.sink.present(black, self.clock())
@@ -528,7 +532,8 @@ class SessionLoop:
             "settings_applied": applied.model_dump(),
             "devices": {"tracker": tracker, "projector": dict(self._projector_health),
                         "last_blank": self._last_blank},
-            "render_size": [self.parts.renderer.width, self.parts.renderer.height],
+            "render_size": [self.parts.renderer.width, self.parts.renderer.height],  # the shading resolution
+            "output_size": list(self.output_size),
         }
         with self._lock:
             self._status = MappingProxyType(snap)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import threading
 import time
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -108,10 +107,24 @@ class FlatRenderer:
         self.block.wait(30)
         if self.fail is not None:
             raise self.fail
-        rng = np.random.default_rng(seed)
-        ids = np.zeros((self.height, self.width), np.int32)
-        radiance = (0.2 + 0.2 * rng.random((self.height, self.width, 3))).astype(np.float32)
-        return SimpleNamespace(radiance=radiance, object_id=ids, model_position=np.zeros_like(radiance))
+        return flat_frame(self.width, self.height, seed)
+
+
+def flat_frame(width: int, height: int, seed: int = 0):
+    """A renderer `Frame` of one diffuse object facing the camera at depth 1, noisy radiance."""
+    from dpmhw.render.frame import Frame
+
+    rng = np.random.default_rng(seed)
+    shape = (height, width)
+    radiance = (0.2 + 0.2 * rng.random((*shape, 3))).astype(np.float32)
+    normal = np.zeros((*shape, 3), np.float32)
+    normal[..., 2] = -1.0
+    ones = np.ones((*shape, 3), np.float32)
+    return Frame(radiance=radiance, diffuse=radiance.copy(), specular=np.zeros_like(radiance),
+                 object_id=np.zeros(shape, np.int32), model_position=np.zeros_like(radiance),
+                 position=np.zeros_like(radiance), normal=normal, depth=np.ones(shape, np.float32), albedo=ones,
+                 specular_albedo=np.zeros_like(radiance), roughness=np.ones(shape, np.float32), spp=1,
+                 time=0.0, seed=seed)
 
 
 

@@ -79,15 +79,22 @@ def test_window_sink_on_a_dummy_display(monkeypatch, clock):
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
     from drivers.frame_sinks import WindowSink
 
-    sink = WindowSink(0, size=(40, 20), clock=clock, sleep=clock.sleep)
+    import pygame
+
+    pygame.display.init()
+    w, h = pygame.display.get_desktop_sizes()[0]
+    pygame.display.quit()
+    with pytest.raises(ValueError, match=f"runs at {w}×{h}, but the session outputs 40×20"):
+        WindowSink(0, size=(40, 20), clock=clock, sleep=clock.sleep)  # not the projector's native size
+    sink = WindowSink(0, size=(w, h), clock=clock, sleep=clock.sleep)
     try:
-        assert sink.shape == (20, 40)
-        f = _frame(20, 40)
+        assert sink.shape == (h, w)
+        f = _frame(h, w)
         assert sink.present(f, clock() + 1_000_000) == clock()
         assert clock.sleeps == [0.001]
         assert np.array_equal(sink.snapshot(), f)
         with pytest.raises(ValueError):
-            sink.present(_frame(21, 40), 0)  # no silent scaling
+            sink.present(_frame(h + 1, w), 0)  # no silent scaling
     finally:
         sink.close()
     with pytest.raises(ValueError, match="display"):

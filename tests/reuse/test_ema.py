@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dpmhw.reuse import ReuseError, ReuseSettings, TemporalReuse, split_screen, validate_alpha
+from dpmhw.reconstruct.reuse import ReuseError, ReuseSettings, TemporalReuse, split_screen, validate_alpha
 
 
 @pytest.mark.parametrize("bad", [0, 0.0, -0.1, 1.0000001, 2, float("nan"), float("inf"), "abc", None])

@@ -1,10 +1,10 @@
 """Motion mode: reprojection lands where geometry says, and the history fetch is as defined in
-dpmhw.reuse (bilinear over matching taps, renormalised; else the nearest matching tap; else reset)."""
+dpmhw.reconstruct.reuse (bilinear over matching taps, renormalised; else the nearest matching tap; else reset)."""
 
 import numpy as np
 import pytest
 
-from dpmhw.reuse import ReuseError, TemporalReuse, reproject
+from dpmhw.reconstruct.reuse import ReuseError, TemporalReuse, reproject
 from dpmhw.transforms import Pose, rotation_about_axis
 
 from .conftest import make_camera, plane_gbuffer

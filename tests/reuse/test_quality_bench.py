@@ -12,7 +12,7 @@ from dpmhw.sequence import scaled_scene
 
 TINY = dataclasses.replace(
     QualityConfig.quick(), scale=1 / 32, ref_spp=24, dynamic_ref_spp=8, static_spp=(1, 2, 4, 8), spp_repeats=1, alphas=(0.5, 0.25),
-    eval_frames=2, dynamic_fps=(947.0, 60.0), dynamic_eval_times=(0.02, 0.04),
+    eval_frames=2, dynamic_fps=(947.0, 60.0), dynamic_eval_times=(0.02, 0.04), parts=("static", "dynamic"),
 )
 
 
@@ -83,3 +83,24 @@ def test_bench_quality_cli_rejects_bad_options_before_rendering(args, message, t
     result = CliRunner().invoke(app, ["bench", "quality", "--cache-dir", str(tmp_path), *args])
     assert result.exit_code == 2 and message in result.output
     assert not any(tmp_path.iterdir())  # nothing was rendered
+
+
+def test_native_rows_are_flat_and_cover_every_method(tmp_path):
+    cfg = dataclasses.replace(TINY, parts=("native",), native_scale=1 / 16, native_ref_spp=8, native_static_frames=3,
+                              native_eval_frames=1, native_eval_times=(0.05,), native_history_frames=2)
+    result = run_quality(cfg, cache_dir=tmp_path / "cache", out_dir=tmp_path / "figs")
+    scenes = result["native"]["scenes"]
+    assert [s["kind"] for s in scenes] == ["static", "dynamic"]
+    for sc in scenes:
+        assert (sc["width"], sc["height"]) == (64, 48)
+        rows = sc["rows"]
+        assert len(rows) == 12 and {r["shading_scale"] for r in rows} == {1.0, 0.5, 0.25}
+        for r in rows:
+            assert {"scene", "method", "shading_scale", "filter", "alpha", "frame_ms", "psnr_db", "ssim", "flip"} <= set(r)
+            assert not any(isinstance(v, (dict, list)) for v in r.values())
+            assert 0 <= r["flip"] <= 1 and np.isfinite(r["psnr_db"]) and r["frame_ms"] > 0
+    rows = {r["method"]: r for r in scenes[0]["rows"]}
+    assert rows["native + reuse 0.2 + off"]["psnr_db"] > rows["1 spp + off"]["psnr_db"]
+    names = {p.name for p in (tmp_path / "figs").iterdir()}
+    assert {"native_speed_vs_psnr.png", "native_paper-static_strip.png"} <= names
+    assert "FLIP" in format_table(result)

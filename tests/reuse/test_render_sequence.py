@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from dpmhw.cli import _register, app
 from dpmhw.render.integrator import PathIntegrator
-from dpmhw.reuse import TemporalReuse
+from dpmhw.reconstruct.reuse import TemporalReuse
 from dpmhw.scene_file import load_scene
 from dpmhw.sequence import run_sequence, scaled_scene
 
@@ -71,7 +71,7 @@ def test_reprojected_pixels_see_the_same_surface_point_last_frame(scene_path):
     positions interpolated at X_{i−1} equal this frame's model positions to a small fraction of a
     pixel's footprint; the same-pixel assumption misses by the motion."""
     scene = scaled_scene(load_scene(scene_path()), 2)
-    from dpmhw.reuse import reproject
+    from dpmhw.reconstruct.reuse import reproject
 
     with PathIntegrator(scene) as integ:
         t0, t1 = 0.0, 0.05

@@ -41,7 +41,8 @@ def test_file_and_overrides_merge(tmp_path):
         ("", ["api.port=70000"], "api.port"),
         ("", ["safety.stale_after_ms=-1"], "safety.stale_after_ms"),
         ('[[bindings]]\nrigid_body = -2\nobject = "bunny"\n', [], "bindings[0].rigid_body"),
-        ("[render]\nwidth = 0\n", [], "render"),
+        ("[render]\nwidth = 640\n", [], "render"),
+        ("", ["render.shading_scale=0.3"], "render.shading_scale"),
     ],
 )
 def test_bad_values_name_the_file_and_the_field(tmp_path, text, overrides, field):

@@ -1,0 +1,175 @@
+"""The loop's image-space stage: shading-resolution frame → native uint8 projector frame.
+
+    render (shading res) → temporal reuse (shading res) → cross-bilateral filter (shading res)
+    → joint bilateral upsampling + re-modulation (native, lit region only) → sRGB (lit region only)
+
+Two paths, chosen per frame from the live settings:
+
+- *exact*: shading size = native size and filter ``off``: reuse of the radiance and
+  `postprocess.encode_srgb8` over the whole frame, bit-identical to the pipeline before
+  reconstruction existed (`TemporalReuse.update` → `to_srgb8`).
+- *reconstruct*: diffuse and specular light are demodulated (divided by the shading G-buffer's
+  albedos), each gets its own temporal history (same ids and motion, so the same resets), the
+  filter runs on them (``off`` / ``normal`` / ``lobe``), then `upsample.upsample` re-modulates
+  them with the native albedos inside the native G-buffer's lit box. The directly seen emission
+  (radiance − diffuse − specular; exact at one sample through the pixel centre) needs no reuse.
+
+Why the history lives at the shading resolution: it costs (w·h) instead of (W·H) per frame
+(16× less at scale ¼; measured in docs/temporal-reuse.md), and the native G-buffer of a moving
+object is re-traced each frame anyway, so a native history would need a native reprojection of
+every lit pixel as well. The price: reuse sees the shading resolution's edges (the upsampler
+fixes them per frame against the native G-buffer).
+
+Pixels outside the lit box show the background, encoded once (`base` frame): the frame copy
+is the only full-frame work.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from dpmhw.postprocess import encode_srgb8
+from dpmhw.reconstruct.filter import cross_bilateral, mode_code
+from dpmhw.reconstruct.guides import Guides
+from dpmhw.reconstruct.reuse import ReuseSettings, TemporalReuse
+from dpmhw.reconstruct.upsample import upsample
+
+__all__ = ["ReconstructStage", "StageOutput"]
+
+
+@dataclass
+class StageOutput:
+    image: np.ndarray  # (H, W, 3) uint8, native
+    stages_s: dict  # seconds per sub-stage: gbuffer, reuse, filter, upsample, post
+    lit_box: tuple[int, int, int, int]
+    unresolved: int  # native pixels no shading sample supports (see upsample)
+
+
+class ReconstructStage:
+    """One per session.
+
+    native_size, shading_size : (W, H) and (w, h)
+    background : the scene's background colour (linear): what pixels without a hit show
+    viewer : the eye position (lobe axes are reflections of the direction to it)
+    gbuffer : a `render.gbuffer.NativeGBuffer` (needed when the sizes differ; at equal sizes the
+        shading frame's own G-buffer is the native one)
+    gbuffer_mode : "edges" (trace only near the shading frame's discontinuities) or "trace"
+        (every pixel of the moving objects' region); see `render.gbuffer`
+    clock : monotonic nanoseconds, for the sub-stage timings
+    """
+
+    def __init__(self, native_size, shading_size, *, background=(0.0, 0.0, 0.0), viewer=(0.0, 0.0, 0.0),
+                 warmup: bool = False, gbuffer=None, gbuffer_mode: str = "edges", clock=time.monotonic_ns):
+        self.W, self.H = (int(v) for v in native_size)
+        self.w, self.h = (int(v) for v in shading_size)
+        if (self.w, self.h) != (self.W, self.H) and gbuffer is None:
+            raise ValueError("ReconstructStage: shading size differs from the native size but no native G-buffer was given")
+        self.gbuffer = gbuffer
+        self.clock = clock  # ns; the loop's injectable clock
+        self.gbuffer_mode = gbuffer_mode
+        self.background = np.asarray(background, np.float32).reshape(3)
+        self.viewer = np.asarray(viewer, np.float32).reshape(3)
+        self.warmup = warmup
+        self.reuse = TemporalReuse(self.w, self.h, alpha=0.2, mode="same-pixel", warmup=warmup)
+        self.reuse_d = TemporalReuse(self.w, self.h, alpha=0.2, mode="same-pixel", warmup=warmup)
+        self.reuse_s = TemporalReuse(self.w, self.h, alpha=0.2, mode="same-pixel", warmup=warmup)
+        self.low = Guides.empty(self.w, self.h)
+        self.native = Guides.empty(self.W, self.H) if gbuffer is not None else self.low
+        n = self.W * self.H
+        self._radiance = np.zeros((n, 3), np.float32)
+        self._wsum = np.zeros(n, np.float32)
+        self._unresolved = np.zeros(n, np.bool_)
+        self._base: tuple[float, np.ndarray] | None = None
+        self._native_roi = "none yet"  # the moving objects' box this stage's native guides last followed
+        self._exact: bool | None = None  # which path the last frame took
+
+    def _now(self) -> float:
+        return self.clock() / 1e9
+
+    def reset(self) -> None:
+        for r in (self.reuse, self.reuse_d, self.reuse_s):
+            r.reset()
+
+    def _settings(self, mode: str, alpha: float, split_screen: bool) -> None:
+        wanted = ReuseSettings(alpha, mode, self.warmup, split_screen)
+        for r in (self.reuse, self.reuse_d, self.reuse_s):
+            if wanted != r.settings:
+                if wanted.mode != r.settings.mode:
+                    r.reset()
+                r.settings = wanted
+
+    def base_frame(self, exposure: float) -> np.ndarray:
+        """(W*H, 3) uint8 background everywhere, encoded once per exposure."""
+        if self._base is None or self._base[0] != exposure:
+            bg = np.broadcast_to(self.background, (self.W * self.H, 3)).copy()
+            self._base = (exposure, encode_srgb8(bg, self.W, exposure))
+        return self._base[1]
+
+    def apply(self, frame, *, mode: str, alpha: float, filter: str = "lobe", split_screen: bool = False,
+              exposure: float = 1.0, poses=None, camera=None) -> StageOutput:
+        """Reconstruct one native frame from a shading-resolution renderer `Frame`."""
+        code = mode_code(filter)
+        if frame.shape != (self.h, self.w):
+            raise ValueError(f"frame: expected the shading size {self.w}×{self.h}, got {frame.shape[1]}×{frame.shape[0]}")
+        self._settings(mode, alpha, split_screen)
+        exact = code == 0 and (self.w, self.h) == (self.W, self.H)
+        if self._exact is not None and exact != self._exact:
+            self.reset()  # the other path's history stopped being updated: it shows another moment
+        self._exact = exact
+        t0 = self._now()
+        st: dict[str, float] = {}
+        if exact:
+            radiance = self.reuse.update_frame(frame, poses=poses, camera=camera)
+            t1 = self._now()
+            image = encode_srgb8(np.ascontiguousarray(radiance.reshape(-1, 3)), self.W, exposure)
+            st.update(gbuffer=0.0, reuse=t1 - t0, filter=0.0, upsample=0.0, post=self._now() - t1)
+            return StageOutput(image.reshape(self.H, self.W, 3), st, (0, self.H, 0, self.W), 0)
+
+        # native G-buffer (moving objects' region re-traced) and its guides
+        if self.gbuffer is not None:
+            g = self.gbuffer
+            box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
+            # this stage's native guides: everything once, then its last and the current region
+            dirty = [(0, self.H, 0, self.W)] if self._native_roi == "none yet" else [self._native_roi, g.roi_box]
+            self._native_roi = g.roi_box
+            for b in dirty:
+                if b is not None and b[1] > b[0] and b[3] > b[2]:
+                    self.native.update(g.id, g.position, g.normal, g.depth, g.albedo, g.spec_albedo, g.roughness,
+                                       self.viewer, b)
+        else:
+            box = (0, self.H, 0, self.W)
+        t1 = self._now()
+        st["gbuffer"] = t1 - t0
+
+        # shading-resolution guides, demodulation, reuse
+        low = self.low
+        low.update(frame.object_id, frame.position, frame.normal, frame.depth, frame.albedo, frame.specular_albedo,
+                   frame.roughness, self.viewer, (0, self.h, 0, self.w))
+        diffuse = np.asarray(frame.diffuse, np.float32).reshape(-1, 3)
+        specular = np.asarray(frame.specular, np.float32).reshape(-1, 3)
+        emitted = np.asarray(frame.radiance, np.float32).reshape(-1, 3) - diffuse - specular
+        d_in = (diffuse / low.albedo).reshape(self.h, self.w, 3)
+        s_in = (specular / low.spec_albedo).reshape(self.h, self.w, 3)
+        d = self.reuse_d.update(d_in, frame.object_id, frame.model_position, poses, camera)
+        s = self.reuse_s.update(s_in, frame.object_id, frame.model_position, poses, camera)
+        t2 = self._now()
+        st["reuse"] = t2 - t1
+
+        d, s, _ = cross_bilateral(d, s, low, filter)
+        t3 = self._now()
+        st["filter"] = t3 - t2
+
+        upsample(low, d, s, emitted, self.native, filter, box, self.background, self._radiance, self._wsum, self._unresolved)
+        t4 = self._now()
+        st["upsample"] = t4 - t3
+
+        image = self.base_frame(exposure).copy()
+        if box[1] > box[0] and box[3] > box[2]:
+            encode_srgb8(self._radiance, self.W, exposure, box, image)
+        st["post"] = self._now() - t4
+        y0, y1, x0, x1 = box
+        unresolved = int(self._unresolved.reshape(self.H, self.W)[y0:y1, x0:x1].sum())
+        return StageOutput(image.reshape(self.H, self.W, 3), st, box, unresolved)

@@ -1,0 +1,436 @@
+"""The projector-native G-buffer, kept up to date at a cost proportional to what moves.
+
+The projector does not move during a session, so camera rays never change: primary hits on
+static objects are traced once (`EmbreeAccel.intersect_static`) and their attributes kept.
+Each frame only the region of interest of the moving objects is re-traced: the bounding box of
+each object's bounding sphere projected with the current pose, plus `ROI_MARGIN_PX`. Pixels
+that left the region get their static attributes back. Pixels that show nothing cost nothing
+after the first frame.
+
+Inside the region, `update(poses, shading=frame)` (mode "edges", the loop's default) traces only
+the pixels near a discontinuity of the shading-resolution frame just rendered for the same
+poses: a native pixel whose 2×2 shading taps all show the same moving object at depths within
+`EDGE_DEPTH_REL` of each other takes its attributes bilinearly from those taps; one whose taps
+all show the same static object (or all nothing) and whose cached static hit agrees keeps the
+cached attributes; every other pixel (silhouettes, depth steps, other objects) is traced. Mode
+"trace" traces every pixel of the region (exact; the reference the "edges" mode is measured
+against in docs/temporal-reuse.md).
+
+Chosen over rasterising the moving objects (the issue's alternative): ray casting reuses the
+renderer's BVHs, triangle tables and hit conventions (bit-identical attributes to the
+renderer's G-buffer at the same pixel), needs no second geometry path and no GPU, and its
+cost already follows the moving object's screen area.
+
+Attributes follow `render.frame.Frame`: object id (−1 background), world position, shading
+normal facing the viewer, camera depth, albedo, specular albedo, roughness (√α of the GGX α).
+Only the renderer's public pieces are used: `SceneGeometry` tables, `EmbreeAccel`'s
+`intersect_static` / `intersect_range`, `PinholeCamera`.
+"""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import ThreadPoolExecutor
+
+import numba as nb
+import numpy as np
+
+from dpmhw.render.accel import empty_hits
+from dpmhw.render.cameras import PinholeCamera
+from dpmhw.render.geometry import SceneGeometry
+from dpmhw.scene_file import Scene
+from dpmhw.transforms import Pose
+
+ROI_MARGIN_PX = 4  # plus 1 % of the box size: pose prediction error, distortion
+EDGE_DEPTH_REL = 0.02  # 2×2 shading taps further apart in depth than this: trace the native pixel
+MODES = ("edges", "trace")
+
+
+def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, viewer, use_viewer, cam_fwd,
+                g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough):
+    """G-buffer attributes of the hits of rays `index` (pixel numbers); same formulas as the
+    renderer's first vertex (`kernels.shade` at depth 0)."""
+    for k in nb.prange(index.shape[0]):
+        p = index[k]
+        ob = obj[k]
+        if ob < 0:
+            g_id[p] = -1
+            g_depth[p] = np.inf
+            for c in range(3):
+                g_pos[p, c] = 0.0
+                g_normal[p, c] = 0.0
+                g_alb[p, c] = 0.0
+                g_spec[p, c] = 0.0
+            g_rough[p] = 0.0
+            continue
+        i = prim[k]
+        uu, vv = u[k], v[k]
+        w0 = 1.0 - uu - vv
+        d0, d1, d2 = d[k, 0], d[k, 1], d[k, 2]
+        pm0 = tri[i, 0] + uu * tri[i, 3] + vv * tri[i, 6]
+        pm1 = tri[i, 1] + uu * tri[i, 4] + vv * tri[i, 7]
+        pm2 = tri[i, 2] + uu * tri[i, 5] + vv * tri[i, 8]
+        p0 = R[ob, 0, 0] * pm0 + R[ob, 0, 1] * pm1 + R[ob, 0, 2] * pm2 + T[ob, 0]
+        p1 = R[ob, 1, 0] * pm0 + R[ob, 1, 1] * pm1 + R[ob, 1, 2] * pm2 + T[ob, 1]
+        p2 = R[ob, 2, 0] * pm0 + R[ob, 2, 1] * pm1 + R[ob, 2, 2] * pm2 + T[ob, 2]
+        g0 = R[ob, 0, 0] * tri[i, 9] + R[ob, 0, 1] * tri[i, 10] + R[ob, 0, 2] * tri[i, 11]
+        g1 = R[ob, 1, 0] * tri[i, 9] + R[ob, 1, 1] * tri[i, 10] + R[ob, 1, 2] * tri[i, 11]
+        g2 = R[ob, 2, 0] * tri[i, 9] + R[ob, 2, 1] * tri[i, 10] + R[ob, 2, 2] * tri[i, 11]
+        sm0 = w0 * tri[i, 12] + uu * tri[i, 15] + vv * tri[i, 18]
+        sm1 = w0 * tri[i, 13] + uu * tri[i, 16] + vv * tri[i, 19]
+        sm2 = w0 * tri[i, 14] + uu * tri[i, 17] + vv * tri[i, 20]
+        s0 = R[ob, 0, 0] * sm0 + R[ob, 0, 1] * sm1 + R[ob, 0, 2] * sm2
+        s1 = R[ob, 1, 0] * sm0 + R[ob, 1, 1] * sm1 + R[ob, 1, 2] * sm2
+        s2 = R[ob, 2, 0] * sm0 + R[ob, 2, 1] * sm1 + R[ob, 2, 2] * sm2
+        sl = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+        if sl > 1e-12:
+            s0, s1, s2 = s0 / sl, s1 / sl, s2 / sl
+        else:
+            s0, s1, s2 = g0, g1, g2
+        wo0, wo1, wo2 = -d0, -d1, -d2
+        if use_viewer:
+            e0, e1, e2 = viewer[0] - p0, viewer[1] - p1, viewer[2] - p2
+            el = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+            if el > 1e-12:
+                wo0, wo1, wo2 = e0 / el, e1 / el, e2 / el
+        if g0 * wo0 + g1 * wo1 + g2 * wo2 <= 0.0:
+            g0, g1, g2, s0, s1, s2 = -g0, -g1, -g2, -s0, -s1, -s2
+        if s0 * wo0 + s1 * wo1 + s2 * wo2 <= 1e-6:
+            s0, s1, s2 = g0, g1, g2
+        g_id[p] = ob
+        g_pos[p, 0], g_pos[p, 1], g_pos[p, 2] = p0, p1, p2
+        g_normal[p, 0], g_normal[p, 1], g_normal[p, 2] = s0, s1, s2
+        g_depth[p] = t[k] * (d0 * cam_fwd[0] + d1 * cam_fwd[1] + d2 * cam_fwd[2])
+        for c in range(3):
+            g_alb[p, c] = alb[ob, c]
+            g_spec[p, c] = spec[ob, c]
+        g_rough[p] = math.sqrt(alpha[ob])
+
+
+def _serial_and_parallel(py_func):
+    """(serial, parallel) compilations; the serial one is a renamed copy (own cache entry)."""
+    import types
+
+    serial = types.FunctionType(py_func.__code__, py_func.__globals__, py_func.__name__ + "_serial")
+    serial.__qualname__ = py_func.__qualname__ + "_serial"
+    return nb.njit(cache=True, nogil=True)(serial), nb.njit(parallel=True, cache=True, nogil=True)(py_func)
+
+
+_attribute_kernels = _serial_and_parallel(_attributes_py)
+PARALLEL_MIN_PIXELS = 32768  # below this, waking the worker threads costs more than the work
+
+
+@nb.njit(parallel=True, cache=True)
+def _gather(index, d_all, t_all, obj_all, prim_all, u_all, v_all, d, t, obj, prim, u, v):
+    for k in nb.prange(index.shape[0]):
+        p = index[k]
+        d[k, 0], d[k, 1], d[k, 2] = d_all[p, 0], d_all[p, 1], d_all[p, 2]
+        t[k], obj[k], prim[k], u[k], v[k] = t_all[p], obj_all[p], prim_all[p], u_all[p], v_all[p]
+
+
+@nb.njit(parallel=True, cache=True, nogil=True)
+def _classify(W, H, y0, y1, x0, x1, w, h, lid, lpos, lnrm, ldep, lalb, lspec, lrough, dynamic,
+              s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough,
+              g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough, static_px, trace):
+    """Per native pixel of the box: interpolate (1), keep static (2) or trace (0, flag in `trace`)."""
+    sx = w / W
+    sy = h / H
+    for y in nb.prange(y0, y1):
+        v = (y + 0.5) * sy - 0.5
+        ty = min(max(int(np.floor(v)), 0), h - 2) if h > 1 else 0
+        fy = min(max(v - ty, 0.0), 1.0)
+        for x in range(x0, x1):
+            p = y * W + x
+            u = (x + 0.5) * sx - 0.5
+            tx = min(max(int(np.floor(u)), 0), w - 2) if w > 1 else 0
+            fx = min(max(u - tx, 0.0), 1.0)
+            j00 = ty * w + tx
+            j01 = j00 + (1 if w > 1 else 0)
+            j10 = j00 + (w if h > 1 else 0)
+            j11 = j10 + (1 if w > 1 else 0)
+            o = lid[j00]
+            same = lid[j01] == o and lid[j10] == o and lid[j11] == o
+            trace[p] = False
+            if same and (o < 0 or not dynamic[o]):
+                if s_id[p] == o:  # static or empty, and the cache agrees: keep it
+                    if static_px[p]:
+                        continue
+                    static_px[p] = True
+                    g_id[p] = s_id[p]
+                    g_depth[p] = s_dep[p]
+                    g_rough[p] = s_rough[p]
+                    for c in range(3):
+                        g_pos[p, c] = s_pos[p, c]
+                        g_normal[p, c] = s_nrm[p, c]
+                        g_alb[p, c] = s_alb[p, c]
+                        g_spec[p, c] = s_spec[p, c]
+                    continue
+            elif same:
+                z0, z1, z2, z3 = ldep[j00], ldep[j01], ldep[j10], ldep[j11]
+                zmin = min(min(z0, z1), min(z2, z3))
+                zmax = max(max(z0, z1), max(z2, z3))
+                if zmax - zmin <= EDGE_DEPTH_REL * zmin:
+                    w00 = (1 - fx) * (1 - fy)
+                    w01 = fx * (1 - fy)
+                    w10 = (1 - fx) * fy
+                    w11 = fx * fy
+                    static_px[p] = False
+                    g_id[p] = o
+                    g_depth[p] = w00 * z0 + w01 * z1 + w10 * z2 + w11 * z3
+                    g_rough[p] = lrough[j00]
+                    n0 = n1 = n2 = 0.0
+                    for c in range(3):
+                        g_pos[p, c] = w00 * lpos[j00, c] + w01 * lpos[j01, c] + w10 * lpos[j10, c] + w11 * lpos[j11, c]
+                        nc = w00 * lnrm[j00, c] + w01 * lnrm[j01, c] + w10 * lnrm[j10, c] + w11 * lnrm[j11, c]
+                        g_normal[p, c] = nc
+                        g_alb[p, c] = lalb[j00, c]
+                        g_spec[p, c] = lspec[j00, c]
+                    nl = np.sqrt(g_normal[p, 0] ** 2 + g_normal[p, 1] ** 2 + g_normal[p, 2] ** 2)
+                    if nl > 1e-12:
+                        for c in range(3):
+                            g_normal[p, c] /= nl
+                        continue
+            trace[p] = True
+
+
+@nb.njit(cache=True)
+def _box_pixels(W, y0, y1, x0, x1):
+    out = np.empty((y1 - y0) * (x1 - x0), np.int64)
+    k = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            out[k] = y * W + x
+            k += 1
+    return out
+
+
+class NativeGBuffer:
+    """The G-buffer at the projector's native size (W, H) for one fixed projector pose.
+
+    `update(poses)` brings it to the given object poses and returns the box (y0, y1, x0, x1) of
+    the pixels that may show something (`lit_box`); `changed_box` is the box whose attributes
+    changed in that call, `roi_box` the moving objects' box (None: none). A consumer that derives
+    data from the attributes recomputes the union of its previous and the current `roi_box`
+    (and everything the first time): with several consumers, `changed_box` belongs to the last.
+    Arrays are flat, (W*H, ...), row-major.
+    """
+
+    def __init__(self, scene: Scene, geometry: SceneGeometry, width: int, height: int, threads: int = 2):
+        self.scene = scene
+        self.geometry = geometry
+        self.width, self.height = int(width), int(height)
+        r = scene.render
+        sx, sy = self.width / r.width, self.height / r.height
+        K = np.array(scene.camera.K, dtype=float)
+        K[0, 0] *= sx
+        K[1, 1] *= sy
+        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        self.camera = PinholeCamera(K, scene.camera.dist, self.width, self.height, scene.camera.pose)
+        self.viewer = np.asarray(scene.viewer_position, np.float32)
+        self.use_viewer = not np.allclose(scene.viewer_position, scene.camera.pose.t)
+        self.cam_fwd = self.camera.pose.R[:, 2].astype(np.float32)
+        self._pool = ThreadPoolExecutor(max(1, threads), thread_name_prefix="gbuffer") if threads > 1 else None
+        self.threads = max(1, int(threads))
+        n = self.width * self.height
+        self.id = np.full(n, -1, np.int32)
+        self.position = np.zeros((n, 3), np.float32)
+        self.normal = np.zeros((n, 3), np.float32)
+        self.depth = np.full(n, np.inf, np.float32)
+        self.albedo = np.zeros((n, 3), np.float32)
+        self.spec_albedo = np.zeros((n, 3), np.float32)
+        self.roughness = np.zeros(n, np.float32)
+        self.dynamic = [i for i, o in enumerate(scene.objects) if o.is_dynamic]
+        self._spheres = []
+        for i in self.dynamic:
+            v = scene.objects[i].mesh.vertices
+            centre = (v.min(axis=0) + v.max(axis=0)) / 2
+            self._spheres.append((centre, float(np.linalg.norm(v - centre, axis=1).max()) * 1.001 + 1e-9))
+        self._o, self._d = self.camera.generate_rays()
+        self._is_dynamic = np.array([o.is_dynamic for o in scene.objects], np.bool_)
+        self._trace_flags = np.zeros(self.width * self.height, np.bool_)
+        self.rays_traced = 0  # camera rays traced in the last update (for the benchmark)
+        self._trace_static()
+        self._prev_box: tuple[int, int, int, int] | None = None
+        self.changed_box = (0, self.height, 0, self.width)
+        self.lit_box = self._static_lit
+        self.roi_box: tuple[int, int, int, int] | None = None  # the moving objects' box of the last update
+        self._first = True
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    # ---- static part, once -----------------------------------------------------------------
+    def _trace_static(self) -> None:
+        hits = self.geometry.accel.intersect_static(self._o, self._d)
+        self._static_hits = hits
+        index = np.arange(self.width * self.height, dtype=np.int64)
+        R, T = self.geometry.poses(self.scene.object_poses(0.0))
+        self._attributes(index, self._d, hits, R, T)
+        self._static = {k: getattr(self, k).copy() for k in ("id", "position", "normal", "depth", "albedo", "spec_albedo", "roughness")}
+        self.static_px = np.ones(len(index), np.bool_)  # the pixel holds its cached static attributes
+        self._static["static_px"] = self.static_px.copy()
+        self._static_lit = _bbox(self.id.reshape(self.height, self.width) >= 0)
+        self.rays_traced = len(index)
+
+    def _attributes(self, index, d, hits, R, T) -> None:
+        g = self.geometry
+        _attribute_kernels[len(index) >= PARALLEL_MIN_PIXELS](index, d, hits.t, hits.obj, hits.prim, hits.u, hits.v, g.tri, R, T, g.obj_albedo, g.obj_specular,
+                    g.obj_alpha, self.viewer, self.use_viewer, self.cam_fwd, self.id, self.position, self.normal,
+                    self.depth, self.albedo, self.spec_albedo, self.roughness)
+
+    # ---- per frame -------------------------------------------------------------------------
+    def _interpolate(self, box, f) -> np.ndarray:
+        """Fill the box from the shading frame where it is smooth; returns the pixels to trace."""
+        h, w = f.object_id.shape
+        st = self._static
+        trace = self._trace_flags
+        _classify(self.width, self.height, *box, w, h, _flat(f.object_id, np.int32, 1), _flat(f.position), _flat(f.normal),
+                  _flat(f.depth, np.float32, 1), _flat(f.albedo), _flat(f.specular_albedo), _flat(f.roughness, np.float32, 1),
+                  self._is_dynamic, st["id"], st["position"], st["normal"], st["depth"], st["albedo"], st["spec_albedo"],
+                  st["roughness"], self.id, self.position, self.normal, self.depth, self.albedo, self.spec_albedo,
+                  self.roughness, self.static_px, trace)
+        return _flagged(trace, self.width, *box)
+
+    def roi(self, poses: list[Pose]) -> tuple[int, int, int, int] | None:
+        """Box (y0, y1, x0, x1) holding every moving object's projected bounding sphere (None: none visible)."""
+        boxes = []
+        cam = self.camera
+        f = max(cam.K[0, 0], cam.K[1, 1])
+        for k, (centre, radius) in zip(self.dynamic, self._spheres):
+            c = poses[k].apply(np.asarray(centre, np.float64)[None])[0]
+            z = float((c - cam.pose.t) @ cam.pose.R[:, 2])
+            if z - radius <= 1e-3 * radius:  # the sphere reaches the projector's plane: everything
+                return (0, self.height, 0, self.width)
+            px, _ = cam.project(c[None])
+            r_px = f * radius / math.sqrt(max(z * z - radius * radius, 1e-12)) * 1.05
+            boxes.append((px[0, 1] - r_px, px[0, 1] + r_px, px[0, 0] - r_px, px[0, 0] + r_px))
+        if not boxes:
+            return None
+        y0, y1 = min(b[0] for b in boxes), max(b[1] for b in boxes)
+        x0, x1 = min(b[2] for b in boxes), max(b[3] for b in boxes)
+        my = ROI_MARGIN_PX + 0.01 * (y1 - y0)
+        mx = ROI_MARGIN_PX + 0.01 * (x1 - x0)
+        box = (int(max(math.floor(y0 - my), 0)), int(min(math.ceil(y1 + my) + 1, self.height)),
+               int(max(math.floor(x0 - mx), 0)), int(min(math.ceil(x1 + mx) + 1, self.width)))
+        if box[0] >= box[1] or box[2] >= box[3]:
+            return None
+        return box
+
+    def update(self, poses: list[Pose], shading=None, mode: str = "edges") -> tuple[int, int, int, int]:
+        """Bring the region of the moving objects to `poses`; returns `lit_box`. `shading`: the
+        renderer `Frame` of the same poses at the shading resolution (mode "edges" traces only
+        near its discontinuities; without it every pixel of the region is traced)."""
+        if mode not in MODES:
+            raise ValueError(f"gbuffer mode: expected one of {', '.join(MODES)}, got {mode!r}")
+        self.rays_traced = 0
+        box = self.roi(poses) if self.dynamic else None
+        prev = self._prev_box
+        if prev is not None:  # pixels of the last region outside this one: back to static
+            for part in _minus(prev, box):
+                for k, a in self._static.items():
+                    _restore_kernel(getattr(self, k), a, self.width, *part)
+        if box is not None:
+            self._trace_box(box, poses, shading if mode == "edges" else None)
+        self._prev_box = box
+        self.roi_box = box
+        changed = [b for b in (prev, box) if b is not None]
+        self.changed_box = (0, self.height, 0, self.width) if self._first else _union(changed)
+        self._first = False
+        self.lit_box = _union([b for b in (self._static_lit, box) if b is not None])
+        return self.lit_box
+
+    def _trace_box(self, box, poses, shading=None) -> None:
+        if shading is None:
+            index = _box_pixels(self.width, *box)
+        else:
+            index = self._interpolate(box, shading)
+        n = len(index)
+        if n == 0:
+            return
+        o = np.ascontiguousarray(np.broadcast_to(self._o[0], (n, 3)))  # one projector position
+        d = np.empty((n, 3), np.float32)
+        hits = empty_hits(n)
+        s = self._static_hits
+        _gather(index, self._d, s.t, s.obj, s.prim, s.u, s.v, d, hits.t, hits.obj, hits.prim, hits.u, hits.v)
+        R, T = self.geometry.poses(poses)
+        accel = self.geometry.accel
+        chunks = np.linspace(0, n, 2 * self.threads + 1).astype(np.int64)
+
+        def run(j):
+            a, e = int(chunks[j]), int(chunks[j + 1])
+            if e > a:
+                accel.intersect_range(o, d, a, e, R, T, hits, static_done=True)
+
+        if self._pool is None:
+            for j in range(len(chunks) - 1):
+                run(j)
+        else:
+            list(self._pool.map(run, range(len(chunks) - 1)))
+        self.static_px[index] = False
+        self._attributes(index, d, hits, R, T)
+        self.rays_traced = n
+
+
+@nb.njit(cache=True, nogil=True)
+def _restore_kernel(dst, src, W, y0, y1, x0, x1):
+    for y in range(y0, y1):
+        a = y * W + x0
+        e = y * W + x1
+        dst[a:e] = src[a:e]
+
+
+def _flat(a, dtype=np.float32, cols=3) -> np.ndarray:
+    a = np.ascontiguousarray(a, dtype)
+    return a.reshape(-1) if cols == 1 else a.reshape(-1, cols)
+
+
+@nb.njit(cache=True)
+def _flagged(flags, W, y0, y1, x0, x1):
+    n = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            if flags[y * W + x]:
+                n += 1
+    out = np.empty(n, np.int64)
+    k = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            if flags[y * W + x]:
+                out[k] = y * W + x
+                k += 1
+    return out
+
+
+def _minus(a, b) -> list[tuple[int, int, int, int]]:
+    """Box a without box b, as up to four boxes."""
+    if b is None or b[0] >= a[1] or b[1] <= a[0] or b[2] >= a[3] or b[3] <= a[2]:
+        return [a]
+    out = []
+    if a[0] < b[0]:
+        out.append((a[0], b[0], a[2], a[3]))
+    if b[1] < a[1]:
+        out.append((b[1], a[1], a[2], a[3]))
+    y0, y1 = max(a[0], b[0]), min(a[1], b[1])
+    if a[2] < b[2]:
+        out.append((y0, y1, a[2], b[2]))
+    if b[3] < a[3]:
+        out.append((y0, y1, b[3], a[3]))
+    return out
+
+
+def _bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask.any(axis=0))
+    return (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+
+
+def _union(boxes) -> tuple[int, int, int, int]:
+    boxes = [b for b in boxes if b is not None]
+    if not boxes:
+        return (0, 0, 0, 0)
+    return (min(b[0] for b in boxes), max(b[1] for b in boxes), min(b[2] for b in boxes), max(b[3] for b in boxes))

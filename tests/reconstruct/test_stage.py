@@ -1,0 +1,150 @@
+"""The reconstruction stage: exact path equals the old pipeline; native output end to end."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dpmhw.postprocess import NonFiniteFrameError, encode_srgb8, srgb8_table, to_srgb8
+from dpmhw.reconstruct.reuse import TemporalReuse
+from dpmhw.reconstruct.stage import ReconstructStage
+from dpmhw.render.gbuffer import NativeGBuffer
+from dpmhw.render.integrator import PathIntegrator
+from dpmhw.scene_file import load_scene
+from dpmhw.session.factory import scale_to, shading_scene
+
+
+@pytest.mark.parametrize("exposure", [1.0, 0.6, 3.0])
+def test_table_srgb_equals_to_srgb8_bit_for_bit(exposure):
+    rng = np.random.default_rng(3)
+    x = np.concatenate([rng.random(300_000, dtype=np.float32), rng.random(300_000, dtype=np.float32) ** 8,
+                        rng.uniform(-1, 4, 300_000).astype(np.float32)])
+    base, thr = srgb8_table(exposure)
+    steps = thr[thr != 0xFFFFFFFF].astype(np.int64)  # every code step and its neighbours
+    near = np.concatenate([steps + d for d in range(-2, 3)]).astype(np.uint32).view(np.float32)
+    x = np.concatenate([x, near, np.float32([0.0, -0.0, 1.0, 1e-45, 1e30])])
+    x = np.ascontiguousarray(np.repeat(x[:, None], 3, axis=1))
+    assert np.array_equal(encode_srgb8(x, 1, exposure), to_srgb8(x[:, None, :], exposure)[:, 0, :])
+    x[5, 1] = np.nan
+    with pytest.raises(NonFiniteFrameError):
+        encode_srgb8(x, 1, exposure)
+
+
+def _frames(scene, n):
+    r = PathIntegrator(scene, threads=1)
+    try:
+        return [(r.render(time=i / 30, seed=i, poses=scene.object_poses(i / 30)), scene.object_poses(i / 30), r.camera)
+                for i in range(n)]
+    finally:
+        r.close()
+
+
+@pytest.mark.parametrize("mode", ["same-pixel", "motion"])
+def test_scale_one_with_the_filter_off_equals_the_old_pipeline_bit_for_bit(mode):
+    scene = scale_to(load_scene("dpm-bunny"), 64, 48)
+    stage = ReconstructStage((64, 48), (64, 48), background=scene.render.background, viewer=scene.viewer_position)
+    old = TemporalReuse(64, 48, alpha=0.2, mode=mode)
+    for frame, poses, camera in _frames(scene, 4):
+        expected = to_srgb8(old.update_frame(frame, poses=poses, camera=camera))
+        got = stage.apply(frame, mode=mode, alpha=0.2, filter="off", poses=poses, camera=camera).image
+        assert got.shape == (48, 64, 3) and np.array_equal(got, expected)
+
+
+@pytest.mark.parametrize("filt", ["off", "normal", "lobe"])
+def test_quarter_shading_gives_native_frames_that_follow_the_object(filt):
+    native = scale_to(load_scene("dpm-bunny"), 128, 96)
+    low = shading_scene(native, 0.25)
+    r = PathIntegrator(low, threads=1)
+    g = NativeGBuffer(native, r.geometry, 128, 96, threads=1)
+    try:
+        stage = ReconstructStage((128, 96), (32, 24), background=native.render.background,
+                                 viewer=native.viewer_position, gbuffer=g)
+        for i in range(3):
+            poses = native.object_poses(i / 10)
+            frame = r.render(time=i / 10, seed=i, poses=poses)
+            out = stage.apply(frame, mode="motion", alpha=0.2, filter=filt, poses=poses, camera=r.camera)
+        lit = out.image.sum(axis=2) > 0
+        obj = g.id.reshape(96, 128) >= 0
+        assert out.image.shape == (96, 128, 3)
+        assert not (lit & ~obj).any()  # light only where the native G-buffer sees the object
+        assert lit[obj].mean() > 0.8
+        y0, y1, x0, x1 = out.lit_box
+        assert obj[:y0].sum() == obj[y1:].sum() == obj[:, :x0].sum() == obj[:, x1:].sum() == 0
+    finally:
+        g.close()
+        r.close()
+
+
+def test_native_gbuffer_matches_the_renderers_and_retraces_only_the_roi():
+    native = scale_to(load_scene("dpm-bunny"), 160, 120)
+    r = PathIntegrator(native, threads=1)
+    g = NativeGBuffer(native, r.geometry, 160, 120, threads=1)
+    try:
+        for t in (0.0, 0.7, 1.4):
+            poses = native.object_poses(t)
+            g.update(poses)
+            f = r.render(time=t, poses=poses)
+            assert np.array_equal(f.object_id.reshape(-1), g.id)
+            hit = g.id >= 0
+            assert np.allclose(f.normal.reshape(-1, 3)[hit], g.normal[hit], atol=1e-6)
+            assert np.array_equal(f.depth.reshape(-1)[hit], g.depth[hit])
+            assert 0 < g.rays_traced < 160 * 120
+    finally:
+        g.close()
+        r.close()
+
+
+def test_edges_mode_traces_only_near_discontinuities_and_agrees_with_full_tracing():
+    native = scale_to(load_scene("dpm-bunny"), 256, 192)
+    r = PathIntegrator(shading_scene(native, 0.25), threads=1)
+    edges = NativeGBuffer(native, r.geometry, 256, 192, threads=1)
+    full = NativeGBuffer(native, r.geometry, 256, 192, threads=1)
+    try:
+        for t in (0.0, 0.4, 0.8):
+            poses = native.object_poses(t)
+            frame = r.render(time=t, poses=poses)
+            edges.update(poses, shading=frame)
+            full.update(poses, mode="trace")
+            lit = int((full.id >= 0).sum())
+            assert edges.rays_traced < 0.5 * full.rays_traced
+            assert (edges.id != full.id).sum() <= 0.01 * lit
+            both = (full.id >= 0) & (edges.id == full.id)
+            cos = (edges.normal[both] * full.normal[both]).sum(axis=1)
+            assert np.median(cos) > np.cos(np.radians(10))  # interpolated inside: a few degrees
+            rel = np.abs(edges.depth[both] / full.depth[both] - 1)
+            assert np.median(rel) < 0.002 and np.percentile(rel, 99) < 0.03
+    finally:
+        edges.close()
+        full.close()
+        r.close()
+
+
+def test_stages_sharing_one_native_gbuffer_each_see_the_static_scene():
+    """The session warms up with throw-away stages on the loop's G-buffer; the loop's own stage
+    must still see every static pixel (a static scene has no moving region to refresh)."""
+    native = scale_to(load_scene("paper-static"), 64, 48)
+    r = PathIntegrator(shading_scene(native, 0.5), threads=1)
+    g = NativeGBuffer(native, r.geometry, 64, 48, threads=1)
+    try:
+        frame = r.render(time=0.0, seed=0)
+        images = []
+        for _ in range(2):
+            stage = ReconstructStage((64, 48), (32, 24), background=native.render.background,
+                                     viewer=native.viewer_position, gbuffer=g)
+            images.append(stage.apply(frame, mode="same-pixel", alpha=0.2, filter="lobe", poses=native.object_poses(0.0),
+                                      camera=r.camera).image)
+        assert np.array_equal(images[0], images[1]) and (images[1].sum(axis=2) > 0).mean() > 0.9
+    finally:
+        g.close()
+        r.close()
+
+
+def test_switching_the_filter_live_restarts_the_history_of_the_other_path():
+    scene = scale_to(load_scene("dpm-bunny"), 64, 48)
+    stage = ReconstructStage((64, 48), (64, 48), background=scene.render.background, viewer=scene.viewer_position)
+    frames = _frames(scene, 3)
+    for (frame, poses, camera), filt in zip(frames, ("off", "lobe", "off")):
+        out = stage.apply(frame, mode="same-pixel", alpha=0.2, filter=filt, poses=poses, camera=camera)
+    fresh = TemporalReuse(64, 48, alpha=0.2, mode="same-pixel")
+    frame, poses, camera = frames[2]
+    assert np.array_equal(out.image, to_srgb8(fresh.update_frame(frame, poses=poses, camera=camera)))
