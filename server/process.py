@@ -135,17 +135,22 @@ class ApiProcess:
                   self.stale_after_s))
         process.start()
         child_conn.close()
-        old, self._conn, self.process = self._conn, conn, process
+        self.process = process
+        try:
+            self._wait_ready(conn)  # before the command thread may read this pipe
+        except BaseException:
+            conn.close()
+            raise
+        old, self._conn = self._conn, conn
         if old is not None:
             old.close()
-        self._wait_ready()
         self._state = "serving"
 
-    def _wait_ready(self) -> None:
+    def _wait_ready(self, conn) -> None:
         deadline = time.monotonic() + self.start_timeout_s
         while time.monotonic() < deadline and not self._stop.is_set():
             try:
-                if self._conn.poll(0.1) and self._conn.recv() == ("ready",):
+                if conn.poll(0.1) and conn.recv() == ("ready",):
                     return
             except EOFError:
                 self.process.join(5)

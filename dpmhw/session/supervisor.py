@@ -105,6 +105,12 @@ class RestartPolicy:
 
 
 # ---- what answers the API port while no loop process does ----------------------------------------
+class _Server(HTTPServer):
+    def handle_error(self, request, client_address) -> None:
+        if not isinstance(sys.exc_info()[1], ConnectionError):  # a client that left is no error
+            super().handle_error(request, client_address)
+
+
 class FaultResponder:
     """Minimal HTTP on the supervisor's listening socket: `/status` says `fault` and why,
     `/readyz` 503, `/livez` 200, anything else 503. Serves only between `start()` and `stop()`."""
@@ -153,8 +159,9 @@ class FaultResponder:
             def log_message(self, *args) -> None:  # quiet: the supervisor reports the fault itself
                 pass
 
-        server = HTTPServer(self.sock.getsockname()[:2], Handler, bind_and_activate=False)
-        server.socket = self.sock  # the supervisor's bound socket; never closed here
+        server = _Server(self.sock.getsockname()[:2], Handler, bind_and_activate=False)
+        server.socket.close()  # the unbound one it made: we serve the supervisor's bound socket
+        server.socket = self.sock  # (never closed here)
         server.timeout = 2.0
         self._server = server
         self._thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05},
@@ -192,6 +199,20 @@ class _SupervisedRuntime:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._loop, name)
+
+
+class _Relay(logging.Handler):
+    """The loop process's warnings ("projection dark: …", "projection resumed") to the supervisor."""
+
+    def __init__(self, echo: Callable[[str], None]):
+        super().__init__(logging.WARNING)
+        self.echo = echo
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.echo(self.format(record))
+        except Exception:
+            self.handleError(record)
 
 
 def _fatal_thread_exception(args: threading.ExceptHookArgs) -> None:
@@ -252,7 +273,16 @@ def run_child(args: ChildArgs, conn) -> None:
             request("the supervisor process is gone")
 
     config = SessionConfig.model_validate(args.config)
-    echo = lambda text: print(text, flush=True)  # noqa: E731
+    send_lock = threading.Lock()
+
+    def send(*message) -> None:
+        with send_lock, contextlib.suppress(OSError):
+            conn.send(message)
+
+    def echo(text: str) -> None:
+        send("line", text)
+
+    logging.getLogger().addHandler(_Relay(echo))
     loop = api = None
     try:
         echo("opening devices, loading the scene, readying the render kernels (a first run compiles them) …")
@@ -266,7 +296,7 @@ def run_child(args: ChildArgs, conn) -> None:
 
             api = ApiProcess(sock=args.sock, token=args.token, priority=config.api.priority).start(runtime)
             echo(f"API on {api.url} (docs at {api.url}/docs); API process pid {api.process.pid}")
-        conn.send(("started", {"pid": os.getpid(), "api_pid": api.process.pid if api else None}))
+        send("started", {"pid": os.getpid(), "api_pid": api.process.pid if api else None})
         if os.environ.get(FAULT_ENV):
             _inject_fault(loop, os.environ[FAULT_ENV])
         while not stop.wait(args.status_every or None):
@@ -275,8 +305,7 @@ def run_child(args: ChildArgs, conn) -> None:
         echo(f"error: {exc}")
         request(f"start-up failed: {exc}")
         if loop is None:
-            with contextlib.suppress(OSError):
-                conn.send(("failed", str(exc)))
+            send("failed", str(exc))
             os._exit(EXIT_START_FAILED)
     finally:
         if loop is not None:
@@ -389,23 +418,44 @@ class Supervisor:
         self.echo(f"loop process pid {child.pid} (start {self.starts})")
         return child, ours
 
+    def _receive(self, conn) -> str | None:
+        """Handle one message of the loop process; returns its kind (None: the pipe closed)."""
+        try:
+            kind, payload = conn.recv()
+        except (EOFError, OSError):
+            return None
+        if kind == "line":  # its output: relayed, so that one process writes the session's lines
+            self.echo(payload)
+        elif kind == "started":
+            if self._deadline is None and self.duration is not None:
+                self._deadline = time.monotonic() + self.duration
+            if self.responder is not None:
+                self.responder.stop()  # the loop process's own API serves the port now
+        return kind
+
+    def _relay_until_exit(self, child, conn, timeout_s: float) -> None:
+        """Relay its messages until the loop process has exited (or `timeout_s`), then the rest."""
+        deadline = time.monotonic() + timeout_s
+        while child.is_alive() and time.monotonic() < deadline:
+            if conn in multiprocessing.connection.wait([child.sentinel, conn], timeout=0.1):
+                if self._receive(conn) is None:
+                    child.join(max(0.0, deadline - time.monotonic()))
+                    break
+        while not child.is_alive() and conn.poll(0):
+            if self._receive(conn) is None:
+                break
+
     def _watch(self, child, conn) -> str:
         """Wait for the child to end or for a stop; returns "stopped", "failed" or "crashed"."""
         started = False
         while True:
-            ready = multiprocessing.connection.wait([child.sentinel, conn], timeout=0.1)
-            if conn in ready:
-                try:
-                    kind, _ = conn.recv()
-                    started = started or kind == "started"
-                    if started and self._deadline is None and self.duration is not None:
-                        self._deadline = time.monotonic() + self.duration
-                    if started and self.responder is not None:
-                        self.responder.stop()  # the loop process's own API serves the port now
-                except (EOFError, OSError):
-                    ready = [child.sentinel]  # it is ending: wait for its exit code below
-                    child.join(5)
-            if child.sentinel in ready or not child.is_alive():
+            if conn in multiprocessing.connection.wait([child.sentinel, conn], timeout=0.1):
+                kind = self._receive(conn)
+                started = started or kind == "started"
+                if kind is None:  # it is ending
+                    child.join(self.stop_timeout_s)
+            if not child.is_alive():
+                self._relay_until_exit(child, conn, 0.0)
                 child.join(5)
                 conn.close()
                 if child.exitcode == 0 and self._stop.is_set():
@@ -417,7 +467,7 @@ class Supervisor:
     def _stop_child(self, child, conn) -> str:
         with contextlib.suppress(OSError):
             conn.send(("stop", self._stop_reason))
-        child.join(self.stop_timeout_s)
+        self._relay_until_exit(child, conn, self.stop_timeout_s)
         if child.is_alive():
             self.echo(f"supervisor: the loop process did not stop within {self.stop_timeout_s:g} s; killing it")
             child.kill()
