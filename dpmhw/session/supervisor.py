@@ -375,8 +375,11 @@ class Supervisor:
                 outcome = self._watch(child, conn)
                 if outcome == "stopped":
                     break
-                if outcome == "failed" and self.starts == 1:
-                    return EXIT_START_FAILED  # the child printed why (a config or device error)
+                if outcome == "failed" and self.starts == 1:  # it printed why (a config or device error)
+                    if child.exitcode != EXIT_START_FAILED:  # died while opening the devices: make sure
+                        self.echo(f"supervisor: the loop process {describe_exit(child.exitcode)} while starting; "
+                                  f"projector {self._make_dark('a failed start')}")
+                    return EXIT_START_FAILED
                 wait_s = self._after_crash(child)
                 if wait_s is None or self._stop.wait(wait_s) or self._deadline_passed():
                     code = 1  # the show ended dark after a crash

@@ -155,10 +155,12 @@ def test_sigkill_of_the_api_process_costs_the_show_nothing(show):
     s.lit()
     before = s.status()
     api_pid, loop_pid = before["api"]["pid"], before["supervisor"]["loop_pid"]
+    t0 = time.monotonic()
     os.kill(api_pid, signal.SIGKILL)
     # back within the first backoff (0.5 s) plus a process start; the port never closed meanwhile
     assert wait_for(lambda: s.status().get("api", {}).get("restarts") == 1
                     and s.status()["api"]["state"] == "serving", 60), s.out
+    print(f"\nAPI back after {(time.monotonic() - t0) * 1e3:.0f} ms; projector lit: {not s.dark()}")
     after = s.status()
     assert after["api"]["last_exit"] == "killed by SIGKILL" and after["api"]["pid"] != api_pid
     assert after["supervisor"]["loop_pid"] == loop_pid and after["frame_number"] > before["frame_number"]

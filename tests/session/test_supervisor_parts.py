@@ -69,3 +69,19 @@ def test_resume_while_projecting_does_not_promise_a_hold_off():
     safety.operator_blank()
     ok, message = safety.request_resume()
     assert ok and message == "resuming after the 0.5 s hold-off"
+
+
+def test_black_window_on_the_projector_display_only_when_the_session_used_one(monkeypatch):
+    pytest.importorskip("pygame", reason="the display extra (pygame-ce) is not installed")
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    from dpmhw.session.config import load_session_config
+    from dpmhw.session.factory import open_black_window
+
+    assert open_black_window(load_session_config(None, ["sink.kind=\"recording\""]), mock=False) is None
+    assert open_black_window(load_session_config(None, ["sink.kind=\"window\""]), mock=True) is None  # mock: no display
+    window = open_black_window(load_session_config(None, ["sink.kind=\"window\"", "sink.display=0"]), mock=False)
+    try:
+        shot = window.snapshot()
+        assert shot.shape[:2] == window.shape and shot.size > 0 and not shot.any()  # full size, all black
+    finally:
+        window.close()
