@@ -232,6 +232,9 @@ def _inject_fault(loop, kind: str) -> None:
     def arm() -> None:
         while loop.status().get("frame_number", 0) < 1:
             time.sleep(0.01)
+        # CLOCK_MONOTONIC is one clock for every process: the test measures time to dark from here
+        sys.stderr.write(f"injected {kind} at monotonic_ns {time.monotonic_ns()}\n")
+        sys.stderr.flush()
         if kind == "abort":
             os.abort()  # SIGABRT, as a native crash would end the process
         publish = loop._publish
