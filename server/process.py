@@ -187,6 +187,7 @@ class ApiProcess:
                 except Exception as exc:  # e.g. it died again while starting: try later
                     self.last_exit = f"restart failed: {exc}"
                     log.warning("restarting the API process failed: %s", exc)
+                    backoff = min(2 * backoff, self.restart_backoff_max_s)
             backoff = min(2 * backoff, self.restart_backoff_max_s)
             with contextlib.suppress(Exception):
                 self.publish()

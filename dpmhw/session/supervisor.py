@@ -345,6 +345,7 @@ class Supervisor:
         self._stop_reason = ""
         self._deadline: float | None = None
         self._window = None
+        self._unconfirmed = ""  # what left the projector without a confirmed dark (retried)
 
     def request_stop(self, reason: str) -> None:
         if not self._stop.is_set():
@@ -480,8 +481,8 @@ class Supervisor:
             child.join(5)
         conn.close()
         if child.exitcode != 0:
-            self.echo(f"supervisor: the loop process {describe_exit(child.exitcode)} while stopping")
-            self._make_dark(f"loop process {describe_exit(child.exitcode)} while stopping")
+            what = f"the loop process {describe_exit(child.exitcode)} while stopping"
+            self.echo(f"supervisor: {what}; projector {self._make_dark(what)}")
         return "stopped"
 
     # ---- a crash -------------------------------------------------------------------------------
@@ -494,7 +495,7 @@ class Supervisor:
         self.echo(f"supervisor: {what}")
         how = self._make_dark(what)
         dark_ms = (time.monotonic() - t_seen) * 1e3
-        self.echo(f"supervisor: projector dark ({how}) {dark_ms:.0f} ms after the loop process was seen gone")
+        self.echo(f"supervisor: projector {how} {dark_ms:.0f} ms after the loop process was seen gone")
         wait_s = self.policy.crashed(time.monotonic())
         if wait_s is None:
             plan = ("staying dark (safety.restart = \"never\")" if self.config.safety.restart == "never" else
@@ -513,16 +514,20 @@ class Supervisor:
         return wait_s
 
     def _make_dark(self, what: str) -> str:
-        """Idle the projector and confirm by read-back, retrying until `idle_timeout_s`."""
+        """Idle the projector and confirm by read-back, retrying until `idle_timeout_s`; returns
+        "dark (idle, read back)" or "NOT confirmed dark (why)" (then `_stay_dark` keeps trying)."""
         from dpmhw.session import factory
 
         deadline = time.monotonic() + self.idle_timeout_s
         while True:
             try:
-                return f"dark: {factory.idle_projector(self.config, self.usb)}, read back"
+                how = f"dark ({factory.idle_projector(self.config, self.usb)}, read back)"
+                self._unconfirmed = ""
+                return how
             except Exception as exc:
                 if time.monotonic() >= deadline:
                     self.echo(f"supervisor: CANNOT CONFIRM THE PROJECTOR IS DARK after {what}: {exc}")
+                    self._unconfirmed = what
                     return f"NOT confirmed dark ({exc})"
                 time.sleep(0.1)
 
@@ -539,6 +544,9 @@ class Supervisor:
     def _stay_dark(self) -> None:
         """No more restarts: keep reporting the fault (and the black window) until stopped."""
         while not self._stop.wait(0.5) and not self._deadline_passed():
+            if self._unconfirmed:
+                how = self._make_dark(self._unconfirmed)
+                self._report_fault(f"{self.last_crash}; projector {how}; staying dark")
             if self._window is not None:  # redraw: keeps the window on top and answering its manager
                 with contextlib.suppress(Exception):
                     self._window.present(np.zeros((*self._window.shape, 3), np.uint8), time.monotonic_ns())

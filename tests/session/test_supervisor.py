@@ -133,7 +133,7 @@ def _assert_fault_reported(s: Show, cause: str) -> None:
     assert wait_for(lambda: s.status().get("state") == "fault" and cause in s.status().get("reason", ""), 30), \
         f"{s.status()}\n{s.out}"
     assert s.api().get("/readyz").status_code == 503
-    s.wait_line(r"supervisor: projector dark \(dark: idle, read back\)")
+    s.wait_line(r"supervisor: projector dark \(idle, read back\)")
 
 
 def test_sigkill_of_the_loop_process_idles_the_projector_and_reports_fault(show):
