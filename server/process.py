@@ -15,14 +15,22 @@ the CPU time the loop leaves idle, so requests wait for the loop rather than the
 
 If the session process stops publishing (wedged, or gone), the API process keeps answering and
 reports `fault` with the age of the last snapshot; it exits by itself when this process dies.
+
+If the API process dies (killed, crashed), a keeper thread here starts a new one on the same
+listening socket (still bound: clients queue rather than being refused) after a backoff
+(`restart_backoff_s`, doubling up to `restart_backoff_max_s`; back to the start after a process
+served `stable_after_s`). The loop never notices: an API crash costs the show no frame. The
+status says how often this happened and why (`status["api"]`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import logging
 import multiprocessing
+import multiprocessing.connection
 import os
 import socket
 import threading
@@ -33,10 +41,11 @@ import numpy as np
 
 from dpmhw.session.config import LiveSettings
 from dpmhw.session.loop import LatestFrame, SettingsError
+from dpmhw.session.supervisor import describe_exit
 from server.deps import Runtime, RuntimeUnavailable
 from server.shared_slot import SharedSlot
 
-__all__ = ["ApiProcess", "RemoteRuntime", "lower_priority"]
+__all__ = ["ApiProcess", "RemoteRuntime", "bind_api_socket", "lower_priority"]
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +72,8 @@ class ApiProcess:
 
     def __init__(self, *, host: str = "127.0.0.1", port: int = 8765, token: str = "", priority: str = "idle",
                  publish_period_s: float = 0.05, stale_after_s: float = 1.0, status_capacity: int = 1 << 20,
-                 start_timeout_s: float = 60.0):
+                 start_timeout_s: float = 60.0, restart_backoff_s: float = 0.5, restart_backoff_max_s: float = 8.0,
+                 stable_after_s: float = 30.0, sock: socket.socket | None = None):
         self.runtime: Runtime | None = None
         self.token = token
         if priority not in _PRIORITIES:
@@ -72,9 +82,11 @@ class ApiProcess:
         self.publish_period_s = publish_period_s
         self.stale_after_s = stale_after_s
         self.start_timeout_s = start_timeout_s
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        # bound here: a busy port fails in the caller with the OS's message, and port 0 is resolved
-        self.sock = socket.create_server((host, port), family=family, backlog=128)
+        self.restart_backoff_s, self.restart_backoff_max_s = restart_backoff_s, restart_backoff_max_s
+        self.stable_after_s = stable_after_s
+        # bound here (or by the caller, who keeps it across sessions): a busy port fails in the
+        # caller with the OS's message, and port 0 is resolved
+        self.sock = sock if sock is not None else bind_api_socket(host, port)
         self.host, self.port = self.sock.getsockname()[:2]
         self.status_capacity = status_capacity
         self.status_slot: SharedSlot | None = None
@@ -85,6 +97,9 @@ class ApiProcess:
         self._threads: list[threading.Thread] = []
         self._conn = None
         self.process = None
+        self.restarts = 0
+        self.last_exit = ""  # why the previous API process ended ("" if none did)
+        self._state = "starting"
 
     @property
     def url(self) -> str:
@@ -98,30 +113,44 @@ class ApiProcess:
         self.status_slot = SharedSlot.create(self.status_capacity)
         self.frame_slot = SharedSlot.create(width * height * 3)
         self.publish()
-        ctx = multiprocessing.get_context("spawn")  # never fork a process running native threads
-        self._conn, child_conn = ctx.Pipe(duplex=True)
-        self.process = ctx.Process(
-            target=_serve_child, name="dpmhw-api", daemon=True,
-            args=(self.sock, child_conn, self.status_slot.name, self.frame_slot.name, self.token, self.priority,
-                  self.stale_after_s))
-        self.process.start()
-        child_conn.close()
         try:
-            self._wait_ready()
+            self._spawn()
         except BaseException:
             self.close()
             raise
-        for name, target in (("api-publisher", self._publish_loop), ("api-commands", self._serve_commands)):
+        for name, target in (("api-publisher", self._publish_loop), ("api-commands", self._serve_commands),
+                             ("api-keeper", self._keep)):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
             self._threads.append(t)
         return self
 
-    def _wait_ready(self) -> None:
+    def _spawn(self) -> None:
+        """Start one API process on the bound socket and wait until it serves."""
+        ctx = multiprocessing.get_context("spawn")  # never fork a process running native threads
+        conn, child_conn = ctx.Pipe(duplex=True)
+        process = ctx.Process(
+            target=_serve_child, name="dpmhw-api", daemon=True,
+            args=(self.sock, child_conn, self.status_slot.name, self.frame_slot.name, self.token, self.priority,
+                  self.stale_after_s))
+        process.start()
+        child_conn.close()
+        self.process = process
+        try:
+            self._wait_ready(conn)  # before the command thread may read this pipe
+        except BaseException:
+            conn.close()
+            raise
+        old, self._conn = self._conn, conn
+        if old is not None:
+            old.close()
+        self._state = "serving"
+
+    def _wait_ready(self, conn) -> None:
         deadline = time.monotonic() + self.start_timeout_s
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not self._stop.is_set():
             try:
-                if self._conn.poll(0.1) and self._conn.recv() == ("ready",):
+                if conn.poll(0.1) and conn.recv() == ("ready",):
                     return
             except EOFError:
                 self.process.join(5)
@@ -130,18 +159,57 @@ class ApiProcess:
                                    "its error is printed above")
         raise RuntimeError(f"the API process did not start within {self.start_timeout_s:g} s")
 
+    def _keep(self) -> None:
+        """Restart the API process whenever it dies (not when we close it), with backoff."""
+        backoff = self.restart_backoff_s
+        while not self._stop.is_set():
+            process = self.process
+            started = time.monotonic()
+            while not self._stop.is_set() and process.is_alive():
+                multiprocessing.connection.wait([process.sentinel], timeout=0.5)
+            if self._stop.is_set():
+                return
+            process.join(1)
+            if time.monotonic() - started >= self.stable_after_s:
+                backoff = self.restart_backoff_s
+            self.last_exit = describe_exit(process.exitcode)
+            self.restarts += 1
+            self._state = "restarting"
+            log.warning("the API process (pid %s) %s; restart %d in %.1f s", process.pid, self.last_exit,
+                        self.restarts, backoff)
+            with contextlib.suppress(Exception):
+                self.publish()
+            while not self._stop.wait(backoff):
+                try:
+                    self._spawn()
+                    log.warning("API process restarted (pid %s) on %s", self.process.pid, self.url)
+                    break
+                except Exception as exc:  # e.g. it died again while starting: try later
+                    self.last_exit = f"restart failed: {exc}"
+                    log.warning("restarting the API process failed: %s", exc)
+                    backoff = min(2 * backoff, self.restart_backoff_max_s)
+            backoff = min(2 * backoff, self.restart_backoff_max_s)
+            with contextlib.suppress(Exception):
+                self.publish()
+
+    def health(self) -> dict:
+        """The service's own state, part of the published status."""
+        return {"state": self._state, "pid": None if self.process is None else self.process.pid,
+                "restarts": self.restarts, "last_exit": self.last_exit, "url": self.url}
+
     def close(self) -> None:
         """Stop the API process (graceful, then killed), the threads, and remove the slots."""
         self._stop.set()
+        for t in self._threads:  # first, so that the keeper starts nothing new
+            t.join(5)
+        self._threads.clear()
+        self._state = "closed"
         if self.process is not None and self.process.is_alive():
             self.process.terminate()  # SIGTERM: uvicorn finishes open requests and exits
             self.process.join(5)
             if self.process.is_alive():
                 self.process.kill()
                 self.process.join(5)
-        for t in self._threads:
-            t.join(2)
-        self._threads.clear()
         if self._conn is not None:
             self._conn.close()
         self.sock.close()
@@ -160,7 +228,7 @@ class ApiProcess:
     def publish(self) -> None:
         """Copy the runtime's status (and a new latest frame) into the shared slots."""
         t_read = time.monotonic_ns()
-        payload = {"status": self.runtime.status(), "ready": self.runtime.ready(),
+        payload = {"status": {**self.runtime.status(), "api": self.health()}, "ready": self.runtime.ready(),
                    "settings": self.runtime.settings().model_dump(), "t_read_ns": t_read}
         data = json.dumps(payload, separators=(",", ":")).encode()
         frame = self.runtime.latest_frame()
@@ -182,24 +250,23 @@ class ApiProcess:
 
     def _serve_commands(self) -> None:
         while not self._stop.is_set():
+            conn = self._conn
             try:
-                if not self._conn.poll(0.2):
+                if not conn.poll(0.2):
                     continue
-                request_id, name, args = self._conn.recv()
-            except (EOFError, OSError):
-                if not self._stop.is_set():
-                    log.warning("the API process closed its command pipe (exit code %s)",
-                                self.process.exitcode if self.process else None)
-                return
+                request_id, name, args = conn.recv()
+            except (EOFError, OSError):  # that API process is gone; the keeper starts another
+                self._stop.wait(0.1)
+                continue
             reply = self._execute(name, args)
             try:
                 self.publish()  # the reply's sender reads its own write in the next status
             except Exception:
                 log.exception("publishing the session status for the API failed")
             try:
-                self._conn.send((request_id, *reply))
+                conn.send((request_id, *reply))
             except OSError:
-                return
+                continue
 
     def _execute(self, name: str, args: tuple) -> tuple[str, Any]:
         if name not in _COMMANDS:
@@ -214,6 +281,12 @@ class ApiProcess:
         except Exception as exc:
             log.exception("API command %s failed", name)
             return "error", f"{type(exc).__name__}: {exc}"
+
+
+def bind_api_socket(host: str, port: int) -> socket.socket:
+    """The API's listening socket (port 0: a free one); whoever binds it may hand it on."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    return socket.create_server((host, port), family=family, backlog=128)
 
 
 class RemoteRuntime:

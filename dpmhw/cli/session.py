@@ -1,17 +1,15 @@
 """`dpmhw session …` (run a projection session) and `dpmhw bench session`.
 
 `dpmhw session start --mock` runs the whole system on a fresh machine: firmware mocks on
-loopback, the real drivers, the loop and the HTTP service. The loop, drivers, mocks and server
-are imported inside the commands.
+loopback, the real drivers, the loop and the HTTP service, the loop in a supervised child
+process (`dpmhw.session.supervisor`). The loop, drivers, mocks and server are imported inside
+the commands.
 """
 
 from __future__ import annotations
 
 import json
 import secrets
-import signal
-import threading
-import time
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -40,29 +38,6 @@ def _fail(exc: Exception) -> None:
     raise typer.Exit(code=2)
 
 
-def _status_line(status: dict) -> str:
-    lat = status.get("latency_ms", {})
-    line = (f"[{status.get('state')}] frames={status.get('frame_number')} fps={status.get('fps', 0):.1f} "
-            f"latency p50/p95/p99={lat.get('p50')}/{lat.get('p95')}/{lat.get('p99')} ms")
-    return line + (f" — {status['reason']}" if status.get("reason") else "")
-
-
-class _Reporter:
-    """Prints a status line every `every_s` seconds on its own thread (stopped with the session)."""
-
-    def __init__(self, get_status, every_s: float):
-        self.get_status, self.every_s = get_status, every_s
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        while not self.stop.wait(self.every_s):
-            try:
-                typer.echo(_status_line(self.get_status()))
-            except Exception:  # the session is going away
-                return
-
-
 @session_app.command("start")
 def start(
     config: ConfigOpt = None,
@@ -75,7 +50,11 @@ def start(
     duration: Annotated[Optional[float], typer.Option(min=0.1, help="Stop after this many seconds (default: Ctrl-C / SIGTERM).")] = None,
     status_every: Annotated[float, typer.Option(min=0.0, help="Print a status line every N seconds (0: never).")] = 2.0,
 ) -> None:
-    """Connect tracker and projector, load scene and calibration, run the loop and the API."""
+    """Connect tracker and projector, load scene and calibration, run the loop and the API.
+
+    This process supervises: the loop runs in a child process, and if that one dies by any means
+    this one idles the projector (read back), reports `fault` on the API port and restarts it
+    when `safety.restart = "on-crash"` (see docs/session.md, "Supervisor")."""
     from dpmhw.errors import DpmhwError
 
     extra = [f"api.host={json.dumps(host)}"] if host else []
@@ -86,60 +65,29 @@ def start(
         cfg = _load(config, sets, extra)
     except DpmhwError as exc:
         _fail(exc)
-    from dpmhw.session.factory import build_session
+    from dpmhw.session.supervisor import Supervisor
 
-    def make_loop():
-        typer.echo("opening devices, loading the scene, readying the render kernels (a first run compiles them) …")
-        loop = build_session(cfg, mock=mock).start()
-        typer.echo(f"session started ({'mock devices' if mock else 'hardware'}); scene {cfg.scene.source}, "
-                   f"render {loop.parts.renderer.width}×{loop.parts.renderer.height}")
-        return loop
+    sock = token = None
+    if cfg.api.enabled:
+        from server.process import bind_api_socket
 
-    api = None
+        token = cfg.api_token()
+        if not token:
+            token = secrets.token_urlsafe(18)
+            typer.echo(f"no api.token / DPMHW_API_TOKEN set; this session's token: {token}")
+        try:
+            sock = bind_api_socket(cfg.api.host, cfg.api.port)  # held here for the whole show
+        except OSError as exc:
+            _fail(OSError(f"api.port: cannot listen on {cfg.api.host}:{cfg.api.port}: {exc.strerror or exc}"))
     try:
-        if cfg.api.enabled:
-            from server.process import ApiProcess
-
-            token = cfg.api_token()
-            if not token:
-                token = secrets.token_urlsafe(18)
-                typer.echo(f"no api.token / DPMHW_API_TOKEN set; this session's token: {token}")
-            api = ApiProcess(host=cfg.api.host, port=cfg.api.port, token=token, priority=cfg.api.priority)  # binds now
-        _run(make_loop, api, duration, status_every)
+        code = Supervisor(cfg, mock=mock, token=token or "", sock=sock, duration=duration,
+                          status_every=status_every, echo=typer.echo).run()
     except (DpmhwError, OSError, RuntimeError) as exc:
         _fail(exc)
-
-
-def _run(make_loop, api, duration: Optional[float], status_every: float) -> None:
-    """Run until `duration`, Ctrl-C or SIGTERM; always end with the loop stopped and the projector dark."""
-    stop = threading.Event()
-    previous = signal.signal(signal.SIGTERM, lambda *a: stop.set())
-    loop = reporter = None
-    try:
-        loop = make_loop()
-        if api is not None:
-            api.start(loop)
-            typer.echo(f"API on {api.url} (docs at {api.url}/docs)")
-        if status_every > 0:
-            reporter = _Reporter(loop.status, status_every)
-            reporter.thread.start()
-        deadline = None if duration is None else time.monotonic() + duration
-        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
-            stop.wait(0.1)
-    except KeyboardInterrupt:
-        typer.echo("interrupted")
     finally:
-        signal.signal(signal.SIGTERM, previous)
-        if reporter:
-            reporter.stop.set()
-        if loop is not None:
-            how = loop.stop("stopped by the operator")
-            if api is not None:
-                api.publish()  # the last status (stopped, dark) for anyone still asking
-            typer.echo(_status_line(loop.status()))
-            typer.echo(f"projector dark ({how or 'no projector'})")
-        if api is not None:
-            api.close()
+        if sock is not None:
+            sock.close()
+    raise typer.Exit(code=code)
 
 
 @session_app.command("config")

@@ -130,6 +130,11 @@ class SafetySection(_Section):
     watchdog_s: float = Field(1.0, gt=0.0, le=600.0, description="a loop iteration longer than this is a stall")
     dark_render_interval_s: float = Field(
         0.25, ge=0.0, le=60.0, description="while dark, render only this often (enough to see a render fault clear)")
+    restart: Literal["never", "on-crash"] = Field(
+        "never", description="on-crash: the supervisor restarts a loop process that died (else it stays dark and reports)")
+    restart_limit: int = Field(3, ge=0, le=1000, description="at most this many restarts within restart_window_s; then dark")
+    restart_window_s: float = Field(600.0, gt=0.0, le=86400.0, description="crashes older than this no longer count")
+    restart_backoff_s: float = Field(1.0, ge=0.0, le=600.0, description="wait before a restart; doubles with each crash in the window")
 
 
 class MetricsSection(_Section):

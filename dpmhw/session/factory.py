@@ -24,7 +24,8 @@ from dpmhw.scene_file import Scene, load_scene
 from dpmhw.session.config import SessionConfig, SessionConfigError
 from dpmhw.session.loop import SessionLoop, SessionParts
 
-__all__ = ["DLPC900Control", "MockRig", "build_session", "open_session_parts", "prepare_scene", "resolve_bindings"]
+__all__ = ["DLPC900Control", "MockRig", "build_session", "idle_projector", "open_black_window", "open_session_parts",
+           "prepare_scene", "resolve_bindings", "start_usb_emulator"]
 
 log = logging.getLogger(__name__)
 
@@ -167,9 +168,12 @@ def mock_trajectory(name: str, base_t: np.ndarray, speed: float):
                                   spin_rad_s=np.pi / 2 * speed)
 
 
-def start_mock_rig(config: SessionConfig, scene: Scene, bindings: dict[int, int]) -> tuple[MockRig, dict]:
+def start_mock_rig(config: SessionConfig, scene: Scene, bindings: dict[int, int],
+                   usb: tuple[str, bytes] | None = None) -> tuple[MockRig, dict]:
     """Start the mocks; returns the rig and config overrides pointing the drivers at them
-    (`command_port` of the NatNet server, or `port`: the serial emulator's pty)."""
+    (`command_port` of the NatNet server, or `port`: the serial emulator's pty). With `usb`
+    (address, key of a `start_usb_emulator()` process) the DLPC900 is that out-of-process one."""
+    from firmware_mocks.dlpc900_socket import socket_usb
     from firmware_mocks.dlpc900_usb import usb_emulation
     from firmware_mocks.natnet_server import NatNetServer, NatNetServerConfig
     from firmware_mocks.serial_tracker import PolhemusEmulator
@@ -200,7 +204,7 @@ def start_mock_rig(config: SessionConfig, scene: Scene, bindings: dict[int, int]
             stack.callback(server.stop)
             server.start()
             over = {"command_port": server.command_port}
-        device = stack.enter_context(usb_emulation())
+        device = stack.enter_context(usb_emulation() if usb is None else socket_usb(*usb))
     except BaseException:
         stack.close()
         raise
@@ -266,7 +270,8 @@ def warm_up(renderer, scene: Scene, gbuffer=None) -> None:
     log.info("render and reconstruction kernels ready in %.1f s", time.monotonic() - t0)
 
 
-def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: Any = None) -> SessionParts:
+def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: Any = None,
+                       usb: tuple[str, bytes] | None = None) -> SessionParts:
     """Open every part the config names (mocks first with `mock`); closes what it opened on error."""
     scene = prepare_scene(config)
     bindings = resolve_bindings(config, scene)
@@ -275,7 +280,7 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
     try:
         over: dict = {}
         if mock:
-            rig, over = start_mock_rig(config, scene, bindings)
+            rig, over = start_mock_rig(config, scene, bindings, usb)
             closers.append(rig.stack.close)
         gbuffer = None
         if renderer is None:
@@ -320,6 +325,44 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
                         closers=([gbuffer.close] if gbuffer is not None else []) + ([rig.stack.close] if rig is not None else []))
 
 
-def build_session(config: SessionConfig, *, mock: bool = False, renderer: Any = None, frame_log: int = 0) -> SessionLoop:
+def build_session(config: SessionConfig, *, mock: bool = False, renderer: Any = None, frame_log: int = 0,
+                  usb: tuple[str, bytes] | None = None) -> SessionLoop:
     """A ready-to-start loop over freshly opened parts."""
-    return SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer), frame_log=frame_log)
+    return SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer, usb=usb), frame_log=frame_log)
+
+
+# ---- for the supervisor (dpmhw.session.supervisor), which outlives the loop's process -------------
+def start_usb_emulator(config: SessionConfig):
+    """The mock DLPC900 in its own process (`firmware_mocks.dlpc900_socket.EmulatorProcess`), so
+    that it outlives a loop process, as a real projector does; pass (.address, .authkey) as `usb`."""
+    from firmware_mocks.dlpc900_socket import EmulatorProcess
+
+    return EmulatorProcess.start(config.projector.serial or "EMU0001")
+
+
+def idle_projector(config: SessionConfig, usb: tuple[str, bytes] | None = None) -> str:
+    """Open the projector, idle it, confirm by read-back, release it; returns how ("idle", …).
+    Raises when it cannot be reached or darkness is not confirmed."""
+    if config.projector.kind != "dlpc900":
+        return "no projector"
+    from drivers.dlpc900 import DLPC900
+
+    with contextlib.ExitStack() as stack:
+        if usb is not None:
+            from firmware_mocks.dlpc900_socket import socket_usb
+
+            stack.enter_context(socket_usb(*usb))
+        dlp = DLPC900.open(config.projector.serial or None, timeout_ms=config.projector.timeout_ms, settle_s=0.0)
+        stack.callback(dlp.close)
+        return dlp.blank().method
+
+
+def open_black_window(config: SessionConfig, mock: bool):
+    """A black full-screen window on the projector's display, if the session used one (else None)."""
+    if mock or config.sink.kind != "window":
+        return None
+    from drivers.frame_sinks import make_sink
+
+    sink = make_sink("window", display=config.sink.display)
+    sink.present(np.zeros((*sink.shape, 3), np.uint8), time.monotonic_ns())
+    return sink

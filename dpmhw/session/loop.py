@@ -441,6 +441,7 @@ class SessionLoop:
             self.reconstruct.reset()  # history from before the dark spell describes another moment
             self._output_on = True
             self.metrics.count("resumes")
+            log.warning("projection resumed")
 
     def _go_dark(self, reason: str, force: bool = False, from_watchdog: bool = False) -> None:
         """Black frame to the sink (not from the watchdog: the stuck loop may be inside the sink)

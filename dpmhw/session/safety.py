@@ -100,10 +100,13 @@ class SafetyMonitor:
             others = [c for n, c in self._causes.items() if n != OPERATOR]
             if others:
                 return False, "cannot resume while active: " + "; ".join(f"{c.name}: {c.reason}" for c in others)
+            held = self._latched or OPERATOR in self._causes
             if OPERATOR in self._causes:
                 del self._causes[OPERATOR]
                 self._last_cleared = (OPERATOR, self.clock())
             self._latched = False
+            if not held:  # nothing was waiting for this request: say so, promise nothing
+                return True, "nothing to resume: not blanked by the operator nor waiting for a resume"
             return True, "resuming" if self.holdoff_ns == 0 else f"resuming after the {self.holdoff_ns / 1e9:g} s hold-off"
 
     def mark_started(self) -> None:

@@ -1,0 +1,214 @@
+"""`dpmhw session start --mock` under a supervisor: however the loop process dies, the emulated
+DLPC900 (in its own process, read back here) is dark within DARK_WITHIN_S, `/status` says
+`fault` and why, and restarts follow `safety.restart`. An API process that dies is restarted
+without touching the loop.
+
+Each test starts whole sessions (tens of seconds on 2 shared cores): marked slow. Bounds are
+generous and every wait polls with a timeout, so a CPU hog beside the tests changes nothing.
+Run with `python -m pytest tests/session/test_supervisor.py -m slow -s` (prints time to dark).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import httpx
+import pytest
+
+from dpmhw.session.supervisor import EMULATOR_ENV
+from dpmhw.tracking import wait_for
+from firmware_mocks.dlpc900_socket import EmulatorProcess
+
+pytestmark = pytest.mark.slow
+
+DARK_WITHIN_S = 15.0  # kill → emulated DMD dark by read-back (measured: well under 1 s; see docs/session.md)
+START_S = 120.0  # a loop process starting (imports, scene, kernels) on a loaded machine
+
+
+class Show:
+    """One supervised `session start --mock` against an emulator this test reads back."""
+
+    def __init__(self, *sets: str, fault: str = ""):
+        self.emulator = EmulatorProcess.start()
+        env = {**os.environ, "DPMHW_API_TOKEN": "t", EMULATOR_ENV[0]: self.emulator.address,
+               EMULATOR_ENV[1]: self.emulator.authkey.hex()}
+        env.pop("DPMHW_TEST_FAULT", None)
+        if fault:
+            env["DPMHW_TEST_FAULT"] = fault
+        args = ["session", "start", "--mock", "--status-every", "0", "--port", "0", "--set", "render.width=32",
+                "--set", "render.height=24", "--set", "safety.stale_after_ms=2000"]
+        for item in sets:
+            args += ["--set", item]
+        self.proc = subprocess.Popen([sys.executable, "-c", "from dpmhw.cli import main; main()", *args], env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines: list[str] = []
+        self.reader = threading.Thread(target=lambda: self.lines.extend(self.proc.stdout), daemon=True)
+        self.reader.start()
+        self.client: httpx.Client | None = None
+
+    @property
+    def out(self) -> str:
+        return "".join(self.lines)
+
+    def wait_line(self, pattern: str, timeout: float = START_S, count: int = 1) -> list[re.Match]:
+        def found():
+            return [m for line in list(self.lines) if (m := re.search(pattern, line))]
+        if not wait_for(lambda: len(found()) >= count, timeout):
+            pytest.fail(f"no {count}× {pattern!r} within {timeout} s:\n{self.out}")
+        return found()
+
+    def dark(self) -> bool:
+        return self.emulator.inspect()[0]["dark"]
+
+    def lit(self) -> None:
+        """Wait until the loop projects: it says so, and the emulated DMD is not dark (a powered-on
+        controller is not dark either, hence both)."""
+        self.wait_line(r"projection resumed")
+        if not wait_for(lambda: not self.dark() and self.status().get("state", "running") == "running", START_S):
+            pytest.fail(f"the projector never lit:\n{self.out}")
+
+    def api(self) -> httpx.Client:
+        if self.client is None:
+            port = int(self.wait_line(r"API on http://127\.0\.0\.1:(\d+)")[0].group(1))
+            self.client = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10.0)
+        return self.client
+
+    def status(self) -> dict:
+        try:
+            return self.api().get("/status").json()
+        except (httpx.HTTPError, ValueError):
+            return {}
+
+    def loop_pid(self, start: int = 1) -> int:
+        return int(self.wait_line(r"loop process pid (\d+) \(start (\d+)\)", count=start)[start - 1].group(1))
+
+    def time_to_dark(self, kill) -> float:
+        """Run `kill`; seconds until the emulated DMD reads back dark (fails past DARK_WITHIN_S)."""
+        t0 = time.monotonic()
+        kill()
+        assert wait_for(self.dark, DARK_WITHIN_S, poll_s=0.005), f"still lit {DARK_WITHIN_S} s after:\n{self.out}"
+        took = time.monotonic() - t0
+        print(f"\ntime to dark: {took * 1e3:.0f} ms")
+        return took
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(60)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        self.reader.join(10)
+        self.proc.stdout.close()
+        if self.client is not None:
+            self.client.close()
+        return self.proc.returncode
+
+    def close(self) -> None:
+        self.stop()
+        self.emulator.close()
+
+
+@pytest.fixture
+def show():
+    shows: list[Show] = []
+
+    def make(*sets: str, **kw) -> Show:
+        shows.append(Show(*sets, **kw))
+        return shows[-1]
+
+    yield make
+    for s in shows:
+        s.close()
+
+
+def _assert_fault_reported(s: Show, cause: str) -> None:
+    assert wait_for(lambda: s.status().get("state") == "fault" and cause in s.status().get("reason", ""), 30), \
+        f"{s.status()}\n{s.out}"
+    assert s.api().get("/readyz").status_code == 503
+    s.wait_line(r"supervisor: projector dark \(idle, read back\)")
+
+
+def test_sigkill_of_the_loop_process_idles_the_projector_and_reports_fault(show):
+    s = show()
+    s.lit()
+    pid = s.loop_pid()
+    s.time_to_dark(lambda: os.kill(pid, signal.SIGKILL))
+    _assert_fault_reported(s, "killed by SIGKILL")
+    assert "staying dark (safety.restart = \"never\")" in s.out
+    assert s.status()["supervisor"]["crashes"] == 1
+    time.sleep(1.0)
+    assert s.dark() and len(s.wait_line(r"loop process pid")) == 1  # no restart by default
+    assert s.stop() == 1  # the show ended in a fault
+    assert "supervisor: stopped (SIGTERM received)" in s.out
+
+
+def test_sigkill_of_the_api_process_costs_the_show_nothing(show):
+    s = show()
+    s.lit()
+    before = s.status()
+    api_pid, loop_pid = before["api"]["pid"], before["supervisor"]["loop_pid"]
+    t0 = time.monotonic()
+    os.kill(api_pid, signal.SIGKILL)
+    # back within the first backoff (0.5 s) plus a process start; the port never closed meanwhile
+    assert wait_for(lambda: s.status().get("api", {}).get("restarts") == 1
+                    and s.status()["api"]["state"] == "serving", 60), s.out
+    print(f"\nAPI back after {(time.monotonic() - t0) * 1e3:.0f} ms; projector lit: {not s.dark()}")
+    after = s.status()
+    assert after["api"]["last_exit"] == "killed by SIGKILL" and after["api"]["pid"] != api_pid
+    assert after["supervisor"]["loop_pid"] == loop_pid and after["frame_number"] > before["frame_number"]
+    for cause in ("loop", "render", "sink", "projector", "projector_blank"):  # nothing of the loop failed
+        assert after["faults"].get(cause, 0) == before["faults"].get(cause, 0), after["faults"]
+    assert wait_for(lambda: not s.dark(), 30)  # still projecting (tracking may flicker on a loaded machine)
+    assert s.stop() == 0
+    assert "loop process pid" in s.out and "supervisor: the loop process" not in s.out
+
+
+def _crash_goes_dark(s: Show, seen: str) -> None:
+    """The injected crash fires right after the first frame (the loop had lit the projector);
+    the DMD reads back dark within the bound, counted from the instant the crash was injected."""
+    s.wait_line(r"projection resumed")
+    t_crash_ns = int(s.wait_line(r"injected \S+ at monotonic_ns (\d+)")[0].group(1))
+    assert wait_for(s.dark, DARK_WITHIN_S, poll_s=0.005), s.out
+    took = (time.monotonic_ns() - t_crash_ns) / 1e9  # an upper bound: seen dark at or after it was
+    assert took < DARK_WITHIN_S, s.out
+    s.wait_line(seen)
+    print(f"\ntime to dark: {took * 1e3:.0f} ms; " + s.wait_line(r"supervisor: projector dark .*")[-1].group(0))
+
+
+def test_exception_escaping_the_loop_thread_ends_the_process_dark(show):
+    s = show(fault="loop-exception")
+    _crash_goes_dark(s, r"supervisor: the loop process \(pid \d+\) exited with code 70")
+    _assert_fault_reported(s, "exited with code 70 (an exception escaped one of its threads)")
+    assert "fatal: exception escaped thread session-loop: RuntimeError: injected" in s.out
+
+
+def test_native_crash_of_the_loop_process_goes_dark(show):
+    s = show(fault="abort")
+    _crash_goes_dark(s, r"supervisor: the loop process \(pid \d+\) killed by SIGABRT")
+    _assert_fault_reported(s, "killed by SIGABRT")
+
+
+def test_repeated_crashes_stop_restarting_after_the_limit_and_stay_dark(show):
+    s = show("safety.restart=\"on-crash\"", "safety.restart_limit=1", "safety.restart_backoff_s=0.1",
+             "safety.restart_window_s=86400", fault="abort")
+    s.wait_line(r"restarting the loop process \(restart 1 of at most 1", timeout=2 * START_S)
+    seen = s.wait_line(r"injected abort at monotonic_ns (\d+)", timeout=2 * START_S, count=2)
+    s.wait_line(r"supervisor: staying dark: 1 restart\(s\) within 86400 s used up", timeout=2 * START_S)
+    assert wait_for(s.dark, DARK_WITHIN_S), s.out
+    took = (time.monotonic_ns() - int(seen[1].group(1))) / 1e9
+    print(f"\nsecond crash: time to dark ≤ {took * 1e3:.0f} ms; "
+          + s.wait_line(r"supervisor: projector dark .*", count=2)[1].group(0))
+    _assert_fault_reported(s, "restart(s) within 86400 s used up")
+    assert s.status()["supervisor"]["crashes"] == 2
+    assert len(s.wait_line(r"killed by SIGABRT", count=2)) >= 2
+    time.sleep(1.0)
+    assert s.dark() and len(s.wait_line(r"loop process pid")) == 2
+    assert s.stop() == 1
