@@ -109,7 +109,8 @@ class ApiProcess:
     # ---- lifecycle -------------------------------------------------------------------------
     def start(self, runtime: Runtime) -> "ApiProcess":
         self.runtime = runtime
-        width, height = runtime.status()["render_size"]
+        status = runtime.status()
+        width, height = status.get("output_size", status["render_size"])  # frames reach the sink at the output size
         self.status_slot = SharedSlot.create(self.status_capacity)
         self.frame_slot = SharedSlot.create(width * height * 3)
         self.publish()
