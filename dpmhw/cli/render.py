@@ -32,11 +32,13 @@ def render(
     split_screen: Annotated[bool, typer.Option("--split-screen", help="With --frames: left half plain, right half reused.")] = False,
     out_dir: Annotated[Optional[Path], typer.Option(help="With --frames: write every frame here as frame_00000<suffix of --out>.")] = None,
     tonemap: Annotated[str, typer.Option(help="Tone-mapping operator for .png output: clip | reinhard.")] = "clip",
+    ray: Annotated[Optional[str], typer.Option(metavar="ADDRESS", help="Render the passes as Ray tasks (same image, bit for bit): 'local' = a Ray instance on this machine, or a cluster's ray://HOST:10001 / HOST:6379 / auto (docs/cluster.md).")] = None,
 ) -> None:
     """Render one frame, or K frames through temporal reuse. Ctrl-C stops after the current pass
     (or frame) and still writes what is finished."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
+    from dpmhw.cluster.passes import PASSES_PER_BLOCK, render_local
     from dpmhw.errors import DpmhwError
     from dpmhw.render.integrator import PathIntegrator
     from dpmhw.scene_file import load_scene
@@ -59,6 +61,8 @@ def render(
             raise typer.Exit(2)
     elif out_dir is not None or split_screen or warmup:
         raise typer.BadParameter("--out-dir, --split-screen and --warmup need --frames")
+    if frames is not None and ray is not None:
+        raise typer.BadParameter("--ray renders one frame's passes; a --frames sequence is sequential (temporal reuse)")
     spp = spp if spp is not None else (1 if frames is not None else 16)
     try:
         sc = load_scene(scene, mesh_override=mesh)
@@ -71,6 +75,15 @@ def render(
     if frames is not None:
         _render_sequence(scene, sc, out, out_dir, t * sc.render.fps, frames, spp, seed, settings, exposure, tonemap, threads)
         return
+    pool = None
+    if ray is not None:
+        from dpmhw.cluster.ray_pool import RayPool
+
+        try:
+            pool = RayPool(None if ray == "local" else ray)
+        except DpmhwError as exc:
+            typer.secho(f"error: {exc}", fg="red", err=True)
+            raise typer.Exit(2)
     stop = {"requested": False}
 
     def on_sigint(signum, _frame):
@@ -82,24 +95,32 @@ def render(
     previous = signal.signal(signal.SIGINT, on_sigint)
     started = _time.perf_counter()
     try:
-        with PathIntegrator(sc, threads=threads) as integrator, Progress(
+        with Progress(
             "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
             TimeRemainingColumn(), transient=True,
         ) as bar:
-            task = bar.add_task(f"rendering {sc.render.width}×{sc.render.height}", total=spp)
-            result = integrator.render(
-                time=t, seed=seed, spp=spp,
-                progress=lambda done, total: bar.update(task, completed=done),
-                should_stop=lambda: stop["requested"],
-            )
+            where = "" if pool is None else f" on Ray ({pool.cpus} CPUs)"
+            task = bar.add_task(f"rendering {sc.render.width}×{sc.render.height}{where}", total=spp)
+            on_pass = lambda done, total: bar.update(task, completed=done)  # noqa: E731
+            if pool is None:
+                with PathIntegrator(sc, threads=threads) as integrator:
+                    result = render_local(integrator, t, seed, spp, progress=on_pass, should_stop=lambda: stop["requested"])
+            else:
+                from dpmhw.cluster.ray_pool import render_on_ray
+
+                result = render_on_ray(pool, sc, t, seed, spp, threads=threads, progress=on_pass,
+                                       should_stop=lambda: stop["requested"])
     finally:
         signal.signal(signal.SIGINT, previous)
+        if pool is not None:
+            pool.close()
     elapsed = _time.perf_counter() - started
     _write(out, result.radiance, exposure)
     meta = {
         "scene": str(scene), "spp": result.spp, "spp_requested": spp, "seed": seed, "time": t,
         "width": sc.render.width, "height": sc.render.height, "max_bounces": sc.render.max_bounces,
         "nonfinite_samples": result.nonfinite_samples, "seconds": round(elapsed, 3), "notes": sc.notes,
+        "passes_per_block": PASSES_PER_BLOCK, "ray": ray,
     }
     out.with_name(out.name + ".json").write_text(json.dumps(meta, indent=2))
     typer.echo(f"wrote {out} ({result.spp}/{spp} spp, t = {t:.6f} s, {elapsed:.1f} s)")

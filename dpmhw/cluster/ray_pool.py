@@ -1,0 +1,137 @@
+"""Blocks of passes (and any other independent work) as Ray tasks.
+
+`RayPool()` starts a local Ray instance on this machine (2 CPUs); `RayPool("ray://head:10001")`
+or `RayPool("head:6379")` joins an existing cluster. Tasks are plain Ray tasks with
+`max_retries`: when a worker process or a whole machine is lost, Ray runs its tasks again
+elsewhere, and since a block is a pure function of (scene, time, seed, passes) the image is
+unchanged. The scene travels inside the task as data (meshes as arrays, put once in Ray's object
+store per render): workers never open a scene or mesh file, so no shared disk is needed.
+"""
+
+from __future__ import annotations
+
+import uuid
+from typing import Any, Callable, Iterable, Iterator
+
+from dpmhw.cluster import INSTALL_HINT, ClusterError
+from dpmhw.cluster.passes import Block, BlockResult, PassSum, plan, render_block
+
+LOCAL_CPUS = 2
+MAX_RETRIES = 3  # re-runs of a task whose worker died (not of tasks that raised)
+
+
+def import_ray():
+    try:
+        import ray
+    except ModuleNotFoundError:
+        raise ClusterError(f"--ray needs Ray, which is not installed: {INSTALL_HINT}") from None
+    return ray
+
+
+def _call(fn: Callable, shared: Any, item: Any) -> Any:
+    return fn(shared, item)
+
+
+class RayPool:
+    """A connection to Ray; `map` runs fn(shared, item) per item as tasks and yields results as
+    they finish. Shuts down only a Ray instance it started itself."""
+
+    def __init__(self, address: str | None = None, local_cpus: int = LOCAL_CPUS):
+        ray = import_ray()
+        self.address = address or None
+        self._owned = False
+        if not ray.is_initialized():
+            try:
+                if self.address is None:
+                    ray.init(num_cpus=local_cpus, include_dashboard=False, log_to_driver=False)
+                else:
+                    ray.init(address=self.address, log_to_driver=False)
+            except ConnectionError as exc:
+                raise ClusterError(f"cannot reach the Ray cluster at {self.address}: {exc}") from None
+            self._owned = True
+        self._ray = ray
+        self._remote = ray.remote(_call)
+
+    @property
+    def cpus(self) -> int:
+        return int(self._ray.cluster_resources().get("CPU", 0))
+
+    def map(self, fn: Callable, items: Iterable, shared: Any = None, num_cpus: float = 1,
+            max_retries: int = MAX_RETRIES) -> Iterator[tuple[int, Any]]:
+        """(index of the item, fn(shared, item)) in order of completion. `shared` goes into the
+        object store once for all tasks. Closing the iterator early cancels what is left."""
+        ray = self._ray
+        shared_ref = ray.put(shared)
+        remote = self._remote.options(num_cpus=num_cpus, max_retries=max_retries, retry_exceptions=False)
+        index = {remote.remote(fn, shared_ref, item): i for i, item in enumerate(items)}
+        pending = list(index)
+        try:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                for ref in done:
+                    yield index[ref], ray.get(ref)
+        finally:
+            for ref in pending:
+                ray.cancel(ref, force=False)
+
+    def close(self) -> None:
+        if self._owned and self._ray.is_initialized():
+            self._ray.shutdown()
+        self._owned = False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+# ----------------------------------------------------------------------------------------------
+# rendering blocks on workers
+
+_integrators: dict = {}  # per worker process: the integrator of the render it last worked on
+
+
+def _worker_integrator(token: str, scene, threads: int):
+    """Reuse the BVHs, caches and compiled kernels across the blocks of one render; a worker
+    keeps one integrator at a time, so memory stays bounded however many renders it serves."""
+    from dpmhw.render.integrator import PathIntegrator
+
+    key = (token, threads)
+    if key not in _integrators:
+        for old in _integrators.values():
+            old.close()
+        _integrators.clear()
+        _integrators[key] = PathIntegrator(scene, threads=threads)
+    return _integrators[key]
+
+
+def render_block_task(shared: tuple, item: tuple) -> BlockResult:
+    """Ray task body: one block of one render. `shared` = (token, scene), `item` = (time, block, threads)."""
+    token, scene = shared
+    time, block, threads = item
+    return render_block(_worker_integrator(token, scene, threads), time, block)
+
+
+def render_on_ray(pool: RayPool, scene, time: float, seed: int, spp: int, threads: int = 1,
+                  progress: Callable[[int, int], None] | None = None, should_stop: Callable[[], bool] | None = None,
+                  task: Callable = render_block_task) -> PassSum:
+    """The blocks of a render as tasks of `threads` CPUs each, folded in block order as they come
+    back (`progress(passes done, spp)` after each). On `should_stop` the rest is cancelled and the
+    sum holds the blocks folded so far. `task` is the task body (tests wrap it)."""
+    blocks: list[Block] = plan(seed, spp)
+    total = PassSum(blocks)
+    done = 0
+    items = [(float(time), b, int(threads)) for b in blocks]
+    results = pool.map(task, items, shared=(uuid.uuid4().hex, scene), num_cpus=threads)
+    try:
+        for _, result in results:
+            total.add(result)
+            done += result.spp
+            if progress is not None:
+                progress(done, spp)
+            if should_stop is not None and not total.complete and should_stop():
+                break
+    finally:
+        results.close()
+    return total
