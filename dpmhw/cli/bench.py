@@ -42,6 +42,7 @@ def bench_quality(
     dynamic_ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Override the dynamic references' spp.")] = None,
     dynamic_times: Annotated[Optional[str], typer.Option(help="Override the dynamic eval times, comma-separated seconds, e.g. 0.2,0.5.")] = None,
     threads: Annotated[int, typer.Option(min=1)] = 2,
+    ray: Annotated[Optional[str], typer.Option(metavar="ADDRESS", help="References and sweep units as Ray tasks: 'local' = this machine, or a cluster's address (docs/cluster.md).")] = None,
 ) -> None:
     """Speed against error: PSNR/SSIM against converged references for plain path tracing and
     temporal reuse (static table vs the paper's Table 1, dynamic per-frame error), with costs."""
@@ -50,6 +51,8 @@ def bench_quality(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
+    from dpmhw.cluster.ray_pool import connect
+    from dpmhw.errors import DpmhwError
 
     if part not in ("static", "dynamic", "all"):
         raise typer.BadParameter(f"--part must be static, dynamic or all, got {part!r}")
@@ -70,6 +73,11 @@ def bench_quality(
             raise typer.BadParameter(f"--dynamic-times: expected times ≥ 0, got {dynamic_times!r}")
         changes["dynamic_eval_times"] = times
     cfg = dataclasses.replace(cfg, **changes)
+    try:
+        pool = connect(ray)
+    except DpmhwError as exc:
+        typer.secho(f"error: {exc}", fg="red", err=True)
+        raise typer.Exit(2)
     with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   TimeRemainingColumn(), transient=True) as bar:
         tasks: dict[str, int] = {}
@@ -79,7 +87,11 @@ def bench_quality(
                 tasks[desc] = bar.add_task(desc, total=total)
             bar.update(tasks[desc], completed=done)
 
-        result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=progress)
+        try:
+            result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=progress, pool=pool)
+        finally:
+            if pool is not None:
+                pool.close()
     typer.echo(format_table(result))
     for f in result.get("files", []):
         typer.echo(f"wrote {f}")

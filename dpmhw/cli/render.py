@@ -39,6 +39,7 @@ def render(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     from dpmhw.cluster.passes import PASSES_PER_BLOCK, render_local
+    from dpmhw.cluster.ray_pool import connect
     from dpmhw.errors import DpmhwError
     from dpmhw.render.integrator import PathIntegrator
     from dpmhw.scene_file import load_scene
@@ -75,15 +76,11 @@ def render(
     if frames is not None:
         _render_sequence(scene, sc, out, out_dir, t * sc.render.fps, frames, spp, seed, settings, exposure, tonemap, threads)
         return
-    pool = None
-    if ray is not None:
-        from dpmhw.cluster.ray_pool import RayPool
-
-        try:
-            pool = RayPool(None if ray == "local" else ray)
-        except DpmhwError as exc:
-            typer.secho(f"error: {exc}", fg="red", err=True)
-            raise typer.Exit(2)
+    try:
+        pool = connect(ray)
+    except DpmhwError as exc:
+        typer.secho(f"error: {exc}", fg="red", err=True)
+        raise typer.Exit(2)
     stop = {"requested": False}
 
     def on_sigint(signum, _frame):

@@ -56,23 +56,35 @@ class RayPool:
     def cpus(self) -> int:
         return int(self._ray.cluster_resources().get("CPU", 0))
 
+    def submit(self, fn: Callable, item: Any, shared: Any = None, num_cpus: float = 1, max_retries: int = MAX_RETRIES):
+        """One task fn(shared, item); `shared` may be an ObjectRef from `put` (resolved on the worker)."""
+        return self._remote.options(num_cpus=num_cpus, max_retries=max_retries, retry_exceptions=False).remote(fn, shared, item)
+
+    def put(self, obj: Any):
+        return self._ray.put(obj)
+
+    def wait_one(self, pending: list) -> tuple[Any, Any, list]:
+        """(finished task, its result, the tasks still pending)."""
+        done, pending = self._ray.wait(pending, num_returns=1)
+        return done[0], self._ray.get(done[0]), pending
+
+    def cancel(self, pending: list) -> None:
+        for ref in pending:
+            self._ray.cancel(ref, force=False)
+
     def map(self, fn: Callable, items: Iterable, shared: Any = None, num_cpus: float = 1,
             max_retries: int = MAX_RETRIES) -> Iterator[tuple[int, Any]]:
         """(index of the item, fn(shared, item)) in order of completion. `shared` goes into the
         object store once for all tasks. Closing the iterator early cancels what is left."""
-        ray = self._ray
-        shared_ref = ray.put(shared)
-        remote = self._remote.options(num_cpus=num_cpus, max_retries=max_retries, retry_exceptions=False)
-        index = {remote.remote(fn, shared_ref, item): i for i, item in enumerate(items)}
+        shared_ref = self.put(shared)
+        index = {self.submit(fn, item, shared_ref, num_cpus, max_retries): i for i, item in enumerate(items)}
         pending = list(index)
         try:
             while pending:
-                done, pending = ray.wait(pending, num_returns=1)
-                for ref in done:
-                    yield index[ref], ray.get(ref)
+                ref, result, pending = self.wait_one(pending)
+                yield index[ref], result
         finally:
-            for ref in pending:
-                ray.cancel(ref, force=False)
+            self.cancel(pending)
 
     def close(self) -> None:
         if self._owned and self._ray.is_initialized():
@@ -84,6 +96,14 @@ class RayPool:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def connect(address: str | None) -> RayPool | None:
+    """The CLI's --ray ADDRESS: None (no --ray) → None; 'local' → a Ray instance on this
+    machine; anything else (ray://HOST:10001, HOST:6379, auto) → that cluster."""
+    if address is None:
+        return None
+    return RayPool(None if address == "local" else address)
 
 
 # ----------------------------------------------------------------------------------------------

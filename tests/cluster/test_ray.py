@@ -92,3 +92,31 @@ def test_relative_mesh_path_renders_on_a_worker_elsewhere_without_the_file(pool,
     assert os.path.realpath(cwd) != os.path.realpath(scene_file.parent) and not mesh_there
     remote = render_on_ray(pool, scene, TIME, 11, SPP, threads=1)
     assert np.array_equal(remote.radiance, local.radiance)
+
+
+def test_bench_quality_on_ray_matches_local_and_its_references_are_reused_locally(pool, tmp_path):
+    import dataclasses
+
+    from dpmhw.benchmarks.quality import QualityConfig, ReferenceCache, run_quality
+    from dpmhw.sequence import scaled_scene
+
+    cfg = dataclasses.replace(
+        QualityConfig.quick(), scale=1 / 32, ref_spp=PASSES_PER_BLOCK + 4, dynamic_ref_spp=4, static_spp=(1, 2), spp_repeats=1,
+        alphas=(0.5,), eval_frames=1, modes=("same-pixel",), dynamic_fps=(947.0, 60.0), dynamic_eval_times=(0.02, 0.04), threads=1)
+    on_ray = run_quality(cfg, cache_dir=tmp_path / "cluster-cache", pool=pool)
+    assert on_ray["references"]["rendered"] == 1 + 2 + 2 and on_ray["ray"]["address"] == "local"
+    assert [t["fps"] for t in on_ray["dynamic"]["timelines"]] == [947.0, 60.0]
+    # the same cache keys: a local run finds every reference the cluster rendered
+    local = run_quality(cfg, cache_dir=tmp_path / "cluster-cache")
+    assert local["references"]["rendered"] == 0 and local["references"]["cache_hits"] == 5
+
+    def psnrs(result):
+        return [r["psnr_samples"] for r in result["static"]["rows"]] + \
+               [r["psnr_samples"] for t in result["dynamic"]["timelines"] for r in t["rows"]]
+
+    assert psnrs(on_ray) == psnrs(local)
+    # and what the cluster rendered is what this machine renders for that key
+    scene = scaled_scene(load_scene(cfg.static_scene), cfg.scale)
+    here = ReferenceCache(tmp_path / "local-cache", threads=2).get(scene, cfg.static_scene, 0.0, cfg.ref_spp)
+    there = ReferenceCache(tmp_path / "cluster-cache").get(scene, cfg.static_scene, 0.0, cfg.ref_spp)
+    assert np.array_equal(here["radiance"], there["radiance"]) and np.array_equal(here["object_id"], there["object_id"])
