@@ -99,3 +99,39 @@ def bench_quality(
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(result, indent=2))
         typer.echo(f"wrote {json_path}")
+
+
+@bench_app.command("ray-scaling")
+def bench_ray_scaling(
+    scene: Annotated[str, typer.Argument(help="Scene file or built-in name.")] = "paper-static",
+    scale: Annotated[float, typer.Option(min=0.01, max=1.0, help="Resolution scale of the scene.")] = 0.5,
+    spp: Annotated[int, typer.Option(min=1)] = 64,
+    workers: Annotated[str, typer.Option(help="Comma-separated worker counts (local Ray CPUs) and thread counts.")] = "1,2",
+    repeats: Annotated[int, typer.Option(min=1)] = 3,
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
+    plot: Annotated[Optional[Path], typer.Option(help="Passes per second against workers, as PNG.")] = Path("ray-scaling.png"),
+) -> None:
+    """Wall time of one render in process and on local Ray at 1, 2, … workers (docs/cluster.md)."""
+    from dpmhw.cluster.ray_pool import import_ray
+    from dpmhw.cluster.scaling import format_table, plot as plot_png, run_scaling
+    from dpmhw.errors import DpmhwError
+
+    try:
+        counts = tuple(int(w) for w in workers.split(","))
+        import_ray()
+    except ValueError:
+        raise typer.BadParameter(f"--workers: expected comma-separated integers, got {workers!r}") from None
+    except DpmhwError as exc:
+        typer.secho(f"error: {exc}", fg="red", err=True)
+        raise typer.Exit(2)
+    if any(w < 1 for w in counts):
+        raise typer.BadParameter(f"--workers: expected counts ≥ 1, got {workers!r}")
+    result = run_scaling(scene, scale=scale, spp=spp, workers=counts, repeats=repeats,
+                         progress=lambda desc, done, total: typer.echo(f"[{done}/{total}] {desc}", err=True))
+    typer.echo(format_table(result))
+    if plot is not None:
+        typer.echo(f"wrote {plot_png(result, plot)}")
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(result, indent=2))
+        typer.echo(f"wrote {json_path}")

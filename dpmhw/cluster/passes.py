@@ -42,7 +42,8 @@ class BlockResult:
     radiance: np.ndarray  # (H, W, 3) float32: this block's mean
     nonfinite_samples: int
     object_id: np.ndarray | None  # block 0 only: the G-buffer comes from the render's own seed
-    seconds: float
+    seconds: float  # wall time
+    cpu_seconds: float  # CPU time of the process that rendered it, all its threads
 
 
 def block_seed(seed: int, index: int) -> int:
@@ -62,10 +63,11 @@ def plan(seed: int, spp: int, block_passes: int = PASSES_PER_BLOCK) -> list[Bloc
 
 def render_block(integrator, time: float, block: Block, progress: Callable[[int, int], None] | None = None,
                  should_stop: Callable[[], bool] | None = None) -> BlockResult:
-    started = _time.perf_counter()
+    started, cpu = _time.perf_counter(), _time.process_time()
     frame = integrator.render(time=time, seed=block.seed, spp=block.passes, progress=progress, should_stop=should_stop)
     return BlockResult(block.index, frame.spp, frame.radiance, frame.nonfinite_samples,
-                       frame.object_id if block.index == 0 else None, _time.perf_counter() - started)
+                       frame.object_id if block.index == 0 else None, _time.perf_counter() - started,
+                       _time.process_time() - cpu)
 
 
 class PassSum:
@@ -78,6 +80,7 @@ class PassSum:
         self.nonfinite_samples = 0
         self.object_id: np.ndarray | None = None
         self.block_seconds: list[float] = []
+        self.block_cpu_seconds: list[float] = []
         self._acc: np.ndarray | None = None
         self._waiting: dict[int, BlockResult] = {}
         self._next = 0
@@ -101,6 +104,7 @@ class PassSum:
             self.spp += r.spp
             self.nonfinite_samples += r.nonfinite_samples
             self.block_seconds.append(r.seconds)
+            self.block_cpu_seconds.append(r.cpu_seconds)
             if r.index == 0:
                 self.object_id = r.object_id
             self._next += 1

@@ -51,6 +51,7 @@ class RayPool:
             self._owned = True
         self._ray = ray
         self._remote = ray.remote(_call)
+        self._largest_node = 0.0  # CPUs of the largest node, looked up when a task needs more
 
     @property
     def cpus(self) -> int:
@@ -58,6 +59,11 @@ class RayPool:
 
     def submit(self, fn: Callable, item: Any, shared: Any = None, num_cpus: float = 1, max_retries: int = MAX_RETRIES):
         """One task fn(shared, item); `shared` may be an ObjectRef from `put` (resolved on the worker)."""
+        if num_cpus > self._largest_node:  # look again (nodes may have joined); Ray would queue it forever
+            self._largest_node = max((n["Resources"].get("CPU", 0) for n in self._ray.nodes() if n["Alive"]), default=0)
+            if num_cpus > self._largest_node:
+                raise ClusterError(f"--threads {num_cpus:g}: a task needs that many CPUs on one node, and the largest "
+                                   f"node of this cluster has {self._largest_node:g}")
         return self._remote.options(num_cpus=num_cpus, max_retries=max_retries, retry_exceptions=False).remote(fn, shared, item)
 
     def put(self, obj: Any):
@@ -112,13 +118,23 @@ def connect(address: str | None) -> RayPool | None:
 _integrators: dict = {}  # per worker process: the integrator of the render it last worked on
 
 
-def _worker_integrator(token: str, scene, threads: int):
+def _renderer_digest() -> str:
+    from dpmhw.benchmarks.quality import renderer_digest  # the digest that also keys cached references
+
+    return renderer_digest()
+
+
+def _worker_integrator(token: str, scene, threads: int, renderer: str):
     """Reuse the BVHs, caches and compiled kernels across the blocks of one render; a worker
-    keeps one integrator at a time, so memory stays bounded however many renders it serves."""
+    keeps one integrator at a time, so memory stays bounded however many renders it serves.
+    A worker whose renderer source differs from the driver's would give another image: refused."""
     from dpmhw.render.integrator import PathIntegrator
 
     key = (token, threads)
     if key not in _integrators:
+        if _renderer_digest() != renderer:
+            raise ClusterError(f"a worker's renderer ({_renderer_digest()}) differs from the driver's ({renderer}): "
+                               "install the same dpmhw on every node")
         for old in _integrators.values():
             old.close()
         _integrators.clear()
@@ -127,10 +143,11 @@ def _worker_integrator(token: str, scene, threads: int):
 
 
 def render_block_task(shared: tuple, item: tuple) -> BlockResult:
-    """Ray task body: one block of one render. `shared` = (token, scene), `item` = (time, block, threads)."""
-    token, scene = shared
+    """Ray task body: one block of one render. `shared` = (token, scene, renderer digest),
+    `item` = (time, block, threads)."""
+    token, scene, renderer = shared
     time, block, threads = item
-    return render_block(_worker_integrator(token, scene, threads), time, block)
+    return render_block(_worker_integrator(token, scene, threads, renderer), time, block)
 
 
 def render_on_ray(pool: RayPool, scene, time: float, seed: int, spp: int, threads: int = 1,
@@ -143,7 +160,7 @@ def render_on_ray(pool: RayPool, scene, time: float, seed: int, spp: int, thread
     total = PassSum(blocks)
     done = 0
     items = [(float(time), b, int(threads)) for b in blocks]
-    results = pool.map(task, items, shared=(uuid.uuid4().hex, scene), num_cpus=threads)
+    results = pool.map(task, items, shared=(uuid.uuid4().hex, scene, _renderer_digest()), num_cpus=threads)
     try:
         for _, result in results:
             total.add(result)

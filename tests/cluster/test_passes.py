@@ -53,8 +53,26 @@ def test_a_gap_holds_later_blocks_back():
     blocks = plan(0, 24)
     total = PassSum(blocks)
     one = np.ones((2, 2, 3), np.float32)
-    total.add(BlockResult(1, 8, one, 0, None, 0.0))
+    total.add(BlockResult(1, 8, one, 0, None, 0.0, 0.0))
     assert total.folded_blocks == 0 and total.spp == 0
-    total.add(BlockResult(0, 8, 3 * one, 0, np.zeros((2, 2), np.int32), 0.0))
+    total.add(BlockResult(0, 8, 3 * one, 0, np.zeros((2, 2), np.int32), 0.0, 0.0))
     assert total.folded_blocks == 2 and total.spp == 16
     assert np.array_equal(total.radiance, 2 * one)
+
+
+@pytest.mark.parametrize("command", [["render", "--spp", "2"], ["bench", "quality"]])
+def test_ray_option_without_ray_says_how_to_install_it(command, scene_file, tmp_path, monkeypatch):
+    import sys
+
+    from typer.testing import CliRunner
+
+    from dpmhw.cli import _register, app
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if the cluster extra were not installed
+    _register()
+    args = [command[0], str(scene_file), *command[1:]] if command[0] == "render" else command
+    result = CliRunner().invoke(app, [*args, "--out" if command[0] == "render" else "--cache-dir", str(tmp_path / "x.npy"),
+                                      "--ray", "local"])
+    assert result.exit_code == 2, result.output
+    assert "pip install 'dpmhw[cluster]'" in result.output
+    assert not (tmp_path / "x.npy").exists()

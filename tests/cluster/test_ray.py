@@ -120,3 +120,21 @@ def test_bench_quality_on_ray_matches_local_and_its_references_are_reused_locall
     here = ReferenceCache(tmp_path / "local-cache", threads=2).get(scene, cfg.static_scene, 0.0, cfg.ref_spp)
     there = ReferenceCache(tmp_path / "cluster-cache").get(scene, cfg.static_scene, 0.0, cfg.ref_spp)
     assert np.array_equal(here["radiance"], there["radiance"]) and np.array_equal(here["object_id"], there["object_id"])
+
+
+def test_a_worker_with_another_renderer_is_refused(pool, scene):
+    from dpmhw.cluster import ClusterError
+
+    def as_if_another_version(shared, item):
+        token, scene, _ = shared
+        return render_block_task((token, scene, "0123456789abcdef"), item)
+
+    with pytest.raises(ClusterError, match="differs from the driver's"):
+        render_on_ray(pool, scene, TIME, 11, SPP, threads=1, task=as_if_another_version)
+
+
+def test_more_threads_than_any_node_has_is_an_error_not_a_hang(pool, scene):
+    from dpmhw.cluster import ClusterError
+
+    with pytest.raises(ClusterError, match="--threads 3"):
+        render_on_ray(pool, scene, TIME, 11, SPP, threads=3)
