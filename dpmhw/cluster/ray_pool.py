@@ -47,7 +47,9 @@ class RayPool:
                 else:
                     ray.init(address=self.address, log_to_driver=False)
             except ConnectionError as exc:
-                raise ClusterError(f"cannot reach the Ray cluster at {self.address}: {exc}") from None
+                raise ClusterError(f"cannot reach the Ray cluster at {self.address}: {exc} (a cluster with token "
+                                   "authentication, Ray's default since 2.59, also needs RAY_AUTH_MODE=token here and its "
+                                   "~/.ray/auth_token: docs/cluster.md)") from None
             self._owned = True
         self._ray = ray
         self._remote = ray.remote(_call)
