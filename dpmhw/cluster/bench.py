@@ -55,7 +55,10 @@ def run_units_on_ray(pool, units: list[QualityConfig], cache: ReferenceCache, pr
     rendered over `pool` as blocks of passes while the other units keep running)."""
     known: list[dict] = [{} for _ in units]
     outcomes: list = [None] * len(units)
-    submit = lambda i: pool.submit(run_unit_task, (units[i], known[i], cache.renderer), num_cpus=units[i].threads)  # noqa: E731
+
+    def submit(i: int):
+        return pool.submit(run_unit_task, (units[i], known[i], cache.renderer), num_cpus=units[i].threads)
+
     index = {submit(i): i for i in range(len(units))}
     pending = list(index)
     try:

@@ -134,8 +134,9 @@ def _worker_integrator(token: str, scene, threads: int, renderer: str):
 
     key = (token, threads)
     if key not in _integrators:
-        if _renderer_digest() != renderer:
-            raise ClusterError(f"a worker's renderer ({_renderer_digest()}) differs from the driver's ({renderer}): "
+        mine = _renderer_digest()
+        if mine != renderer:
+            raise ClusterError(f"a worker's renderer ({mine}) differs from the driver's ({renderer}): "
                                "install the same dpmhw on every node")
         for old in _integrators.values():
             old.close()
