@@ -43,7 +43,8 @@ class RayPool:
         if not ray.is_initialized():
             try:
                 if self.address is None:
-                    ray.init(num_cpus=local_cpus, include_dashboard=False, log_to_driver=False)
+                    # "local": a new instance, even on a machine that has joined a cluster with `ray start`
+                    ray.init(address="local", num_cpus=local_cpus, include_dashboard=False, log_to_driver=False)
                 else:
                     ray.init(address=self.address, log_to_driver=False)
             except ConnectionError as exc:
