@@ -99,14 +99,15 @@ def render(
             where = "" if pool is None else f" on Ray ({pool.cpus} CPUs)"
             task = bar.add_task(f"rendering {sc.render.width}×{sc.render.height}{where}", total=spp)
             on_pass = lambda done, total: bar.update(task, completed=done)  # noqa: E731
+            options: dict = {}  # PathIntegrator keyword arguments: the same here and on every worker
             if pool is None:
-                with PathIntegrator(sc, threads=threads) as integrator:
+                with PathIntegrator(sc, threads=threads, **options) as integrator:
                     result = render_local(integrator, t, seed, spp, progress=on_pass, should_stop=lambda: stop["requested"])
             else:
                 from dpmhw.cluster.ray_pool import render_on_ray
 
                 result = render_on_ray(pool, sc, t, seed, spp, threads=threads, progress=on_pass,
-                                       should_stop=lambda: stop["requested"])
+                                       should_stop=lambda: stop["requested"], integrator_options=options)
     finally:
         signal.signal(signal.SIGINT, previous)
         if pool is not None:

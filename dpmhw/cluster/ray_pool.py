@@ -127,13 +127,13 @@ def _renderer_digest() -> str:
     return renderer_digest()
 
 
-def _worker_integrator(token: str, scene, threads: int, renderer: str):
+def _worker_integrator(token: str, scene, threads: int, options: dict, renderer: str):
     """Reuse the BVHs, caches and compiled kernels across the blocks of one render; a worker
     keeps one integrator at a time, so memory stays bounded however many renders it serves.
     A worker whose renderer source differs from the driver's would give another image: refused."""
     from dpmhw.render.integrator import PathIntegrator
 
-    key = (token, threads)
+    key = (token, threads, tuple(sorted(options.items())))
     if key not in _integrators:
         mine = _renderer_digest()
         if mine != renderer:
@@ -142,28 +142,29 @@ def _worker_integrator(token: str, scene, threads: int, renderer: str):
         for old in _integrators.values():
             old.close()
         _integrators.clear()
-        _integrators[key] = PathIntegrator(scene, threads=threads)
+        _integrators[key] = PathIntegrator(scene, threads=threads, **options)
     return _integrators[key]
 
 
 def render_block_task(shared: tuple, item: tuple) -> BlockResult:
     """Ray task body: one block of one render. `shared` = (token, scene, renderer digest),
-    `item` = (time, block, threads)."""
+    `item` = (time, block, threads, integrator options)."""
     token, scene, renderer = shared
-    time, block, threads = item
-    return render_block(_worker_integrator(token, scene, threads, renderer), time, block)
+    time, block, threads, options = item
+    return render_block(_worker_integrator(token, scene, threads, options, renderer), time, block)
 
 
 def render_on_ray(pool: RayPool, scene, time: float, seed: int, spp: int, threads: int = 1,
                   progress: Callable[[int, int], None] | None = None, should_stop: Callable[[], bool] | None = None,
-                  task: Callable = render_block_task) -> PassSum:
+                  task: Callable = render_block_task, integrator_options: dict | None = None) -> PassSum:
     """The blocks of a render as tasks of `threads` CPUs each, folded in block order as they come
     back (`progress(passes done, spp)` after each). On `should_stop` the rest is cancelled and the
-    sum holds the blocks folded so far. `task` is the task body (tests wrap it)."""
+    sum holds the blocks folded so far. `task` is the task body (tests wrap it);
+    `integrator_options` go to every worker's PathIntegrator, as they must to the local one's."""
     blocks: list[Block] = plan(seed, spp)
     total = PassSum(blocks)
     done = 0
-    items = [(float(time), b, int(threads)) for b in blocks]
+    items = [(float(time), b, int(threads), dict(integrator_options or {})) for b in blocks]
     results = pool.map(task, items, shared=(uuid.uuid4().hex, scene, _renderer_digest()), num_cpus=threads)
     try:
         for _, result in results:

@@ -66,7 +66,7 @@ def test_a_killed_worker_is_replaced_and_the_image_is_still_exact(pool, scene, t
     marker = str(tmp_path / "killed-once")
 
     def dies_on_first_attempt(shared, item):
-        _, block, _ = item
+        block = item[1]
         if block.index == 1 and not os.path.exists(marker):
             with open(marker, "w") as f:
                 f.write(str(os.getpid()))
@@ -138,3 +138,12 @@ def test_more_threads_than_any_node_has_is_an_error_not_a_hang(pool, scene):
 
     with pytest.raises(ClusterError, match="--threads 3"):
         render_on_ray(pool, scene, TIME, 11, SPP, threads=3)
+
+
+def test_integrator_options_reach_every_worker(pool, scene):
+    options = {"mis_last": False}  # a PathIntegrator keyword that changes the image of this glossy scene
+    with PathIntegrator(scene, threads=2, **options) as integ:
+        local = render_local(integ, TIME, 11, SPP)
+    remote = render_on_ray(pool, scene, TIME, 11, SPP, threads=1, integrator_options=options)
+    assert np.array_equal(remote.radiance, local.radiance)
+    assert not np.array_equal(remote.radiance, _local(scene).radiance)
