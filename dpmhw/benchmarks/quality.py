@@ -35,13 +35,14 @@ import math
 import os
 import platform
 import time as _time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from dpmhw import __version__
+from dpmhw.cluster.passes import render_passes
 from dpmhw.metrics import equivalent_spp, psnr, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.render.integrator import PathIntegrator
@@ -124,33 +125,34 @@ def default_cache_dir() -> Path:
 
 
 class ReferenceCache:
-    def __init__(self, cache_dir: Path | None = None, threads: int = 2, progress: Callable | None = None):
+    """References on disk. Rendered as blocks of passes (dpmhw.cluster.passes), here or, with a
+    RayPool as `pool`, as Ray tasks: the same image either way, so the key ignores where."""
+
+    def __init__(self, cache_dir: Path | None = None, threads: int = 2, progress: Callable | None = None, pool=None):
         self.dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
         self.threads = threads
         self.progress = progress  # progress(description, done, total)
+        self.pool = pool
         self.renderer = renderer_digest()
         self.rendered = 0
         self.hits = 0
 
+    def key(self, scene: Scene, time: float, spp: int, seed: int) -> tuple[str, dict]:
+        key_fields = dict(scene=scene_digest(scene), time=repr(float(time)), spp=int(spp), seed=int(seed), renderer=self.renderer)
+        return hashlib.sha256(json.dumps(key_fields, sort_keys=True).encode()).hexdigest()[:24], key_fields
+
     def get(self, scene: Scene, scene_name: str, time: float, spp: int, seed: int = REFERENCE_SEED, integrator=None) -> dict:
         """{"radiance": (H, W, 3) float32, "object_id": (H, W) int32} of a converged render."""
-        key_fields = dict(scene=scene_digest(scene), time=repr(float(time)), spp=int(spp), seed=int(seed), renderer=self.renderer)
-        key = hashlib.sha256(json.dumps(key_fields, sort_keys=True).encode()).hexdigest()[:24]
+        key, key_fields = self.key(scene, time, spp, seed)
         path = self.dir / f"{key}.npz"
         if path.exists():
             self.hits += 1
             with np.load(path) as data:
                 return {"radiance": data["radiance"], "object_id": data["object_id"]}
         desc = f"reference {scene_name} t={time:.4f}s {scene.render.width}×{scene.render.height} {spp} spp"
-        own = integrator is None
-        integ = PathIntegrator(scene, threads=self.threads) if own else integrator
-        try:
-            started = _time.perf_counter()
-            frame = integ.render(time=time, seed=seed, spp=spp,
-                                 progress=(lambda d, t: self.progress(desc, d, t)) if self.progress else None)
-        finally:
-            if own:
-                integ.close()
+        started = _time.perf_counter()
+        frame = render_passes(scene, time, seed, spp, integrator=integrator, pool=self.pool, threads=self.threads,
+                              progress=(lambda d, t: self.progress(desc, d, t)) if self.progress else None)
         self.dir.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.stem + ".partial.npz")
         np.savez(tmp, radiance=frame.radiance.astype(np.float32), object_id=frame.object_id)
@@ -357,9 +359,36 @@ def run_dynamic(cfg: QualityConfig, cache: ReferenceCache, progress: Callable, i
 PAPER_TABLE1 = [("1 spp", 22.29, 0.61), ("1 spp + temporal reuse (α = 0.2)", 31.66, 0.79), ("9 spp", 31.67, 0.79)]
 
 
-def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path | None = None, progress: Callable | None = None) -> dict:
+def sweep_units(cfg: QualityConfig) -> list[QualityConfig]:
+    """The independent parts of a run (the static part, each dynamic timeline, the native rows): tasks with --ray."""
+    units = [replace(cfg, parts=("static",))] if "static" in cfg.parts else []
+    if "dynamic" in cfg.parts:
+        units += [replace(cfg, parts=("dynamic",), dynamic_fps=(fps,)) for fps in cfg.dynamic_fps]
+    if "native" in cfg.parts:
+        units.append(replace(cfg, parts=("native",)))
+    return units
+
+
+def run_unit(unit: QualityConfig, cache: ReferenceCache, progress: Callable) -> tuple[dict, dict]:
+    """(result parts, images) of one sweep unit."""
+    out, images = {}, {}
+    if "static" in unit.parts:
+        out["static"] = run_static(unit, cache, progress, images)
+    if "dynamic" in unit.parts:
+        out["dynamic"] = run_dynamic(unit, cache, progress, images)
+    if "native" in unit.parts:
+        from dpmhw.benchmarks.native_quality import run_native
+
+        out["native"] = run_native(unit, cache, progress, images)
+    return out, images
+
+
+def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path | None = None, progress: Callable | None = None,
+                pool=None) -> dict:
+    """`pool`: a dpmhw.cluster RayPool; references then render as blocks of passes and the sweep
+    units run as Ray tasks (their ms are the workers')."""
     progress = progress or (lambda desc, done, total: None)
-    cache = ReferenceCache(cache_dir, threads=cfg.threads, progress=progress)
+    cache = ReferenceCache(cache_dir, threads=cfg.threads, progress=progress, pool=pool)
     started = _time.perf_counter()
     load0 = os.getloadavg()
     images: dict = {}
@@ -367,15 +396,24 @@ def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path
                   machine=dict(cpus=os.cpu_count(), python=platform.python_version(), processor=platform.processor() or platform.machine()),
                   metrics="PSNR on uint8 sRGB (exposure 1, clip), all channels; SSIM Wang et al. 2004 on Rec.601 luma, 11×11 Gaussian σ=1.5, K1=0.01, K2=0.03, data range 255",
                   paper_table1=[dict(label=l, psnr=p, ssim=s) for l, p, s in PAPER_TABLE1])
-    if "static" in cfg.parts:
-        result["static"] = run_static(cfg, cache, progress, images)
-    if "dynamic" in cfg.parts:
-        result["dynamic"] = run_dynamic(cfg, cache, progress, images)
-    if "native" in cfg.parts:
-        from dpmhw.benchmarks.native_quality import run_native
+    if pool is None:
+        outcomes = [run_unit(u, cache, progress) for u in sweep_units(cfg)]
+    else:
+        from dpmhw.cluster.bench import run_units_on_ray
 
-        result["native"] = run_native(cfg, cache, progress, images)
+        outcomes = run_units_on_ray(pool, sweep_units(cfg), cache, progress)
+    for out, imgs in outcomes:  # the dynamic timelines come back one unit each
+        if "dynamic" in out and "dynamic" in result:
+            result["dynamic"]["timelines"] += out.pop("dynamic")["timelines"]
+        result.update(out)
+        for name, img in imgs.items():
+            if name == "dynamic":
+                images.setdefault("dynamic", {}).update(img)
+            else:
+                images[name] = img
     result["references"] = dict(cache_dir=str(cache.dir), rendered=cache.rendered, cache_hits=cache.hits)
+    if pool is not None:
+        result["ray"] = dict(address=pool.address or "local", cpus=pool.cpus)
     result["seconds"] = round(_time.perf_counter() - started, 1)
     result["loadavg_start_end"] = [list(load0), list(os.getloadavg())]
     if out_dir is not None:

@@ -44,6 +44,7 @@ def bench_quality(
     dynamic_ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Override the dynamic references' spp.")] = None,
     dynamic_times: Annotated[Optional[str], typer.Option(help="Override the dynamic eval times, comma-separated seconds, e.g. 0.2,0.5.")] = None,
     threads: Annotated[int, typer.Option(min=1)] = 2,
+    ray: Annotated[Optional[str], typer.Option(metavar="ADDRESS", help="References and sweep units as Ray tasks: 'local' = this machine, or a cluster's address (docs/cluster.md).")] = None,
 ) -> None:
     """Speed against error: PSNR/SSIM against converged references for plain path tracing and
     temporal reuse (static table vs the paper's Table 1, dynamic per-frame error), and native
@@ -51,6 +52,8 @@ def bench_quality(
     import dataclasses
 
     from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
+    from dpmhw.cluster.ray_pool import connect
+    from dpmhw.errors import DpmhwError
 
     cfg = QualityConfig.quick() if quick else QualityConfig()
     changes = dict(threads=threads, parts=("static", "dynamic", "native") if part.value == "all" else (part.value,))
@@ -69,8 +72,17 @@ def bench_quality(
             raise typer.BadParameter(f"--dynamic-times: expected times ≥ 0, got {dynamic_times!r}")
         changes["dynamic_eval_times"] = times
     cfg = dataclasses.replace(cfg, **changes)
-    with Progress() as bar:
-        result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=bar.callback)
+    try:
+        pool = connect(ray)
+    except DpmhwError as exc:
+        typer.secho(f"error: {exc}", fg="red", err=True)
+        raise typer.Exit(2)
+    try:
+        with Progress() as bar:
+            result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=bar.callback, pool=pool)
+    finally:
+        if pool is not None:
+            pool.close()
     typer.echo(format_table(result))
     for f in result.get("files", []):
         typer.echo(f"wrote {f}")
@@ -123,4 +135,40 @@ def bench_lod(
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(result["rows"], indent=2))
+        typer.echo(f"wrote {json_path}")
+
+
+@bench_app.command("ray-scaling")
+def bench_ray_scaling(
+    scene: Annotated[str, typer.Argument(help="Scene file or built-in name.")] = "paper-static",
+    scale: Annotated[float, typer.Option(min=0.01, max=1.0, help="Resolution scale of the scene.")] = 0.5,
+    spp: Annotated[int, typer.Option(min=1)] = 64,
+    workers: Annotated[str, typer.Option(help="Comma-separated worker counts (local Ray CPUs) and thread counts.")] = "1,2",
+    repeats: Annotated[int, typer.Option(min=1)] = 3,
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
+    plot: Annotated[Optional[Path], typer.Option(help="Passes per second against workers, as PNG.")] = Path("ray-scaling.png"),
+) -> None:
+    """Wall time of one render in process and on local Ray at 1, 2, … workers (docs/cluster.md)."""
+    from dpmhw.cluster.ray_pool import import_ray
+    from dpmhw.cluster.scaling import format_table, plot as plot_png, run_scaling
+    from dpmhw.errors import DpmhwError
+
+    try:
+        counts = tuple(int(w) for w in workers.split(","))
+        import_ray()
+    except ValueError:
+        raise typer.BadParameter(f"--workers: expected comma-separated integers, got {workers!r}") from None
+    except DpmhwError as exc:
+        typer.secho(f"error: {exc}", fg="red", err=True)
+        raise typer.Exit(2)
+    if any(w < 1 for w in counts):
+        raise typer.BadParameter(f"--workers: expected counts ≥ 1, got {workers!r}")
+    result = run_scaling(scene, scale=scale, spp=spp, workers=counts, repeats=repeats,
+                         progress=lambda desc, done, total: typer.echo(f"[{done}/{total}] {desc}", err=True))
+    typer.echo(format_table(result))
+    if plot is not None:
+        typer.echo(f"wrote {plot_png(result, plot)}")
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(result, indent=2))
         typer.echo(f"wrote {json_path}")

@@ -35,9 +35,12 @@ def render(
     out_dir: Annotated[Optional[Path], typer.Option(help="With --frames: write every frame here as frame_00000.png (or the suffix of --out), and the parameters as frames.json.")] = None,
     tonemap: Annotated[Tonemap, typer.Option(help="Tone-mapping operator for .png output.")] = Tonemap("clip"),
     pixel_sampling: Annotated[PixelSampling, typer.Option(help="Single frame: jitter (converges to the pixel integral) or centre (pixel centres).")] = PixelSampling("jitter"),
+    ray: Annotated[Optional[str], typer.Option(metavar="ADDRESS", help="Render the passes as Ray tasks (same image, bit for bit): 'local' = a Ray instance on this machine, or a cluster's ray://HOST:10001 / HOST:6379 / auto (docs/cluster.md).")] = None,
 ) -> None:
     """Render one frame, or K frames through temporal reuse. Ctrl-C stops after the current pass
     (or frame) and still writes what is finished."""
+    from dpmhw.cluster.passes import PASSES_PER_BLOCK, render_local
+    from dpmhw.cluster.ray_pool import connect
     from dpmhw.errors import DpmhwError
     from dpmhw.render.integrator import PathIntegrator
     from dpmhw.scene_file import load_scene
@@ -58,6 +61,8 @@ def render(
             raise typer.BadParameter(str(exc).removeprefix("alpha: "), param_hint="--alpha") from None
     elif out_dir is not None or split_screen or warmup:
         raise typer.BadParameter("--out-dir, --split-screen and --warmup need --frames")
+    if frames is not None and ray is not None:
+        raise typer.BadParameter("--ray renders one frame's passes; a --frames sequence is sequential (temporal reuse)")
     spp = spp if spp is not None else (1 if frames is not None else 16)
     try:
         sc = load_scene(scene, mesh_override=mesh)
@@ -70,6 +75,11 @@ def render(
     if frames is not None:
         _render_sequence(scene, sc, out, out_dir, t * sc.render.fps, frames, spp, seed, settings, exposure, tonemap, threads)
         return
+    try:
+        pool = connect(ray)
+    except DpmhwError as exc:
+        typer.secho(f"error: {exc}", fg="red", err=True)
+        raise typer.Exit(2)
     stop = {"requested": False}
 
     def on_sigint(signum, _frame):
@@ -81,21 +91,30 @@ def render(
     previous = signal.signal(signal.SIGINT, on_sigint)
     started = _time.perf_counter()
     try:
-        with PathIntegrator(sc, threads=threads, pixel_sampling=pixel_sampling.value) as integrator, Progress() as bar:
-            task = bar.task(f"rendering {sc.render.width}×{sc.render.height}, passes", total=spp)
-            result = integrator.render(
-                time=t, seed=seed, spp=spp,
-                progress=lambda done, total: task.update(done, total),
-                should_stop=lambda: stop["requested"],
-            )
+        with Progress() as bar:
+            where = "" if pool is None else f" on Ray ({pool.cpus} CPUs)"
+            task = bar.task(f"rendering {sc.render.width}×{sc.render.height}{where}, passes", total=spp)
+            on_pass = lambda done, total: task.update(done, total)  # noqa: E731
+            options = {"pixel_sampling": pixel_sampling.value}  # PathIntegrator keyword arguments: the same here and on every worker
+            if pool is None:
+                with PathIntegrator(sc, threads=threads, **options) as integrator:
+                    result = render_local(integrator, t, seed, spp, progress=on_pass, should_stop=lambda: stop["requested"])
+            else:
+                from dpmhw.cluster.ray_pool import render_on_ray
+
+                result = render_on_ray(pool, sc, t, seed, spp, threads=threads, progress=on_pass,
+                                       should_stop=lambda: stop["requested"], integrator_options=options)
     finally:
         signal.signal(signal.SIGINT, previous)
+        if pool is not None:
+            pool.close()
     elapsed = _time.perf_counter() - started
     _write(out, result.radiance, exposure, tonemap)
     meta = {
         "scene": str(scene), "spp": result.spp, "spp_requested": spp, "seed": seed, "time": t,
         "width": sc.render.width, "height": sc.render.height, "max_bounces": sc.render.max_bounces,
         "nonfinite_samples": result.nonfinite_samples, "seconds": round(elapsed, 3), "notes": sc.notes,
+        "passes_per_block": PASSES_PER_BLOCK, "ray": ray,
     }
     out.with_name(out.name + ".json").write_text(json.dumps(meta, indent=2))
     typer.echo(f"wrote {out} ({result.spp}/{spp} spp, t = {t:.6f} s, {elapsed:.1f} s)")
