@@ -101,7 +101,7 @@ def test_bench_quality_on_ray_matches_local_and_its_references_are_reused_locall
     from dpmhw.sequence import scaled_scene
 
     cfg = dataclasses.replace(
-        QualityConfig.quick(), scale=1 / 32, ref_spp=PASSES_PER_BLOCK + 4, dynamic_ref_spp=4, static_spp=(1, 2), spp_repeats=1,
+        QualityConfig.quick(), parts=("static", "dynamic"), scale=1 / 32, ref_spp=PASSES_PER_BLOCK + 4, dynamic_ref_spp=4, static_spp=(1, 2), spp_repeats=1,
         alphas=(0.5,), eval_frames=1, modes=("same-pixel",), dynamic_fps=(947.0, 60.0), dynamic_eval_times=(0.02, 0.04), threads=1)
     on_ray = run_quality(cfg, cache_dir=tmp_path / "cluster-cache", pool=pool)
     assert on_ray["references"]["rendered"] == 1 + 2 + 2 and on_ray["ray"]["address"] == "local"
