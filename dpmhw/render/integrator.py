@@ -18,6 +18,7 @@ from typing import Callable
 import numpy as np
 
 from dpmhw.errors import RenderError
+from dpmhw.limits import render_memory_problem
 from dpmhw.render import kernels
 from dpmhw.render.accel import Hits, empty_hits
 from dpmhw.render.cameras import PinholeCamera
@@ -51,6 +52,9 @@ class PathIntegrator:
     shading and its Embree queries by one thread)."""
 
     def __init__(self, scene: Scene, threads: int = 2, mis_last: bool | None = None):
+        problem = render_memory_problem(scene.render.width, scene.render.height)  # before any allocation
+        if problem is not None:
+            raise RenderError(problem)
         self.scene = scene
         self.geometry = SceneGeometry(scene, threads=threads)
         self.threads = max(1, int(threads))
