@@ -123,6 +123,12 @@ class NatNetClient(ReceiverTracker):
 
     # -- names ---------------------------------------------------------------------------------
 
+    @property
+    def local_address(self) -> tuple[str, int] | None:
+        """(host, port) of the command socket (where unicast frames arrive); None when closed."""
+        sock = self._cmd
+        return None if sock is None else sock.getsockname()[:2]
+
     def rigid_body_names(self) -> dict[int, str]:
         return self.models.rigid_body_names()
 
