@@ -60,7 +60,7 @@ FAULT_KINDS = ("tracker_stall", "tracker_restart", "corrupt_datagrams", "foreign
                "implausible_burst", "usb_stall", "usb_unplug", "api_load")
 TRACKER_KINDS = ("tracker_stall", "tracker_restart", "implausible_burst")
 _WRONG_POSE_M = 0.5  # a lit frame whose pose is this far from the truth showed an implausible pose
-ATTRIBUTE_S = 1.5  # a dark spell starting later than this after a fault's end is not that fault's
+ATTRIBUTE_S = 1.0  # a dark spell starting later than this after a fault's end is not that fault's
 
 
 def _rss_mb() -> float:
