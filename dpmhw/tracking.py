@@ -228,9 +228,12 @@ class ClockMapping:
     clock really jumped, and the mapping restarts from them. Evidence above the minimum cannot
     lower it and needs no check (a device clock that jumps back is followed when the window
     slides past the old evidence, or at once after a reconnect, which resets the mapping).
+    The tolerance bounds the harm one corrupt stamp can do (stamps early by at most 10 ms for one
+    window, against a 50 ms stale limit) and is above a USB-serial adapter's delivery jitter, so
+    genuine evidence is held back only when the transit really changed (then for 2 samples).
     """
 
-    def __init__(self, window_s: float = 2.0, *, jump_tolerance_s: float = 0.05, confirm: int = 3):
+    def __init__(self, window_s: float = 2.0, *, jump_tolerance_s: float = 0.01, confirm: int = 3):
         if confirm < 1:
             raise ValueError(f"confirm must be >= 1, got {confirm}")
         self._window_ns = int(window_s * 1e9)
