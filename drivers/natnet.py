@@ -251,13 +251,12 @@ class NatNetClient(ReceiverTracker):
         if host == self._server_ip:
             return True
         self.foreign_datagrams += 1
-        if host in self.foreign_senders or len(self.foreign_senders) < _FOREIGN_SENDERS_KEPT:
-            if host not in self.foreign_senders:
-                log.warning("natnet: ignoring datagrams from %s (only the server %s is accepted); further ones "
-                            "are counted in status().details['foreign_senders']", host, self._server_ip)
-            self.foreign_senders[host] += 1
-        else:
-            self.foreign_senders["other"] += 1
+        if host not in self.foreign_senders and len(self.foreign_senders) >= _FOREIGN_SENDERS_KEPT:
+            host = "other"
+        if host not in self.foreign_senders:
+            log.warning("natnet: ignoring datagrams from %s (only the server %s is accepted); further ones "
+                        "are counted in status().details['foreign_senders']", host, self._server_ip)
+        self.foreign_senders[host] += 1
         return False
 
     def _recv(self, sock: socket.socket, flags: int = 0) -> bytes | None:
