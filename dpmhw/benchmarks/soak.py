@@ -52,7 +52,7 @@ import numpy as np
 from dpmhw.session.config import load_session_config
 from dpmhw.tracking import wait_for
 
-__all__ = ["FAULT_KINDS", "format_table", "run_soak"]
+__all__ = ["FAULT_KINDS", "format_table", "plot_soak", "run_soak"]
 
 log = logging.getLogger(__name__)
 
@@ -512,3 +512,35 @@ def format_table(result: dict) -> str:
               f"(causes: {', '.join(t['unexplained_causes']) or '–'})",
               f"tracker: {json.dumps(t['tracker'])}"]
     return "\n".join(lines)
+
+
+def plot_soak(result: dict, path: Path) -> None:
+    """Per fault kind: every fault's time to dark and time to resume, against the goal lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = result["config"]
+    kinds = [s["kind"] for s in result["summary"]]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), sharey=True)
+    for ax, key, goal, label in (
+            (axes[0], "time_to_dark_ms", c["stale_after_ms"], f"stale_after_ms ({c['stale_after_ms']:g})"),
+            (axes[1], "time_to_resume_ms", c["holdoff_s"] * 1e3, f"holdoff_s ({c['holdoff_s']:g} s)")):
+        for y, kind in enumerate(kinds):
+            xs = [r[key] for r in result["faults"] if r["kind"] == kind and r[key] is not None]
+            ax.scatter(xs, np.full(len(xs), y) + np.linspace(-0.2, 0.2, len(xs)), s=10, alpha=0.6)
+        ax.axvline(goal, color="k", ls="--", lw=1, label=label)
+        ax.set_xscale("symlog", linthresh=10)
+        ax.set_xlim(left=0)
+        ax.set_xlabel(f"{key.replace('_', ' ')} (per fault)")
+        ax.legend(loc="lower right", fontsize=8)
+    axes[0].set_yticks(range(len(kinds)), kinds)
+    axes[0].set_ylabel("fault kind")
+    fig.suptitle(f"dpmhw bench soak: {c['minutes']:g} min, {result['totals']['faults']} faults, seed {c['seed']} "
+                 f"(faults that never went dark have no point)")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -99,7 +99,7 @@ def bench_soak(
     """Mock session with random faults (tracker stall/restart, corrupt and foreign datagrams,
     implausible poses, USB stall and unplug, API load): time to dark and to resume per fault kind,
     lit frames while a cause was active, recording rows against frames presented, memory."""
-    from dpmhw.benchmarks.soak import FAULT_KINDS, format_table, run_soak
+    from dpmhw.benchmarks.soak import FAULT_KINDS, format_table, plot_soak, run_soak
 
     chosen = tuple(k.strip() for k in kinds.split(",")) if kinds else FAULT_KINDS
     result = run_soak(minutes, seed=seed, kinds=chosen, progress=typer.echo)
@@ -107,4 +107,5 @@ def bench_soak(
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(result, indent=2))
-        typer.echo(f"wrote {json_path}")
+        plot_soak(result, json_path.with_suffix(".png"))
+        typer.echo(f"wrote {json_path} and {json_path.with_suffix('.png')}")
