@@ -219,6 +219,8 @@ def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings)
         calib = load_projector_calibration(path)
     except CalibrationError as exc:
         f.fail("calibration", f"cannot load {path}: {exc}")
+    except RecursionError:  # json nested too deeply to be a calibration file
+        f.fail("calibration", f"cannot load {path}: JSON nested too deeply")
     if (calib.width, calib.height) != (render.width, render.height):
         f.fail("calibration", f"{path} is for {calib.width}×{calib.height}, but [render] asks {render.width}×{render.height}")
     dist = np.zeros(5)

@@ -138,3 +138,11 @@ def test_scene_loader_fuzz_raises_only_scene_errors(pieces, splice, keep_good):
         parse_scene(text, "fuzz.toml", Path("."))
     except SceneError as exc:
         assert "\n" not in str(exc).split(": ", 2)[-1] or "(syntax)" in str(exc)
+
+
+def test_deeply_nested_calibration_json_is_a_field_error(tmp_path):
+    (tmp_path / "p.json").write_text("[" * 100_000 + "]" * 100_000)
+    text = GOOD.replace(
+        "fx = 10.0\nfy = 10.0\ncx = 8.0\ncy = 3.0\nposition = [0.0, 0.0, 2.0]\nlook_at = [0.0, 0.0, 0.0]",
+        'calibration = "p.json"')
+    refused(write(tmp_path, text), "camera.calibration", "p.json")
