@@ -9,9 +9,11 @@ Fault kinds (`FAULT_KINDS`), each injected only while the session is projecting:
     corrupt_datagrams    for 1–3 s, 30 % of the frames are truncated or have bytes flipped
     foreign_datagrams    for 1–3 s, another address (127.0.0.2) sends frames at 360 Hz with a pose
                          1 km away and frame numbers 10⁶ ahead
-    implausible_sample   one or two genuine frames carry a pose 1 km away
-    implausible_burst    genuine frames carry a pose 5 m away (inside the workspace, too fast)
-                         for 0.2–1 s
+    implausible_sample   one or two genuine frames carry a pose 2 m away (inside the workspace:
+                         caught by the speed limit) or 1 km away (outside it)
+    implausible_burst    genuine frames carry a pose 50 m away (outside the workspace) for 0.2–1 s
+                         (a sustained offset *inside* the workspace is, by design, accepted once
+                         it is reachable at `max_speed_m_s`: kinematics cannot tell it from a move)
     usb_stall            the projector's next 3 USB transfers fail (halted endpoint)
     usb_unplug           the projector is unplugged for 0.5–2 s, then replugged (power-cycled)
     api_load             for 3 s, two clients hammer the API process with hostile requests (NaN,
@@ -246,16 +248,17 @@ class _Injector:
 
     def implausible_sample(self, fault: _Fault) -> None:
         sent = self.server.frames_sent
+        metres = self.rng.choice([2.0, 1000.0])
         # the mock encodes each frame one period ahead: two frames sent means one glitched
-        self._glitch((1000.0, 0.0, 0.0), lambda: self.server.frames_sent > sent + 1)
-        fault.detail = f"{self.server.frames_sent - sent} frame(s) 1 km off"
+        self._glitch((metres, 0.0, 0.0), lambda: self.server.frames_sent > sent + 1)
+        fault.detail = f"{self.server.frames_sent - sent} frame(s) {metres:g} m off"
         fault.t_clear_ns = time.monotonic_ns()
 
     def implausible_burst(self, fault: _Fault) -> None:
         seconds = self.rng.uniform(0.2, 1.0)
         end = time.monotonic() + seconds
-        self._glitch((5.0, 0.0, 0.0), lambda: time.monotonic() >= end)
-        fault.detail = f"{seconds:.2f} s 5 m off"
+        self._glitch((50.0, 0.0, 0.0), lambda: time.monotonic() >= end)
+        fault.detail = f"{seconds:.2f} s 50 m off"
         fault.t_clear_ns = time.monotonic_ns()
 
     # -- projector ------------------------------------------------------------------------------
