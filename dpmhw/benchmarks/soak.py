@@ -174,7 +174,11 @@ class _Injector:
 
     def inject(self, kind: str) -> _Fault:
         fault = _Fault(kind, time.monotonic_ns())
-        getattr(self, kind)(fault)
+        try:
+            getattr(self, kind)(fault)
+        except Exception as exc:  # one failed injection is reported, not the end of a long soak
+            log.exception("soak: injecting %s failed", kind)
+            fault.detail = f"injection failed: {type(exc).__name__}: {exc}"
         if not fault.t_clear_ns:
             fault.t_clear_ns = time.monotonic_ns()
         return fault
