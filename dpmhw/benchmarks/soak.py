@@ -375,7 +375,11 @@ def run_soak(minutes: float, *, seed: int = 0, kinds: tuple[str, ...] = FAULT_KI
     loop.parts.recorder = truth_check
     injector = _Injector(loop, rng, token)
     faults: list[_Fault] = []
+    transitions: list = []
     say = progress or (lambda msg: log.info("%s", msg))
+
+    def collect_transitions() -> None:  # the monitor keeps only the newest 4096: read as we go
+        transitions.extend(loop.safety.transitions(transitions[-1].seq + 1 if transitions else 0))
     try:
         loop.start()
         if not wait_for(lambda: loop.status()["state"] == "running", 120):
@@ -393,6 +397,7 @@ def run_soak(minutes: float, *, seed: int = 0, kinds: tuple[str, ...] = FAULT_KI
                 continue
             kind = rng.choice(kinds)
             faults.append(injector.inject(kind))
+            collect_transitions()
             if time.monotonic() >= next_report:
                 next_report += 30
                 say(f"soak: {(time.monotonic() - t_start) / 60:.1f}/{minutes:g} min, {len(faults)} faults, "
@@ -400,7 +405,7 @@ def run_soak(minutes: float, *, seed: int = 0, kinds: tuple[str, ...] = FAULT_KI
         wait_for(lambda: loop.status()["state"] == "running", 30)
         time.sleep(1.0)
         rss_end = _rss_mb()
-        transitions = loop.safety.transitions()
+        collect_transitions()
         tracker_details = loop.parts.tracker.status()
     finally:
         injector.close()
