@@ -414,8 +414,11 @@ def run_soak(minutes: float, *, seed: int = 0, kinds: tuple[str, ...] = FAULT_KI
     # the recorder flushed and closed with the loop: count its rows now
     rows = sum(max(0, sum(1 for _ in open(p)) - 1) for p in rec_dir.glob("*/frames.csv"))
     t, lit = present_log.snapshot()
-    return _analyse(cfg, faults, t, lit, transitions, truth_check.wrong, frames_presented, rows,
-                    getattr(loop.parts.recorder, "dropped", 0), rss_start, rss_end, minutes, seed, tracker_details)
+    result = _analyse(cfg, faults, t, lit, transitions, truth_check.wrong, frames_presented, rows,
+                      getattr(loop.parts.recorder, "dropped", 0), rss_start, rss_end, minutes, seed, tracker_details)
+    # transitions the monitor had already forgotten when read (would hide causes from the check)
+    result["totals"]["safety_transitions_lost"] = (transitions[-1].seq + 1 - len(transitions)) if transitions else 0
+    return result
 
 
 def _analyse(cfg, faults, t, lit, transitions, wrong, frames_presented, rows, rows_dropped, rss_start, rss_end,
