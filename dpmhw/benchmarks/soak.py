@@ -35,6 +35,7 @@ within `holdoff_s` + one frame of the fault's end (a restart also needs the reco
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import json
 import logging
@@ -288,6 +289,7 @@ class _Injector:
         bodies = [b'{"alpha": NaN}', b'{"alpha": Infinity}', b'{"alpha": "0.5"}', b'{"split_screen": "yes"}',
                   b'{"spp": true}', b'{"alpha": ' + b"9" * 40_000 + b"}", b'{"alpha": 0.2}']
         counts = [0, 0]
+        codes: collections.Counter[int] = collections.Counter()
         lock = threading.Lock()
         end = time.monotonic() + 3.0
 
@@ -313,6 +315,7 @@ class _Injector:
                 with lock:
                     counts[0] += 1
                     counts[1] += code >= 500
+                    codes[code] += 1
 
         threads = [threading.Thread(target=client, args=(self.rng.randrange(2**31),), daemon=True) for _ in range(2)]
         for t in threads:
@@ -320,7 +323,7 @@ class _Injector:
         for t in threads:
             t.join(10)
         fault.api_requests, fault.api_5xx = counts
-        fault.detail = f"{counts[0]} requests"
+        fault.detail = f"{counts[0]} requests; status codes {dict(sorted(codes.items()))} (599: no answer in 5 s)"
         fault.t_clear_ns = time.monotonic_ns()
 
     def close(self) -> None:
