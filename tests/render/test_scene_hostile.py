@@ -3,7 +3,6 @@ name the file and the field, quickly and without runaway memory."""
 
 from __future__ import annotations
 
-import os
 import textwrap
 from pathlib import Path
 

@@ -4,7 +4,6 @@ and to resume, lit frames while a cause was active, dark spells no fault explain
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from dpmhw.benchmarks.soak import _analyse, _Fault, format_table
 from dpmhw.session.config import load_session_config

@@ -8,7 +8,6 @@
 
 from __future__ import annotations
 
-import struct
 
 import numpy as np
 from hypothesis import HealthCheck, given, settings, strategies as st

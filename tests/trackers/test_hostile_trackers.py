@@ -9,14 +9,12 @@ depends on how fast the machine is.
 from __future__ import annotations
 
 import socket
-import struct
-import time
 
 import numpy as np
 import pytest
 
 from dpmhw.plausibility import PlausibilityGate, PlausibilityLimits
-from dpmhw.tracking import ClockMapping, PoseSample, TrackerState, wait_for
+from dpmhw.tracking import ClockMapping, PoseSample, wait_for
 from drivers.natnet import NatNetClient
 from drivers.polhemus_protocol import PoseRecord, RecordParser, TextRecord
 from drivers.serial_tracker import PolhemusTracker
