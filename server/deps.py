@@ -67,7 +67,8 @@ def bearer_problem(authorization: str | None, expected: str) -> str | None:
 
 async def require_token(request: Request,
                   credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
-    """401 unless the request carries `Authorization: Bearer <token>` with the configured token."""
+    """401 unless the request carries `Authorization: Bearer <token>` with the configured token.
+    (`credentials` is declared so that the OpenAPI schema shows the bearer scheme.)"""
     problem = bearer_problem(request.headers.get("authorization"), getattr(request.app.state, "token", "") or "")
     if problem is not None:
         raise HTTPException(status.HTTP_401_UNAUTHORIZED, problem, headers={"WWW-Authenticate": "Bearer"})
