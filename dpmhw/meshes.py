@@ -14,9 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
+from dpmhw.limits import check_file_size, max_mesh_bytes
+
 log = logging.getLogger(__name__)
 
 BOX_FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
+# Larger coordinates are a wrong unit or a corrupt file, and overflow (squared areas) in `clean`.
+MAX_COORDINATE = 1e9
 
 
 @dataclass
@@ -130,6 +134,7 @@ def load_mesh(path: Path, smooth: bool = True) -> TriangleMesh:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
+    check_file_size(path, max_mesh_bytes(), "mesh file", "DPMHW_MAX_MESH_MB")
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for broken files
@@ -138,6 +143,11 @@ def load_mesh(path: Path, smooth: bool = True) -> TriangleMesh:
         raise ValueError(f"mesh {path} has no triangles")
     if not np.all(np.isfinite(loaded.vertices)):
         raise ValueError(f"mesh {path} has non-finite vertex coordinates")
+    largest = float(np.abs(loaded.vertices).max())
+    if largest > MAX_COORDINATE:
+        raise ValueError(f"mesh {path} has a vertex coordinate of {largest:.3g}, over {MAX_COORDINATE:g} (wrong units?)")
+    if loaded.faces.min() < 0 or loaded.faces.max() >= len(loaded.vertices):
+        raise ValueError(f"mesh {path} has faces that index missing vertices")
     return clean(loaded.vertices, loaded.faces, smooth=smooth, source=str(path))
 
 

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dpmhw.errors import SceneError
+from dpmhw.errors import CalibrationError, SceneError
+from dpmhw.limits import check_file_size, max_scene_bytes, render_memory_problem
 from dpmhw.meshes import TriangleMesh, box_mesh, find_bunny, load_mesh, procedural_bunny, quad_mesh, sphere_mesh, BOX_FACES
 from dpmhw.motion import ScriptedMotion
 from dpmhw.transforms import Pose, look_at, rotation_from_euler_xyz_deg, rotation_from_quat_xyzw
@@ -24,6 +25,9 @@ from dpmhw.transforms import Pose, look_at, rotation_from_euler_xyz_deg, rotatio
 log = logging.getLogger(__name__)
 
 BUILTIN_SCENES = ("paper-static", "paper-dynamic", "dpm-bunny")
+# No quantity in a scene (metres, pixels, radiance) is near this; larger ones are typos or attacks,
+# and would overflow into infinities and NaNs downstream (1e300 squared is inf).
+MAX_MAGNITUDE = 1e9
 SHAPES = ("quad", "box", "sphere", "mesh")
 
 
@@ -112,6 +116,8 @@ class _Fields:
             self.fail(key, f"expected {kind}, got {value!r}")
         if not math.isfinite(value):
             self.fail(key, f"expected a finite number, got {value!r}")
+        if abs(value) > MAX_MAGNITUDE:
+            self.fail(key, f"expected a magnitude of at most {MAX_MAGNITUDE:g}, got {value!r}")
         if value < lo or value > hi or (lo_open and value == lo):
             bracket = "(" if lo_open else "["
             self.fail(key, f"expected {kind} in {bracket}{lo}, {hi}], got {value!r}")
@@ -132,6 +138,8 @@ class _Fields:
         arr = np.asarray(value, dtype=float)
         if not np.all(np.isfinite(arr)):
             self.fail(key, f"expected finite numbers, got {value!r}")
+        if np.any(np.abs(arr) > MAX_MAGNITUDE):
+            self.fail(key, f"expected magnitudes of at most {MAX_MAGNITUDE:g}, got {value!r}")
         if np.any(arr < lo) or np.any(arr > hi):
             self.fail(key, f"expected every value in [{lo}, {hi}], got {value!r}")
         return arr
@@ -165,9 +173,14 @@ def _rotation(f: _Fields, key: str = "rotation") -> np.ndarray:
 
 def _parse_render(source: str, table: dict) -> RenderSettings:
     f = _Fields(source, table, "render", {"width", "height", "max_bounces", "background", "fps"})
+    width = f.number("width", lo=1, hi=16384, integer=True)
+    height = f.number("height", lo=1, hi=16384, integer=True)
+    problem = render_memory_problem(width, height)
+    if problem is not None:
+        f.fail("width", problem)
     return RenderSettings(
-        width=f.number("width", lo=1, hi=16384, integer=True),
-        height=f.number("height", lo=1, hi=16384, integer=True),
+        width=width,
+        height=height,
         max_bounces=f.number("max_bounces", default=1, lo=0, hi=64, integer=True),
         background=f.vector("background", default=(0, 0, 0), lo=0.0),
         fps=float(f.number("fps", default=947.0, lo=0.0, hi=1e5, lo_open=True)),
@@ -204,8 +217,10 @@ def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings)
         f.fail("calibration", "calibration files need dpmhw.projector_calibration, which this install lacks")
     try:
         calib = load_projector_calibration(path)
-    except Exception as exc:
+    except CalibrationError as exc:
         f.fail("calibration", f"cannot load {path}: {exc}")
+    except RecursionError:  # json nested too deeply to be a calibration file
+        f.fail("calibration", f"cannot load {path}: JSON nested too deeply")
     if (calib.width, calib.height) != (render.width, render.height):
         f.fail("calibration", f"{path} is for {calib.width}×{calib.height}, but [render] asks {render.width}×{render.height}")
     dist = np.zeros(5)
@@ -307,16 +322,23 @@ def parse_scene(text: str, source: str, base_dir: Path, mesh_override: Path | No
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(source, "(syntax)", f"not valid TOML: {exc}") from None
+    except RecursionError:
+        raise SceneError(source, "(syntax)", "arrays or tables nested too deeply to be a scene") from None
     top = _Fields(source, data, "", {"render", "camera", "viewer", "objects"})
-    for section in ("render", "camera", "objects"):
-        if not top.has(section):
-            top.fail(section, "missing required section")
-    render = _parse_render(source, data["render"])
-    camera = _parse_camera(source, data["camera"], base_dir, render)
+
+    def section(name: str):
+        if not top.has(name):
+            top.fail(name, "missing required section")
+        return data[name]
+
+    # sections in file order, each parsed before the next is asked for: a typo in [render] is
+    # reported as that typo, not as a missing [camera] further down
+    render = _parse_render(source, section("render"))
+    camera = _parse_camera(source, section("camera"), base_dir, render)
     viewer = camera.pose.t.copy()
     if top.has("viewer"):
         viewer = _Fields(source, data["viewer"], "viewer", {"position"}).vector("position")
-    objects_table = data["objects"]
+    objects_table = section("objects")
     if not isinstance(objects_table, list) or not objects_table:
         top.fail("objects", "expected at least one [[objects]] table")
     notes: list[str] = []
@@ -330,6 +352,23 @@ def parse_scene(text: str, source: str, base_dir: Path, mesh_override: Path | No
     return Scene(source, render, camera, viewer, objects, sorted(set(notes)))
 
 
+def _read_scene_text(path: Path) -> str:
+    """The file's text, refusing (SceneError) a missing, oversized or non-UTF-8 file."""
+    if not path.is_file():
+        raise SceneError(str(path), "(file)", f"no such scene file; built-in scenes are {', '.join(BUILTIN_SCENES)}")
+    try:
+        check_file_size(path, max_scene_bytes(), "scene file", "DPMHW_MAX_SCENE_KB")
+        raw = path.read_bytes()
+    except (ValueError, OSError) as exc:
+        raise SceneError(str(path), "(file)", str(exc)) from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise SceneError(str(path), "(file)", f"not UTF-8 text: byte 0x{raw[exc.start]:02x} at offset {exc.start} "
+                                              f"(line {line})") from None
+
+
 def load_scene(name_or_path: str | Path, mesh_override: Path | None = None) -> Scene:
     """Load a scene by built-in name (see BUILTIN_SCENES) or from a TOML file."""
     key = str(name_or_path)
@@ -338,9 +377,7 @@ def load_scene(name_or_path: str | Path, mesh_override: Path | None = None) -> S
         scene = parse_scene(text, f"built-in scene {key!r}", Path("."), mesh_override)
     else:
         path = Path(name_or_path)
-        if not path.is_file():
-            raise SceneError(str(path), "(file)", f"no such scene file; built-in scenes are {', '.join(BUILTIN_SCENES)}")
-        scene = parse_scene(path.read_text(), str(path), path.parent, mesh_override)
+        scene = parse_scene(_read_scene_text(path), str(path), path.parent, mesh_override)
     for note in scene.notes:
         log.warning("%s: %s", scene.source, note)
     return scene

@@ -22,6 +22,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from dpmhw.errors import DpmhwError
+from dpmhw.plausibility import PlausibilityGate
 
 __all__ = [
     "ClockMapping",
@@ -115,6 +116,7 @@ class TrackerStatus:
     malformed: int = 0  # datagrams / records dropped because they failed to decode
     frames_missed: int = 0  # gaps in the device's frame numbers
     out_of_order: int = 0  # frames older than one already published (dropped)
+    implausible: int = 0  # samples the plausibility gate dropped (details say why)
     reconnects: int = 0
     last_arrival_ns: int | None = None
     latency_ns: int | None = None  # arrival minus exposure of the newest frame
@@ -217,13 +219,31 @@ class ClockMapping:
 
     Round trips are preferred when present: they are unbiased, the one-way minimum is biased by
     the fastest transit.
+
+    A minimum trusts its smallest input, so one corrupt stamp (a flipped high bit, a datagram
+    stamped in the future) would drag the offset down by the error and stamp every later sample
+    that far in the past for a whole window. So one-way evidence more than `jump_tolerance_s`
+    below the current minimum is held back as an outlier (counted in `outliers`) unless
+    `confirm` such readings in a row agree with each other within the tolerance: then the device
+    clock really jumped, and the mapping restarts from them. Evidence above the minimum cannot
+    lower it and needs no check (a device clock that jumps back is followed when the window
+    slides past the old evidence, or at once after a reconnect, which resets the mapping).
+    The tolerance bounds the harm one corrupt stamp can do (stamps early by at most 10 ms for one
+    window, against a 50 ms stale limit) and is above a USB-serial adapter's delivery jitter, so
+    genuine evidence is held back only when the transit really changed (then for 2 samples).
     """
 
-    def __init__(self, window_s: float = 2.0):
+    def __init__(self, window_s: float = 2.0, *, jump_tolerance_s: float = 0.01, confirm: int = 3):
+        if confirm < 1:
+            raise ValueError(f"confirm must be >= 1, got {confirm}")
         self._window_ns = int(window_s * 1e9)
+        self._tolerance_ns = int(jump_tolerance_s * 1e9)
+        self._confirm = confirm
         self._one_way = _SlidingMinimum(self._window_ns)
         self._round_trips = _SlidingMinimum(self._window_ns)
+        self._suspects: list[tuple[int, int]] = []  # (arrival, offset) of consecutive low outliers
         self._lock = threading.Lock()
+        self.outliers = 0
 
     def reset(self) -> None:
         """Forget all evidence: after a reconnect the device may have restarted, and its clock
@@ -231,10 +251,28 @@ class ClockMapping:
         with self._lock:
             self._one_way = _SlidingMinimum(self._window_ns)
             self._round_trips = _SlidingMinimum(self._window_ns)
+            self._suspects = []
 
-    def add_one_way(self, device_ns: int, arrival_ns: int) -> None:
+    def add_one_way(self, device_ns: int, arrival_ns: int) -> bool:
+        """Add one-way evidence; False when it was held back as an outlier."""
+        offset = arrival_ns - device_ns
         with self._lock:
-            self._one_way.push(arrival_ns, arrival_ns - device_ns, arrival_ns - device_ns)
+            current = self._one_way.best()
+            if current is not None and offset < current - self._tolerance_ns:
+                self._suspects.append((arrival_ns, offset))
+                run = self._suspects[-self._confirm:]
+                if len(run) < self._confirm or max(o for _, o in run) - min(o for _, o in run) > self._tolerance_ns:
+                    self.outliers += 1
+                    del self._suspects[:-self._confirm]
+                    return False
+                self._one_way = _SlidingMinimum(self._window_ns)  # the device clock jumped: start over
+                for t, o in run:
+                    self._one_way.push(t, o, o)
+                self._suspects = []
+                return True
+            self._suspects = []
+            self._one_way.push(arrival_ns, offset, offset)
+            return True
 
     def add_round_trip(self, sent_ns: int, device_ns: int, received_ns: int) -> None:
         if received_ns < sent_ns:
@@ -321,10 +359,12 @@ class LatestPoses:
     """The newest sample per rigid body plus fan-out to callbacks and subscriptions.
 
     Shared by every driver's receiver thread; readers on other threads get whole samples
-    (samples are immutable, so handing out references is safe).
+    (samples are immutable, so handing out references is safe). With a `gate`, samples it finds
+    implausible are dropped here, so no consumer ever sees them.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, gate: PlausibilityGate | None = None) -> None:
+        self.gate = gate
         self._lock = threading.Lock()
         self._latest: dict[int, PoseSample] = {}
         self._callbacks: list[Callable[[PoseSample], None]] = []
@@ -332,7 +372,10 @@ class LatestPoses:
         self.callback_errors = 0
         self.last_callback_error: str = ""
 
-    def publish(self, samples: list[PoseSample]) -> None:
+    def publish(self, samples: list[PoseSample]) -> list[PoseSample]:
+        """Hand `samples` to every consumer; returns those the gate let through."""
+        if self.gate is not None:
+            samples = [s for s in samples if self.gate.admit(s) is None]
         with self._lock:
             for s in samples:
                 self._latest[s.rigid_body_id] = s
@@ -347,6 +390,7 @@ class LatestPoses:
                 except Exception as exc:  # a consumer's bug must not kill the receiver thread
                     self.callback_errors += 1
                     self.last_callback_error = f"{type(exc).__name__}: {exc}"
+        return samples
 
     def latest(self, rigid_body_id: int) -> PoseSample | None:
         with self._lock:

@@ -12,17 +12,24 @@ mid-exposure instant mapped to `time.monotonic_ns()`.
 
 Every datagram is decoded defensively: malformed ones are counted (`status().malformed`) and
 dropped; a frame with a flagged-tracked body whose pose is not a pose is malformed too.
+Only datagrams from the configured server's address are read at all: any host on the network
+can send UDP to these ports, so others are counted (`foreign_datagrams`, per sender in
+`status().details`) and each new sender is logged once. Poses that decode but cannot be real
+(outside the workspace, too fast, stamped in the future) are dropped by the plausibility gate
+of `ReceiverTracker`.
 """
 
 from __future__ import annotations
 
+import logging
 import select
 import socket
 import time
-from collections import deque
+from collections import Counter, deque
 
 import numpy as np
 
+from dpmhw.plausibility import PlausibilityLimits
 from dpmhw.tracking import ClockMapping, PoseSample, TrackerError, TrackerState, quaternions_xyzw_to_matrices
 from drivers.natnet_protocol import (
     MessageId,
@@ -44,8 +51,11 @@ from drivers.tracker_base import LinkLost, ReceiverTracker
 
 __all__ = ["NatNetClient"]
 
+log = logging.getLogger(__name__)
+
 _MAX_DATAGRAM = 65536
 _DRAIN_LIMIT = 256  # datagrams handled per wake-up before checking timers
+_FOREIGN_SENDERS_KEPT = 64  # distinct foreign addresses counted one by one (the rest as "other")
 
 
 class NatNetClient(ReceiverTracker):
@@ -80,10 +90,11 @@ class NatNetClient(ReceiverTracker):
         lost_after_s: float = 1.0,
         backoff_initial_s: float = 0.1,
         backoff_max_s: float = 2.0,
+        plausibility: PlausibilityLimits | None = None,
     ):
         super().__init__(
             stale_after_s=stale_after_s, lost_after_s=lost_after_s,
-            backoff_initial_s=backoff_initial_s, backoff_max_s=backoff_max_s,
+            backoff_initial_s=backoff_initial_s, backoff_max_s=backoff_max_s, plausibility=plausibility,
         )
         self.server = server
         self.command_port = command_port
@@ -102,12 +113,21 @@ class NatNetClient(ReceiverTracker):
         self.models = ModelDefinitions()
         self.system_latency_s: float | None = None  # Motive's own mid-exposure→transmit
         self.other_messages = 0
+        self.foreign_datagrams = 0
+        self.foreign_senders: Counter[str] = Counter()
+        self._server_ip: str | None = None
         self._cmd: socket.socket | None = None
         self._data: socket.socket | None = None
         self._echoes_sent: deque[int] = deque(maxlen=64)
         self._want_models = False
 
     # -- names ---------------------------------------------------------------------------------
+
+    @property
+    def local_address(self) -> tuple[str, int] | None:
+        """(host, port) of the command socket (where unicast frames arrive); None when closed."""
+        sock = self._cmd
+        return None if sock is None else sock.getsockname()[:2]
 
     def rigid_body_names(self) -> dict[int, str]:
         return self.models.rigid_body_names()
@@ -194,8 +214,7 @@ class NatNetClient(ReceiverTracker):
             )
             for i in range(len(rb))
         ]
-        self._publish_frame(samples, arrival_ns)
-        return samples
+        return self._publish_frame(samples, arrival_ns)
 
     @staticmethod
     def _check_bodies(frame: MocapFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -222,6 +241,29 @@ class NatNetClient(ReceiverTracker):
 
     # -- the session ---------------------------------------------------------------------------
 
+    def _details(self) -> dict:
+        return {**super()._details(), "foreign_datagrams": self.foreign_datagrams,
+                "foreign_senders": dict(self.foreign_senders)}
+
+    def _from_server(self, sender: tuple) -> bool:
+        """True for the configured server's address; others are counted, each logged once."""
+        host = sender[0]
+        if host == self._server_ip:
+            return True
+        self.foreign_datagrams += 1
+        if host not in self.foreign_senders and len(self.foreign_senders) >= _FOREIGN_SENDERS_KEPT:
+            host = "other"
+        if host not in self.foreign_senders:
+            log.warning("natnet: ignoring datagrams from %s (only the server %s is accepted); further ones "
+                        "are counted in status().details['foreign_senders']", host, self._server_ip)
+        self.foreign_senders[host] += 1
+        return False
+
+    def _recv(self, sock: socket.socket, flags: int = 0) -> bytes | None:
+        """One datagram from the server, or None for one from anyone else."""
+        data, sender = sock.recvfrom(_MAX_DATAGRAM, flags)
+        return data if self._from_server(sender) else None
+
     def _send(self, datagram: bytes) -> None:
         self._cmd.sendto(datagram, (self.server, self.command_port))
 
@@ -239,6 +281,10 @@ class NatNetClient(ReceiverTracker):
         self._cmd = self._data = None
 
     def _handshake(self) -> None:
+        try:
+            self._server_ip = socket.gethostbyname(self.server)
+        except OSError as exc:
+            raise LinkLost(f"cannot resolve the NatNet server {self.server!r}: {exc}") from None
         self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._cmd.bind((self.local_interface, 0))
         self.server_info = None
@@ -257,7 +303,9 @@ class NatNetClient(ReceiverTracker):
                 self._send(encode_connect((*(self.forced_version or (4, 1)), 0, 0)))
                 next_try = now + 0.2
             if select.select([self._cmd], [], [], 0.02)[0]:
-                data = self._cmd.recv(_MAX_DATAGRAM)
+                data = self._recv(self._cmd)
+                if data is None:
+                    continue
                 try:
                     msg_id, payload = split_message(data)
                     if msg_id == MessageId.SERVER_INFO:
@@ -276,8 +324,10 @@ class NatNetClient(ReceiverTracker):
             while time.monotonic() < reply_deadline:
                 if not select.select([self._cmd], [], [], 0.01)[0]:
                     continue
-                data = self._cmd.recv(_MAX_DATAGRAM)
+                data = self._recv(self._cmd)
                 arrival = time.monotonic_ns()
+                if data is None:
+                    continue
                 if len(data) >= 2 and int.from_bytes(data[:2], "little") == MessageId.FRAME_OF_DATA:
                     self.other_messages += 1
                     continue
@@ -323,10 +373,11 @@ class NatNetClient(ReceiverTracker):
             for sock in select.select(sockets, [], [], 0.02)[0]:
                 for _ in range(_DRAIN_LIMIT):
                     try:
-                        data = sock.recv(_MAX_DATAGRAM, socket.MSG_DONTWAIT)
+                        data = self._recv(sock, socket.MSG_DONTWAIT)
                     except (BlockingIOError, InterruptedError):
                         break
-                    self.process_datagram(data, time.monotonic_ns())
+                    if data is not None:
+                        self.process_datagram(data, time.monotonic_ns())
             now = time.monotonic_ns()
             if not use_multicast and now - last_keepalive > self.keepalive_interval_s * 1e9:
                 self._send(encode_message(MessageId.KEEP_ALIVE))

@@ -15,7 +15,10 @@ Binary record (output list `2,7,8,0`, 41 bytes), little-endian:
    40  ' '      output item 0 (a space)
 
 On a malformed record the parser drops one byte and resynchronises on the next preamble, so
-good records behind it are never lost. A truncated record is only known to be bad once a full
+good records behind it are never lost. A who-am-I reply may declare up to 512 body bytes, so a
+stray or corrupt who-am-I header would swallow the records behind it if its body were taken on
+trust: its body must be printable text, and the first byte that is not (every pose record
+carries its station number, 1…16, in its third byte) rejects the header at once. A truncated record is only known to be bad once a full
 record's worth of bytes follows it, so the good record right behind it is delayed by about one
 record period (never dropped).
 """
@@ -40,6 +43,8 @@ WHO_AM_I = 0x16
 _POSE_COMMANDS = (ord("C"), ord("P"))
 _MAX_TEXT_BODY = 512
 _PREAMBLE_RE = re.compile(b"|".join(re.escape(p) for p in PREAMBLES))
+# Text a who-am-I body may hold: printable ASCII, tab, CR, LF.
+_NOT_TEXT_RE = re.compile(rb"[^\x20-\x7e\t\r\n]")
 
 
 class PolhemusDecodeError(TrackerDecodeError):
@@ -88,6 +93,14 @@ def _header(buf: bytes | memoryview) -> tuple[str, int, int, int, int]:
     return model, station, command, error, size
 
 
+def _check_text(model: str, buf, start: int, end: int) -> None:
+    bad = _NOT_TEXT_RE.search(buf, start, end)
+    if bad is not None:
+        raise PolhemusDecodeError(
+            f"{model} who-am-I: body byte {bad.start() - start} is 0x{buf[bad.start()]:02x}, not text"
+        )
+
+
 def decode_record(buf: bytes | memoryview) -> PoseRecord | TextRecord:
     """Decode exactly one complete record; raises PolhemusDecodeError otherwise."""
     buf = bytes(buf)
@@ -97,7 +110,8 @@ def decode_record(buf: bytes | memoryview) -> PoseRecord | TextRecord:
     if len(buf) != HEADER.size + size:
         raise PolhemusDecodeError(f"{model} record: header declares {size} body bytes, got {len(buf) - HEADER.size}")
     if command == WHO_AM_I:
-        return TextRecord(model, station, command, error, buf[HEADER.size:].decode("ascii", errors="replace"))
+        _check_text(model, buf, HEADER.size, len(buf))
+        return TextRecord(model, station, command, error, buf[HEADER.size:].decode("ascii"))
     x, y, z, qw, qx, qy, qz, ms, tail = POSE_BODY.unpack_from(buf, HEADER.size)
     if tail != b" ":
         raise PolhemusDecodeError(f"{model} station {station}: record does not end in the space item (got {tail!r})")
@@ -141,7 +155,9 @@ class RecordParser:
             if len(self._buf) < HEADER.size:
                 return out
             try:
-                size = _header(self._buf)[4]
+                model, _, command, _, size = _header(self._buf)
+                if command == WHO_AM_I:  # reject a bogus text header before it waits for its body
+                    _check_text(model, self._buf, HEADER.size, min(len(self._buf), HEADER.size + size))
             except PolhemusDecodeError as exc:
                 out.append(exc)
                 del self._buf[:1]  # resynchronise on the next preamble

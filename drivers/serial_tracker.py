@@ -21,12 +21,14 @@ from collections import deque
 import numpy as np
 import serial
 
+from dpmhw.plausibility import PlausibilityLimits
 from dpmhw.tracking import PoseSample, TrackerState, quaternions_xyzw_to_matrices
 from drivers.polhemus_protocol import PoseRecord, PolhemusDecodeError, RecordParser, TextRecord
 from drivers.tracker_base import LinkLost, ReceiverTracker
 
 __all__ = ["PolhemusTracker", "SerialTracker"]
 
+_MAX_GAP_MS = 60_000
 _UNITS = {"cm": (b"U1\r", 0.01), "inch": (b"U0\r", 0.0254)}
 
 
@@ -57,10 +59,11 @@ class PolhemusTracker(ReceiverTracker):
         lost_after_s: float = 1.0,
         backoff_initial_s: float = 0.1,
         backoff_max_s: float = 2.0,
+        plausibility: PlausibilityLimits | None = None,
     ):
         super().__init__(
             stale_after_s=stale_after_s, lost_after_s=lost_after_s,
-            backoff_initial_s=backoff_initial_s, backoff_max_s=backoff_max_s,
+            backoff_initial_s=backoff_initial_s, backoff_max_s=backoff_max_s, plausibility=plausibility,
         )
         if units not in _UNITS:
             raise ValueError(f"units must be one of {', '.join(_UNITS)}, got {units!r}")
@@ -111,8 +114,7 @@ class PolhemusTracker(ReceiverTracker):
                     self._warmup_left -= 1
                     self.warmup_skipped += 1
                     continue
-                self._publish_frame([sample], arrival_ns)
-                published.append(sample)
+                published += self._publish_frame([sample], arrival_ns)
         return published
 
     def _count_gap(self, station: int, ms: int) -> None:
@@ -128,6 +130,8 @@ class PolhemusTracker(ReceiverTracker):
         if last is None or ms <= last:  # first record, or the device clock restarted
             return
         dt = ms - last
+        if dt > _MAX_GAP_MS:  # not a dropout (the link would have been lost): a corrupt or jumped stamp
+            return
         intervals = self._intervals.setdefault(station, deque(maxlen=256))
         if len(intervals) >= 4:
             period = sum(intervals) / len(intervals)

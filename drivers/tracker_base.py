@@ -15,6 +15,7 @@ import threading
 import time
 from collections.abc import Callable
 
+from dpmhw.plausibility import PlausibilityGate, PlausibilityLimits
 from dpmhw.tracking import (
     ClockMapping,
     LatestPoses,
@@ -31,6 +32,10 @@ log = logging.getLogger(__name__)
 
 # Device frame numbers that go back by more than this mean the device restarted, not reordering.
 _RESTART_JUMP = 1000
+# This many frames in a row below the newest number, each following the one before, mean that
+# newest number was bogus (a corrupt or foreign datagram far ahead): follow them. UDP reordering
+# delivers a stray late frame, never a run of consecutive ones.
+_RESYNC_RUN = 3
 
 
 class LinkLost(TrackerError):
@@ -49,6 +54,7 @@ class ReceiverTracker:
         lost_after_s: float = 1.0,
         backoff_initial_s: float = 0.1,
         backoff_max_s: float = 2.0,
+        plausibility: PlausibilityLimits | None = None,
     ):
         if not 0 < stale_after_s <= lost_after_s:
             raise ValueError(f"need 0 < stale_after_s <= lost_after_s, got {stale_after_s}, {lost_after_s}")
@@ -57,7 +63,8 @@ class ReceiverTracker:
         self.backoff_initial_s = backoff_initial_s
         self.backoff_max_s = backoff_max_s
         self.clock = ClockMapping()
-        self._poses = LatestPoses()
+        self.gate = PlausibilityGate(plausibility)
+        self._poses = LatestPoses(self.gate)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         # (state, reason) as one attribute: the receiver thread replaces it in one store, so
@@ -72,6 +79,9 @@ class ReceiverTracker:
         self.malformed = 0
         self.frames_missed = 0
         self.out_of_order = 0
+        self.frame_resyncs = 0
+        self._behind: list[int] = []  # consecutive frame numbers refused as older than the newest
+        self._last_gap = 0  # frames counted missing at the last forward jump
         self.reconnects = 0
         self.internal_errors = 0
         self.last_decode_error = ""
@@ -134,6 +144,7 @@ class ReceiverTracker:
             malformed=self.malformed,
             frames_missed=self.frames_missed,
             out_of_order=self.out_of_order,
+            implausible=sum(self.gate.dropped.values()),
             reconnects=self.reconnects,
             last_arrival_ns=last,
             latency_ns=self._last_latency_ns,
@@ -150,8 +161,10 @@ class ReceiverTracker:
         """Release whatever `_session` opened (called after every session, even on error)."""
 
     def _details(self) -> dict:
-        return {"clock_method": self.clock.method, "internal_errors": self.internal_errors,
-                "last_decode_error": self.last_decode_error, "callback_errors": self._poses.callback_errors}
+        return {"clock_method": self.clock.method, "clock_outliers": self.clock.outliers,
+                "internal_errors": self.internal_errors, "last_decode_error": self.last_decode_error,
+                "callback_errors": self._poses.callback_errors, "frame_resyncs": self.frame_resyncs,
+                **self.gate.counts()}
 
     def _set_state(self, state: TrackerState, reason: str = "") -> None:
         self._state_reason = (state, reason)
@@ -167,27 +180,42 @@ class ReceiverTracker:
         log.exception("%s: unexpected error while handling input", self.kind)
 
     def _accept_frame_number(self, frame_number: int) -> bool:
-        """Count gaps; reject frames older than the newest published one (UDP reordering)."""
+        """Count gaps; reject frames older than the newest published one (UDP reordering).
+
+        A newest number that was itself bogus (far ahead) is abandoned after `_RESYNC_RUN`
+        consecutive frames below it, so one bad datagram costs a few frames, not a thousand."""
         last = self._last_frame_number
         if last is not None:
             restarted = self._first_frame_of_session or last - frame_number >= _RESTART_JUMP
             if frame_number <= last and not restarted:
-                self.out_of_order += 1
-                return False
-            if frame_number > last + 1:
-                self.frames_missed += frame_number - last - 1
+                if self._behind and frame_number != self._behind[-1] + 1:
+                    self._behind = []
+                self._behind.append(frame_number)
+                if len(self._behind) < _RESYNC_RUN:
+                    self.out_of_order += 1
+                    return False
+                self.frame_resyncs += 1
+                self.frames_missed = max(0, self.frames_missed - self._last_gap)
+                log.warning("%s: frame numbers resumed at %d below the newest %d; following them",
+                            self.kind, frame_number, last)
+                last = None
+        self._last_gap = 0 if last is None else max(0, frame_number - last - 1)
+        self.frames_missed += self._last_gap
+        self._behind = []
         self._first_frame_of_session = False
         self._last_frame_number = frame_number
         return True
 
-    def _publish_frame(self, samples: list[PoseSample], arrival_ns: int) -> None:
+    def _publish_frame(self, samples: list[PoseSample], arrival_ns: int) -> list[PoseSample]:
+        """Publish one frame's samples; returns those the plausibility gate let through."""
         self.frames += 1
         self._last_arrival_ns = arrival_ns
-        if samples:
-            self._last_latency_ns = samples[0].latency_ns
         if self._state_reason[0] != TrackerState.STREAMING:
             self._set_state(TrackerState.STREAMING, "")
-        self._poses.publish(samples)
+        published = self._poses.publish(samples)
+        if published:
+            self._last_latency_ns = published[0].latency_ns
+        return published
 
     def _check_alive(self, since_ns: int, what: str) -> None:
         """Raise LinkLost when nothing arrived for `lost_after_s` since `since_ns`."""

@@ -4,7 +4,13 @@
     ApiProcess(token="…").start(loop)               # what `dpmhw session start` runs: server/process.py
 
 The service only reads the session's published snapshots and queues validated setting changes.
-Bind it to 127.0.0.1 unless the lab network needs more.
+Bind it to 127.0.0.1 unless the lab network needs more (then list the name clients use in
+`trusted_hosts` or DPMHW_API_HOSTS).
+
+Hostile input is refused where it enters, cheapest check first: a foreign `Host` header (400),
+then, on every mutating request, a bad token (401) before a byte of the body is read, then a body
+over `max_body_bytes` (413) before it is parsed; validation errors (422) name the field without
+echoing the input (which may be huge, or NaN that JSON cannot carry).
 """
 
 from __future__ import annotations
@@ -12,29 +18,118 @@ from __future__ import annotations
 import os
 
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.middleware.trustedhost import TrustedHostMiddleware
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from dpmhw import __version__
-from server.deps import Runtime, RuntimeUnavailable
+from server.deps import Runtime, RuntimeUnavailable, bearer_problem
 from server.pages import add_pages
 from server.routers import session, settings, status
 
-__all__ = ["build_app"]
+__all__ = ["DEFAULT_TRUSTED_HOSTS", "MAX_BODY_BYTES", "build_app"]
+
+# The largest body any route takes is a settings patch of a few hundred bytes.
+MAX_BODY_BYTES = 16 * 1024
+DEFAULT_TRUSTED_HOSTS = ("127.0.0.1", "localhost")
+_SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 
 
-def build_app(runtime: Runtime, *, token: str | None = None) -> FastAPI:
+class _GuardMutations:
+    """ASGI middleware for every request that may change something (not GET/HEAD/OPTIONS):
+    401 on a missing or wrong token without reading the body, then 413 when the declared or the
+    streamed body exceeds `max_body_bytes` (counted as it arrives, so a chunked body without a
+    length is cut off at the cap, never buffered beyond it)."""
+
+    def __init__(self, app: ASGIApp, max_body_bytes: int):
+        self.app = app
+        self.max_body_bytes = max_body_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] in _SAFE_METHODS:
+            await self.app(scope, receive, send)
+            return
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
+        problem = bearer_problem(headers.get("authorization"), scope["app"].state.token)
+        if problem is not None:
+            await _reply(send, 401, problem, {"WWW-Authenticate": "Bearer"})
+            return
+        limit = self.max_body_bytes
+        declared = headers.get("content-length", "")
+        if declared and (not declared.isdigit() or int(declared) > limit):
+            await _reply(send, 413, f"request body of {declared} bytes exceeds the limit of {limit} bytes")
+            return
+        # Read the (at most `limit`-byte) body here, so the route sees it whole or not at all.
+        body = bytearray()
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":
+                return  # the client went away
+            body += message.get("body", b"")
+            if len(body) > limit:
+                await _reply(send, 413, f"request body exceeds the limit of {limit} bytes")
+                return
+            if not message.get("more_body", False):
+                break
+        replayed = False
+
+        async def replay() -> Message:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": bytes(body), "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+
+async def _reply(send: Send, status_code: int, detail: str, headers: dict | None = None) -> None:
+    response = JSONResponse({"detail": detail}, status_code=status_code, headers=headers)
+    body = response.body
+    await send({"type": "http.response.start", "status": status_code, "headers": response.raw_headers})
+    await send({"type": "http.response.body", "body": body})
+
+
+def _validation_errors(exc: RequestValidationError) -> list[dict]:
+    """Each error's location, message and type; the offending input only as a short repr, so a
+    NaN, an infinity or a 10 MB string never reaches the JSON encoder."""
+    out = []
+    for err in exc.errors():
+        item = {"loc": [str(p) for p in err.get("loc", ())], "msg": str(err.get("msg", "")), "type": str(err.get("type", ""))}
+        if "input" in err:
+            text = repr(err["input"])
+            item["input"] = text if len(text) <= 80 else text[:77] + "..."
+        out.append(item)
+    return out
+
+
+def build_app(runtime: Runtime, *, token: str | None = None, trusted_hosts: list[str] | tuple[str, ...] | None = None,
+              max_body_bytes: int = MAX_BODY_BYTES) -> FastAPI:
     """The service over `runtime`; `token` guards the mutating routes (None reads DPMHW_API_TOKEN;
-    no token at all: they all answer 401). The caller owns the runtime's lifetime."""
+    no token at all: they all answer 401). `trusted_hosts` are the Host names clients may use
+    (None: DPMHW_API_HOSTS, comma-separated, else loopback names only). The caller owns the
+    runtime's lifetime."""
     app = FastAPI(title="dpmhw session", version=__version__,
                   description="Status, settings and control of a dynamic projection mapping session.",
                   docs_url=None, redoc_url=None)  # served from local files by add_pages
     app.state.runtime = runtime
     app.state.png_cache = status.PngCache()  # per app: each presented frame is encoded once
     app.state.token = token if token is not None else os.environ.get("DPMHW_API_TOKEN", "")
+    if trusted_hosts is None:
+        env = os.environ.get("DPMHW_API_HOSTS", "")
+        trusted_hosts = [h.strip() for h in env.split(",") if h.strip()] or list(DEFAULT_TRUSTED_HOSTS)
+    # Starlette runs the middleware added last first: Host, then token and body size.
+    app.add_middleware(_GuardMutations, max_body_bytes=max_body_bytes)
+    app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(trusted_hosts))
 
     @app.exception_handler(RuntimeUnavailable)
     async def unavailable(request: Request, exc: RuntimeUnavailable) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=503)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        return JSONResponse({"detail": _validation_errors(exc)}, status_code=422)
 
     app.include_router(status.router)
     app.include_router(settings.router)

@@ -8,7 +8,7 @@ from typing import Annotated, Any, Protocol
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-__all__ = ["Runtime", "RuntimeUnavailable", "get_runtime", "require_token"]
+__all__ = ["Runtime", "RuntimeUnavailable", "bearer_problem", "get_runtime", "require_token"]
 
 
 class RuntimeUnavailable(RuntimeError):
@@ -50,20 +50,28 @@ async def get_runtime(request: Request) -> Runtime:
 _bearer = HTTPBearer(auto_error=False, description="the session's API token (api.token or DPMHW_API_TOKEN)")
 
 
+def bearer_problem(authorization: str | None, expected: str) -> str | None:
+    """Why `authorization` (the raw header) does not carry the expected token; None when it does.
+
+    Shared by `require_token` and the body-cap middleware in `server/app.py`, which refuses a
+    bad token before the body is read."""
+    if not expected:
+        return "no API token is configured: set api.token in the session config or DPMHW_API_TOKEN"
+    scheme, _, credentials = (authorization or "").partition(" ")
+    if scheme.lower() != "bearer" or not credentials:
+        return "missing bearer token (Authorization: Bearer <token>)"
+    if not secrets.compare_digest(credentials.strip().encode(), expected.encode()):
+        return "wrong bearer token"
+    return None
+
+
 async def require_token(request: Request,
                   credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
-    """401 unless the request carries `Authorization: Bearer <token>` with the configured token."""
-    expected: str = getattr(request.app.state, "token", "") or ""
-    challenge = {"WWW-Authenticate": "Bearer"}
-    if not expected:
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED,
-                            "no API token is configured: set api.token in the session config or DPMHW_API_TOKEN",
-                            headers=challenge)
-    if credentials is None or credentials.scheme.lower() != "bearer":
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "missing bearer token (Authorization: Bearer <token>)",
-                            headers=challenge)
-    if not secrets.compare_digest(credentials.credentials.encode(), expected.encode()):
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "wrong bearer token", headers=challenge)
+    """401 unless the request carries `Authorization: Bearer <token>` with the configured token.
+    (`credentials` is declared so that the OpenAPI schema shows the bearer scheme.)"""
+    problem = bearer_problem(request.headers.get("authorization"), getattr(request.app.state, "token", "") or "")
+    if problem is not None:
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, problem, headers={"WWW-Authenticate": "Bearer"})
 
 
 RuntimeDep = Annotated[Runtime, Depends(get_runtime)]

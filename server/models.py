@@ -20,11 +20,14 @@ class SettingsModel(BaseModel):
 
 
 class SettingsPatch(BaseModel):
-    """Any subset of the live settings; unknown fields are refused (422)."""
+    """Any subset of the live settings; unknown fields are refused (422). Strict: no string or
+    boolean coercion (`"0.5"`, `true` for a number, `"yes"` for a flag are refused), and no NaN
+    or infinity."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"alpha": 0.5}, {"prediction": False}]})
+    model_config = ConfigDict(extra="forbid", strict=True,
+                              json_schema_extra={"examples": [{"alpha": 0.5}, {"prediction": False}]})
 
-    alpha: float | None = Field(None, gt=0.0, le=1.0)
+    alpha: float | None = Field(None, gt=0.0, le=1.0, allow_inf_nan=False)
     reuse_mode: Literal["off", "same-pixel", "motion"] | None = None
     spp: int | None = Field(None, ge=1, le=64)
     split_screen: bool | None = None

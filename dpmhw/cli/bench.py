@@ -172,3 +172,25 @@ def bench_ray_scaling(
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(result, indent=2))
         typer.echo(f"wrote {json_path}")
+
+
+@bench_app.command("soak")
+def bench_soak(
+    minutes: Annotated[float, typer.Option(min=0.05, help="How long to run.")] = 30.0,
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results (per fault and per kind) here.")] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the fault schedule.")] = 0,
+    kinds: Annotated[Optional[str], typer.Option(help="Comma-separated fault kinds [default: all].")] = None,
+) -> None:
+    """Mock session with random faults (tracker stall/restart, corrupt and foreign datagrams,
+    implausible poses, USB stall and unplug, API load): time to dark and to resume per fault kind,
+    lit frames while a cause was active, recording rows against frames presented, memory."""
+    from dpmhw.benchmarks.soak import FAULT_KINDS, format_table, plot_soak, run_soak
+
+    chosen = tuple(k.strip() for k in kinds.split(",")) if kinds else FAULT_KINDS
+    result = run_soak(minutes, seed=seed, kinds=chosen, progress=typer.echo)
+    typer.echo(format_table(result))
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(result, indent=2))
+        plot_soak(result, json_path.with_suffix(".png"))
+        typer.echo(f"wrote {json_path} and {json_path.with_suffix('.png')}")

@@ -22,6 +22,7 @@ from typing import Callable
 import numpy as np
 
 from dpmhw.errors import RenderError
+from dpmhw.limits import render_memory_problem
 from dpmhw.render import kernels
 from dpmhw.render.accel import Hits, empty_hits
 from dpmhw.render.cameras import PinholeCamera
@@ -62,6 +63,9 @@ class PathIntegrator:
     def __init__(self, scene: Scene, threads: int = 2, mis_last: bool | None = None, pixel_sampling: str = "centre"):
         if pixel_sampling not in PIXEL_SAMPLING:
             raise ValueError(f"pixel_sampling: expected one of {', '.join(PIXEL_SAMPLING)}, got {pixel_sampling!r}")
+        problem = render_memory_problem(scene.render.width, scene.render.height)  # before any allocation
+        if problem is not None:
+            raise RenderError(problem)
         # "centre": one ray through each pixel centre (camera hits on static objects cached per
         # camera pose); "jitter": through a random point of the pixel on every pass, so the
         # passes converge to the pixel's integral (box filter); camera rays traced every pass

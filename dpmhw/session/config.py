@@ -107,6 +107,17 @@ class TrackerSection(_Section):
     local_interface: str = "127.0.0.1"
     port: str = Field("", description="serial port (kind = serial): a device path or a pyserial URL")
     baudrate: int = Field(115200, gt=0)
+    # the plausibility gate (dpmhw.plausibility): samples breaking these are dropped, never projected
+    max_speed_m_s: float = Field(20.0, gt=0.0, le=1000.0, description="fastest a tracked body can move")
+    workspace_min: tuple[float, float, float] = Field((-20.0, -20.0, -20.0), description="capture volume, metres")
+    workspace_max: tuple[float, float, float] = Field((20.0, 20.0, 20.0), description="capture volume, metres")
+
+    @model_validator(mode="after")
+    def _workspace_is_a_box(self) -> "TrackerSection":
+        if any(lo >= hi for lo, hi in zip(self.workspace_min, self.workspace_max)):
+            raise ValueError(f"tracker.workspace_min {list(self.workspace_min)} must be below tracker.workspace_max "
+                             f"{list(self.workspace_max)} on every axis")
+        return self
 
 
 class ProjectorSection(_Section):

@@ -212,19 +212,23 @@ def start_mock_rig(config: SessionConfig, scene: Scene, bindings: dict[int, int]
 
 
 def open_tracker(config: SessionConfig, command_port: int | None = None, port: str | None = None):
+    from dpmhw.plausibility import PlausibilityLimits
+
     t = config.tracker
     stale_s = config.safety.stale_after_ms / 1e3
+    common = dict(stale_after_s=stale_s, lost_after_s=max(1.0, stale_s),
+                  plausibility=PlausibilityLimits(t.max_speed_m_s, t.workspace_min, t.workspace_max))
     if t.kind == "natnet":
         from drivers.natnet import NatNetClient
 
         return NatNetClient(t.server, command_port=command_port or t.command_port, local_interface=t.local_interface,
-                            stale_after_s=stale_s, lost_after_s=max(1.0, stale_s))
+                            **common)
     from drivers.serial_tracker import SerialTracker
 
     port = port or t.port
     if not port:
         raise SessionConfigError("tracker.port: a serial tracker needs a port (e.g. /dev/ttyUSB0)")
-    return SerialTracker(port, baudrate=t.baudrate, stale_after_s=stale_s, lost_after_s=max(1.0, stale_s))
+    return SerialTracker(port, baudrate=t.baudrate, **common)
 
 
 def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):

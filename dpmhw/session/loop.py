@@ -324,6 +324,8 @@ class SessionLoop:
             elif age > self.stale_ns:
                 problems.append(f"rigid body {body}: newest sample is {age / 1e6:.0f} ms old "
                                 f"(limit {self.stale_ns / 1e6:g} ms)")
+                if status.details.get("last_implausible_ns", 0) > s.t_arrival_ns:  # plausibility gate (issue 14)
+                    problems[-1] += f"; newer samples dropped as implausible: {status.details['last_implausible']}"
             samples[body] = s
         self.safety.update("tracking", bool(problems), "; ".join(problems), "blank")
         if problems:
@@ -520,6 +522,7 @@ class SessionLoop:
             "kind": getattr(self.parts.tracker, "kind", type(self.parts.tracker).__name__),
             "state": tracker_status.state.value, "reason": tracker_status.reason,
             "frames": tracker_status.frames, "malformed": tracker_status.malformed,
+            "implausible": getattr(tracker_status, "implausible", 0),
             "latency_ms": None if tracker_status.latency_ns is None else round(tracker_status.latency_ns / 1e6, 3),
             "stale": self.safety.active("tracking"),
         }

@@ -15,11 +15,11 @@ from __future__ import annotations
 import enum
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
-__all__ = ["Cause", "SafetyMonitor", "SafetyView", "SessionState"]
+__all__ = ["Cause", "SafetyMonitor", "SafetyView", "SessionState", "Transition"]
 
 CauseKind = Literal["blank", "fault"]
 OPERATOR = "operator"
@@ -39,6 +39,17 @@ class Cause:
     kind: CauseKind
     reason: str
     since_ns: int
+
+
+@dataclass(frozen=True)
+class Transition:
+    """A cause became active or cleared (`SafetyMonitor.transitions`, for audits and the soak bench)."""
+
+    seq: int  # 0, 1, 2, … over the monitor's life: a reader resumes where it left off
+    t_ns: int
+    name: str
+    active: bool
+    reason: str
 
 
 @dataclass(frozen=True)
@@ -72,6 +83,17 @@ class SafetyMonitor:
         self._stopped = False
         self._stop_reason = ""
         self.activations: Counter[str] = Counter()
+        self._transitions: deque[Transition] = deque(maxlen=4096)  # bounded: the newest only
+        self._seq = 0
+
+    def _log(self, now: int, name: str, active: bool, reason: str) -> None:
+        self._transitions.append(Transition(self._seq, now, name, active, reason))
+        self._seq += 1
+
+    def transitions(self, since_seq: int = 0) -> list[Transition]:
+        """Causes set and cleared with `seq >= since_seq`, oldest first (the newest 4096 are kept)."""
+        with self._lock:
+            return [t for t in self._transitions if t.seq >= since_seq]
 
     # ---- reporting ------------------------------------------------------------------------
     def update(self, name: str, active: bool, reason: str = "", kind: CauseKind = "blank") -> None:
@@ -82,6 +104,7 @@ class SafetyMonitor:
             if active:
                 if current is None:
                     self.activations[name] += 1
+                    self._log(now, name, True, reason)
                     if self.resume_mode == "manual" or name == OPERATOR:
                         self._latched = True
                     self._causes[name] = Cause(name, kind, reason, now)
@@ -90,6 +113,7 @@ class SafetyMonitor:
             elif current is not None:
                 del self._causes[name]
                 self._last_cleared = (name, now)
+                self._log(now, name, False, "")
 
     def operator_blank(self) -> None:
         self.update(OPERATOR, True, "blanked by the operator (POST /session/blank); resume to project")
@@ -104,6 +128,7 @@ class SafetyMonitor:
             if OPERATOR in self._causes:
                 del self._causes[OPERATOR]
                 self._last_cleared = (OPERATOR, self.clock())
+                self._log(self._last_cleared[1], OPERATOR, False, "")
             self._latched = False
             if not held:  # nothing was waiting for this request: say so, promise nothing
                 return True, "nothing to resume: not blanked by the operator nor waiting for a resume"

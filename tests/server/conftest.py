@@ -22,5 +22,5 @@ def loop():
 
 @pytest.fixture
 def client(loop):
-    with TestClient(build_app(runtime=loop, token=TOKEN)) as c:
+    with TestClient(build_app(runtime=loop, token=TOKEN), base_url="http://127.0.0.1") as c:
         yield c

@@ -140,11 +140,11 @@ def test_stuck_loop_status_still_answers_with_the_watchdog_fault(client, loop):
 
 def test_no_configured_token_refuses_every_mutation(loop, monkeypatch):
     monkeypatch.delenv("DPMHW_API_TOKEN", raising=False)
-    with TestClient(build_app(runtime=loop)) as c:
+    with TestClient(build_app(runtime=loop), base_url="http://127.0.0.1") as c:
         r = c.post("/session/blank", headers=AUTH)
         assert r.status_code == 401 and "no API token is configured" in r.json()["detail"]
     monkeypatch.setenv("DPMHW_API_TOKEN", TOKEN)
-    with TestClient(build_app(runtime=loop)) as c:
+    with TestClient(build_app(runtime=loop), base_url="http://127.0.0.1") as c:
         assert c.post("/session/blank", headers=AUTH).status_code == 200
 
 

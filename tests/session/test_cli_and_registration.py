@@ -34,15 +34,18 @@ def test_config_command_validates_and_masks_the_token(runner, tmp_path):
     assert r.exit_code == 2 and "reuse.alpha" in r.output and str(bad) in r.output
 
 
+@pytest.mark.realtime
 def test_start_mock_without_api_runs_records_and_ends_dark(runner, tmp_path):
-    r = runner.invoke(app, ["session", "start", "--mock", "--no-api", "--duration", "3", "--status-every", "0", *SMALL,
-                            "--record", "--set", f"recording.path={json.dumps(str(tmp_path))}", "--set", "recording.frame_every=2"])
+    # one recorded frame is the claim; 6 s leave a loaded 2-core machine time to light one (3 s and
+    # two frames did not: issue 14, finding 10)
+    r = runner.invoke(app, ["session", "start", "--mock", "--no-api", "--duration", "6", "--status-every", "0", *SMALL,
+                            "--record", "--set", f"recording.path={json.dumps(str(tmp_path))}", "--set", "recording.frame_every=1"])
     assert r.exit_code == 0, r.output
     assert "session started (mock devices)" in r.output and "projector dark (idle)" in r.output
     folder, = tmp_path.glob("session-*")
     poses = (folder / "poses.csv").read_text().splitlines()
     assert len(poses) > 100 and poses[0].startswith("body,t_exposure_ns")  # the real NatNet stream, 360 Hz
-    assert len((folder / "frames.csv").read_text().splitlines()) > 2 and any((folder / "frames").glob("*.png"))
+    assert len((folder / "frames.csv").read_text().splitlines()) >= 2 and any((folder / "frames").glob("*.png"))
 
 
 def test_start_mock_with_api_on_loopback(runner, monkeypatch):

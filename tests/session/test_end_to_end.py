@@ -29,7 +29,7 @@ def session():
         "sink.kind=recording", "reuse.mode=same-pixel"])
     loop = build_session(cfg, mock=True, frame_log=20_000).start()
     try:
-        with TestClient(build_app(runtime=loop, token=TOKEN)) as client:
+        with TestClient(build_app(runtime=loop, token=TOKEN), base_url="http://127.0.0.1") as client:
             yield loop, client
     finally:
         loop.stop()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -187,24 +188,30 @@ def test_predictor_sees_every_tracker_sample_not_one_per_frame(make_loop):
     loop = make_loop(tracker=SubscribingTracker(), renderer=SlowRenderer()).start()
     assert wait_for(lambda: presented(loop) >= 5, 20)
     kept = list(loop.predictor._samples[1])
-    gaps_ms = np.diff([s.t_exposure_ns for s in kept]) / 1e6
-    assert len(kept) == loop.predictor.history and gaps_ms.max() < 30  # tracker period ~3 ms, frames ≥ 50 ms
+    # consecutive tracker frames, not one per rendered frame (≥ 50 ms apart: ~16 tracker frames);
+    # asserted on frame numbers, not on times, which a loaded machine stretches
+    numbers = [s.frame_number for s in kept]
+    assert len(kept) == loop.predictor.history and np.all(np.diff(numbers) == 1), numbers
 
 
+@pytest.mark.realtime
 def test_dark_output_renders_only_at_the_probe_interval(make_loop):
     loop = make_loop(["safety.dark_render_interval_s=0.2"]).start()
     renderer = loop.parts.renderer
     assert wait_for(lambda: state(loop) == "running", 20)
     loop.blank()
     assert wait_for(lambda: state(loop) == "blanked", 5)
-    calls0, withheld0 = renderer.calls, loop.status()["counters"].get("frames_withheld", 0)
+    calls0, withheld0, t0 = renderer.calls, loop.status()["counters"].get("frames_withheld", 0), time.monotonic()
     threading.Event().wait(1.0)
     dark_calls = renderer.calls - calls0
-    assert 2 <= dark_calls <= 8, dark_calls  # ~5 probes per second, not one per loop turn
+    # one probe per 0.2 s at most, not one per loop turn (the upper bound holds at any load)
+    assert 1 <= dark_calls <= (time.monotonic() - t0) / 0.2 + 2, dark_calls
     # counted as withheld, not presented (the status snapshot may lag by one probe)
     assert abs(loop.status()["counters"]["frames_withheld"] - withheld0 - dark_calls) <= 1
     ok, _ = loop.resume()
     assert ok and wait_for(lambda: state(loop) == "running", 10)
-    calls1 = renderer.calls
-    threading.Event().wait(0.5)
-    assert renderer.calls - calls1 > 20  # lit: every loop turn renders again
+    calls1, t1 = renderer.calls, time.monotonic()
+    threading.Event().wait(1.0)
+    # lit: every loop turn renders again, not one probe per 0.2 s (a loaded 2-core machine still
+    # turns this 32×24 loop far more than 7 times a second)
+    assert renderer.calls - calls1 > (time.monotonic() - t1) / 0.2 + 2

@@ -111,7 +111,9 @@ def test_parser_never_raises_and_stays_bounded_on_arbitrary_bytes(chunks):
 # ---------------------------------------------------------------- driver ↔ emulator over a pty
 
 
-def check_against_truth(samples, world, emulator, time_tol_ns=2e6):
+def check_against_truth(samples, world, emulator, time_tol_ns=15e6):
+    """`time_tol_ns`: the scheduler may hold the reader thread off the CPU for milliseconds on a
+    loaded machine, which moves one-way stamps; exact stamping is tested from given arrival times."""
     for s in samples:
         truth_ns = emulator.device_ms_to_host_ns(s.frame_number)  # frame number = device ms
         assert abs(s.t_exposure_ns - truth_ns) < time_tol_ns, s.t_exposure_ns - truth_ns
@@ -123,6 +125,7 @@ def check_against_truth(samples, world, emulator, time_tol_ns=2e6):
 
 
 @pytest.mark.parametrize("units", ["cm", "inch"])
+@pytest.mark.realtime
 def test_round_trip_with_garbage_between_records(units):
     world = World.demo("rotate-oscillate", epoch_s=time.monotonic(), count=2)
     with PolhemusEmulator(world, garbage_prob=0.2, corrupt_prob=0.05, seed=1) as emu:
@@ -154,6 +157,7 @@ def test_round_trip_with_garbage_between_records(units):
         assert check_against_truth(samples, world, emu) == len(samples) == frames
 
 
+@pytest.mark.realtime
 def test_sensor_errors_arrive_as_invalid_samples():
     world = World.demo("static", epoch_s=time.monotonic())
     with PolhemusEmulator(world, model="PA", error_prob=0.5, seed=2) as emu:
@@ -164,6 +168,7 @@ def test_sensor_errors_arrive_as_invalid_samples():
     assert any(not s.valid for s in samples) and any(s.valid for s in samples)
 
 
+@pytest.mark.realtime
 def test_unplugged_port_is_reported_lost():
     world = World.demo("static", epoch_s=time.monotonic())
     emu = PolhemusEmulator(world).start()
@@ -190,6 +195,7 @@ def fill_until_blocked(fd: int) -> None:
             return
 
 
+@pytest.mark.realtime
 def test_device_that_stops_reading_cannot_hang_the_receiver():
     """A full output queue (nobody reads the other end) used to block a command write forever:
     the receiver thread never came back, and `stop()` gave up on it after 5 s."""
@@ -215,6 +221,7 @@ def test_device_that_stops_reading_cannot_hang_the_receiver():
         os.close(slave)
 
 
+@pytest.mark.realtime
 def test_silent_port_fails_the_init_with_an_actionable_reason():
     master, slave = os.openpty()
     try:
@@ -226,6 +233,7 @@ def test_silent_port_fails_the_init_with_an_actionable_reason():
         os.close(slave)
 
 
+@pytest.mark.realtime
 def test_silent_device_is_lost_then_reinitialised():
     world = World.demo("circular", epoch_s=time.monotonic())
     with PolhemusEmulator(world) as emu:
@@ -245,6 +253,7 @@ def test_silent_device_is_lost_then_reinitialised():
         assert list(emu.commands).count(b"C") >= 2 and list(emu.commands).count(b"\x19") >= 2
 
 
+@pytest.mark.realtime
 def test_port_that_disappears_and_comes_back_is_reconnected(tmp_path):
     """Like a USB-serial adapter unplugged and replugged: the device path is a stable symlink."""
     link = tmp_path / "ttyTRACKER"
@@ -271,8 +280,10 @@ def test_port_that_disappears_and_comes_back_is_reconnected(tmp_path):
 
 def test_gaps_in_record_timestamps_count_as_missed_records():
     tracker = PolhemusTracker("loop://", warmup_records=0)
-    stream = b"".join(record_bytes(station=1, ms=ms) for ms in (0, 4, 8, 13, 17, 21, 25, 33, 45, 50))
-    samples = tracker.process_bytes(stream, arrival_ns=10**9)
+    # each record arrives when it was made (the clock mapping refuses device time that outruns
+    # arrival time: 50 ms of records arriving at one instant would look like corrupt stamps)
+    samples = [s for ms in (0, 4, 8, 13, 17, 21, 25, 33, 45, 50)
+               for s in tracker.process_bytes(record_bytes(station=1, ms=ms), arrival_ns=10**9 + ms * 10**6)]
     assert len(samples) == 10 and tracker.status().frames == 10
     assert tracker.status().frames_missed == 3  # 29, then 37 and 41
     assert [s.frame_number for s in samples][-1] == 50
@@ -285,6 +296,9 @@ def test_dropout_at_a_fractional_millisecond_period_counts_the_records_really_mi
     the mean interval (4.17 ms), not the median (4 ms, which counted 250 for 240)."""
     tracker = PolhemusTracker("loop://", warmup_records=0)
     kept = [*range(0, 300), *range(540, 600)]  # records 300..539 (one second) never arrive
-    stream = b"".join(record_bytes(ms=round(j * 1000 / 240)) for j in kept)
-    assert len(tracker.process_bytes(stream, arrival_ns=10**9)) == len(kept)
+    # each record arrives when it was made: 2.5 s of device time arriving at one instant would be
+    # (rightly) refused by the clock mapping and the plausibility gate
+    published = [s for j in kept for s in tracker.process_bytes(
+        record_bytes(ms=round(j * 1000 / 240)), arrival_ns=10**9 + round(j * 1e9 / 240))]
+    assert len(published) == len(kept)
     assert tracker.status().frames_missed == 240

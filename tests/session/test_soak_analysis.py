@@ -1,0 +1,55 @@
+"""The soak bench's bookkeeping (dpmhw/benchmarks/soak.py), on a hand-made timeline: time to dark
+and to resume, lit frames while a cause was active, dark spells no fault explains."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dpmhw.benchmarks.soak import _analyse, _Fault, format_table
+from dpmhw.session.config import load_session_config
+from dpmhw.session.safety import Transition
+from dpmhw.tracking import TrackerState, TrackerStatus
+
+MS = 1_000_000
+
+
+def timeline(lit_ranges, end_ms=10_000, period_ms=10):
+    t = np.arange(0, end_ms, period_ms, dtype=np.int64) * MS
+    lit = np.zeros(len(t), bool)
+    for a, b in lit_ranges:
+        lit |= (t >= a * MS) & (t < b * MS)
+    return t, lit
+
+
+def analyse(faults, t, lit, transitions, wrong=()):
+    return _analyse(load_session_config(), faults, t, lit, transitions, list(wrong), 100, 100, 0, 200.0, 201.0, 1.0, 0,
+                    TrackerStatus(TrackerState.STREAMING))
+
+
+def test_stall_dark_and_resume_are_measured_from_the_fault():
+    t, lit = timeline([(0, 1050), (2600, 10_000)])  # dark from 1050 ms, lit again at 2600 ms
+    transitions = [Transition(0, 1045 * MS, "tracking", True, "stale"), Transition(1, 2100 * MS, "tracking", False, "")]
+    out = analyse([_Fault("tracker_stall", 1000 * MS, 2000 * MS)], t, lit, transitions)
+    (row,) = out["faults"]
+    assert row["time_to_dark_ms"] == 50 and row["time_to_resume_ms"] == 600
+    assert row["causes"] == ["tracking"] and row["lit_frames_while_cause_active"] == 0
+    assert out["totals"]["unexplained_dark_spells"] == 0
+
+
+def test_a_lit_frame_inside_a_cause_is_counted():
+    t, lit = timeline([(0, 1200), (2600, 10_000)])  # still lit 150 ms into the cause: a bug
+    transitions = [Transition(0, 1045 * MS, "tracking", True, "stale"), Transition(1, 2100 * MS, "tracking", False, "")]
+    out = analyse([_Fault("tracker_stall", 1000 * MS, 2000 * MS)], t, lit, transitions)
+    assert out["faults"][0]["lit_frames_while_cause_active"] == 15
+    assert out["totals"]["lit_frames_while_cause_active"] == 15
+
+
+def test_a_fault_that_never_darkens_and_a_dark_spell_nobody_caused():
+    t, lit = timeline([(0, 6000), (6300, 10_000)])
+    transitions = [Transition(0, 5995 * MS, "tracking", True, "stale"), Transition(1, 6100 * MS, "tracking", False, "")]
+    faults = [_Fault("foreign_datagrams", 1000 * MS, 3000 * MS), _Fault("api_load", 8000 * MS, 9000 * MS)]
+    out = analyse(faults, t, lit, transitions, wrong=[(7000 * MS, 1000.0)])
+    assert out["faults"][0]["time_to_dark_ms"] is None and out["faults"][0]["time_to_resume_ms"] is None
+    assert out["totals"]["unexplained_dark_spells"] == 1 and out["totals"]["unexplained_causes"] == ["tracking"]
+    assert out["faults"][0]["implausible_frames_shown"] == 1 and out["totals"]["implausible_frames_shown"] == 1
+    assert "| foreign_datagrams | 1 | 0 |" in format_table(out)

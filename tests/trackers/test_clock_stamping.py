@@ -1,0 +1,64 @@
+"""Stamping accuracy of the NatNet receiver, from synthetic arrival times (no sockets, no wall
+clock): the same properties the loopback tests once asserted in real time, where one loaded CPU
+moved the stamps by milliseconds and failed them (issue 14, finding 10).
+
+The frames are real NatNet 4.1 datagrams from the mock's encoder; the server clock and the
+network are modelled here: mid-exposure at the true instant, transmit `LATENCY` later, arrival
+after a transit of 0.1 ms plus seeded exponential jitter.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drivers.natnet import NatNetClient
+from firmware_mocks.natnet_server import FrameContent, encode_frame
+
+MS = 1_000_000
+LATENCY = int(4.5 * MS)
+PERIOD = 2_777_778  # 360 Hz
+
+
+def run(drift_ppm=0.0, jitter_ms=0.0, seconds=1.5, clock_window_s=2.0, seed=0):
+    """Feed `seconds` of frames; returns (stamp errors in ns, latencies in ns)."""
+    client = NatNetClient(clock_window_s=clock_window_s)
+    client.version, client.clock_hz = (4, 1), 10**9  # past the handshake: one server tick = one ns
+    rng = np.random.default_rng(seed)
+    origin = 7 * 10**9  # host time at which the server clock read 0
+    errors, latencies = [], []
+    for k in range(int(seconds * 1e9 / PERIOD)):
+        true_mid = origin + 10**9 + k * PERIOD
+        ticks = lambda host_ns: int((host_ns - origin) * (1 + drift_ppm * 1e-6))  # noqa: E731
+        content = FrameContent(frame_number=k + 1, rigid_bodies=[(1, (0.1, 0.2, 0.3), (0.0, 0.0, 0.0, 1.0), 0.0, 1)],
+                               stamp_mid_exposure=ticks(true_mid), stamp_transmit=ticks(true_mid + LATENCY))
+        arrival = true_mid + LATENCY + int(0.1 * MS + rng.exponential(jitter_ms * MS)) if jitter_ms else \
+            true_mid + LATENCY + int(0.1 * MS)
+        (sample,) = client.process_datagram(encode_frame(content, "4.1"), arrival)
+        errors.append(sample.t_exposure_ns - true_mid)
+        latencies.append(sample.latency_ns)
+    return np.array(errors), np.array(latencies), client
+
+
+def test_jittered_arrivals_do_not_move_the_stamps():
+    errors, latencies, client = run(jitter_ms=2.0, seed=5)
+    assert np.ptp(latencies) > 5 * MS  # the jitter is really there...
+    assert np.abs(errors[180:]).max() < 0.2 * MS  # ...and the running minimum rides it out
+    assert client.status().details["clock_outliers"] == 0
+
+
+def test_drifting_server_clock_is_followed_by_the_sliding_window():
+    # a server clock 1000 ppm slow lets arrival − transmit grow by 1 ms per second: a minimum that
+    # never forgets stays at the first second's value and stamps ever later frames too early
+    errors, _, _ = run(drift_ppm=-1000.0, clock_window_s=0.25, seconds=1.5)
+    assert np.abs(errors[90:]).max() < 0.3 * MS
+    stuck, _, _ = run(drift_ppm=-1000.0, clock_window_s=100.0, seconds=1.5)
+    assert np.abs(stuck[-10:]).max() > 1.0 * MS
+
+
+def test_latency_is_exposure_to_arrival():
+    _, latencies, client = run()
+    # one-way evidence maps the fastest arrival to its transmit stamp: the constant transit (0.1 ms)
+    # is invisible, what remains is Motive's own mid-exposure → transmit latency
+    assert latencies.min() == pytest.approx(LATENCY, abs=2)
+    assert client.system_latency_s == pytest.approx(LATENCY / 1e9)
