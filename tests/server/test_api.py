@@ -63,8 +63,12 @@ def test_blank_resume_and_reset_history(client, loop):
     assert wait_for(lambda: client.get("/status").json()["state"] == "blanked", 10)
     assert "operator" in client.get("/status").json()["reason"]
     assert client.post("/session/reset-history", headers=AUTH).json()["ok"]
-    r = client.post("/session/resume", headers=AUTH)
-    assert r.status_code == 200 and r.json()["ok"]
+    # on a loaded machine a stale-tracking cause can be active for a moment; resume is then
+    # refused (409, naming it), as documented, and accepted once tracking is fresh again
+    answers = []
+    assert wait_for(lambda: answers.append(client.post("/session/resume", headers=AUTH)) or answers[-1].status_code == 200, 10)
+    assert all(a.status_code == 200 or "tracking" in a.json()["message"] for a in answers)
+    assert answers[-1].json()["ok"]
     assert wait_for(lambda: running(client), 10)
     assert wait_for(lambda: client.get("/status").json()["counters"].get("history_resets") == 1, 10)
 
