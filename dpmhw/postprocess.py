@@ -29,7 +29,6 @@ table reproduces it exactly (perf-notes.md: 0.9 ms for a full 1024×768 frame on
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path

@@ -1,7 +1,6 @@
 """Sampling behaviour: determinism, convergence, robustness on awkward geometry, moving objects."""
 
 import numpy as np
-import pytest
 
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.transforms import Pose, rotation_from_euler_xyz_deg
