@@ -3,9 +3,10 @@ DLPC900 (in its own process, read back here) is dark within DARK_WITHIN_S, `/sta
 `fault` and why, and restarts follow `safety.restart`. An API process that dies is restarted
 without touching the loop.
 
-Each test starts whole sessions (tens of seconds on 2 shared cores): marked slow. Bounds are
-generous and every wait polls with a timeout, so a CPU hog beside the tests changes nothing.
-Run with `python -m pytest tests/session/test_supervisor.py -m slow -s` (prints time to dark).
+Each test starts whole sessions (about 40 s for the five on 2 cores), and they run in the
+default suite, so CI checks every way of dying. Bounds are generous and every wait polls with a
+timeout, so a CPU hog beside the tests changes nothing.
+Run with `python -m pytest tests/session/test_supervisor.py -s` to print time to dark.
 """
 
 from __future__ import annotations
@@ -24,8 +25,6 @@ import pytest
 from dpmhw.session.supervisor import EMULATOR_ENV
 from dpmhw.tracking import wait_for
 from firmware_mocks.dlpc900_socket import EmulatorProcess
-
-pytestmark = pytest.mark.slow
 
 DARK_WITHIN_S = 15.0  # kill → emulated DMD dark by read-back (measured: well under 1 s; see docs/session.md)
 START_S = 120.0  # a loop process starting (imports, scene, kernels) on a loaded machine
