@@ -1,7 +1,8 @@
 """The loop's image-space stage: shading-resolution frame → native uint8 projector frame.
 
     render (shading res) → temporal reuse (shading res) → cross-bilateral filter (shading res)
-    → joint bilateral upsampling + re-modulation (native, lit region only) → sRGB (lit region only)
+    → joint bilateral upsampling + re-modulation (native, lit region only)
+    → adaptive sampling (native paths where the upsampling lacks support, optional) → sRGB (lit region only)
 
 Two paths, chosen per frame from the live settings:
 
@@ -43,7 +44,7 @@ __all__ = ["ReconstructStage", "StageOutput"]
 @dataclass
 class StageOutput:
     image: np.ndarray  # (H, W, 3) uint8, native
-    stages_s: dict  # seconds per sub-stage: gbuffer, reuse, filter, upsample, post
+    stages_s: dict  # seconds per sub-stage: gbuffer, reuse, filter, upsample, [adaptive,] post
     lit_box: tuple[int, int, int, int]
     unresolved: int  # native pixels no shading sample supports (see upsample)
 
@@ -59,15 +60,19 @@ class ReconstructStage:
     gbuffer_mode : "edges" (trace only near the shading frame's discontinuities) or "trace"
         (every pixel of the moving objects' region); see `render.gbuffer`
     clock : monotonic nanoseconds, for the sub-stage timings
+    adaptive : a `reconstruct.adaptive.AdaptiveSampler` (None: no adaptive sampling): extra
+        native paths for unresolved and under-supported pixels, merged before post
     """
 
     def __init__(self, native_size, shading_size, *, background=(0.0, 0.0, 0.0), viewer=(0.0, 0.0, 0.0),
-                 warmup: bool = False, gbuffer=None, gbuffer_mode: str = "edges", clock=time.monotonic_ns):
+                 warmup: bool = False, gbuffer=None, gbuffer_mode: str = "edges", clock=time.monotonic_ns,
+                 adaptive=None):
         self.W, self.H = (int(v) for v in native_size)
         self.w, self.h = (int(v) for v in shading_size)
         if (self.w, self.h) != (self.W, self.H) and gbuffer is None:
             raise ValueError("ReconstructStage: shading size differs from the native size but no native G-buffer was given")
         self.gbuffer = gbuffer
+        self.adaptive = adaptive if gbuffer is not None else None
         self.clock = clock  # ns; the loop's injectable clock
         self.gbuffer_mode = gbuffer_mode
         self.background = np.asarray(background, np.float32).reshape(3)
@@ -92,6 +97,8 @@ class ReconstructStage:
     def reset(self) -> None:
         for r in (self.reuse, self.reuse_d, self.reuse_s):
             r.reset()
+        if self.adaptive is not None:
+            self.adaptive.reset()
 
     def _settings(self, mode: str, alpha: float, split_screen: bool) -> None:
         wanted = ReuseSettings(alpha, mode, self.warmup, split_screen)
@@ -166,10 +173,18 @@ class ReconstructStage:
         t4 = self._now()
         st["upsample"] = t4 - t3
 
+        st["adaptive"] = 0.0
+        if self.adaptive is not None:
+            self.adaptive.refine(self._radiance, self._wsum, self._unresolved, box, poses if poses is not None else [],
+                                 frame.seed, 1.0 if mode == "off" else alpha)
+            t5 = self._now()
+            st["adaptive"] = t5 - t4
+            t4 = t5
         image = self.base_frame(exposure).copy()
         if box[1] > box[0] and box[3] > box[2]:
             encode_srgb8(self._radiance, self.W, exposure, box, image)
         st["post"] = self._now() - t4
         y0, y1, x0, x1 = box
         unresolved = int(self._unresolved.reshape(self.H, self.W)[y0:y1, x0:x1].sum())
+
         return StageOutput(image.reshape(self.H, self.W, 3), st, box, unresolved)

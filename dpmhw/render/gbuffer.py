@@ -268,7 +268,7 @@ class NativeGBuffer:
     # ---- static part, once -----------------------------------------------------------------
     def _trace_static(self) -> None:
         hits = self.geometry.accel.intersect_static(self._o, self._d, width=self.width)
-        self._static_hits = hits
+        self.static_hits = hits
         self._hits = empty_hits(len(hits.t))  # per-frame hits, rows = pixels (only the traced ones are read)
         index = np.arange(self.width * self.height, dtype=np.int64)
         R, T = self.geometry.poses(self.scene.object_poses(0.0))
@@ -355,7 +355,7 @@ class NativeGBuffer:
         if n == 0:
             return
         R, T = self.geometry.poses(poses)
-        accel, s, h = self.geometry.accel, self._static_hits, self._hits
+        accel, s, h = self.geometry.accel, self.static_hits, self._hits
         if isinstance(accel, RtcAccel):  # packets of 16 pixels, queried from the kernel
             k = -(-n // (16 * 2 * self.threads)) * 16
             bounds = [(a, min(a + k, n)) for a in range(0, n, k)]

@@ -41,6 +41,7 @@ SEGMENT_PIXELS = 6144
 MAX_SEGMENTS = 64
 PIXEL_SAMPLING = ("centre", "jitter")
 _NO_CORNERS = np.zeros((1, 1, 2), np.float32)
+SUBSET_SALT = 0xBB67AE8584CAA73B  # render_pixels' random stream: independent of render's
 PACKETS = (True, True)  # measured: packets beat single rays for every query type here (README)
 
 
@@ -82,7 +83,7 @@ class PathIntegrator:
         self.counts = RayCounts()
         self._static_primary_key = None
         self._static_primary_hits = None
-        self._work: _Work | None = None
+        self._work: list[_Work] = []  # most recently used first
         # (continuation, shadow) rays as 16-wide packets of consecutive paths, or single rays
         self.packets = PACKETS
         # one compiled call per segment (with the C API); False: Python between the stages (the
@@ -158,6 +159,39 @@ class PathIntegrator:
             specular_albedo=gbuf.spec.reshape(H, W, 3), roughness=gbuf.rough.reshape(H, W),
             spp=done, time=float(time), seed=int(seed), nonfinite_samples=int(nonfinite.sum()),
         )
+
+    def render_pixels(self, camera: PinholeCamera, pixels: np.ndarray, poses: list[Pose], seed: int, spp: int = 1,
+                      static_hits: Hits | None = None) -> np.ndarray:
+        """Radiance (n, 3) of `spp` paths through the centres of `camera`'s pixels `pixels` (flat
+        row-major indices; any camera, e.g. the projector's native one while the integrator
+        shades at a lower resolution). `static_hits`: the camera's cached hits on static
+        objects for every pixel (else traced here). Deterministic per (seed, pixels): the random
+        numbers hash the pixel's position in `pixels` and a key of the seed independent of
+        `render`'s. `counts` then holds this call's rays."""
+        if spp < 1:
+            raise ValueError(f"spp must be ≥ 1, got {spp}")
+        pixels = np.asarray(pixels, np.int64)
+        n = len(pixels)
+        o_all, d_all = camera.generate_rays()
+        o, d = np.ascontiguousarray(o_all[pixels]), np.ascontiguousarray(d_all[pixels])
+        R, T = self.geometry.poses(poses)
+        self.counts = RayCounts(primary=n)
+        film = {k: np.zeros((n, 3), f32) for k in ("emit", "diff", "spec")}
+        if n == 0:
+            return film["emit"]
+        if static_hits is None:
+            sh = self.geometry.accel.intersect_static(o, d)
+            self.counts.primary_static_traced = n
+        else:
+            sh = Hits(static_hits.t[pixels], static_hits.obj[pixels], static_hits.prim[pixels], static_hits.u[pixels],
+                      static_hits.v[pixels])
+        moving = bool(self.geometry.accel.dynamic_objects)
+        primary = self._work_buffers(n).primary if moving else sh
+        gbuf, nonfinite = _GBuffer(n), np.zeros(n, np.int32)
+        for p in range(spp):
+            key = np.uint64(int(kernels.pass_key(seed, p)) ^ SUBSET_SALT)
+            self._trace_pass(key, o, d, sh if moving and p == 0 else None, primary, R, T, camera, film, gbuf, nonfinite, False)
+        return (film["emit"] + film["diff"] + film["spec"]) / f32(spp)
 
     def _static_primary(self, camera: PinholeCamera, o, d):
         """Primary hits on static objects depend only on the camera pose: trace them once per pose."""
@@ -262,9 +296,15 @@ class PathIntegrator:
                 raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
 
     def _work_buffers(self, n: int) -> "_Work":
-        if self._work is None or self._work.n != n:
-            self._work = _Work(n)
-        return self._work
+        """The working arrays for n paths; the two last sizes are kept (the frame's, and
+        `render_pixels`' in between)."""
+        for w in self._work:
+            if w.n == n:
+                self._work = [w] + [x for x in self._work if x is not w]
+                return w
+        w = _Work(n)
+        self._work = [w] + self._work[:1]
+        return w
 
 
 class _Work:
