@@ -37,6 +37,7 @@ from dpmhw.reconstruct.filter import cross_bilateral, mode_code
 from dpmhw.reconstruct.guides import Guides
 from dpmhw.reconstruct.reuse import ReuseSettings, TemporalReuse
 from dpmhw.reconstruct.upsample import upsample
+from dpmhw.render.gbuffer import box_minus
 
 __all__ = ["ReconstructStage", "StageOutput"]
 
@@ -140,7 +141,12 @@ class ReconstructStage:
             g = self.gbuffer
             box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
             # this stage's native guides: everything once, then its last and the current region
-            dirty = [(0, self.H, 0, self.W)] if self._native_roi == "none yet" else [self._native_roi, g.roi_box]
+            if self._native_roi == "none yet":
+                dirty = [(0, self.H, 0, self.W)]
+            elif self._native_roi is None:
+                dirty = [g.roi_box]
+            else:  # the current region, and what of the last one lies outside it (each pixel once)
+                dirty = [g.roi_box] + box_minus(self._native_roi, g.roi_box)
             self._native_roi = g.roi_box
             for b in dirty:
                 if b is not None and b[1] > b[0] and b[3] > b[2]:

@@ -38,9 +38,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numba as nb
 import numpy as np
 
+from dpmhw.render import traversal
 from dpmhw.render.accel import empty_hits
 from dpmhw.render.cameras import PinholeCamera
-from dpmhw.render import traversal
 from dpmhw.render.geometry import SceneGeometry
 from dpmhw.render.traversal import RtcAccel
 from dpmhw.scene_file import Scene
@@ -333,7 +333,7 @@ class NativeGBuffer:
         box = self.roi(poses) if self.dynamic else None
         prev = self._prev_box
         if prev is not None:  # pixels of the last region outside this one: back to static
-            for part in _minus(prev, box):
+            for part in box_minus(prev, box):
                 for k, a in self._static.items():
                     _restore_kernel(getattr(self, k), a, self.width, *part)
         if box is not None:
@@ -416,7 +416,7 @@ def _tile_order(flags, every, W, y0, y1, x0, x1):
     return out[:n]
 
 
-def _minus(a, b) -> list[tuple[int, int, int, int]]:
+def box_minus(a, b) -> list[tuple[int, int, int, int]]:
     """Box a without box b, as up to four boxes."""
     if b is None or b[0] >= a[1] or b[1] <= a[0] or b[2] >= a[3] or b[3] <= a[2]:
         return [a]

@@ -186,11 +186,14 @@ class PathIntegrator:
             sh = Hits(static_hits.t[pixels], static_hits.obj[pixels], static_hits.prim[pixels], static_hits.u[pixels],
                       static_hits.v[pixels])
         moving = bool(self.geometry.accel.dynamic_objects)
-        primary = self._work_buffers(n).primary if moving else sh
+        # every path of a subset is usually lit: one segment per thread, however few
+        work = self._work_buffers(n, self.threads)
+        primary = work.primary if moving else sh
         gbuf, nonfinite = _GBuffer(n), np.zeros(n, np.int32)
         for p in range(spp):
             key = np.uint64(int(kernels.pass_key(seed, p)) ^ SUBSET_SALT)
-            self._trace_pass(key, o, d, sh if moving and p == 0 else None, primary, R, T, camera, film, gbuf, nonfinite, False)
+            self._trace_pass(key, o, d, sh if moving and p == 0 else None, primary, R, T, camera, film, gbuf, nonfinite, False,
+                             work=work)
         return (film["emit"] + film["diff"] + film["spec"]) / f32(spp)
 
     def _static_primary(self, camera: PinholeCamera, o, d):
@@ -203,12 +206,12 @@ class PathIntegrator:
         return self._static_primary_hits
 
     def _trace_pass(self, key, camera_o, primary_dirs, static_hits: Hits | None, primary: Hits, R, T, camera, film, gbuf,
-                    nonfinite, write_gbuffer, jitter_key=None):
+                    nonfinite, write_gbuffer, jitter_key=None, work: "_Work | None" = None):
         """One sample per pixel. The image is cut into row ranges (segments); each is traced to the
         end of its paths by one thread (shade → shadow rays → continuation rays → shade …), so a
         segment's rays and hits are still in cache when the next stage reads them, and the
         threads never wait for each other between stages. Segments write disjoint pixels."""
-        w = self._work_buffers(len(primary.t))
+        w = work if work is not None else self._work_buffers(len(primary.t))
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
         accel = self.geometry.accel
@@ -295,14 +298,14 @@ class PathIntegrator:
             if depth > 4096:
                 raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
 
-    def _work_buffers(self, n: int) -> "_Work":
-        """The working arrays for n paths; the two last sizes are kept (the frame's, and
-        `render_pixels`' in between)."""
+    def _work_buffers(self, n: int, min_segments: int = 1) -> "_Work":
+        """The working arrays for n paths in at least `min_segments` segments (of ≥ 64 paths);
+        the two last sizes are kept (the frame's, and `render_pixels`' in between)."""
         for w in self._work:
-            if w.n == n:
+            if w.n == n and w.min_segments == min_segments:
                 self._work = [w] + [x for x in self._work if x is not w]
                 return w
-        w = _Work(n)
+        w = _Work(n, min_segments)
         self._work = [w] + self._work[:1]
         return w
 
@@ -311,9 +314,9 @@ class _Work:
     """Per-path working arrays, kept between frames (fresh multi-MB arrays cost page faults every
     frame). Segment s owns rows [starts[s], starts[s] + full_counts[s]) of every array."""
 
-    def __init__(self, n: int):
-        self.n = n
-        segments = min(MAX_SEGMENTS, max(1, -(-n // SEGMENT_PIXELS)))
+    def __init__(self, n: int, min_segments: int = 1):
+        self.n, self.min_segments = n, min_segments
+        segments = min(MAX_SEGMENTS, max(1, min(min_segments, n // 64), -(-n // SEGMENT_PIXELS)))
         size = -(-n // segments)
         self.starts = np.minimum(np.arange(segments, dtype=np.int64) * size, n)
         self.full_counts = np.minimum(self.starts + size, n) - self.starts
