@@ -140,7 +140,7 @@ class ReconstructStage:
         if self.gbuffer is not None:
             g = self.gbuffer
             box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
-            # this stage's native guides: everything once, then its last and the current region
+            # this stage's native guides: everything once, then the current region and the rest of its last
             if self._native_roi == "none yet":
                 dirty = [(0, self.H, 0, self.W)]
             elif self._native_roi is None:
@@ -192,5 +192,4 @@ class ReconstructStage:
         st["post"] = self._now() - t4
         y0, y1, x0, x1 = box
         unresolved = int(self._unresolved.reshape(self.H, self.W)[y0:y1, x0:x1].sum())
-
         return StageOutput(image.reshape(self.H, self.W, 3), st, box, unresolved)
