@@ -30,7 +30,7 @@ import numpy as np
 from dpmhw.lod.policy import rays_per_sample_bound
 
 WEIGHT_THRESHOLD = 0.05  # diffuse weight sum below which a pixel asks for a native path
-DEFAULT_BUDGET_RAYS = 8192  # per frame: ≈ 1.4k paths at ≤ 6 rays (dpm-bunny 1024×768 at ¼: ~3 ms on the shared 2-core machine)
+DEFAULT_BUDGET_RAYS = 2048  # per frame: ≈ 340 paths at ≤ 6 rays, the pixels with (almost) no 2×2 support at ¼ (docs)
 
 
 @nb.njit(cache=True, nogil=True)
