@@ -37,7 +37,6 @@ from dpmhw.reconstruct.filter import cross_bilateral, mode_code
 from dpmhw.reconstruct.guides import Guides
 from dpmhw.reconstruct.reuse import ReuseSettings, TemporalReuse
 from dpmhw.reconstruct.upsample import upsample
-from dpmhw.render.gbuffer import box_minus
 
 __all__ = ["ReconstructStage", "StageOutput"]
 
@@ -138,6 +137,9 @@ class ReconstructStage:
 
         # native G-buffer (moving objects' region re-traced) and its guides
         if self.gbuffer is not None:
+            from dpmhw.render.gbuffer import box_minus  # loaded already (the G-buffer's module); kept out of
+            # this module's imports so that importers of the stage (the API process) skip numba/Embree
+
             g = self.gbuffer
             box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
             # this stage's native guides: everything once, then the current region and the rest of its last
