@@ -7,13 +7,16 @@ reference of `native_ref_spp` samples (cached like the other references):
 
 - 1 spp with no filter, the normal-aware and the lobe-aware filter (no reuse);
 - reuse (motion mode) at α = 0.2 with each filter;
-- shading at ½ and ¼ per axis + joint bilateral upsampling + reuse, with each filter.
+- shading at ½ and ¼ per axis + joint bilateral upsampling + reuse, with each filter;
+- the same at ½ and ¼ with the lobe-aware filter and adaptive sampling (`reconstruct.adaptive`,
+  `native_adaptive_rays` rays per frame; method names end in "+ adaptive").
 
 Rows are flat: scene, method, shading_scale, filter, alpha, frame_ms (render at the shading
 resolution + native G-buffer + reuse + filter + upsample + post, median over the timeline's
 frames), psnr_db, ssim, flip (mean FLIP, `flip-evaluator`, LDR, default 67 ppd), plus
 psnr_db_object (the mesh objects' pixels), psnr_db_glossy (pixels of objects with a specular
-lobe sharper than roughness 0.5: where lobe- and normal-aware differ), cost_vs_1spp.
+lobe sharper than roughness 0.5: where lobe- and normal-aware differ), cost_vs_1spp,
+adaptive_rays (the budget; 0 without adaptive sampling), adaptive_pixels (median paths per frame).
 
 Static: metrics averaged over the last `native_eval_frames` frames of `native_static_frames`.
 Dynamic: a 60 fps timeline, `native_history_frames` frames before the first eval time.
@@ -29,6 +32,7 @@ import numpy as np
 
 from dpmhw.metrics import psnr, ssim
 from dpmhw.postprocess import postprocess
+from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
@@ -44,12 +48,14 @@ class Method:
     shading_scale: float
     alpha: float | None  # None: no reuse
     filter: str
+    adaptive: bool = False
 
 
 def native_methods(alpha: float = 0.2) -> list[Method]:
     out = [Method(f"1 spp + {f}", 1.0, None, f) for f in ("off", "normal", "lobe")]
     for scale, tag in ((1.0, "native"), (0.5, "1/2"), (0.25, "1/4")):
         out += [Method(f"{tag} + reuse {alpha:g} + {f}", scale, alpha, f) for f in ("off", "normal", "lobe")]
+    out += [Method(f"{tag} + reuse {alpha:g} + lobe + adaptive", scale, alpha, "lobe", True) for scale, tag in ((0.5, "1/2"), (0.25, "1/4"))]
     return out
 
 
@@ -91,7 +97,7 @@ def run_native_scene(name: str, kind: str, cfg, cache, progress: Callable, image
     from dpmhw.session.factory import shading_scene
 
     integrators, gbuffers, stages = {}, {}, {}
-    stats = {m: dict(ms=[], psnr=[], ssim=[], flip=[], obj=[], glossy=[]) for m in methods}
+    stats = {m: dict(ms=[], psnr=[], ssim=[], flip=[], obj=[], glossy=[], adaptive=[]) for m in methods}
     refs = {}
     try:
         for s in scales:
@@ -104,7 +110,9 @@ def run_native_scene(name: str, kind: str, cfg, cache, progress: Callable, image
         for m in methods:
             stages[m] = ReconstructStage((W, H), (integrators[m.shading_scale].width, integrators[m.shading_scale].height),
                                          background=native.render.background, viewer=native.viewer_position,
-                                         gbuffer=gbuffers.get(m.shading_scale), clock=_time.perf_counter_ns)
+                                         gbuffer=gbuffers.get(m.shading_scale), clock=_time.perf_counter_ns,
+                                         adaptive=AdaptiveSampler(integrators[m.shading_scale], gbuffers[m.shading_scale],
+                                                                  cfg.native_adaptive_rays) if m.adaptive else None)
         for k, t in enumerate(frame_times):
             poses = native.object_poses(t)
             frames, render_ms = {}, {}
@@ -121,6 +129,8 @@ def run_native_scene(name: str, kind: str, cfg, cache, progress: Callable, image
                                       camera=integrators[m.shading_scale].camera)
                 st = stats[m]
                 st["ms"].append(render_ms[m.shading_scale] + sum(out.stages_s.values()) * 1e3)
+                if m.adaptive:
+                    st["adaptive"].append(stages[m].adaptive.last_pixels)
                 if ref8 is None:
                     continue
                 img = out.image
@@ -147,7 +157,9 @@ def run_native_scene(name: str, kind: str, cfg, cache, progress: Callable, image
                      "flip": float(np.mean(st["flip"])), "psnr_db_object": float(np.nanmean(st["obj"])),
                      "psnr_db_glossy": float(np.nanmean(st["glossy"])) if np.isfinite(st["glossy"]).any() else None,
                      "width": W, "height": H, "ref_spp": cfg.native_ref_spp, "frames": len(frame_times),
-                     "eval_frames": len(eval_at), "timeline": kind})
+                     "eval_frames": len(eval_at), "timeline": kind,
+                     "adaptive_rays": cfg.native_adaptive_rays if m.adaptive else 0,
+                     "adaptive_pixels": float(np.median(st["adaptive"])) if st["adaptive"] else 0.0})
     one = next(r for r in rows if r["method"] == "1 spp + off")
     for r in rows:
         r["cost_vs_1spp"] = r["frame_ms"] / one["frame_ms"]
@@ -174,7 +186,8 @@ def native_plot(result: dict, out_dir) -> str:
     for ax, sc in zip(axes[0], scenes):
         rows = sc["rows"]
         for filt, colour in (("off", "tab:gray"), ("normal", "tab:blue"), ("lobe", "tab:red")):
-            reuse = sorted((r for r in rows if r["alpha"] < 1 and r["filter"] == filt), key=lambda r: r["frame_ms"])
+            reuse = sorted((r for r in rows if r["alpha"] < 1 and r["filter"] == filt and not r["adaptive_rays"]),
+                           key=lambda r: r["frame_ms"])
             ax.plot([r["frame_ms"] for r in reuse], [r["psnr_db"] for r in reuse], "o-", color=colour,
                     label=f"reuse α=0.2 + filter {filt} (¼, ½, native)")
             for r in reuse:
@@ -183,6 +196,9 @@ def native_plot(result: dict, out_dir) -> str:
             plain = [r for r in rows if r["alpha"] == 1.0 and r["filter"] == filt]
             ax.plot([r["frame_ms"] for r in plain], [r["psnr_db"] for r in plain], "s", color=colour, mfc="none",
                     label=f"1 spp, no reuse + filter {filt}")
+        adaptive = sorted((r for r in rows if r["adaptive_rays"]), key=lambda r: r["frame_ms"])
+        ax.plot([r["frame_ms"] for r in adaptive], [r["psnr_db"] for r in adaptive], "^--", color="tab:purple",
+                label="reuse α=0.2 + lobe + adaptive (¼, ½)")
         ax.set_title(f"{sc['scene']} ({sc['kind']}), {sc['width']}×{sc['height']}, reference {sc['ref_spp']} spp")
         ax.set_xlabel("ms per frame (render at shading res + reconstruction + post; median, shared 2-core CPU)")
         ax.set_ylabel("PSNR (dB, uint8 sRGB) against the reference")
@@ -195,10 +211,10 @@ def format_native(result: dict) -> list[str]:
     lines = []
     for sc in result["native"]["scenes"]:
         lines.append(f"native: {sc['scene']} ({sc['kind']}) {sc['width']}×{sc['height']}, reference {sc['ref_spp']} spp")
-        lines.append(f"{'method':32s} {'ms':>7s} {'×1spp':>6s} {'PSNR':>7s} {'obj':>7s} {'glossy':>7s} {'SSIM':>6s} {'FLIP':>6s}")
+        lines.append(f"{'method':40s} {'ms':>7s} {'×1spp':>6s} {'PSNR':>7s} {'obj':>7s} {'glossy':>7s} {'SSIM':>6s} {'FLIP':>6s}")
         for r in sc["rows"]:
             glossy = f"{r['psnr_db_glossy']:7.2f}" if r["psnr_db_glossy"] is not None else "      -"
-            lines.append(f"{r['method']:32s} {r['frame_ms']:7.1f} {r['cost_vs_1spp']:6.2f} {r['psnr_db']:7.2f} "
+            lines.append(f"{r['method']:40s} {r['frame_ms']:7.1f} {r['cost_vs_1spp']:6.2f} {r['psnr_db']:7.2f} "
                          f"{r['psnr_db_object']:7.2f} {glossy} {r['ssim']:6.3f} {r['flip']:6.3f}")
         lines.append("")
     return lines

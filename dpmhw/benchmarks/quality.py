@@ -46,6 +46,7 @@ from dpmhw.cluster.passes import render_passes
 from dpmhw.metrics import equivalent_spp, psnr, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.render.integrator import PathIntegrator
+from dpmhw.reconstruct.adaptive import DEFAULT_BUDGET_RAYS
 from dpmhw.reconstruct.reuse import TemporalReuse
 from dpmhw.scene_file import Scene, load_scene
 from dpmhw.sequence import run_sequence, scaled_scene, with_fps
@@ -79,6 +80,7 @@ class QualityConfig:
     native_eval_frames: int = 2
     native_eval_times: tuple[float, ...] = (0.3, 0.5)
     native_history_frames: int = 12
+    native_adaptive_rays: int = DEFAULT_BUDGET_RAYS  # adaptive sampling's rays per frame (the session default)
 
     @classmethod
     def quick(cls) -> "QualityConfig":

@@ -1,7 +1,8 @@
 """The loop's image-space stage: shading-resolution frame → native uint8 projector frame.
 
     render (shading res) → temporal reuse (shading res) → cross-bilateral filter (shading res)
-    → joint bilateral upsampling + re-modulation (native, lit region only) → sRGB (lit region only)
+    → joint bilateral upsampling + re-modulation (native, lit region only)
+    → adaptive sampling (native paths where the upsampling lacks support, optional) → sRGB (lit region only)
 
 Two paths, chosen per frame from the live settings:
 
@@ -43,7 +44,7 @@ __all__ = ["ReconstructStage", "StageOutput"]
 @dataclass
 class StageOutput:
     image: np.ndarray  # (H, W, 3) uint8, native
-    stages_s: dict  # seconds per sub-stage: gbuffer, reuse, filter, upsample, post
+    stages_s: dict  # seconds per sub-stage: gbuffer, reuse, filter, upsample, [adaptive,] post
     lit_box: tuple[int, int, int, int]
     unresolved: int  # native pixels no shading sample supports (see upsample)
 
@@ -59,15 +60,19 @@ class ReconstructStage:
     gbuffer_mode : "edges" (trace only near the shading frame's discontinuities) or "trace"
         (every pixel of the moving objects' region); see `render.gbuffer`
     clock : monotonic nanoseconds, for the sub-stage timings
+    adaptive : a `reconstruct.adaptive.AdaptiveSampler` (None: no adaptive sampling): extra
+        native paths for unresolved and under-supported pixels, merged before post
     """
 
     def __init__(self, native_size, shading_size, *, background=(0.0, 0.0, 0.0), viewer=(0.0, 0.0, 0.0),
-                 warmup: bool = False, gbuffer=None, gbuffer_mode: str = "edges", clock=time.monotonic_ns):
+                 warmup: bool = False, gbuffer=None, gbuffer_mode: str = "edges", clock=time.monotonic_ns,
+                 adaptive=None):
         self.W, self.H = (int(v) for v in native_size)
         self.w, self.h = (int(v) for v in shading_size)
         if (self.w, self.h) != (self.W, self.H) and gbuffer is None:
             raise ValueError("ReconstructStage: shading size differs from the native size but no native G-buffer was given")
         self.gbuffer = gbuffer
+        self.adaptive = adaptive if gbuffer is not None else None
         self.clock = clock  # ns; the loop's injectable clock
         self.gbuffer_mode = gbuffer_mode
         self.background = np.asarray(background, np.float32).reshape(3)
@@ -92,6 +97,8 @@ class ReconstructStage:
     def reset(self) -> None:
         for r in (self.reuse, self.reuse_d, self.reuse_s):
             r.reset()
+        if self.adaptive is not None:
+            self.adaptive.reset()
 
     def _settings(self, mode: str, alpha: float, split_screen: bool) -> None:
         wanted = ReuseSettings(alpha, mode, self.warmup, split_screen)
@@ -130,10 +137,18 @@ class ReconstructStage:
 
         # native G-buffer (moving objects' region re-traced) and its guides
         if self.gbuffer is not None:
+            from dpmhw.render.gbuffer import box_minus  # loaded already (the G-buffer's module); kept out of
+            # this module's imports so that importers of the stage (the API process) skip numba/Embree
+
             g = self.gbuffer
             box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
-            # this stage's native guides: everything once, then its last and the current region
-            dirty = [(0, self.H, 0, self.W)] if self._native_roi == "none yet" else [self._native_roi, g.roi_box]
+            # this stage's native guides: everything once, then the current region and the rest of its last
+            if self._native_roi == "none yet":
+                dirty = [(0, self.H, 0, self.W)]
+            elif self._native_roi is None:
+                dirty = [g.roi_box]
+            else:  # the current region, and what of the last one lies outside it (each pixel once)
+                dirty = [g.roi_box] + box_minus(self._native_roi, g.roi_box)
             self._native_roi = g.roi_box
             for b in dirty:
                 if b is not None and b[1] > b[0] and b[3] > b[2]:
@@ -166,6 +181,13 @@ class ReconstructStage:
         t4 = self._now()
         st["upsample"] = t4 - t3
 
+        st["adaptive"] = 0.0
+        if self.adaptive is not None:
+            self.adaptive.refine(self._radiance, self._wsum, self._unresolved, box, poses if poses is not None else [],
+                                 frame.seed, 1.0 if mode == "off" else alpha)
+            t5 = self._now()
+            st["adaptive"] = t5 - t4
+            t4 = t5
         image = self.base_frame(exposure).copy()
         if box[1] > box[0] and box[3] > box[2]:
             encode_srgb8(self._radiance, self.W, exposure, box, image)

@@ -1,7 +1,7 @@
 """The projector-native G-buffer, kept up to date at a cost proportional to what moves.
 
 The projector does not move during a session, so camera rays never change: primary hits on
-static objects are traced once (`EmbreeAccel.intersect_static`) and their attributes kept.
+static objects are traced once (`intersect_static`, 4×4-pixel packets) and their attributes kept.
 Each frame only the region of interest of the moving objects is re-traced: the bounding box of
 each object's bounding sphere projected with the current pose, plus `ROI_MARGIN_PX`. Pixels
 that left the region get their static attributes back. Pixels that show nothing cost nothing
@@ -23,8 +23,11 @@ cost already follows the moving object's screen area.
 
 Attributes follow `render.frame.Frame`: object id (−1 background), world position, shading
 normal facing the viewer, camera depth, albedo, specular albedo, roughness (√α of the GGX α).
-Only the renderer's public pieces are used: `SceneGeometry` tables, `EmbreeAccel`'s
-`intersect_static` / `intersect_range`, `PinholeCamera`.
+The pixels to re-trace are listed in 4×4 tile order and traced as 16-wide packets from inside
+a numba kernel (`traversal.closest16` on the moving objects' BVHs only, starting from the
+cached static hits) when the accelerator is the C-API `RtcAccel`; with embreex's fallback they
+are gathered and traced one by one. Work follows the region: only its pixels are classified,
+traced and written, and only the part of the last region outside the current one is restored.
 """
 
 from __future__ import annotations
@@ -35,9 +38,11 @@ from concurrent.futures import ThreadPoolExecutor
 import numba as nb
 import numpy as np
 
+from dpmhw.render import traversal
 from dpmhw.render.accel import empty_hits
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.geometry import SceneGeometry
+from dpmhw.render.traversal import RtcAccel
 from dpmhw.scene_file import Scene
 from dpmhw.transforms import Pose
 
@@ -48,11 +53,11 @@ MODES = ("edges", "trace")
 
 def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, viewer, use_viewer, cam_fwd,
                 g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough):
-    """G-buffer attributes of the hits of rays `index` (pixel numbers); same formulas as the
-    renderer's first vertex (`kernels.shade` at depth 0)."""
+    """G-buffer attributes of pixels `index` from their camera rays' hits (d, t, obj, prim, u, v
+    indexed by pixel); same formulas as the renderer's first vertex (`kernels.shade` at depth 0)."""
     for k in nb.prange(index.shape[0]):
         p = index[k]
-        ob = obj[k]
+        ob = obj[p]
         if ob < 0:
             g_id[p] = -1
             g_depth[p] = np.inf
@@ -63,10 +68,10 @@ def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, vi
                 g_spec[p, c] = 0.0
             g_rough[p] = 0.0
             continue
-        i = prim[k]
-        uu, vv = u[k], v[k]
+        i = prim[p]
+        uu, vv = u[p], v[p]
         w0 = 1.0 - uu - vv
-        d0, d1, d2 = d[k, 0], d[k, 1], d[k, 2]
+        d0, d1, d2 = d[p, 0], d[p, 1], d[p, 2]
         pm0 = tri[i, 0] + uu * tri[i, 3] + vv * tri[i, 6]
         pm1 = tri[i, 1] + uu * tri[i, 4] + vv * tri[i, 7]
         pm2 = tri[i, 2] + uu * tri[i, 5] + vv * tri[i, 8]
@@ -100,7 +105,7 @@ def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, vi
         g_id[p] = ob
         g_pos[p, 0], g_pos[p, 1], g_pos[p, 2] = p0, p1, p2
         g_normal[p, 0], g_normal[p, 1], g_normal[p, 2] = s0, s1, s2
-        g_depth[p] = t[k] * (d0 * cam_fwd[0] + d1 * cam_fwd[1] + d2 * cam_fwd[2])
+        g_depth[p] = t[p] * (d0 * cam_fwd[0] + d1 * cam_fwd[1] + d2 * cam_fwd[2])
         for c in range(3):
             g_alb[p, c] = alb[ob, c]
             g_spec[p, c] = spec[ob, c]
@@ -120,12 +125,21 @@ _attribute_kernels = _serial_and_parallel(_attributes_py)
 PARALLEL_MIN_PIXELS = 32768  # below this, waking the worker threads costs more than the work
 
 
-@nb.njit(parallel=True, cache=True)
-def _gather(index, d_all, t_all, obj_all, prim_all, u_all, v_all, d, t, obj, prim, u, v):
-    for k in nb.prange(index.shape[0]):
-        p = index[k]
-        d[k, 0], d[k, 1], d[k, 2] = d_all[p, 0], d_all[p, 1], d_all[p, 2]
-        t[k], obj[k], prim[k], u[k], v[k] = t_all[p], obj_all[p], prim_all[p], u_all[p], v_all[p]
+@nb.njit(nogil=True, cache=True)
+def _trace_pixels(acc, R, T, o, d, index, first, end, s_t, s_obj, s_prim, s_u, s_v, t, obj, prim, u, v):
+    """Closest hits of the camera rays of pixels index[first:end], 16 consecutive entries per
+    packet (`index` is in 4×4 tile order: one packet ≈ one tile), starting from the pixels'
+    cached static hits and testing only the moving objects (`acc` = RtcAccel.acc_moving).
+    Hits are written to the pixels' rows of t, obj, prim, u, v."""
+    f, iv, valid = traversal.scratch16()
+    rows = np.empty(16, np.int64)
+    for a in range(first, end, 16):
+        n = min(16, end - a)
+        for i in range(n):
+            p = index[a + i]
+            rows[i] = p
+            t[p], obj[p], prim[p], u[p], v[p] = s_t[p], s_obj[p], s_prim[p], s_u[p], s_v[p]
+        traversal.closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, True)
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
@@ -193,17 +207,6 @@ def _classify(W, H, y0, y1, x0, x1, w, h, lid, lpos, lnrm, ldep, lalb, lspec, lr
             trace[p] = True
 
 
-@nb.njit(cache=True)
-def _box_pixels(W, y0, y1, x0, x1):
-    out = np.empty((y1 - y0) * (x1 - x0), np.int64)
-    k = 0
-    for y in range(y0, y1):
-        for x in range(x0, x1):
-            out[k] = y * W + x
-            k += 1
-    return out
-
-
 class NativeGBuffer:
     """The G-buffer at the projector's native size (W, H) for one fixed projector pose.
 
@@ -264,8 +267,9 @@ class NativeGBuffer:
 
     # ---- static part, once -----------------------------------------------------------------
     def _trace_static(self) -> None:
-        hits = self.geometry.accel.intersect_static(self._o, self._d)
-        self._static_hits = hits
+        hits = self.geometry.accel.intersect_static(self._o, self._d, width=self.width)
+        self.static_hits = hits
+        self._hits = empty_hits(len(hits.t))  # per-frame hits, rows = pixels (only the traced ones are read)
         index = np.arange(self.width * self.height, dtype=np.int64)
         R, T = self.geometry.poses(self.scene.object_poses(0.0))
         self._attributes(index, self._d, hits, R, T)
@@ -292,7 +296,7 @@ class NativeGBuffer:
                   self._is_dynamic, st["id"], st["position"], st["normal"], st["depth"], st["albedo"], st["spec_albedo"],
                   st["roughness"], self.id, self.position, self.normal, self.depth, self.albedo, self.spec_albedo,
                   self.roughness, self.static_px, trace)
-        return _flagged(trace, self.width, *box)
+        return _tile_order(trace, False, self.width, *box)
 
     def roi(self, poses: list[Pose]) -> tuple[int, int, int, int] | None:
         """Box (y0, y1, x0, x1) holding every moving object's projected bounding sphere (None: none visible)."""
@@ -329,7 +333,7 @@ class NativeGBuffer:
         box = self.roi(poses) if self.dynamic else None
         prev = self._prev_box
         if prev is not None:  # pixels of the last region outside this one: back to static
-            for part in _minus(prev, box):
+            for part in box_minus(prev, box):
                 for k, a in self._static.items():
                     _restore_kernel(getattr(self, k), a, self.width, *part)
         if box is not None:
@@ -344,33 +348,42 @@ class NativeGBuffer:
 
     def _trace_box(self, box, poses, shading=None) -> None:
         if shading is None:
-            index = _box_pixels(self.width, *box)
+            index = _tile_order(self._trace_flags, True, self.width, *box)
         else:
             index = self._interpolate(box, shading)
         n = len(index)
         if n == 0:
             return
-        o = np.ascontiguousarray(np.broadcast_to(self._o[0], (n, 3)))  # one projector position
-        d = np.empty((n, 3), np.float32)
-        hits = empty_hits(n)
-        s = self._static_hits
-        _gather(index, self._d, s.t, s.obj, s.prim, s.u, s.v, d, hits.t, hits.obj, hits.prim, hits.u, hits.v)
         R, T = self.geometry.poses(poses)
-        accel = self.geometry.accel
-        chunks = np.linspace(0, n, 2 * self.threads + 1).astype(np.int64)
+        accel, s, h = self.geometry.accel, self.static_hits, self._hits
+        if isinstance(accel, RtcAccel):  # packets of 16 pixels, queried from the kernel
+            k = -(-n // (16 * 2 * self.threads)) * 16
+            bounds = [(a, min(a + k, n)) for a in range(0, n, k)]
 
-        def run(j):
-            a, e = int(chunks[j]), int(chunks[j + 1])
-            if e > a:
-                accel.intersect_range(o, d, a, e, R, T, hits, static_done=True)
+            def run(ab):
+                _trace_pixels(accel.acc_moving, R, T, self._o, self._d, index, ab[0], ab[1], s.t, s.obj, s.prim, s.u, s.v,
+                              h.t, h.obj, h.prim, h.u, h.v)
+        else:  # embreex: the selected rays gathered, traced, scattered back to their pixels
+            d = np.ascontiguousarray(self._d[index])
+            o = np.ascontiguousarray(self._o[index])
+            c = empty_hits(n)
+            for name in ("t", "obj", "prim", "u", "v"):
+                getattr(c, name)[:] = getattr(s, name)[index]
+            cuts = np.linspace(0, n, 2 * self.threads + 1).astype(np.int64)
+            bounds = [(int(a), int(e)) for a, e in zip(cuts[:-1], cuts[1:]) if e > a]
 
-        if self._pool is None:
-            for j in range(len(chunks) - 1):
-                run(j)
+            def run(ab):
+                accel.intersect_range(o, d, ab[0], ab[1], R, T, c, static_done=True)
+        if self._pool is None or len(bounds) < 2:
+            for ab in bounds:
+                run(ab)
         else:
-            list(self._pool.map(run, range(len(chunks) - 1)))
+            list(self._pool.map(run, bounds))
+        if not isinstance(accel, RtcAccel):
+            for name in ("t", "obj", "prim", "u", "v"):
+                getattr(h, name)[index] = getattr(c, name)
         self.static_px[index] = False
-        self._attributes(index, d, hits, R, T)
+        self._attributes(index, self._d, h, R, T)
         self.rays_traced = n
 
 
@@ -388,23 +401,22 @@ def _flat(a, dtype=np.float32, cols=3) -> np.ndarray:
 
 
 @nb.njit(cache=True)
-def _flagged(flags, W, y0, y1, x0, x1):
+def _tile_order(flags, every, W, y0, y1, x0, x1):
+    """Pixels of the box (all if `every`, else those flagged) in 4×4 tile order, rows then
+    columns inside a tile: 16 consecutive entries of a dense box are one tile (one coherent packet)."""
+    out = np.empty((y1 - y0) * (x1 - x0), np.int64)
     n = 0
-    for y in range(y0, y1):
-        for x in range(x0, x1):
-            if flags[y * W + x]:
-                n += 1
-    out = np.empty(n, np.int64)
-    k = 0
-    for y in range(y0, y1):
-        for x in range(x0, x1):
-            if flags[y * W + x]:
-                out[k] = y * W + x
-                k += 1
-    return out
+    for ty in range(y0, y1, 4):
+        for tx in range(x0, x1, 4):
+            for y in range(ty, min(ty + 4, y1)):
+                for x in range(tx, min(tx + 4, x1)):
+                    if every or flags[y * W + x]:
+                        out[n] = y * W + x
+                        n += 1
+    return out[:n]
 
 
-def _minus(a, b) -> list[tuple[int, int, int, int]]:
+def box_minus(a, b) -> list[tuple[int, int, int, int]]:
     """Box a without box b, as up to four boxes."""
     if b is None or b[0] >= a[1] or b[1] <= a[0] or b[2] >= a[3] or b[3] <= a[2]:
         return [a]

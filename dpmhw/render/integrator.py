@@ -42,6 +42,7 @@ SEGMENT_PIXELS = 6144
 MAX_SEGMENTS = 64
 PIXEL_SAMPLING = ("centre", "jitter")
 _NO_CORNERS = np.zeros((1, 1, 2), np.float32)
+SUBSET_SALT = 0xBB67AE8584CAA73B  # render_pixels' random stream: independent of render's
 PACKETS = (True, True)  # measured: packets beat single rays for every query type here (README)
 
 
@@ -86,7 +87,7 @@ class PathIntegrator:
         self.counts = RayCounts()
         self._static_primary_key = None
         self._static_primary_hits = None
-        self._work: _Work | None = None
+        self._work: list[_Work] = []  # most recently used first
         # (continuation, shadow) rays as 16-wide packets of consecutive paths, or single rays
         self.packets = PACKETS
         # one compiled call per segment (with the C API); False: Python between the stages (the
@@ -163,6 +164,42 @@ class PathIntegrator:
             spp=done, time=float(time), seed=int(seed), nonfinite_samples=int(nonfinite.sum()),
         )
 
+    def render_pixels(self, camera: PinholeCamera, pixels: np.ndarray, poses: list[Pose], seed: int, spp: int = 1,
+                      static_hits: Hits | None = None) -> np.ndarray:
+        """Radiance (n, 3) of `spp` paths through the centres of `camera`'s pixels `pixels` (flat
+        row-major indices; any camera, e.g. the projector's native one while the integrator
+        shades at a lower resolution). `static_hits`: the camera's cached hits on static
+        objects for every pixel (else traced here). Deterministic per (seed, pixels): the random
+        numbers hash the pixel's position in `pixels` and a key of the seed independent of
+        `render`'s. `counts` then holds this call's rays."""
+        if spp < 1:
+            raise ValueError(f"spp must be ≥ 1, got {spp}")
+        pixels = np.asarray(pixels, np.int64)
+        n = len(pixels)
+        o_all, d_all = camera.generate_rays()
+        o, d = np.ascontiguousarray(o_all[pixels]), np.ascontiguousarray(d_all[pixels])
+        R, T = self.geometry.poses(poses)
+        self.counts = RayCounts(primary=n)
+        film = {k: np.zeros((n, 3), f32) for k in ("emit", "diff", "spec")}
+        if n == 0:
+            return film["emit"]
+        if static_hits is None:
+            sh = self.geometry.accel.intersect_static(o, d)
+            self.counts.primary_static_traced = n
+        else:
+            sh = Hits(static_hits.t[pixels], static_hits.obj[pixels], static_hits.prim[pixels], static_hits.u[pixels],
+                      static_hits.v[pixels])
+        moving = bool(self.geometry.accel.dynamic_objects)
+        # every path of a subset is usually lit: one segment per thread, however few
+        work = self._work_buffers(n, self.threads)
+        primary = work.primary if moving else sh
+        gbuf, nonfinite = _GBuffer(n), np.zeros(n, np.int32)
+        for p in range(spp):
+            key = np.uint64(int(kernels.pass_key(seed, p)) ^ SUBSET_SALT)
+            self._trace_pass(key, o, d, sh if moving and p == 0 else None, primary, R, T, camera, film, gbuf, nonfinite, False,
+                             work=work)
+        return (film["emit"] + film["diff"] + film["spec"]) / f32(spp)
+
     def _static_primary(self, camera: PinholeCamera, o, d):
         """Primary hits on static objects depend only on the camera pose: trace them once per pose."""
         key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
@@ -173,12 +210,12 @@ class PathIntegrator:
         return self._static_primary_hits
 
     def _trace_pass(self, key, camera_o, primary_dirs, static_hits: Hits | None, primary: Hits, R, T, camera, film, gbuf,
-                    nonfinite, write_gbuffer, jitter_key=None):
+                    nonfinite, write_gbuffer, jitter_key=None, work: "_Work | None" = None):
         """One sample per pixel. The image is cut into row ranges (segments); each is traced to the
         end of its paths by one thread (shade → shadow rays → continuation rays → shade …), so a
         segment's rays and hits are still in cache when the next stage reads them, and the
         threads never wait for each other between stages. Segments write disjoint pixels."""
-        w = self._work_buffers(len(primary.t))
+        w = work if work is not None else self._work_buffers(len(primary.t))
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
         accel = self.geometry.accel
@@ -265,19 +302,25 @@ class PathIntegrator:
             if depth > 4096:
                 raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
 
-    def _work_buffers(self, n: int) -> "_Work":
-        if self._work is None or self._work.n != n:
-            self._work = _Work(n)
-        return self._work
+    def _work_buffers(self, n: int, min_segments: int = 1) -> "_Work":
+        """The working arrays for n paths in at least `min_segments` segments (of ≥ 64 paths);
+        the two last sizes are kept (the frame's, and `render_pixels`' in between)."""
+        for w in self._work:
+            if w.n == n and w.min_segments == min_segments:
+                self._work = [w] + [x for x in self._work if x is not w]
+                return w
+        w = _Work(n, min_segments)
+        self._work = [w] + self._work[:1]
+        return w
 
 
 class _Work:
     """Per-path working arrays, kept between frames (fresh multi-MB arrays cost page faults every
     frame). Segment s owns rows [starts[s], starts[s] + full_counts[s]) of every array."""
 
-    def __init__(self, n: int):
-        self.n = n
-        segments = min(MAX_SEGMENTS, max(1, -(-n // SEGMENT_PIXELS)))
+    def __init__(self, n: int, min_segments: int = 1):
+        self.n, self.min_segments = n, min_segments
+        segments = min(MAX_SEGMENTS, max(1, min(min_segments, n // 64), -(-n // SEGMENT_PIXELS)))
         size = -(-n // segments)
         self.starts = np.minimum(np.arange(segments, dtype=np.int64) * size, n)
         self.full_counts = np.minimum(self.starts + size, n) - self.starts

@@ -60,6 +60,9 @@ class RenderSection(_Section):
                                                    "the frame is upsampled to the output size (dpmhw.reconstruct)")
     filter: Literal["off", "normal", "lobe"] = Field("lobe", description="cross-bilateral filter: off, normal-aware or "
                                                                           "specular-lobe-aware (live setting)")
+    adaptive_rays: int = Field(2048, ge=0, le=1 << 24, description="adaptive sampling: most rays per frame for extra "
+                               "native-resolution paths where the upsampling lacks support (0 = off; only below "
+                               "shading_scale 1)")
     spp: int = Field(1, ge=1, le=64)
     threads: int = Field(2, ge=1, le=256)
     exposure: float = Field(1.0, gt=0.0, le=1e4)

@@ -25,6 +25,7 @@ import numpy as np
 
 from dpmhw.frame_sink import FrameSink
 from dpmhw.postprocess import NonFiniteFrameError
+from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
@@ -128,7 +129,9 @@ class SessionLoop:
         self.output_size = (scene.render.width, scene.render.height)  # the projector's native (W, H)
         self.reconstruct = ReconstructStage(self.output_size, (parts.renderer.width, parts.renderer.height),
                                             background=scene.render.background, viewer=scene.viewer_position,
-                                            warmup=config.reuse.warmup, gbuffer=parts.gbuffer, clock=clock)
+                                            warmup=config.reuse.warmup, gbuffer=parts.gbuffer, clock=clock,
+                                            adaptive=AdaptiveSampler(parts.renderer, parts.gbuffer, config.render.adaptive_rays)
+                                            if parts.gbuffer is not None and config.render.adaptive_rays > 0 else None)
         self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
         self.frame_log: list[FrameRecord] | None = [] if frame_log else None
         self._frame_log_max = frame_log

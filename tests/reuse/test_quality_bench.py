@@ -94,7 +94,9 @@ def test_native_rows_are_flat_and_cover_every_method(tmp_path):
     for sc in scenes:
         assert (sc["width"], sc["height"]) == (64, 48)
         rows = sc["rows"]
-        assert len(rows) == 12 and {r["shading_scale"] for r in rows} == {1.0, 0.5, 0.25}
+        assert len(rows) == 14 and {r["shading_scale"] for r in rows} == {1.0, 0.5, 0.25}
+        adaptive = [r for r in rows if r["method"].endswith("+ adaptive")]
+        assert [r["shading_scale"] for r in adaptive] == [0.5, 0.25] and all(r["adaptive_rays"] > 0 for r in adaptive)
         for r in rows:
             assert {"scene", "method", "shading_scale", "filter", "alpha", "frame_ms", "psnr_db", "ssim", "flip"} <= set(r)
             assert not any(isinstance(v, (dict, list)) for v in r.values())
