@@ -192,7 +192,6 @@ def _classify(W, H, y0, y1, x0, x1, w, h, lid, lpos, lnrm, ldep, lalb, lspec, lr
                     g_id[p] = o
                     g_depth[p] = w00 * z0 + w01 * z1 + w10 * z2 + w11 * z3
                     g_rough[p] = lrough[j00]
-                    n0 = n1 = n2 = 0.0
                     for c in range(3):
                         g_pos[p, c] = w00 * lpos[j00, c] + w01 * lpos[j01, c] + w10 * lpos[j10, c] + w11 * lpos[j11, c]
                         nc = w00 * lnrm[j00, c] + w01 * lnrm[j01, c] + w10 * lnrm[j10, c] + w11 * lnrm[j11, c]
