@@ -48,6 +48,15 @@ def _tap(mode, zi, n0, n1, n2, a0, a1, a2, si, lz, ln, la, ls, j):
     return wd, wd
 
 
+@nb.njit(inline="always", fastmath=FASTMATH)
+def _add_tap(d0, d1, d2, e0, e1, e2, s0, s1, s2, wd_sum, ws_sum, wd, ws, ld, le, lsp, j):
+    """Add low-resolution tap j with diffuse weight wd and specular weight ws to the running sums."""
+    return (d0 + wd * ld[j, 0], d1 + wd * ld[j, 1], d2 + wd * ld[j, 2],
+            e0 + wd * le[j, 0], e1 + wd * le[j, 1], e2 + wd * le[j, 2],
+            s0 + ws * lsp[j, 0], s1 + ws * lsp[j, 1], s2 + ws * lsp[j, 2],
+            wd_sum + wd, ws_sum + ws)
+
+
 @nb.njit(parallel=True, cache=True, fastmath=FASTMATH)
 def _upsample_kernel(mode, w, h, lid, lz, ln, la, ls, ld, lsp, le, W, H, gid, z, nrm, axis, sharp, alb, spec,
                      background, y0, y1, x0, x1, out, wsum, unresolved):
@@ -87,17 +96,8 @@ def _upsample_kernel(mode, w, h, lid, lz, ln, la, ls, ld, lsp, le, W, H, gid, z,
                 wd, ws = _tap(mode, zi, n0, n1, n2, a0, a1, a2, si, lz, ln, la, ls, j)
                 wd *= b
                 ws *= b
-                d0 += wd * ld[j, 0]
-                d1 += wd * ld[j, 1]
-                d2 += wd * ld[j, 2]
-                e0 += wd * le[j, 0]
-                e1 += wd * le[j, 1]
-                e2 += wd * le[j, 2]
-                s0 += ws * lsp[j, 0]
-                s1 += ws * lsp[j, 1]
-                s2 += ws * lsp[j, 2]
-                wd_sum += wd
-                ws_sum += ws
+                d0, d1, d2, e0, e1, e2, s0, s1, s2, wd_sum, ws_sum = _add_tap(
+                    d0, d1, d2, e0, e1, e2, s0, s1, s2, wd_sum, ws_sum, wd, ws, ld, le, lsp, j)
             if not (wd_sum > 1e-8):  # fallback: the wider window, spatial Gaussian weights
                 d0 = d1 = d2 = s0 = s1 = s2 = e0 = e1 = e2 = 0.0
                 wd_sum = ws_sum = 0.0
@@ -114,17 +114,8 @@ def _upsample_kernel(mode, w, h, lid, lz, ln, la, ls, ld, lsp, le, W, H, gid, z,
                         b = fast_exp_neg(-0.5 * ((tx - u) * (tx - u) + (ty - v) * (ty - v)))
                         wd = (wd + 1e-12) * b  # any same-object tap on this side of a depth step beats none
                         ws = (ws + 1e-12) * b
-                        d0 += wd * ld[j, 0]
-                        d1 += wd * ld[j, 1]
-                        d2 += wd * ld[j, 2]
-                        e0 += wd * le[j, 0]
-                        e1 += wd * le[j, 1]
-                        e2 += wd * le[j, 2]
-                        s0 += ws * lsp[j, 0]
-                        s1 += ws * lsp[j, 1]
-                        s2 += ws * lsp[j, 2]
-                        wd_sum += wd
-                        ws_sum += ws
+                        d0, d1, d2, e0, e1, e2, s0, s1, s2, wd_sum, ws_sum = _add_tap(
+                            d0, d1, d2, e0, e1, e2, s0, s1, s2, wd_sum, ws_sum, wd, ws, ld, le, lsp, j)
             wsum[i] = wd_sum
             if wd_sum > 0.0:
                 inv = 1.0 / wd_sum
