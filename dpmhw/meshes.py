@@ -83,12 +83,24 @@ def clean(vertices: np.ndarray, faces: np.ndarray, smooth: bool, source: str) ->
     return TriangleMesh(vertices, faces, normals, source, dropped)
 
 
-def quad_mesh(size) -> TriangleMesh:
-    """A size[0] × size[1] rectangle in the local XZ plane, centred, facing +Y."""
+def quad_mesh(size, segments=(1, 1)) -> TriangleMesh:
+    """A size[0] × size[1] rectangle in the local XZ plane, centred, facing +Y; `segments`
+    (nx, nz) > (1, 1) splits it into a grid of cells, two triangles each, so that per-face
+    attributes (a scene's roughness_map) can vary across it."""
     sx, sz = np.asarray(size, dtype=float) / 2
-    v = np.array([[-sx, 0, -sz], [sx, 0, -sz], [sx, 0, sz], [-sx, 0, sz]])
-    f = np.array([[0, 2, 1], [0, 3, 2]])  # counter-clockwise seen from +Y → normal +Y
-    return clean(v, f, smooth=False, source="quad")
+    nx, nz = int(segments[0]), int(segments[1])
+    if (nx, nz) == (1, 1):
+        v = np.array([[-sx, 0, -sz], [sx, 0, -sz], [sx, 0, sz], [-sx, 0, sz]])
+        f = np.array([[0, 2, 1], [0, 3, 2]])  # counter-clockwise seen from +Y → normal +Y
+        return clean(v, f, smooth=False, source="quad")
+    xs, zs = np.linspace(-sx, sx, nx + 1), np.linspace(-sz, sz, nz + 1)
+    gx, gz = np.meshgrid(xs, zs, indexing="ij")
+    v = np.stack([gx.ravel(), np.zeros(gx.size), gz.ravel()], axis=1)
+    i, k = np.meshgrid(np.arange(nx), np.arange(nz), indexing="ij")
+    c0 = (i * (nz + 1) + k).ravel()  # corner (i, k); the cell's others: +x is + (nz + 1), +z is + 1
+    c1, c2, c3 = c0 + nz + 1, c0 + nz + 2, c0 + 1
+    f = np.concatenate([np.stack([c0, c2, c1], 1), np.stack([c0, c3, c2], 1)])
+    return clean(v, f, smooth=False, source=f"quad {nx}×{nz}")
 
 
 def box_mesh(size, open_faces=()) -> TriangleMesh:

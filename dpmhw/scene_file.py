@@ -24,7 +24,7 @@ from dpmhw.transforms import Pose, look_at, rotation_from_euler_xyz_deg, rotatio
 
 log = logging.getLogger(__name__)
 
-BUILTIN_SCENES = ("paper-static", "paper-dynamic", "dpm-bunny")
+BUILTIN_SCENES = ("paper-static", "paper-dynamic", "dpm-bunny", "glossy-roughness")
 # No quantity in a scene (metres, pixels, radiance) is near this; larger ones are typos or attacks,
 # and would overflow into infinities and NaNs downstream (1e300 squared is inf).
 MAX_MAGNITUDE = 1e9
@@ -57,10 +57,11 @@ class ObjectSpec:
     pose: Pose  # model→world at t = 0 (before scripted motion)
     albedo: np.ndarray
     specular: np.ndarray
-    roughness: float
+    roughness: float  # with a roughness_map, its smallest value (what decisions such as MIS need)
     emission: np.ndarray
     rigid_body: int | None = None
     motion: ScriptedMotion | None = None
+    face_roughness: np.ndarray | None = None  # (F,) per triangle, from a roughness_map; None: `roughness` everywhere
 
     @property
     def is_dynamic(self) -> bool:
@@ -233,8 +234,11 @@ def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings)
 
 OBJECT_FIELDS = {
     "name", "shape", "size", "radius", "scale", "mesh", "smooth", "recentre", "open", "position", "rotation",
-    "albedo", "specular", "roughness", "emission", "rigid_body", "motion",
+    "albedo", "specular", "roughness", "roughness_map", "emission", "rigid_body", "motion", "segments",
 }
+ROUGHNESS_MAP_FIELDS = {"axis", "edges", "values"}
+MAX_ROUGHNESS_BANDS = 256
+MAX_QUAD_SEGMENTS = 1024
 MOTION_FIELDS = {"rotate_axis", "rotate_deg_per_s", "oscillate_direction", "oscillate_amplitude", "oscillate_period_s", "velocity"}
 
 
@@ -259,8 +263,13 @@ def _parse_mesh_shape(f: _Fields, shape: str, base_dir: Path, notes: list[str], 
     smooth = f.table.get("smooth", shape in ("sphere", "mesh"))
     if not isinstance(smooth, bool):
         f.fail("smooth", f"expected true or false, got {smooth!r}")
+    if f.has("segments") and shape != "quad":
+        f.fail("segments", "only a quad has segments")
     if shape == "quad":
-        return quad_mesh(f.vector("size", n=2, lo=0.0))
+        segments = f.vector("segments", n=2, default=(1, 1), lo=1, hi=MAX_QUAD_SEGMENTS)
+        if np.any(segments != np.round(segments)):
+            f.fail("segments", f"expected two whole numbers in [1, {MAX_QUAD_SEGMENTS}], got {f.table['segments']!r}")
+        return quad_mesh(f.vector("size", n=2, lo=0.0), segments.astype(int))
     if shape == "box":
         open_faces = f.table.get("open", [])
         if not isinstance(open_faces, list) or any(face not in BOX_FACES for face in open_faces):
@@ -292,6 +301,32 @@ def _load_mesh_field(f: _Fields, path: Path, smooth: bool) -> TriangleMesh:
         f.fail("mesh", str(exc))
 
 
+def _parse_roughness_map(source: str, table, path: str, mesh: TriangleMesh) -> np.ndarray:
+    """Per-triangle roughness from bands along a model-space direction: a triangle whose centroid
+    c has c·axis/|axis| below edges[0] gets values[0], between edges[i−1] and edges[i] values[i],
+    above the last edge values[-1]. Bands follow triangle boundaries (no texture lookup in the
+    kernels: the renderer reads one roughness per triangle)."""
+    f = _Fields(source, table, path, ROUGHNESS_MAP_FIELDS)
+    axis = f.vector("axis")
+    if np.linalg.norm(axis) < 1e-9:
+        f.fail("axis", "expected a non-zero direction")
+    edges, values = f.table.get("edges"), f.table.get("values")
+    for key, v in (("edges", edges), ("values", values)):
+        if v is None:
+            f.fail(key, "missing required field")
+        if not isinstance(v, list) or not v or len(v) > MAX_ROUGHNESS_BANDS or not all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and abs(x) <= MAX_MAGNITUDE for x in v):
+            f.fail(key, f"expected a list of 1 to {MAX_ROUGHNESS_BANDS} finite numbers, got {v!r}")
+    if any(b <= a for a, b in zip(edges, edges[1:])):
+        f.fail("edges", f"expected strictly increasing positions (model-space metres), got {edges!r}")
+    if len(values) != len(edges) + 1:
+        f.fail("values", f"expected {len(edges) + 1} roughness values (one per band, one more than edges), got {len(values)}")
+    if any(not 0.0 <= x <= 1.0 for x in values):
+        f.fail("values", f"expected every roughness in [0.0, 1.0], got {values!r}")
+    s = mesh.triangles.mean(axis=1) @ (axis / np.linalg.norm(axis))
+    return np.asarray(values, float)[np.searchsorted(np.asarray(edges, float), s, side="right")]
+
+
 def _parse_object(source: str, table, index: int, base_dir: Path, notes: list[str], mesh_override) -> ObjectSpec:
     path = f"objects[{index}]"
     f = _Fields(source, table, path, OBJECT_FIELDS)
@@ -303,6 +338,11 @@ def _parse_object(source: str, table, index: int, base_dir: Path, notes: list[st
     albedo = f.vector("albedo", default=(0.8, 0.8, 0.8), lo=0.0, hi=1.0, scalar_ok=True)
     specular = f.vector("specular", default=(0, 0, 0), lo=0.0, hi=1.0, scalar_ok=True)
     rigid_body = f.number("rigid_body", default=-1, lo=0, integer=True) if f.has("rigid_body") else None
+    face_roughness = None
+    if f.has("roughness_map"):
+        if f.has("roughness"):
+            f.fail("roughness_map", "cannot be combined with 'roughness' (the map gives every triangle its roughness)")
+        face_roughness = _parse_roughness_map(source, f.table["roughness_map"], f"{path}.roughness_map", mesh)
     return ObjectSpec(
         name=name,
         shape=shape,
@@ -310,10 +350,11 @@ def _parse_object(source: str, table, index: int, base_dir: Path, notes: list[st
         pose=Pose(_rotation(f), f.vector("position", default=(0, 0, 0))),
         albedo=albedo,
         specular=specular,
-        roughness=float(f.number("roughness", default=0.5, lo=0.0, hi=1.0)),
+        roughness=float(face_roughness.min()) if face_roughness is not None else float(f.number("roughness", default=0.5, lo=0.0, hi=1.0)),
         emission=f.vector("emission", default=(0, 0, 0), lo=0.0, scalar_ok=True),
         rigid_body=rigid_body,
         motion=_parse_motion(source, f.table["motion"], f"{path}.motion") if f.has("motion") else None,
+        face_roughness=face_roughness,
     )
 
 

@@ -109,7 +109,7 @@ def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, vi
         for c in range(3):
             g_alb[p, c] = alb[ob, c]
             g_spec[p, c] = spec[ob, c]
-        g_rough[p] = math.sqrt(alpha[ob])
+        g_rough[p] = math.sqrt(tri[i, 21] if tri[i, 21] > 0.0 else alpha[ob])  # per-triangle α: a roughness map
 
 
 def _serial_and_parallel(py_func):

@@ -36,15 +36,16 @@ class SceneGeometry:
     def __init__(self, scene: Scene, threads: int = 2):
         self.scene = scene
         objects = scene.objects
-        unique: dict[int, int] = {}  # id(mesh) → offset of its triangles
-        v0, e1, e2, ng, vn = [], [], [], [], []
+        unique: dict[tuple, int] = {}  # id(mesh) → offset of its triangles (own rows with a roughness map)
+        v0, e1, e2, ng, vn, ta = [], [], [], [], [], []
         offset = 0
         self.tri_offsets = np.zeros(len(objects), np.int32)
         for i, obj in enumerate(objects):
             mesh = obj.mesh
-            if id(mesh) not in unique:
+            key = (id(mesh),) if obj.face_roughness is None else (id(mesh), i)
+            if key not in unique:
                 tri = mesh.triangles
-                unique[id(mesh)] = offset
+                unique[key] = offset
                 cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
                 normal = cross / np.linalg.norm(cross, axis=1, keepdims=True)
                 v0.append(tri[:, 0])
@@ -53,13 +54,16 @@ class SceneGeometry:
                 ng.append(normal)
                 corner = mesh.vertex_normals[mesh.faces] if mesh.vertex_normals is not None else np.repeat(normal[:, None], 3, 1)
                 vn.append(corner)
+                # column 21: the triangle's GGX α from a roughness map; 0 = the object's (obj_alpha)
+                ta.append(np.zeros(len(tri)) if obj.face_roughness is None else np.maximum(obj.face_roughness**2, MIN_ALPHA))
                 offset += len(tri)
-            self.tri_offsets[i] = unique[id(mesh)]
+            self.tri_offsets[i] = unique[key]
         count = offset
         self.tri = np.zeros((count, 24), f32)  # see kernels.shade for the row layout
         for col, parts in ((0, v0), (3, e1), (6, e2), (9, ng)):
             self.tri[:, col : col + 3] = np.concatenate(parts)
         self.tri[:, 12:21] = np.concatenate(vn).reshape(count, 9)
+        self.tri[:, 21] = np.concatenate(ta)
         self.triangle_count = sum(len(o.mesh.faces) for o in objects)
 
         self.obj_albedo = np.array([o.albedo for o in objects], f32)

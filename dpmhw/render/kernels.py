@@ -149,7 +149,8 @@ def shade(
     index, and `pixel` is only written).
 
     `tri` : (F, 24) float32 rows of v0, e1 = v1 − v0, e2 = v2 − v0, unit geometric normal and the
-    three corner shading normals, all in model space: one hit touches two cache lines.
+    three corner shading normals, all in model space: one hit touches two cache lines. Column 21:
+    the triangle's GGX α where its object has a roughness map, else 0 (then obj_alpha applies).
     Writes the film at each path's pixel, and, packed from row `first`: the shadow rays (sh_o,
     sh_d, sh_tmax, sh_pix, with their diffuse and specular contributions in sh_c[:, 0:3] and
     sh_c[:, 3:6], added if unoccluded) and the surviving paths (pixel, beta, kd, prev_pdf, prev_env
@@ -259,6 +260,8 @@ def shade(
         if _dot(s0, s1, s2, wo0, wo1, wo2) <= 1e-6:
             s0, s1, s2 = g0, g1, g2
         alpha = obj_alpha[ob]
+        if tri[tri_i, 21] > 0.0:  # per-triangle α (a scene's roughness_map)
+            alpha = tri[tri_i, 21]
         if depth == 0:
             if use_viewer and front and (obj_emit[ob, 0] > 0.0 or obj_emit[ob, 1] > 0.0 or obj_emit[ob, 2] > 0.0):
                 film_emit[pix, 0] += obj_emit[ob, 0]
