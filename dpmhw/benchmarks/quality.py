@@ -75,7 +75,8 @@ class QualityConfig:
     parts: tuple[str, ...] = ("static", "dynamic", "native")
     # native reconstruction rows (dpmhw.benchmarks.native_quality): modest references, short timelines
     native_scale: float = 1.0
-    native_ref_spp: int = 64
+    native_ref_spp: int = 64  # dynamic native references: two independent halves of this many spp in all
+    native_static_ref_spp: int = 256  # the same for the still scenes (one eval time each)
     native_static_frames: int = 16
     native_eval_frames: int = 2
     native_eval_times: tuple[float, ...] = (0.3, 0.5)
@@ -85,7 +86,8 @@ class QualityConfig:
     @classmethod
     def quick(cls) -> "QualityConfig":
         return cls(scale=0.25, ref_spp=1000, dynamic_ref_spp=256, static_spp=(1, 2, 4, 8, 16, 20, 32, 40), spp_repeats=3,
-                   eval_frames=4, dynamic_eval_times=(0.2, 0.35, 0.5), native_scale=0.5, native_ref_spp=32)
+                   eval_frames=4, dynamic_eval_times=(0.2, 0.35, 0.5), native_scale=0.5, native_ref_spp=32,
+                   native_static_ref_spp=64)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -106,6 +108,8 @@ def scene_digest(scene: Scene) -> str:
     for o in scene.objects:
         put(o.name, o.shape, o.mesh.vertices, o.mesh.faces.astype(np.float64), o.pose.R, o.pose.t, o.albedo, o.specular,
             float(o.roughness), o.emission, repr(o.motion), repr(o.rigid_body))
+        if o.face_roughness is not None:
+            put(o.face_roughness)
         if o.mesh.vertex_normals is not None:
             put(o.mesh.vertex_normals)
     return h.hexdigest()
@@ -139,13 +143,20 @@ class ReferenceCache:
         self.rendered = 0
         self.hits = 0
 
-    def key(self, scene: Scene, time: float, spp: int, seed: int) -> tuple[str, dict]:
+    def key(self, scene: Scene, time: float, spp: int, seed: int, pixel_sampling: str = "centre") -> tuple[str, dict]:
         key_fields = dict(scene=scene_digest(scene), time=repr(float(time)), spp=int(spp), seed=int(seed), renderer=self.renderer)
+        if pixel_sampling != "centre":  # centre references keep their keys
+            key_fields["pixel_sampling"] = pixel_sampling
         return hashlib.sha256(json.dumps(key_fields, sort_keys=True).encode()).hexdigest()[:24], key_fields
 
-    def get(self, scene: Scene, scene_name: str, time: float, spp: int, seed: int = REFERENCE_SEED, integrator=None) -> dict:
-        """{"radiance": (H, W, 3) float32, "object_id": (H, W) int32} of a converged render."""
-        key, key_fields = self.key(scene, time, spp, seed)
+    def get(self, scene: Scene, scene_name: str, time: float, spp: int, seed: int = REFERENCE_SEED, integrator=None,
+            pixel_sampling: str = "centre") -> dict:
+        """{"radiance": (H, W, 3) float32, "object_id": (H, W) int32} of a converged render;
+        `pixel_sampling` as PathIntegrator's ("jitter": the pixel integral; `integrator`, if
+        given, must sample that way)."""
+        if integrator is not None and integrator.pixel_sampling != pixel_sampling:
+            raise ValueError(f"reference: the integrator samples {integrator.pixel_sampling!r}, not {pixel_sampling!r}")
+        key, key_fields = self.key(scene, time, spp, seed, pixel_sampling)
         path = self.dir / f"{key}.npz"
         if path.exists():
             self.hits += 1
@@ -154,7 +165,8 @@ class ReferenceCache:
         desc = f"reference {scene_name} t={time:.4f}s {scene.render.width}×{scene.render.height} {spp} spp"
         started = _time.perf_counter()
         frame = render_passes(scene, time, seed, spp, integrator=integrator, pool=self.pool, threads=self.threads,
-                              progress=(lambda d, t: self.progress(desc, d, t)) if self.progress else None)
+                              progress=(lambda d, t: self.progress(desc, d, t)) if self.progress else None,
+                              integrator_options=dict(pixel_sampling=pixel_sampling))
         self.dir.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.stem + ".partial.npz")
         np.savez(tmp, radiance=frame.radiance.astype(np.float32), object_id=frame.object_id)
@@ -162,7 +174,8 @@ class ReferenceCache:
         meta = dict(key_fields, scene_name=scene_name, width=scene.render.width, height=scene.render.height,
                     max_bounces=scene.render.max_bounces, seconds=round(_time.perf_counter() - started, 1),
                     nonfinite_samples=frame.nonfinite_samples, dpmhw=__version__,
-                    equivalent_command=f"dpmhw render {scene_name} --spp {spp} --seed {seed} --time {time!r} --out ref.npy"
+                    equivalent_command=f"dpmhw render {scene_name} --spp {spp} --seed {seed} --time {time!r} "
+                    f"--pixel-sampling {pixel_sampling} --out ref.npy"
                     + ("" if scene.render.width == 1024 else f"  (at {scene.render.width}×{scene.render.height})"))
         path.with_suffix(".json").write_text(json.dumps(meta, indent=2))
         self.rendered += 1
@@ -453,9 +466,10 @@ def write_figures(result: dict, images: dict, out_dir: Path) -> list[str]:
     if "static" in result or "dynamic" in result:
         files += _plots(result, out_dir)
     if "native" in result:
-        from dpmhw.benchmarks.native_quality import native_plot
+        from dpmhw.benchmarks.native_quality import glossy_crops, native_plot
 
         files.append(native_plot(result, out_dir))
+        files += glossy_crops(images, out_dir)
     return files
 
 

@@ -86,23 +86,35 @@ def test_bench_quality_cli_rejects_bad_options_before_rendering(args, message, t
 
 
 def test_native_rows_are_flat_and_cover_every_method(tmp_path):
-    cfg = dataclasses.replace(TINY, parts=("native",), native_scale=1 / 16, native_ref_spp=8, native_static_frames=3,
-                              native_eval_frames=1, native_eval_times=(0.05,), native_history_frames=2)
+    cfg = dataclasses.replace(TINY, parts=("native",), native_scale=1 / 16, native_ref_spp=8, native_static_ref_spp=8,
+                              native_static_frames=3, native_eval_frames=1, native_eval_times=(0.05,), native_history_frames=2)
     result = run_quality(cfg, cache_dir=tmp_path / "cache", out_dir=tmp_path / "figs")
     scenes = result["native"]["scenes"]
-    assert [s["kind"] for s in scenes] == ["static", "dynamic"]
-    for sc in scenes:
+    assert [s["kind"] for s in scenes] == ["static", "dynamic", "glossy"]
+    keys = {"scene", "method", "shading_scale", "filter", "alpha", "frame_ms", "psnr_db", "ssim", "flip", "pixel_sampling",
+            "frame_cpu_ms", "psnr_db_corrected", "psnr_db_glossy", "psnr_db_roughness_edge", "ref_psnr_cap_db",
+            "psnr_db_jittered_ref", "psnr_db_edges_jittered_ref"}
+    for sc, count in zip(scenes, (14, 17, 9)):
         assert (sc["width"], sc["height"]) == (64, 48)
         rows = sc["rows"]
-        assert len(rows) == 14 and {r["shading_scale"] for r in rows} == {1.0, 0.5, 0.25}
-        adaptive = [r for r in rows if r["method"].endswith("+ adaptive")]
-        assert [r["shading_scale"] for r in adaptive] == [0.5, 0.25] and all(r["adaptive_rays"] > 0 for r in adaptive)
+        assert len(rows) == count and {1.0, 0.25} <= {r["shading_scale"] for r in rows}
+        adaptive = [r for r in rows if "+ adaptive" in r["method"] and r["pixel_sampling"] == "centre"]
+        assert [r["shading_scale"] for r in adaptive] == ([] if sc["kind"] == "glossy" else [0.5, 0.25])
+        assert all(r["adaptive_rays"] > 0 for r in adaptive)
+        assert {r["pixel_sampling"] for r in rows} == ({"centre", "jitter"} if sc["kind"] == "dynamic" else {"centre"})
         for r in rows:
-            assert {"scene", "method", "shading_scale", "filter", "alpha", "frame_ms", "psnr_db", "ssim", "flip"} <= set(r)
+            assert keys <= set(r)
             assert not any(isinstance(v, (dict, list)) for v in r.values())
-            assert 0 <= r["flip"] <= 1 and np.isfinite(r["psnr_db"]) and r["frame_ms"] > 0
+            assert 0 <= r["flip"] <= 1 and np.isfinite(r["psnr_db"]) and r["frame_ms"] > 0 and r["frame_cpu_ms"] > 0
+            # the reference's own noise only ever adds error: removing it raises the PSNR
+            assert r["psnr_db_corrected"] >= r["psnr_db"] - 1e-9
+            assert (r["psnr_db_jittered_ref"] is not None) == (sc["kind"] == "dynamic")
+    glossy = {r["method"]: r for r in scenes[2]["rows"]}
+    assert glossy["1 spp + lobe"]["psnr_db_roughness_edge"] is not None  # the striped tile's bands are in view
     rows = {r["method"]: r for r in scenes[0]["rows"]}
     assert rows["native + reuse 0.2 + off"]["psnr_db"] > rows["1 spp + off"]["psnr_db"]
+    assert rows["1 spp + off"]["psnr_db_roughness_edge"] is None  # one roughness per object there
     names = {p.name for p in (tmp_path / "figs").iterdir()}
-    assert {"native_speed_vs_psnr.png", "native_paper-static_strip.png"} <= names
+    assert {"native_speed_vs_psnr.png", "native_paper-static_strip.png",
+            "native_glossy-roughness_highlight_normal_vs_lobe.png"} <= names
     assert "FLIP" in format_table(result)
