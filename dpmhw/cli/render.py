@@ -18,7 +18,7 @@ from dpmhw.progress import Progress
 
 @app.command()
 def render(
-    scene: Annotated[str, typer.Argument(help="Scene file (TOML) or built-in name: paper-static, paper-dynamic, dpm-bunny, glossy-roughness.")] = "paper-static",
+    scene: Annotated[str, typer.Argument(help="Scene file (TOML) or built-in name: paper-static, paper-dynamic, dpm-bunny.")] = "paper-static",
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help=".npy = float32 (H, W, 3) linear radiance; .png = sRGB; the parameters go to FILE.png.json (FILE.npy.json) beside it [default: frame.png; with --frames and --out-dir: none, the frames go to DIR only].")] = None,
     spp: Annotated[Optional[int], typer.Option(min=1, help="Samples (passes) per pixel [default: 16; 1 per frame with --frames].")] = None,
     seed: Annotated[int, typer.Option(min=0, help="Same seed, same image, bit for bit.")] = 0,
