@@ -63,6 +63,9 @@ class RenderSection(_Section):
     adaptive_rays: int = Field(2048, ge=0, le=1 << 24, description="adaptive sampling: most rays per frame for extra "
                                "native-resolution paths where the upsampling lacks support (0 = off; only below "
                                "shading_scale 1)")
+    pixel_sampling: Literal["centre", "jitter"] = Field("centre", description="shading rays through pixel centres "
+                                                         "(static primary hits cached) or jittered per frame (reuse "
+                                                         "then antialiases; camera rays traced every frame)")
     spp: int = Field(1, ge=1, le=64)
     threads: int = Field(2, ge=1, le=256)
     exposure: float = Field(1.0, gt=0.0, le=1e4)

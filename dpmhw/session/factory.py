@@ -292,7 +292,8 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
         if renderer is None:
             from dpmhw.render.integrator import PathIntegrator
 
-            renderer = PathIntegrator(shading_scene(scene, config.render.shading_scale), threads=config.render.threads)
+            renderer = PathIntegrator(shading_scene(scene, config.render.shading_scale), threads=config.render.threads,
+                                      pixel_sampling=config.render.pixel_sampling)
             if hasattr(renderer, "close"):
                 closers.append(renderer.close)
             if (renderer.width, renderer.height) != (scene.render.width, scene.render.height):

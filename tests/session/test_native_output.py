@@ -45,3 +45,24 @@ def test_a_live_filter_setting_outside_the_modes_is_refused():
 def test_shading_scale_must_be_one_of_the_supported_ones():
     with pytest.raises(SessionConfigError, match="render.shading_scale"):
         load_session_config(overrides=["render.shading_scale=0.3"])
+
+
+def test_a_jittered_session_renders_native_frames_with_jittered_camera_rays():
+    """Both pixel-sampling modes stay available to a session (issue 12)."""
+    cfg = load_session_config(overrides=[
+        "render.width=128", "render.height=96", "render.pixel_sampling=jitter", "mock.speed=0.3",
+        "safety.stale_after_ms=200", "safety.watchdog_s=5", "sink.kind=recording", "projector.poll_interval_s=0.05"])
+    loop = build_session(cfg, mock=True).start()
+    try:
+        assert wait_for(lambda: loop.status()["frame_number"] >= 3, timeout_s=60)
+    finally:
+        loop.stop()
+    renderer = loop.parts.renderer
+    assert renderer.pixel_sampling == "jitter"  # what it does with it: tests/render/test_pixel_jitter.py
+    assert all(f.frame.shape == (96, 128, 3) for f in loop.parts.sink.frames)
+
+
+def test_pixel_sampling_must_be_centre_or_jitter():
+    assert load_session_config().render.pixel_sampling == "centre"
+    with pytest.raises(SessionConfigError, match="render.pixel_sampling"):
+        load_session_config(overrides=["render.pixel_sampling=random"])
