@@ -13,7 +13,7 @@ SSIM
     mean excludes a 5-pixel border (the window half-width).
 Noise-corrected PSNR
     A reference of N spp carries its own Monte Carlo variance, which adds to every MSE measured
-    against it and caps the PSNR (at 64 spp, near 36–38 dB on the paper scenes). Render it as
+    against it and caps the PSNR (at 64 spp about 36 dB on paper-static, 32 dB on paper-dynamic). Render it as
     two independent halves A and B (N/2 spp each, different seeds) and use R = (A + B)/2. Per
     pixel, var(R) = var(A)/2 and E[(A − B)²] = 2·var(A), so var(R) = MSE(A, B)/4. Against the
     converged image T, an image X with noise independent of R has MSE(X, R) = MSE(X, T) +
