@@ -4,13 +4,14 @@ The loop shades a ¼-per-axis frame everywhere, reuses, filters and upsamples it
 size (`reconstruct.stage`). That base is the cheapest level; on top of it `TileRefiner` spends a
 per-frame ray budget on native-resolution paths where a viewer can see the difference:
 
-1. **Plan** (before the upsampling overwrites it): the visibility map of the *previous output*
-   (the reused, filtered, upsampled and refined native radiance, so 1-spp noise is already
-   averaged away; `visibility.py`) over the lit box, and the native G-buffer's depth. Tiles a
-   moving object covers are boosted to the highest level (optional, `moving`: its shading
-   changes under the eye, and the ¼ base loses its detail, issue 11's inside-object PSNR).
-   `TilePolicy` turns V into a level per tile under the budget (¼-rate tiles are free: the base
-   shades them).
+1. **Plan** (before the upsampling overwrites it): with `visible`, the visibility map of the
+   *previous output* (the reused, filtered, upsampled and refined native radiance, so most
+   1-spp noise is averaged away, and the map's noise floor takes the rest; `visibility.py`)
+   over the lit box, with the native G-buffer's depth. With `moving`, tiles a moving object
+   covers now are boosted to the highest level, and where only that puts them there, only the
+   moving objects' own pixels are traced (their shading changes under the eye, and the ¼ base
+   loses their detail: issue 11's inside-object PSNR). `TilePolicy` turns V into a level per
+   tile under the budget (¼-rate tiles are free: the base shades them).
 2. **Refine** (after the upsampling): every lit pixel of a full-rate tile, and one pixel of
    each 2×2 block of a ½-rate tile (the block's phase cycles over four frames), gets `spp`
    native paths (`PathIntegrator.render_pixels`, one call per spp group, the native camera and
@@ -23,6 +24,8 @@ per-frame ray budget on native-resolution paths where a viewer can see the diffe
        not traced, history:   L = h                   (½ rate, between its turns)
        not traced, none:      L = L_up
 
+   The output is (1 − `base_weight`)·L + `base_weight`·L_up: the base is filtered and L is
+   not, so a share of it lowers the noise (0.3 measured best of 0 / 0.3 / 0.5, docs/lod.md).
    A non-finite path sample counts as not traced. Refined pixels are marked resolved (the
    adaptive sampler then skips them). Tiles at ¼ (and "history only", which in this pipeline
    is the base's own reuse) keep L_up, and their native history lapses.
@@ -59,7 +62,7 @@ class RefineSettings:
     viewer_distance_m: float = 1.5
     alpha_v: float = 0.0
     thresholds: tuple[float, float, float] = (0.0, 20.0, 50.0)
-    base_weight: float = 0.0  # share of the upsampled base in a refined pixel's output (its history stays native)
+    base_weight: float = 0.3  # share of the upsampled base in a refined pixel's output (its history stays native)
 
     def __post_init__(self):
         object.__setattr__(self, "rays", check_number("rays", self.rays, 0, 1 << 40, integer=True))
