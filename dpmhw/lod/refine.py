@@ -77,24 +77,27 @@ class RefineSettings:
 @nb.njit(cache=True, nogil=True)
 def _select(rate, spp, moving_only, gid, dynamic, W, y0, y1, x0, x1, tile, phase):
     """Lit pixels of the box in tiles of rate 1 or 2 (only the moving objects' pixels where
-    `moving_only`): flat index, spp if traced this frame (0: ½-rate pixel between its turns).
-    Rate-2 pixels are traced when (y, x) ≡ phase mod 2."""
+    `moving_only`), in row-major order: flat index, spp if traced this frame (0: a ½-rate pixel
+    between its turns). Rate-2 pixels are traced when (y, x) ≡ phase mod 2. Visits only the
+    refined tiles' pixels."""
     n = 0
     pix = np.empty((y1 - y0) * (x1 - x0), np.int64)
     s = np.empty((y1 - y0) * (x1 - x0), np.uint8)
     py, px = phase // 2, phase % 2
     for y in range(y0, y1):
         ty = y // tile
-        for x in range(x0, x1):
-            r = rate[ty, x // tile]
+        for tx in range(x0 // tile, (x1 - 1) // tile + 1):
+            r = rate[ty, tx]
             if r != 1 and r != 2:
                 continue
-            i = y * W + x
-            if gid[i] < 0 or (moving_only[ty, x // tile] and not dynamic[gid[i]]):
-                continue
-            pix[n] = i
-            s[n] = spp[ty, x // tile] if (r == 1 or (y % 2 == py and x % 2 == px)) else 0
-            n += 1
+            only = moving_only[ty, tx]
+            for x in range(max(x0, tx * tile), min(x1, tx * tile + tile)):
+                i = y * W + x
+                if gid[i] < 0 or (only and not dynamic[gid[i]]):
+                    continue
+                pix[n] = i
+                s[n] = spp[ty, tx] if (r == 1 or (y % 2 == py and x % 2 == px)) else 0
+                n += 1
     return pix[:n], s[:n]
 
 
