@@ -180,8 +180,9 @@ class _Run:
                                poses=poses, camera=p.integrator.camera)
         if self.mesh_lod:  # the map the next frame's level choice reads (the refiner's, or one of the reused output)
             c0 = _time.process_time()
-            if self.refiner is not None:
-                self._vis_source = (self.refiner.vmap, p.gbuffer.id.reshape(n.render.height, n.render.width))
+            if self.refiner is not None:  # (its first map after a (re)bind reads an empty previous output: no choice from it)
+                self._vis_source = (self.refiner.vmap, p.gbuffer.id.reshape(n.render.height, n.render.width)) \
+                    if self.refiner.policy.frame > 1 else None
             else:
                 self._vis_source = (visibility_map(self.stage.reuse.history, p.frame.depth, n.camera.K, self.cfg.visibility),
                                     p.frame.object_id)

@@ -164,9 +164,11 @@ class TilePolicy:
     def _levels(self, v: np.ndarray) -> np.ndarray:
         return np.searchsorted(np.asarray(self.settings.thresholds), v, side="left").astype(np.int64)  # V > t_k ⇒ level ≥ k+1
 
-    def decide(self, vmap: VisibilityMap, boost: np.ndarray | None = None) -> TileDecisions:
+    def decide(self, vmap: VisibilityMap, boost: np.ndarray | None = None, traceable: np.ndarray | None = None) -> TileDecisions:
         """`boost`: optional (TY, TX) bool, tiles to treat as the most visible (e.g. a moving
-        object covers them now: its shading changes under the viewer's eye)."""
+        object covers them now: its shading changes under the viewer's eye). `traceable`:
+        optional (TY, TX) count of pixels per tile that can take a path at all (e.g. those that
+        show a surface); a tile's shaded pixels are at most that many."""
         s = self.settings
         tile = vmap.tile
         v = _dilate(np.asarray(vmap.visibility, np.float64), s.dilate)
@@ -187,6 +189,8 @@ class TilePolicy:
         render_level = np.where(refresh, 1, level)
         rate = RATES[render_level] if s.shading_rate else np.where(render_level > 0, 1, 0).astype(np.uint8)
         shaded = shaded_counts(rate, self.height, self.width, tile)
+        if traceable is not None:
+            shaded = np.minimum(shaded, traceable)
         if s.free_rate:
             shaded = np.where(rate == s.free_rate, 0, shaded)
         spp_level = render_level if s.adaptive_spp else np.minimum(render_level, 1)

@@ -163,6 +163,16 @@ def _merge(pixels, spp, samples, hist, valid, alpha, base_weight, radiance, wsum
         wsum[i] = np.inf  # resolved: the adaptive sampler leaves it alone
 
 
+@nb.njit(cache=True, nogil=True)
+def _lit_per_tile(gid, W, y0, y1, x0, x1, tile, out):
+    """out[ty, tx] = pixels of the box showing a surface (the only ones the refiner traces)."""
+    out[:] = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            if gid[y * W + x] >= 0:
+                out[y // tile, x // tile] += 1
+
+
 def _tile_any(mask: np.ndarray, tile: int, shape: tuple[int, int], y0: int, x0: int) -> np.ndarray:
     """(TY, TX) bool: tiles holding a True pixel of `mask`, a tile-aligned region starting at (y0, x0)."""
     out = np.zeros(shape, np.bool_)
@@ -228,7 +238,10 @@ class TileRefiner:
             ry0, rx0 = (ry0 // t) * t, (rx0 // t) * t
             ids = g.id.reshape(self.H, self.W)[ry0:ry1, rx0:rx1]
             boost = _tile_any(self._dynamic[ids], t, (TY, TX), ry0, rx0)
-        self.decisions = self.policy.decide(self.vmap, boost)
+        lit = np.zeros((TY, TX), np.int64)
+        if box[1] > box[0] and box[3] > box[2]:
+            _lit_per_tile(g.id, self.W, *(int(v) for v in box), t, lit)
+        self.decisions = self.policy.decide(self.vmap, boost, lit)  # background pixels cost no budget
         # tiles refined only because a moving object covers them: trace only its pixels
         wanted = self.policy._levels(_dilate(self.vmap.visibility, self.policy.settings.dilate))
         self._moving_only = boost & (wanted < 2) if boost is not None else np.zeros((TY, TX), np.bool_)
