@@ -216,7 +216,7 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
             shared[s] = build(native, s)
         refs = {k: cache.get(native, name, k / FPS, cfg.ref_spp, REFERENCE_SEED, integrator=shared[1.0].integrator) for k in eval_k}
         runs = [_Run(m, native, cfg, levels, shared, build) for m in METHODS]
-        stats = {m: dict(ms=[], lod_ms=[], lod_rays=[], rays=[], tri=[], psnr=[], ssim=[], flip=[], obj=[], vis=[], vis_ref=[], vis_1spp=[])
+        stats = {m: dict(ms=[], lod_ms=[], lod_rays=[], rays=[], tri=[], psnr=[], ssim=[], flip=[], obj=[], vis=[], vis_ref=[], vis_1spp=[], vis_1spp_raw=[])
                  for m in METHODS}
         for i, k in enumerate(ks):
             t = k / FPS
@@ -254,6 +254,8 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                 for m in ("shading-rate", "spp", "all"):
                     stats[m]["vis_ref"].append(_visible_tiles(refs[k]["radiance"], depth, native.camera.K, vs))
                     stats[m]["vis_1spp"].append(_visible_tiles(shared[1.0].frame.radiance, depth, native.camera.K, vs))
+                    stats[m]["vis_1spp_raw"].append(_visible_tiles(shared[1.0].frame.radiance, depth, native.camera.K,
+                                                                    dataclasses.replace(vs, noise_k=0.0)))
         rows = []
         for r in runs:
             st = stats[r.name]
@@ -267,6 +269,7 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                 visible_tiles=float(np.mean(st["vis"])) if st["vis"] else None,
                 visible_tiles_reference=float(np.mean(st["vis_ref"])) if st["vis_ref"] else None,
                 visible_tiles_1spp=float(np.mean(st["vis_1spp"])) if st["vis_1spp"] else None,
+                visible_tiles_1spp_no_floor=float(np.mean(st["vis_1spp_raw"])) if st["vis_1spp_raw"] else None,
                 lod_switches=r.lod_switches, mesh_levels=",".join(str(c) for c in r.choice), width=W, height=H,
                 frames=len(ks), eval_frames=len(eval_k), ref_spp=cfg.ref_spp, fps=FPS, level_build_s=round(build_s, 2),
             ))
@@ -310,18 +313,18 @@ def write_figures(rows: list[dict], images: dict, out_dir: Path) -> list[str]:
         vmap, dec = run["vmap"], run["decisions"]
         H, W = scene.render.height, scene.render.width
         ext = (0, W, H, 0)
-        fig, axes = plt.subplots(1, 4, figsize=(17, 3.9))
+        fig, axes = plt.subplots(1, 4, figsize=(21, 4.4))
         axes[0].imshow(run["image"], extent=ext)
-        axes[0].set_title(f"{name}: output of 'all' (last eval frame)")
+        axes[0].set_title(f"{name}: output of 'all'", fontsize=10)
         lo, hi = -50.0, max(1.0, float(np.max(vmap.visibility)))
         a = axes[1].imshow(np.clip(vmap.visibility, lo, hi), cmap="coolwarm", vmin=lo, vmax=hi, extent=ext, interpolation="nearest")
-        axes[1].set_title("visibility V of the previous output (>0: visible)")
+        axes[1].set_title("V of the previous output (> 0: visible)", fontsize=10)
         fig.colorbar(a, ax=axes[1], fraction=0.04)
         b = axes[2].imshow(dec.spp, cmap="viridis", vmin=0, vmax=4, extent=ext, interpolation="nearest")
-        axes[2].set_title(f"native paths per pixel per tile (≤ {dec.ray_bound:,} rays)")
+        axes[2].set_title(f"native paths per pixel (bound {dec.ray_bound:,} rays)", fontsize=10)
         fig.colorbar(b, ax=axes[2], fraction=0.04, ticks=[0, 1, 2, 4])
         c = axes[3].imshow(dec.rate, cmap="magma", vmin=0, vmax=4, extent=ext, interpolation="nearest")
-        axes[3].set_title("shading rate per tile\n(pitch: 1 full, 2 half, 4 quarter base, 0 base/history)")
+        axes[3].set_title("rate (pitch): 1 full, 2 half, 4/0 the ¼ base", fontsize=10)
         fig.colorbar(c, ax=axes[3], fraction=0.04, ticks=[0, 1, 2, 4])
         fig.suptitle(f"mesh levels chosen by 'all': {run['choice']}", fontsize=9)
         for ax in axes:

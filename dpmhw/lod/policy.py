@@ -33,6 +33,7 @@ from dpmhw.lod.visibility import LodSettingsError, VisibilityMap, check_number
 
 RATES = np.array([0, 4, 2, 1], np.uint8)  # level → pixel pitch per axis (0: history only)
 SPPS = np.array([0, 1, 2, 4], np.uint8)  # level → samples per shaded pixel
+BOOST_PRIORITY = 1.0e15  # added to a boosted tile's priority (age · 1e5 + V stays far below it)
 BOOST_V = 1.0e4  # V given to boosted tiles: above any threshold (V itself never exceeds α_v + S_peak − 1)
 
 
@@ -196,7 +197,10 @@ class TilePolicy:
         spp_level = render_level if s.adaptive_spp else np.minimum(render_level, 1)
         # longest-unshaded first (V is bounded by 1e4, so age dominates): under a tight budget every
         # wanted tile takes its turn instead of the most visible ones starving the rest
-        granted = allocate(spp_level, age * 1e5 + v, shaded, s.ray_budget, s.rays_per_sample)
+        priority = age * 1e5 + v
+        if boost is not None:  # boosted tiles first: what they show changes now, whatever waited longest
+            priority = np.where(boost, priority + BOOST_PRIORITY, priority)
+        granted = allocate(spp_level, priority, shaded, s.ray_budget, s.rays_per_sample)
         spp = SPPS[granted]
         rate = np.where(spp > 0, rate, 0).astype(np.uint8)
         self._age = np.where(spp > 0, 0, age + 1)

@@ -146,3 +146,12 @@ def test_a_tight_budget_takes_turns_instead_of_starving_tiles():
         assert (d.spp > 0).sum() == 8 and d.ray_bound <= 8 * 256 * 4
         seen |= d.spp > 0
     assert seen.all()
+
+
+def test_boosted_tiles_win_the_budget_over_tiles_that_waited_longer():
+    pol = TilePolicy(16, 32, PolicySettings(dilate=0, shading_rate=False, adaptive_spp=False, ray_budget=256 * 4,
+                                            refresh_frames=10**6))
+    for _ in range(3):  # tile 1 asks every frame and waits its turn (budget: one full tile)
+        d = pol.decide(vmap([[60.0, 60.0]]))
+    d = pol.decide(vmap([[60.0, 60.0]]), np.array([[True, False]]))
+    assert d.spp.tolist() == [[1, 0]]
