@@ -117,7 +117,8 @@ def shaded_counts(rate: np.ndarray, height: int, width: int, tile: int) -> np.nd
     return np.where(rate > 0, -(-ys[:, None] // r) * -(-xs[None, :] // r), 0)
 
 
-def _dilate(v: np.ndarray, r: int) -> np.ndarray:
+def dilate_max(v: np.ndarray, r: int) -> np.ndarray:
+    """Each tile takes the max of its neighbours within r tiles (the map is a frame old: objects move in)."""
     if r == 0:
         return v
     p = np.pad(v, r, mode="edge")
@@ -162,7 +163,8 @@ class TilePolicy:
         self._level = self._age = None
         self.frame = 0
 
-    def _levels(self, v: np.ndarray) -> np.ndarray:
+    def levels(self, v: np.ndarray) -> np.ndarray:
+        """Level (0–3) of each visibility value by the thresholds, before dilation, hysteresis and budget."""
         return np.searchsorted(np.asarray(self.settings.thresholds), v, side="left").astype(np.int64)  # V > t_k ⇒ level ≥ k+1
 
     def decide(self, vmap: VisibilityMap, boost: np.ndarray | None = None, traceable: np.ndarray | None = None) -> TileDecisions:
@@ -172,17 +174,17 @@ class TilePolicy:
         show a surface); a tile's shaded pixels are at most that many."""
         s = self.settings
         tile = vmap.tile
-        v = _dilate(np.asarray(vmap.visibility, np.float64), s.dilate)
+        v = dilate_max(np.asarray(vmap.visibility, np.float64), s.dilate)
         if boost is not None:  # from the current frame's G-buffer: no lag to cover, not dilated
             v = np.where(boost, BOOST_V, v)
         pixels = tile_pixel_counts(self.height, self.width, tile)
         if v.shape != pixels.shape:
             raise LodSettingsError(f"visibility: expected tiles {pixels.shape} for {self.width}×{self.height}, got {v.shape}")
-        up = self._levels(v)
+        up = self.levels(v)
         if self._level is None or self._level.shape != v.shape:
             self._level, self._age = up.copy(), np.zeros(v.shape, np.int64)
         prev, age = self._level, self._age
-        level = np.where(up >= prev, up, np.minimum(prev, self._levels(v + s.hysteresis)))
+        level = np.where(up >= prev, up, np.minimum(prev, self.levels(v + s.hysteresis)))
         self._level = level
         index = np.arange(level.size).reshape(level.shape)
         refresh = (level == 0) & (age >= s.refresh_frames) & ((index + self.frame) % s.refresh_frames == 0)

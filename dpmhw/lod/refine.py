@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from dpmhw.lod.policy import PolicySettings, TileDecisions, TilePolicy, _dilate, rays_per_sample_bound
+from dpmhw.lod.policy import PolicySettings, TileDecisions, TilePolicy, dilate_max, rays_per_sample_bound
 from dpmhw.lod.visibility import LodSettingsError, VisibilityMap, VisibilitySettings, check_number, visibility_map
 from dpmhw.reconstruct.reuse import reproject
 
@@ -243,7 +243,7 @@ class TileRefiner:
             _lit_per_tile(g.id, self.W, *(int(v) for v in box), t, lit)
         self.decisions = self.policy.decide(self.vmap, boost, lit)  # background pixels cost no budget
         # tiles refined only because a moving object covers them: trace only its pixels
-        wanted = self.policy._levels(_dilate(self.vmap.visibility, self.policy.settings.dilate))
+        wanted = self.policy.levels(dilate_max(self.vmap.visibility, self.policy.settings.dilate))
         self._moving_only = boost & (wanted < 2) if boost is not None else np.zeros((TY, TX), np.bool_)
         return self.decisions
 
