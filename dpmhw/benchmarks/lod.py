@@ -1,37 +1,34 @@
-"""`dpmhw bench lod`: contrast-driven level of detail, speed against error.
+"""`dpmhw bench lod`: contrast-driven level of detail through the loop's own pipeline, speed against error.
 
-Per scene, each method renders the same stretch of the scene's timeline (frame k: t = k / fps,
-seed k) through temporal reuse (same-pixel EMA, α = 0.2, as the session does); methods are
-interleaved frame by frame in a rotating order, so load on the shared machine hits them alike.
-The visibility map of frame k is computed from the method's own output and G-buffer of frame
-k − 1 (the first frame is a plain full frame). Errors are those of the last `eval_frames`
-frames against converged references (`ReferenceCache`, shared with `bench quality`), on the
-post-processed 8-bit frames: PSNR, SSIM (dpmhw.metrics) and mean FLIP (NVIDIA's
-flip-evaluator, LDR, its default 67 pixels per degree).
+Per scene, at the projector's native size, on a 60 fps timeline (frames from `history_frames`
+before the first eval time to the last; frame k: seed k), every method runs the frames through
+`reconstruct.stage.ReconstructStage`, the session's stage (reuse "motion", α = 0.2), each with
+its own state; frames shared by methods (the same renderer, the same seed) are rendered once:
 
-Methods
-- none: plain 1 spp per pixel (the current pipeline).
-- spp: samples per pixel per tile (0/1/2/4) from the visibility map under a ray budget of
-  `budget` × the worst-case rays of a 1-spp frame; 0-spp tiles keep their history. Rendered by
-  `render_pixels` (below): one public `PathIntegrator.render` call per spp group on a camera
-  restricted to those pixels.
-- mesh-LOD: per object per frame, the level chosen by `MeshLodSelector` (levels and their BVHs
-  built once before the run); the scene's meshes are swapped for the chosen levels. Until the
-  renderer takes per-object BVHs, a new choice builds a new PathIntegrator: that build is outside
-  the timed frame and counted in `lod_switches`.
-- all: spp and mesh-LOD together.
-- mesh-coarsest (diagnostic, not a method): every mesh at its coarsest level all the time, the
-  most mesh LOD could save here, whatever it costs in error.
-- shading-rate is left out: shading a tile at 1/2 or 1/4 resolution needs the joint bilateral
-  upsampling of issue 11 (`dpmhw/reconstruct/`), not on this branch. The policy computes the
-  rates (`TileDecisions.rate`); nothing here pretends to render them.
+- none: native shading, 1 spp everywhere + reuse, no filter (`shading_scale` 1: every pixel
+  costs the same; the stage's exact path, the pipeline before reconstruction existed).
+- quarter: ¼ shading + reuse + lobe-aware filter + upsampling + adaptive sampling: issue 11's
+  default, no LOD (the floor every LOD method below builds on).
+- moving: quarter + native paths on the moving objects' pixels (`lod.refine`, `moving`): the
+  session default (`lod` section).
+- shading-rate: quarter + tiles the visibility map of the previous output calls visible at ½
+  or full rate (`visible`, `shading_rate`).
+- spp: quarter + visible tiles at full rate with 1, 2 or 4 paths per pixel (`visible`,
+  `adaptive_spp`, rate off).
+- mesh-LOD: none with the level per object from `MeshLodSelector` (levels and their BVHs built
+  once before the run); a new choice builds a new PathIntegrator outside the timed frame
+  (counted in `lod_switches`).
+- all: moving + shading-rate + spp + mesh-LOD.
 
-frame_ms covers, per frame: visibility map, decisions, level choice, the render calls and the
-scatter of their pixels (not reuse or post-processing, which every method does the same way);
-lod_ms is the first three, render_ms the time inside the render calls (with `render_pixels`
-that includes the bridge's per-call set-up: the integrator reallocates its work buffers for
-every new pixel count).
-rays_per_frame = camera + continuation + shadow rays, as `bench render` counts them.
+Every refining method has the same per-frame budget of native rays (`rays`, worst case per
+path), never exceeded (asserted per frame). frame_ms is CPU time (`time.process_time`, all
+threads: the shared machine makes wall clock meaningless) of the render call(s) + the whole
+stage (G-buffer, reuse, filter, upsample, lod, adaptive, post); lod_ms the stage's "lod" part.
+Errors at the eval times against converged native references (`ReferenceCache`, shared with
+`bench quality`), on the 8-bit frames: PSNR, SSIM, mean FLIP (flip-evaluator, LDR) and PSNR
+inside the mesh objects (psnr_db_object, issue 11's mask). Rows also say how many tiles the
+map called visible (level ≥ ½ rate) against the map of the reference itself and of the raw
+1-spp native frame (noise robustness).
 """
 
 from __future__ import annotations
@@ -45,199 +42,49 @@ from typing import Callable
 
 import numpy as np
 
+from dpmhw.benchmarks.native_quality import _masked_psnr, _masks, flip_error
 from dpmhw.benchmarks.quality import ReferenceCache, _save
 from dpmhw.lod.mesh_lod import MeshLevels, MeshLodSelector, MeshLodSettings, object_visibility, scene_at_levels
-from dpmhw.lod.policy import PolicySettings, TileDecisions, TilePolicy, rays_per_sample_bound
+from dpmhw.lod.refine import RefineSettings, TileRefiner
 from dpmhw.lod.visibility import VisibilitySettings, visibility_map
 from dpmhw.metrics import psnr, ssim
 from dpmhw.postprocess import postprocess
-from dpmhw.render.accel import Hits
+from dpmhw.reconstruct.adaptive import AdaptiveSampler
+from dpmhw.reconstruct.stage import ReconstructStage
+from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
-from dpmhw.reconstruct.reuse import TemporalReuse
 from dpmhw.scene_file import Scene, load_scene
-from dpmhw.sequence import scaled_scene
+from dpmhw.sequence import scaled_scene, with_fps
 
-METHODS = ("none", "spp", "mesh-LOD", "all", "mesh-coarsest")
-OMITTED = {"shading-rate": "needs the joint bilateral upsampling of issue 11 (dpmhw/reconstruct/), not on this branch"}
+METHODS = ("none", "quarter", "moving", "shading-rate", "spp", "mesh-LOD", "all")
 REFERENCE_SEED = 1_000_003
+FPS = 60.0
 
 
 @dataclass
 class LodBenchConfig:
     scenes: tuple[str, ...] = ("paper-dynamic", "dpm-bunny")
     scale: float = 1.0
-    frames: int = 8  # per method and scene, including the first (plain) frame
-    eval_frames: int = 3
-    ref_spp: int = 256
-    budget: float = 0.5  # ray budget of the adaptive-spp methods, × the worst case of a 1-spp frame
+    eval_times: tuple[float, ...] = (0.3, 0.5)
+    history_frames: int = 12  # frames before the first eval time
+    ref_spp: int = 64
+    rays: int = 400_000  # native rays per frame of the refining methods (the session default)
     alpha: float = 0.2
     threads: int = 2
     visibility: VisibilitySettings = field(default_factory=VisibilitySettings)
-    policy: PolicySettings = field(default_factory=PolicySettings)
     mesh: MeshLodSettings = field(default_factory=MeshLodSettings)
 
     @classmethod
     def quick(cls) -> "LodBenchConfig":
-        return cls(scale=0.25, frames=6, eval_frames=2, ref_spp=64)
+        return cls(scale=0.5, ref_spp=32)
 
 
-# ----------------------------------------------------------------------------------------------
-# rendering a subset of pixels through the public render call
-
-
-class _PixelSubsetCamera:
-    """The base camera's rays through the given pixels only (flat row-major indices)."""
-
-    def __init__(self, base, pixels: np.ndarray):
-        self.base, self.pixels, self.pose = base, pixels, base.pose
-
-    def with_pose(self, pose):
-        return _PixelSubsetCamera(self.base.with_pose(pose), self.pixels)
-
-    def generate_rays(self):
-        o, d = self.base.generate_rays()
-        return o[self.pixels], d[self.pixels]
-
-
-def render_pixels(integrator: PathIntegrator, pixels: np.ndarray, spp: int, time: float, seed: int):
-    """Render only `pixels` (flat indices, ascending) at `spp`: a 1 × n Frame, and the ray counts.
-
-    A bench-only bridge until the renderer takes a per-pixel spp map (issue 12's rewrite): it
-    points the integrator's camera at the pixel subset for one `render` call, and hands it the
-    subset of the full frame's static camera hits (traced once per camera pose, as the
-    integrator itself caches them). With every pixel selected, the result is bit for bit the
-    plain render (the random numbers hash the pixel's index in the batch)."""
-    camera, width, height = integrator.camera, integrator.width, integrator.height
-    full = getattr(integrator, "_lod_full_static", None)
-    key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
-    traced = 0
-    if full is None or full[0] != key:
-        o, d = camera.generate_rays()
-        full = (key, integrator.geometry.accel.intersect_static(o, d))
-        integrator._lod_full_static = full
-        traced = len(o)
-    h = full[1]
-    try:
-        integrator.camera = _PixelSubsetCamera(camera, pixels)
-        integrator.width, integrator.height = len(pixels), 1
-        integrator._static_primary_key = key
-        integrator._static_primary_hits = Hits(h.t[pixels], h.obj[pixels], h.prim[pixels], h.u[pixels], h.v[pixels])
-        frame = integrator.render(time=time, seed=seed, spp=spp)
-        counts = integrator.counts
-        counts.primary_static_traced += traced
-    finally:
-        integrator.camera, integrator.width, integrator.height = camera, width, height
-        integrator._static_primary_key = integrator._static_primary_hits = None
-    return frame, counts
-
-
-# ----------------------------------------------------------------------------------------------
-# one method's loop state
-
-
-class _Run:
-    def __init__(self, name: str, scene: Scene, cfg: LodBenchConfig, levels: list[MeshLevels | None]):
-        self.name, self.scene, self.cfg = name, scene, cfg
-        r = scene.render
-        self.H, self.W = r.height, r.width
-        self.adaptive_spp = name in ("spp", "all")
-        self.mesh_lod = name in ("mesh-LOD", "all")
-        self.reuse = TemporalReuse(self.W, self.H, alpha=cfg.alpha)
-        self.levels = levels
-        self.integrators: dict[tuple, PathIntegrator] = {}
-        self.choice = tuple(len(lv) - 1 if name == "mesh-coarsest" and lv is not None else 0 for lv in levels)
-        self.integrator = self._integrator(self.choice)
-        self.rays_per_sample = rays_per_sample_bound(r.max_bounces, self.integrator.mis_last)
-        self.budget = int(cfg.budget * self.W * self.H * self.rays_per_sample)
-        self.policy = TilePolicy(self.H, self.W, dataclasses.replace(cfg.policy, shading_rate=False, adaptive_spp=True,
-                                                                     ray_budget=self.budget, rays_per_sample=self.rays_per_sample))
-        K = scene.camera.K
-        focal = float(np.sqrt(abs(K[0, 0] * K[1, 1])))  # as the visibility map takes it
-        self.selector = MeshLodSelector(levels, focal, cfg.mesh, cfg.visibility) if self.mesh_lod else None
-        self.prev = None  # (output radiance, depth, object_id) of the last frame
-        self.lod_switches = 0
-        self.last: dict = {}
-        self.render_s = 0.0  # seconds inside render calls this frame
-
-    def _integrator(self, choice: tuple) -> PathIntegrator:
-        if choice not in self.integrators:
-            integ = PathIntegrator(scene_at_levels(self.scene, self.levels, choice), threads=self.cfg.threads)
-            integ.render(time=0.0, seed=0)  # JIT and caches, outside the timed frames
-            self.integrators[choice] = integ
-        return self.integrators[choice]
-
-    def close(self):
-        for integ in self.integrators.values():
-            integ.close()
-
-    def step(self, k: int) -> dict:
-        t_frame, seed = k / self.scene.render.fps, k
-        spent = 0.0
-        vmap = dec = None
-        self.render_s = 0.0
-        start = _time.perf_counter()
-        if self.prev is not None and (self.adaptive_spp or self.mesh_lod):
-            prev_out, prev_depth, prev_id = self.prev
-            vmap = visibility_map(prev_out, prev_depth, self.scene.camera.K, self.cfg.visibility)
-            if self.mesh_lod:
-                obj_vis = object_visibility(vmap.visibility, vmap.tile, prev_id, len(self.scene.objects))
-                choice = tuple(int(c) for c in self.selector.select(self.scene.object_poses(t_frame), self.scene.camera.pose, obj_vis))
-                if choice != self.choice:
-                    spent += _time.perf_counter() - start
-                    self.integrator = self._integrator(choice)  # BVH build: untimed (see the module docstring)
-                    self.lod_switches += 1
-                    self.choice = choice
-                    start = _time.perf_counter()
-        if self.adaptive_spp and vmap is not None:
-            dec = self.policy.decide(vmap)
-            lod_s = spent + _time.perf_counter() - start
-            radiance, object_id, depth, rays = self._render_tiles(dec, t_frame, seed)
-        else:
-            lod_s = spent + _time.perf_counter() - start
-            r0 = _time.perf_counter()
-            frame = self.integrator.render(time=t_frame, seed=seed)
-            self.render_s += _time.perf_counter() - r0
-            c = self.integrator.counts
-            radiance, object_id, depth, rays = frame.radiance, frame.object_id, frame.depth, c.primary + c.intersect + c.occluded
-        spent += _time.perf_counter() - start
-        out = self.reuse.update(radiance, object_id)
-        self.prev = (out, depth, object_id)
-        self.last = dict(vmap=vmap, decisions=dec, choice=self.choice, output=out)
-        if dec is not None and rays > self.budget:
-            raise AssertionError(f"{self.name}: {rays} rays traced over the budget of {self.budget}")
-        return dict(ms=spent * 1e3, lod_ms=lod_s * 1e3, render_ms=self.render_s * 1e3, rays=int(rays), triangles=int(self.integrator.geometry.triangle_count), output=out, time=t_frame)
-
-    def _render_tiles(self, dec: TileDecisions, t_frame: float, seed: int):
-        prev_out, prev_depth, prev_id = self.prev
-        spp = dec.pixel_spp(self.H, self.W).reshape(-1)
-        radiance = prev_out.reshape(-1, 3).copy()  # 0-spp pixels keep their history
-        object_id = prev_id.reshape(-1).copy()
-        depth = prev_depth.reshape(-1).copy()
-        rays = 0
-        for s in (1, 2, 4):
-            pixels = np.flatnonzero(spp == s)
-            if pixels.size == 0:
-                continue
-            r0 = _time.perf_counter()
-            frame, c = render_pixels(self.integrator, pixels, s, t_frame, seed)
-            self.render_s += _time.perf_counter() - r0
-            radiance[pixels] = frame.radiance.reshape(-1, 3)
-            object_id[pixels] = frame.object_id.reshape(-1)
-            depth[pixels] = frame.depth.reshape(-1)
-            rays += c.primary + c.intersect + c.occluded
-        return radiance.reshape(self.H, self.W, 3), object_id.reshape(self.H, self.W), depth.reshape(self.H, self.W), rays
-
-
-# ----------------------------------------------------------------------------------------------
-# the benchmark
-
-
-def _flip(image_u8: np.ndarray, reference_u8: np.ndarray) -> float:
-    import flip_evaluator
-
-    _, mean, _ = flip_evaluator.evaluate(reference_u8.astype(np.float32) / 255, image_u8.astype(np.float32) / 255, "LDR",
-                                         applyMagma=False)
-    return float(mean)
+def _refine_settings(method: str, cfg: LodBenchConfig) -> RefineSettings | None:
+    v = dict(rays=cfg.rays, viewer_distance_m=cfg.visibility.viewer_distance_m, alpha_v=cfg.visibility.alpha_v)
+    return {"moving": RefineSettings(moving=True, **v),
+            "shading-rate": RefineSettings(moving=False, visible=True, **v),
+            "spp": RefineSettings(moving=False, visible=True, shading_rate=False, adaptive_spp=True, **v),
+            "all": RefineSettings(moving=True, visible=True, adaptive_spp=True, **v)}.get(method)
 
 
 def _mesh_levels(scene: Scene) -> tuple[list[MeshLevels | None], float]:
@@ -256,46 +103,183 @@ def _mesh_levels(scene: Scene) -> tuple[list[MeshLevels | None], float]:
     return out, _time.perf_counter() - start
 
 
+class _Pipeline:
+    """One renderer at one shading scale (with its native G-buffer below scale 1) for a mesh-level choice."""
+
+    def __init__(self, native: Scene, scale: float, threads: int):
+        from dpmhw.session.factory import shading_scene
+
+        self.scale = scale
+        self.integrator = PathIntegrator(shading_scene(native, scale), threads=threads)
+        self.integrator.render(spp=1, seed=0)  # JIT and the static-hit cache, outside the timed frames
+        W, H = native.render.width, native.render.height
+        self.gbuffer = NativeGBuffer(native, self.integrator.geometry, W, H, threads=threads) if scale != 1.0 else None
+        self.frame = None
+        self.cpu_ms = 0.0
+        self.rays = 0
+
+    def render(self, t: float, seed: int, poses) -> None:
+        c0 = _time.process_time()
+        self.frame = self.integrator.render(time=t, seed=seed, spp=1, poses=poses)
+        self.cpu_ms = (_time.process_time() - c0) * 1e3
+        c = self.integrator.counts
+        self.rays = c.primary + c.intersect + c.occluded
+
+    def close(self) -> None:
+        if self.gbuffer is not None:
+            self.gbuffer.close()
+        self.integrator.close()
+
+
+class _Run:
+    """One method's state: its pipeline (shared unless its mesh levels differ), stage and refiner."""
+
+    def __init__(self, name: str, native: Scene, cfg: LodBenchConfig, levels, shared: dict, build: Callable):
+        self.name, self.native, self.cfg = name, native, cfg
+        self.scale = 1.0 if name in ("none", "mesh-LOD") else 0.25
+        self.levels, self.build, self.shared = levels, build, shared
+        self.mesh_lod = name in ("mesh-LOD", "all")
+        self.choice = tuple(0 for _ in levels)
+        self.settings = _refine_settings(name, cfg)
+        K = native.camera.K
+        self.selector = MeshLodSelector(levels, float(np.sqrt(abs(K[0, 0] * K[1, 1]))), cfg.mesh, cfg.visibility) if self.mesh_lod else None
+        self.lod_switches = 0
+        self._vis_source = None  # (visibility map, object ids) for the next level choice
+        self._bind(shared[self.scale])
+
+    def _bind(self, p: _Pipeline) -> None:
+        self.pipe = p
+        n = self.native
+        self.refiner = TileRefiner(p.integrator, p.gbuffer, self.settings) if self.settings is not None else None
+        self.stage = ReconstructStage((n.render.width, n.render.height), (p.integrator.width, p.integrator.height),
+                                      background=n.render.background, viewer=n.viewer_position, gbuffer=p.gbuffer,
+                                      clock=_time.process_time_ns,
+                                      adaptive=AdaptiveSampler(p.integrator, p.gbuffer) if p.gbuffer is not None else None,
+                                      lod=self.refiner)
+
+    def step(self, k: int, t: float, poses) -> dict:
+        lod_cpu = 0.0
+        n = self.native
+        if self.mesh_lod and self._vis_source is not None:
+            c0 = _time.process_time()
+            vmap, ids = self._vis_source
+            obj_vis = object_visibility(vmap.visibility, vmap.tile, ids, len(n.objects))
+            choice = tuple(int(c) for c in self.selector.select(poses, n.camera.pose, obj_vis))
+            lod_cpu += (_time.process_time() - c0) * 1e3
+            if choice != self.choice:  # a new BVH set: outside the timed frame; the history starts again
+                self.choice = choice
+                self.lod_switches += 1
+                key = (self.scale, choice)
+                if key not in self.shared:
+                    self.shared[key] = self.build(scene_at_levels(n, self.levels, choice), self.scale)
+                self._bind(self.shared[key])
+        p = self.pipe
+        if p.frame is None:
+            p.render(t, k, poses)
+        out = self.stage.apply(p.frame, mode="motion", alpha=self.cfg.alpha, filter="off" if self.scale == 1.0 else "lobe",
+                               poses=poses, camera=p.integrator.camera)
+        if self.mesh_lod:  # the map the next frame's level choice reads (the refiner's, or one of the reused output)
+            c0 = _time.process_time()
+            if self.refiner is not None:  # (its first map after a (re)bind reads an empty previous output: no choice from it)
+                self._vis_source = (self.refiner.vmap, p.gbuffer.id.reshape(n.render.height, n.render.width)) \
+                    if self.refiner.policy.frame > 1 else None
+            else:
+                self._vis_source = (visibility_map(self.stage.reuse.history, p.frame.depth, n.camera.K, self.cfg.visibility),
+                                    p.frame.object_id)
+            lod_cpu += (_time.process_time() - c0) * 1e3
+        lod_rays = 0 if self.refiner is None else self.refiner.last_rays
+        if self.refiner is not None and lod_rays > self.settings.rays:
+            raise AssertionError(f"{self.name}: {lod_rays} native rays over the budget of {self.settings.rays}")
+        extra = (self.stage.adaptive.last_rays if self.stage.adaptive is not None else 0) + \
+            (p.gbuffer.rays_traced if p.gbuffer is not None else 0)
+        return dict(ms=p.cpu_ms + sum(out.stages_s.values()) * 1e3 + lod_cpu,
+                    lod_ms=out.stages_s.get("lod", 0.0) * 1e3 + lod_cpu, lod_rays=int(lod_rays),
+                    rays=int(p.rays + lod_rays + extra), image=out.image, triangles=int(p.integrator.geometry.triangle_count))
+
+
+def _visible_tiles(radiance, depth, K, settings: VisibilitySettings) -> int:
+    """Tiles at the ½-rate level or above (V > 20, `policy` default thresholds) in a frame's map."""
+    return int((visibility_map(radiance, depth, K, settings).visibility > 20.0).sum())
+
+
 def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: Callable, images: dict) -> list[dict]:
-    scene = load_scene(name)
-    if cfg.scale != 1.0:
-        scene = scaled_scene(scene, cfg.scale)
-    levels, build_s = _mesh_levels(scene)
-    runs = [_Run(m, scene, cfg, levels) for m in METHODS]
-    results = {m: [] for m in METHODS}
-    first_eval = cfg.frames - cfg.eval_frames
+    native = with_fps(scaled_scene(load_scene(name), cfg.scale) if cfg.scale != 1.0 else load_scene(name), FPS)
+    W, H = native.render.width, native.render.height
+    levels, build_s = _mesh_levels(native)
+    eval_k = sorted({int(round(t * FPS)) for t in cfg.eval_times})
+    start = max(0, eval_k[0] - cfg.history_frames)
+    ks = list(range(start, eval_k[-1] + 1))
+    shared: dict = {}
+    build = lambda scene, scale: _Pipeline(scene, scale, cfg.threads)  # noqa: E731
     try:
-        for k in range(cfg.frames):
-            order = runs[k % len(runs):] + runs[: k % len(runs)]  # rotate: no method always runs first
-            for r in order:
-                results[r.name].append(r.step(k))
-                progress(f"{name}: frames × methods", k * len(runs) + order.index(r) + 1, cfg.frames * len(runs))
-        refs = [cache.get(scene, name, results["none"][k]["time"], cfg.ref_spp, REFERENCE_SEED) for k in range(first_eval, cfg.frames)]
-        ref_u8 = [postprocess(r["radiance"]) for r in refs]
+        for s in (1.0, 0.25):
+            shared[s] = build(native, s)
+        refs = {k: cache.get(native, name, k / FPS, cfg.ref_spp, REFERENCE_SEED, integrator=shared[1.0].integrator) for k in eval_k}
+        runs = [_Run(m, native, cfg, levels, shared, build) for m in METHODS]
+        stats = {m: dict(ms=[], lod_ms=[], lod_rays=[], rays=[], tri=[], psnr=[], ssim=[], flip=[], obj=[], vis=[], vis_ref=[], vis_1spp=[], vis_1spp_raw=[])
+                 for m in METHODS}
+        for i, k in enumerate(ks):
+            t = k / FPS
+            poses = native.object_poses(t)
+            for p in list(shared.values()):
+                p.frame = None
+            for j, r in enumerate(runs[i % len(runs):] + runs[: i % len(runs)]):  # rotate: no method always runs first
+                row = r.step(k, t, poses)
+                st = stats[r.name]
+                if i > 0:
+                    st["ms"].append(row["ms"])
+                    st["lod_ms"].append(row["lod_ms"])
+                    st["lod_rays"].append(row["lod_rays"])
+                    st["rays"].append(row["rays"])
+                    st["tri"].append(row["triangles"])
+                if k in refs:
+                    ref = refs[k]
+                    ref8 = postprocess(ref["radiance"])
+                    mask = _masks(native, ref["object_id"])[0]
+                    img = row["image"]
+                    st["psnr"].append(psnr(img, ref8))
+                    st["ssim"].append(ssim(img, ref8))
+                    st["flip"].append(flip_error(ref8, img))
+                    st["obj"].append(_masked_psnr(img, ref8, mask))
+                    if r.refiner is not None and r.refiner.vmap is not None and r.settings.visible:
+                        st["vis"].append(int((r.refiner.vmap.visibility > 20.0).sum()))
+                    if k == eval_k[-1]:
+                        images.setdefault(name, dict(scene=native, reference=ref8))[r.name] = dict(
+                            image=img, vmap=r.refiner.vmap if r.refiner else None, decisions=r.refiner.decisions if r.refiner else None,
+                            choice=r.choice)
+                progress(f"lod {name}: frames × methods", i * len(runs) + j + 1, len(ks) * len(runs))
+            if k in refs:  # the maps a converged frame and a raw 1-spp native frame give, for comparison
+                depth = shared[1.0].frame.depth
+                vs = runs[0].cfg.visibility
+                for m in ("shading-rate", "spp", "all"):
+                    stats[m]["vis_ref"].append(_visible_tiles(refs[k]["radiance"], depth, native.camera.K, vs))
+                    stats[m]["vis_1spp"].append(_visible_tiles(shared[1.0].frame.radiance, depth, native.camera.K, vs))
+                    stats[m]["vis_1spp_raw"].append(_visible_tiles(shared[1.0].frame.radiance, depth, native.camera.K,
+                                                                    dataclasses.replace(vs, noise_k=0.0)))
         rows = []
         for r in runs:
-            frames = results[r.name]
-            timed = frames[1:]  # frame 0 is a plain full frame for every method
-            errs = [(psnr(u, ref), ssim(u, ref), _flip(u, ref))
-                    for u, ref in zip((postprocess(f["output"]) for f in frames[first_eval:]), ref_u8)]
+            st = stats[r.name]
             rows.append(dict(
-                scene=name, method=r.name,
-                frame_ms=float(np.median([f["ms"] for f in timed])),
-                rays_per_frame=int(np.median([f["rays"] for f in timed])),
-                triangles=int(np.median([f["triangles"] for f in timed])),
-                psnr_db=float(np.mean([e[0] for e in errs])), ssim=float(np.mean([e[1] for e in errs])),
-                flip=float(np.mean([e[2] for e in errs])),
-                frame_ms_min=float(min(f["ms"] for f in timed)), frame_ms_max=float(max(f["ms"] for f in timed)),
-                lod_ms=float(np.median([f["lod_ms"] for f in timed])), render_ms=float(np.median([f["render_ms"] for f in timed])),
-                ray_budget=r.budget if r.adaptive_spp else None, lod_switches=r.lod_switches,
-                mesh_levels=",".join(str(c) for c in r.choice), width=scene.render.width, height=scene.render.height,
-                frames=cfg.frames, eval_frames=cfg.eval_frames, ref_spp=cfg.ref_spp, level_build_s=round(build_s, 2),
+                scene=name, method=r.name, frame_ms=float(np.median(st["ms"])),
+                rays_per_frame=int(np.median(st["rays"])), lod_rays=int(np.median(st["lod_rays"])),
+                triangles=int(np.median(st["tri"])),
+                psnr_db=float(np.mean(st["psnr"])), ssim=float(np.mean(st["ssim"])), flip=float(np.mean(st["flip"])),
+                psnr_db_object=float(np.nanmean(st["obj"])), lod_ms=float(np.median(st["lod_ms"])),
+                shading_scale=r.scale, ray_budget=r.settings.rays if r.settings else None,
+                visible_tiles=float(np.mean(st["vis"])) if st["vis"] else None,
+                visible_tiles_reference=float(np.mean(st["vis_ref"])) if st["vis_ref"] else None,
+                visible_tiles_1spp=float(np.mean(st["vis_1spp"])) if st["vis_1spp"] else None,
+                visible_tiles_1spp_no_floor=float(np.mean(st["vis_1spp_raw"])) if st["vis_1spp_raw"] else None,
+                lod_switches=r.lod_switches, mesh_levels=",".join(str(c) for c in r.choice), width=W, height=H,
+                frames=len(ks), eval_frames=len(eval_k), ref_spp=cfg.ref_spp, fps=FPS, level_build_s=round(build_s, 2),
             ))
-        images[name] = dict(run=runs[METHODS.index("all")].last, scene=scene, levels=levels)
+        none = rows[0]
+        for row in rows:
+            row["time_vs_none"] = row["frame_ms"] / none["frame_ms"]
+        return rows
     finally:
-        for r in runs:
-            r.close()
-    return rows
+        for p in shared.values():
+            p.close()
 
 
 def run_lod(cfg: LodBenchConfig, cache_dir: Path | None = None, out_dir: Path | None = None, progress: Callable | None = None) -> dict:
@@ -305,7 +289,7 @@ def run_lod(cfg: LodBenchConfig, cache_dir: Path | None = None, out_dir: Path | 
     for name in cfg.scenes:
         rows += run_scene(name, cfg, cache, progress, images)
     files = write_figures(rows, images, out_dir) if out_dir is not None else []
-    return dict(rows=rows, omitted=OMITTED, files=files)
+    return dict(rows=rows, files=files)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -322,57 +306,72 @@ def write_figures(rows: list[dict], images: dict, out_dir: Path) -> list[str]:
     out_dir.mkdir(parents=True, exist_ok=True)
     files = []
     for name, im in images.items():
-        run, scene = im["run"], im["scene"]
-        vmap, dec = run["vmap"], run["decisions"]
-        if vmap is None or dec is None:
+        run = im.get("all")
+        if run is None or run["vmap"] is None or run["decisions"] is None:
             continue
+        scene = im["scene"]
+        vmap, dec = run["vmap"], run["decisions"]
         H, W = scene.render.height, scene.render.width
         ext = (0, W, H, 0)
-        fig, axes = plt.subplots(1, 4, figsize=(17, 3.9))
-        axes[0].imshow(postprocess(run["output"]), extent=ext)
-        axes[0].set_title(f"{name}: output of 'all' (last frame)")
+        fig, axes = plt.subplots(1, 4, figsize=(21, 4.4))
+        axes[0].imshow(run["image"], extent=ext)
+        axes[0].set_title(f"{name}: output of 'all'", fontsize=10)
         lo, hi = -50.0, max(1.0, float(np.max(vmap.visibility)))
         a = axes[1].imshow(np.clip(vmap.visibility, lo, hi), cmap="coolwarm", vmin=lo, vmax=hi, extent=ext, interpolation="nearest")
-        axes[1].set_title("visibility V = S(f) − 1/c + α  (>0: visible)")
+        axes[1].set_title("V of the previous output (> 0: visible)", fontsize=10)
         fig.colorbar(a, ax=axes[1], fraction=0.04)
         b = axes[2].imshow(dec.spp, cmap="viridis", vmin=0, vmax=4, extent=ext, interpolation="nearest")
-        axes[2].set_title(f"spp per tile (budget {dec.ray_bound:,} of ≤ rays)")
+        axes[2].set_title(f"native paths per pixel (bound {dec.ray_bound:,} rays)", fontsize=10)
         fig.colorbar(b, ax=axes[2], fraction=0.04, ticks=[0, 1, 2, 4])
         c = axes[3].imshow(dec.rate, cmap="magma", vmin=0, vmax=4, extent=ext, interpolation="nearest")
-        axes[3].set_title("shading rate the policy would use\n(pitch: 1 full, 2 half, 4 quarter, 0 history)")
+        axes[3].set_title("rate (pitch): 1 full, 2 half, 4/0 the ¼ base", fontsize=10)
         fig.colorbar(c, ax=axes[3], fraction=0.04, ticks=[0, 1, 2, 4])
-        levels = ", ".join(f"{o.name}: level {lv}" for o, lv, ls in zip(scene.objects, run["choice"], im["levels"]) if ls is not None)
-        fig.suptitle(f"mesh levels chosen: {levels}", fontsize=9)
+        fig.suptitle(f"mesh levels chosen by 'all': {run['choice']}", fontsize=9)
         for ax in axes:
             ax.set_xlabel("x (px)")
         files.append(_save(fig, out_dir / f"lod-map-{name}.png"))
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    markers = {"none": "o", "spp": "s", "mesh-LOD": "^", "all": "D", "mesh-coarsest": "x"}
-    for i, name in enumerate(dict.fromkeys(r["scene"] for r in rows)):
-        for r in (r for r in rows if r["scene"] == name):
-            for ax, key in zip(axes, ("psnr_db", "flip")):
-                ax.plot(r["frame_ms"], r[key], markers[r["method"]], color=f"C{i}", ms=8,
-                        label=f"{name} {r['method']}")
-                ax.annotate(r["method"], (r["frame_ms"], r[key]), textcoords="offset points", xytext=(5, 4), fontsize=8)
-    axes[0].set_ylabel("PSNR (dB) against the converged reference ↑")
-    axes[1].set_ylabel("mean FLIP against the converged reference ↓")
-    for ax in axes:
-        ax.set_xscale("log")
-        ax.set_xlabel("frame time, median (ms, log scale; shared 2-core machine)")
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7, ncol=2)
-    fig.suptitle("Contrast-driven LOD: speed against error (shading-rate omitted: needs issue 11's upsampling)")
-    files.append(_save(fig, out_dir / "lod-ms-vs-error.png"))
+    files.append(plot_rows(rows, out_dir))
     return files
 
 
+def plot_rows(rows: list[dict], out_dir: Path) -> str:
+    """The ms-against-error figure from the rows alone (so it can be redrawn from the JSON)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    fig, axes = plt.subplots(1, 3, figsize=(18, 5.2))
+    lo, hi = min(r["frame_ms"] for r in rows), max(r["frame_ms"] for r in rows)
+    markers = dict(zip(METHODS, "osP^vXD"))
+    for i, name in enumerate(dict.fromkeys(r["scene"] for r in rows)):
+        for r in (r for r in rows if r["scene"] == name):
+            for ax, key in zip(axes, ("psnr_db", "psnr_db_object", "flip")):
+                ax.plot(r["frame_ms"], r[key], markers[r["method"]], color=f"C{i}", ms=8, label=f"{name} {r['method']}")
+                ax.annotate(r["method"], (r["frame_ms"], r[key]), textcoords="offset points", xytext=(5, 4), fontsize=7)
+    axes[0].set_ylabel("PSNR (dB) against the converged reference ↑")
+    axes[1].set_ylabel("PSNR inside the mesh objects (dB) ↑")
+    axes[2].set_ylabel("mean FLIP against the converged reference ↓")
+    for ax in axes:
+        ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xticks([t for t in (10, 20, 50, 100, 200, 500, 1000, 2000) if lo / 1.5 <= t <= hi * 1.5])
+        ax.set_xlabel("frame CPU time, median (ms, log; render + stage)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=6, ncol=2)
+    size = ", ".join(dict.fromkeys(f"{r['width']}×{r['height']}" for r in rows))
+    fig.suptitle(f"Contrast-driven LOD in the loop's pipeline: speed against error ({size}, 60 fps timeline)")
+    return _save(fig, Path(out_dir) / "lod-ms-vs-error.png")
+
+
 def format_table(result: dict) -> str:
-    head = f"{'scene':<15}{'method':<10}{'frame ms':>10}{'rays/frame':>13}{'triangles':>11}{'PSNR dB':>9}{'SSIM':>8}{'FLIP':>8}  levels"
+    head = (f"{'scene':<15}{'method':<14}{'CPU ms':>9}{'×none':>7}{'lod ms':>8}{'lod rays':>10}{'triangles':>11}"
+            f"{'PSNR':>7}{'obj':>7}{'SSIM':>8}{'FLIP':>8}  levels")
     lines = [head]
     for r in result["rows"]:
-        lines.append(f"{r['scene']:<15}{r['method']:<10}{r['frame_ms']:>10.1f}{r['rays_per_frame']:>13,}{r['triangles']:>11,}"
-                     f"{r['psnr_db']:>9.2f}{r['ssim']:>8.4f}{r['flip']:>8.4f}  {r['mesh_levels']}")
-    for k, why in result["omitted"].items():
-        lines.append(f"{k}: omitted, {why}")
+        lines.append(f"{r['scene']:<15}{r['method']:<14}{r['frame_ms']:>9.1f}{r['time_vs_none']:>7.2f}{r['lod_ms']:>8.1f}"
+                     f"{r['lod_rays']:>10,}{r['triangles']:>11,}{r['psnr_db']:>7.2f}{r['psnr_db_object']:>7.2f}"
+                     f"{r['ssim']:>8.4f}{r['flip']:>8.4f}  {r['mesh_levels']}")
     return "\n".join(lines)
-

@@ -94,21 +94,22 @@ def bench_quality(
 
 @bench_app.command("lod")
 def bench_lod(
-    quick: Annotated[bool, typer.Option("--quick", help="Quarter resolution (256×192), 6 frames, 64-spp references: a few minutes.")] = False,
+    quick: Annotated[bool, typer.Option("--quick", help="Half resolution (512×384), 32-spp references.")] = False,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Write the rows as JSON here.")] = None,
     out_dir: Annotated[Path, typer.Option(help="Visibility-map and ms-vs-error figures (PNG) go here.")] = Path("bench-lod"),
     cache_dir: Annotated[Optional[Path], typer.Option(help="Reference cache [default: $DPMHW_CACHE/references or ~/.cache/dpmhw/references].")] = None,
     scenes: Annotated[Optional[str], typer.Option(help="Comma-separated scenes [default: paper-dynamic,dpm-bunny].")] = None,
-    frames: Annotated[Optional[int], typer.Option(min=3, help="Frames per method and scene.")] = None,
-    eval_frames: Annotated[Optional[int], typer.Option(min=1, help="Last frames compared with references (each costs a reference render).")] = None,
+    eval_times: Annotated[Optional[str], typer.Option(help="Comma-separated timeline seconds compared with references [default: 0.3,0.5].")] = None,
+    history_frames: Annotated[Optional[int], typer.Option(min=1, help="60 fps frames before the first eval time.")] = None,
     ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Reference spp.")] = None,
-    budget: Annotated[float, typer.Option(min=0.0, max=4.0, help="Ray budget of the adaptive-spp methods, × a 1-spp frame's worst case.")] = 0.5,
+    rays: Annotated[Optional[int], typer.Option(min=1, help="Native rays per frame of the refining methods [default: the session's lod.rays].")] = None,
     viewer_distance: Annotated[float, typer.Option(help="Audience distance from the surface, metres.")] = 1.5,
     alpha_v: Annotated[float, typer.Option(help="α_v added to the visibility (1/contrast units).")] = 0.0,
     threads: Annotated[int, typer.Option(min=1)] = 2,
 ) -> None:
-    """Contrast-driven LOD, speed against error: rows {scene, method, frame_ms, rays_per_frame,
-    triangles, psnr_db, ssim, flip} for none / spp / mesh-LOD / all against converged references."""
+    """Contrast-driven LOD through the loop's pipeline, speed against error: rows {scene, method,
+    frame_ms, rays_per_frame, triangles, psnr_db, ssim, flip, psnr_db_object, ...} for none /
+    quarter / moving / shading-rate / spp / mesh-LOD / all against converged references."""
     import dataclasses
 
     from dpmhw.benchmarks.lod import LodBenchConfig, format_table, run_lod
@@ -116,16 +117,20 @@ def bench_lod(
 
     cfg = LodBenchConfig.quick() if quick else LodBenchConfig()
     try:
-        changes = dict(budget=budget, threads=threads, visibility=VisibilitySettings(viewer_distance_m=viewer_distance, alpha_v=alpha_v))
+        changes = dict(threads=threads, visibility=VisibilitySettings(viewer_distance_m=viewer_distance, alpha_v=alpha_v))
+        if eval_times is not None:
+            changes["eval_times"] = tuple(float(v) for v in eval_times.split(",") if v.strip())
+            if not changes["eval_times"] or min(changes["eval_times"]) < 0:
+                raise ValueError
     except LodSettingsError as e:
         raise typer.BadParameter(str(e)) from None
+    except ValueError:
+        raise typer.BadParameter(f"--eval-times: expected comma-separated seconds ≥ 0, got {eval_times!r}") from None
     if scenes is not None:
         changes["scenes"] = tuple(s.strip() for s in scenes.split(",") if s.strip())
-    if frames is not None:
-        changes["frames"] = frames
-    changes["eval_frames"] = min(eval_frames or cfg.eval_frames, changes.get("frames", cfg.frames) - 1)
-    if ref_spp is not None:
-        changes["ref_spp"] = ref_spp
+    for key, value in (("history_frames", history_frames), ("ref_spp", ref_spp), ("rays", rays)):
+        if value is not None:
+            changes[key] = value
     cfg = dataclasses.replace(cfg, **changes)
     with Progress() as bar:
         result = run_lod(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=bar.callback)

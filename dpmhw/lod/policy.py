@@ -33,6 +33,8 @@ from dpmhw.lod.visibility import LodSettingsError, VisibilityMap, check_number
 
 RATES = np.array([0, 4, 2, 1], np.uint8)  # level → pixel pitch per axis (0: history only)
 SPPS = np.array([0, 1, 2, 4], np.uint8)  # level → samples per shaded pixel
+BOOST_PRIORITY = 1.0e15  # added to a boosted tile's priority (age · 1e5 + V stays far below it)
+BOOST_V = 1.0e4  # V given to boosted tiles: above any threshold (V itself never exceeds α_v + S_peak − 1)
 
 
 def rays_per_sample_bound(max_bounces: int, mis_last: bool) -> int:
@@ -52,6 +54,7 @@ class PolicySettings:
     adaptive_spp: bool = True  # off: every shaded tile at 1 spp
     ray_budget: int | None = None  # rays per frame; None: unlimited
     rays_per_sample: int = 4  # rays_per_sample_bound(1, False)
+    free_rate: int = 0  # tiles at this pitch cost no rays of the budget (4: a ¼ base frame shades them anyway)
 
     def __post_init__(self):
         t = tuple(check_number(f"thresholds[{i}]", x, -1e4, 1e4) for i, x in enumerate(self.thresholds))
@@ -62,6 +65,8 @@ class PolicySettings:
         object.__setattr__(self, "dilate", check_number("dilate", self.dilate, 0, 16, integer=True))
         object.__setattr__(self, "refresh_frames", check_number("refresh_frames", self.refresh_frames, 1, 1e6, integer=True))
         object.__setattr__(self, "rays_per_sample", check_number("rays_per_sample", self.rays_per_sample, 1, 1e3, integer=True))
+        if self.free_rate not in (0, 1, 2, 4):
+            raise LodSettingsError(f"free_rate: expected 0 (none), 1, 2 or 4, got {self.free_rate!r}")
         if self.ray_budget is not None:
             object.__setattr__(self, "ray_budget", check_number("ray_budget", self.ray_budget, 0, 1e15, integer=True))
 
@@ -90,14 +95,30 @@ class TileDecisions:
         return np.repeat(np.repeat(self.rate, t, 0), t, 1)[:height, :width]
 
 
+def _tile_sides(height: int, width: int, tile: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of each tile row and columns of each tile column (edge tiles may be partial)."""
+    return (np.minimum(tile, height - np.arange(0, height, tile)).astype(np.int64),
+            np.minimum(tile, width - np.arange(0, width, tile)).astype(np.int64))
+
+
 def tile_pixel_counts(height: int, width: int, tile: int) -> np.ndarray:
     """(TY, TX) pixels in each tile (edge tiles may be partial)."""
-    ys = np.minimum(tile, height - np.arange(0, height, tile))
-    xs = np.minimum(tile, width - np.arange(0, width, tile))
-    return np.outer(ys, xs).astype(np.int64)
+    ys, xs = _tile_sides(height, width, tile)
+    return np.outer(ys, xs)
 
 
-def _dilate(v: np.ndarray, r: int) -> np.ndarray:
+def shaded_counts(rate: np.ndarray, height: int, width: int, tile: int) -> np.ndarray:
+    """(TY, TX) pixels shaded per sample at each tile's pitch: ⌈rows/rate⌉ · ⌈cols/rate⌉ (0 where
+    rate is 0). Every pixel whose row and column are both ≡ (phase) mod rate, counted from the
+    tile's origin (a multiple of the tile, so of every rate dividing it), is within this bound
+    whatever the phase."""
+    ys, xs = _tile_sides(height, width, tile)
+    r = np.maximum(rate, 1).astype(np.int64)
+    return np.where(rate > 0, -(-ys[:, None] // r) * -(-xs[None, :] // r), 0)
+
+
+def dilate_max(v: np.ndarray, r: int) -> np.ndarray:
+    """Each tile takes the max of its neighbours within r tiles (the map is a frame old: objects move in)."""
     if r == 0:
         return v
     p = np.pad(v, r, mode="edge")
@@ -142,32 +163,46 @@ class TilePolicy:
         self._level = self._age = None
         self.frame = 0
 
-    def _levels(self, v: np.ndarray) -> np.ndarray:
+    def levels(self, v: np.ndarray) -> np.ndarray:
+        """Level (0–3) of each visibility value by the thresholds, before dilation, hysteresis and budget."""
         return np.searchsorted(np.asarray(self.settings.thresholds), v, side="left").astype(np.int64)  # V > t_k ⇒ level ≥ k+1
 
-    def decide(self, vmap: VisibilityMap) -> TileDecisions:
+    def decide(self, vmap: VisibilityMap, boost: np.ndarray | None = None, traceable: np.ndarray | None = None) -> TileDecisions:
+        """`boost`: optional (TY, TX) bool, tiles to treat as the most visible (e.g. a moving
+        object covers them now: its shading changes under the viewer's eye). `traceable`:
+        optional (TY, TX) count of pixels per tile that can take a path at all (e.g. those that
+        show a surface); a tile's shaded pixels are at most that many."""
         s = self.settings
         tile = vmap.tile
-        v = _dilate(np.asarray(vmap.visibility, np.float64), s.dilate)
+        v = dilate_max(np.asarray(vmap.visibility, np.float64), s.dilate)
+        if boost is not None:  # from the current frame's G-buffer: no lag to cover, not dilated
+            v = np.where(boost, BOOST_V, v)
         pixels = tile_pixel_counts(self.height, self.width, tile)
         if v.shape != pixels.shape:
             raise LodSettingsError(f"visibility: expected tiles {pixels.shape} for {self.width}×{self.height}, got {v.shape}")
-        up = self._levels(v)
+        up = self.levels(v)
         if self._level is None or self._level.shape != v.shape:
             self._level, self._age = up.copy(), np.zeros(v.shape, np.int64)
         prev, age = self._level, self._age
-        level = np.where(up >= prev, up, np.minimum(prev, self._levels(v + s.hysteresis)))
+        level = np.where(up >= prev, up, np.minimum(prev, self.levels(v + s.hysteresis)))
         self._level = level
         index = np.arange(level.size).reshape(level.shape)
         refresh = (level == 0) & (age >= s.refresh_frames) & ((index + self.frame) % s.refresh_frames == 0)
         self.frame += 1
         render_level = np.where(refresh, 1, level)
         rate = RATES[render_level] if s.shading_rate else np.where(render_level > 0, 1, 0).astype(np.uint8)
-        shaded = np.where(rate > 0, -(-pixels // np.maximum(rate, 1).astype(np.int64) ** 2), 0)  # ⌈pixels / rate²⌉
+        shaded = shaded_counts(rate, self.height, self.width, tile)
+        if traceable is not None:
+            shaded = np.minimum(shaded, traceable)
+        if s.free_rate:
+            shaded = np.where(rate == s.free_rate, 0, shaded)
         spp_level = render_level if s.adaptive_spp else np.minimum(render_level, 1)
         # longest-unshaded first (V is bounded by 1e4, so age dominates): under a tight budget every
         # wanted tile takes its turn instead of the most visible ones starving the rest
-        granted = allocate(spp_level, age * 1e5 + v, shaded, s.ray_budget, s.rays_per_sample)
+        priority = age * 1e5 + v
+        if boost is not None:  # boosted tiles first: what they show changes now, whatever waited longest
+            priority = np.where(boost, priority + BOOST_PRIORITY, priority)
+        granted = allocate(spp_level, priority, shaded, s.ray_budget, s.rays_per_sample)
         spp = SPPS[granted]
         rate = np.where(spp > 0, rate, 0).astype(np.uint8)
         self._age = np.where(spp > 0, 0, age + 1)

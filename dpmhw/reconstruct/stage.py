@@ -62,17 +62,22 @@ class ReconstructStage:
     clock : monotonic nanoseconds, for the sub-stage timings
     adaptive : a `reconstruct.adaptive.AdaptiveSampler` (None: no adaptive sampling): extra
         native paths for unresolved and under-supported pixels, merged before post
+    lod : a `lod.refine.TileRefiner` (None: off, and the stage is exactly what it is without
+        it): per-tile native paths where the previous output is visible (issue 13); planned
+        before the upsampling, traced and blended after it, before adaptive sampling;
+        its time is the sub-stage "lod"
     """
 
     def __init__(self, native_size, shading_size, *, background=(0.0, 0.0, 0.0), viewer=(0.0, 0.0, 0.0),
                  warmup: bool = False, gbuffer=None, gbuffer_mode: str = "edges", clock=time.monotonic_ns,
-                 adaptive=None):
+                 adaptive=None, lod=None):
         self.W, self.H = (int(v) for v in native_size)
         self.w, self.h = (int(v) for v in shading_size)
         if (self.w, self.h) != (self.W, self.H) and gbuffer is None:
             raise ValueError("ReconstructStage: shading size differs from the native size but no native G-buffer was given")
         self.gbuffer = gbuffer
         self.adaptive = adaptive if gbuffer is not None else None
+        self.lod = lod if gbuffer is not None else None  # issue 13's hook (lod.refine)
         self.clock = clock  # ns; the loop's injectable clock
         self.gbuffer_mode = gbuffer_mode
         self.background = np.asarray(background, np.float32).reshape(3)
@@ -99,6 +104,8 @@ class ReconstructStage:
             r.reset()
         if self.adaptive is not None:
             self.adaptive.reset()
+        if self.lod is not None:
+            self.lod.reset()
 
     def _settings(self, mode: str, alpha: float, split_screen: bool) -> None:
         wanted = ReuseSettings(alpha, mode, self.warmup, split_screen)
@@ -177,9 +184,20 @@ class ReconstructStage:
         t3 = self._now()
         st["filter"] = t3 - t2
 
+        if self.lod is not None:  # --- issue 13: plan from the previous output before the upsampling overwrites it
+            self.lod.plan(self._radiance, box)
+            t_lod = self._now() - t3
+            t3 = self._now()
         upsample(low, d, s, emitted, self.native, filter, box, self.background, self._radiance, self._wsum, self._unresolved)
         t4 = self._now()
         st["upsample"] = t4 - t3
+
+        if self.lod is not None:  # --- issue 13: native paths in the planned tiles
+            self.lod.refine(self._radiance, self._wsum, self._unresolved, box, poses if poses is not None else [],
+                            frame.seed, 1.0 if mode == "off" else alpha)
+            t5 = self._now()
+            st["lod"] = t_lod + t5 - t4
+            t4 = t5
 
         st["adaptive"] = 0.0
         if self.adaptive is not None:

@@ -93,6 +93,24 @@ class ReuseSection(_Section):
     warmup: bool = Field(False, description="running mean for the first 1/alpha frames after a reset")
 
 
+# --- issue 13: contrast-driven level of detail in the reconstruction (dpmhw.lod.refine) ---
+class LodSection(_Section):
+    """Per-tile native paths on top of the shading-resolution frame (docs/lod.md). Off (rays = 0,
+    or neither moving nor visible): the reconstruction is exactly what it is without it."""
+
+    rays: int = Field(400_000, ge=0, le=1 << 30, description="most native rays per frame for the refined tiles "
+                      "(worst case per path; 0 = off; only below shading_scale 1)")
+    moving: bool = Field(True, description="the pixels of moving objects get native paths every frame (the ¼ "
+                         "shading loses their detail)")
+    visible: bool = Field(False, description="tiles the visibility map of the previous output calls visible get "
+                          "native paths at ½ or full rate")
+    shading_rate: bool = Field(True, description="visible tiles: ½ or full rate by visibility (off: all full rate)")
+    adaptive_spp: bool = Field(False, description="visible tiles: 1, 2 or 4 paths per pixel by visibility")
+    base_weight: float = Field(0.3, ge=0.0, le=1.0, description="share of the upsampled frame in a refined pixel")
+    viewer_distance_m: float = Field(1.5, gt=0.0, le=1e4, description="the audience's distance to the surface")
+    alpha_v: float = Field(0.0, ge=-1e4, le=1e4, description="added to the visibility (higher refines more)")
+
+
 class PredictionSection(_Section):
     enabled: bool = True
     model: Literal["velocity", "acceleration"] = Field("velocity", description="constant velocity, or constant linear acceleration")
@@ -187,6 +205,7 @@ class SessionConfig(_Section):
     scene: SceneSection = SceneSection()
     render: RenderSection = RenderSection()
     reuse: ReuseSection = ReuseSection()
+    lod: LodSection = LodSection()  # issue 13
     prediction: PredictionSection = PredictionSection()
     bindings: list[Binding] = Field(default_factory=list, description="empty: every scene object with a rigid_body")
     tracker: TrackerSection = TrackerSection()

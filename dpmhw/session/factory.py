@@ -259,6 +259,7 @@ def warm_up(renderer, scene: Scene, gbuffer=None) -> None:
     """Run every per-frame kernel once before the loop starts. On a fresh install the first call
     compiles them (numba; tens of seconds, then cached on disk): inside the loop that would be a
     stall the watchdog reports as a fault. `scene` is the native one."""
+    from dpmhw.lod.refine import RefineSettings, TileRefiner
     from dpmhw.reconstruct.adaptive import AdaptiveSampler
     from dpmhw.reconstruct.stage import ReconstructStage
 
@@ -270,7 +271,9 @@ def warm_up(renderer, scene: Scene, gbuffer=None) -> None:
         for filt in ("off", "lobe"):
             stage = ReconstructStage(native, (renderer.width, renderer.height), background=scene.render.background,
                                      viewer=scene.viewer_position, gbuffer=gbuffer,
-                                     adaptive=AdaptiveSampler(renderer, gbuffer) if gbuffer is not None else None)
+                                     adaptive=AdaptiveSampler(renderer, gbuffer) if gbuffer is not None else None,
+                                     lod=TileRefiner(renderer, gbuffer, RefineSettings(rays=1 << 20, visible=True))
+                                     if gbuffer is not None else None)  # issue 13: its kernels too
             for _ in range(2):  # the second frame takes the history path
                 stage.apply(frame, mode=mode, alpha=0.2, filter=filt, poses=poses, camera=renderer.camera)
     log.info("render and reconstruction kernels ready in %.1f s", time.monotonic() - t0)

@@ -25,6 +25,7 @@ import numpy as np
 
 from dpmhw.frame_sink import FrameSink
 from dpmhw.postprocess import NonFiniteFrameError
+from dpmhw.lod.refine import tile_refiner
 from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.scene_file import Scene
@@ -131,7 +132,8 @@ class SessionLoop:
                                             background=scene.render.background, viewer=scene.viewer_position,
                                             warmup=config.reuse.warmup, gbuffer=parts.gbuffer, clock=clock,
                                             adaptive=AdaptiveSampler(parts.renderer, parts.gbuffer, config.render.adaptive_rays)
-                                            if parts.gbuffer is not None and config.render.adaptive_rays > 0 else None)
+                                            if parts.gbuffer is not None and config.render.adaptive_rays > 0 else None,
+                                            lod=tile_refiner(parts.renderer, parts.gbuffer, config.lod))  # issue 13
         self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
         self.frame_log: list[FrameRecord] | None = [] if frame_log else None
         self._frame_log_max = frame_log

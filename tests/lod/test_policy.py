@@ -94,19 +94,31 @@ def test_allocation_prefers_first_samples_then_visibility():
 
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), budget=st.integers(0, 2_000_000), rate=st.booleans(), spp=st.booleans(),
-       bounces=st.integers(0, 4), mis=st.booleans())
-def test_ray_budget_is_never_exceeded(seed, budget, rate, spp, bounces, mis):
+       bounces=st.integers(0, 4), mis=st.booleans(), free=st.sampled_from([0, 4]), boost=st.booleans())
+def test_ray_budget_is_never_exceeded(seed, budget, rate, spp, bounces, mis, free, boost):
     rng = np.random.default_rng(seed)
     rps = rays_per_sample_bound(bounces, mis)
     pol = TilePolicy(100, 130, PolicySettings(shading_rate=rate, adaptive_spp=spp, ray_budget=budget, rays_per_sample=rps,
-                                              refresh_frames=2))
+                                              refresh_frames=2, free_rate=free))
     pixels = tile_pixel_counts(100, 130, 16)
     for _ in range(4):
-        d = pol.decide(vmap(rng.uniform(-30, 120, (7, 9))))
+        d = pol.decide(vmap(rng.uniform(-30, 120, (7, 9))), rng.random((7, 9)) < 0.3 if boost else None)
         assert d.ray_bound <= budget
         assert d.ray_bound == (d.spp.astype(np.int64) * d.shaded_pixels).sum() * rps
         assert np.all(d.shaded_pixels <= pixels)
         assert np.all((d.spp == 0) == (d.rate == 0))
+
+
+def test_partial_tiles_count_every_phase_and_free_tiles_cost_nothing():
+    """A 3×3 edge tile at ½ rate holds up to 2×2 pixels of one phase (⌈9/4⌉ = 3 would not
+    bound it); ¼ tiles are free when the base frame shades them; boosted tiles take the top level."""
+    pol = TilePolicy(19, 19, PolicySettings(dilate=0, free_rate=4))
+    d = pol.decide(vmap([[30.0, 30.0], [10.0, 30.0]]))
+    assert d.rate.tolist() == [[2, 2], [4, 2]]
+    assert d.shaded_pixels.tolist() == [[64, 16], [0, 4]]  # 16×3 → 8·2; 3×3 → 2·2; the ¼ tile: free
+    d = TilePolicy(32, 32, PolicySettings(dilate=1)).decide(vmap([[-50.0, -50.0], [-50.0, -50.0]]),
+                                                         np.array([[True, False], [False, False]]))
+    assert d.rate.tolist() == [[1, 0], [0, 0]]  # the boost is current: not dilated
 
 
 def test_rays_per_sample_bound():
@@ -134,3 +146,12 @@ def test_a_tight_budget_takes_turns_instead_of_starving_tiles():
         assert (d.spp > 0).sum() == 8 and d.ray_bound <= 8 * 256 * 4
         seen |= d.spp > 0
     assert seen.all()
+
+
+def test_boosted_tiles_win_the_budget_over_tiles_that_waited_longer():
+    pol = TilePolicy(16, 32, PolicySettings(dilate=0, shading_rate=False, adaptive_spp=False, ray_budget=256 * 4,
+                                            refresh_frames=10**6))
+    for _ in range(3):  # tile 1 asks every frame and waits its turn (budget: one full tile)
+        d = pol.decide(vmap([[60.0, 60.0]]))
+    d = pol.decide(vmap([[60.0, 60.0]]), np.array([[True, False]]))
+    assert d.spp.tolist() == [[1, 0]]

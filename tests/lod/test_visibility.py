@@ -154,3 +154,18 @@ def test_random_frames_stay_finite_and_bounded():
         depth = np.where(rng.random((48, 48)) < 0.3, np.inf, rng.uniform(1e-6, 1e6, (48, 48))).astype(np.float32)
         assert_bounded(visibility_map(rad, depth, K, s), s)
     assert A_PEAK > 0
+
+
+def test_noise_floor_keeps_a_noisy_flat_tile_invisible_and_a_noisy_edge_visible():
+    """1-spp-like noise (20 % of the mean per block) on a flat tile reads as detail without the
+    noise floor and not with it; a real edge under the same noise stays visible."""
+    rng = np.random.default_rng(3)
+    rad, depth = frame(0.5, size=64)
+    noisy = rad * (1 + 0.2 * rng.standard_normal((64, 64, 1))).astype(np.float32)
+    on, off = VisibilitySettings(), VisibilitySettings(noise_k=0.0)
+    assert visibility_map(noisy, depth, K, off).visible.all()
+    assert not visibility_map(noisy, depth, K, on).visible.any()
+    edge = np.tile(edge_tile(16), (4, 4, 1)) * 0.9 + 0.05
+    noisy_edge = (edge * (1 + 0.2 * rng.standard_normal((64, 64, 1)))).astype(np.float32)
+    m = visibility_map(noisy_edge, depth, K, on)
+    assert m.visible.all() and (m.contrast > 0.5).all()

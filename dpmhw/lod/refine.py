@@ -1,0 +1,304 @@
+"""Per-tile shading rate and samples per pixel inside the loop's reconstruction (issue 13).
+
+The loop shades a ¼-per-axis frame everywhere, reuses, filters and upsamples it to the native
+size (`reconstruct.stage`). That base is the cheapest level; on top of it `TileRefiner` spends a
+per-frame ray budget on native-resolution paths where a viewer can see the difference:
+
+1. **Plan** (before the upsampling overwrites it): with `visible`, the visibility map of the
+   *previous output* (the reused, filtered, upsampled and refined native radiance, so most
+   1-spp noise is averaged away, and the map's noise floor takes the rest; `visibility.py`)
+   over the lit box, with the native G-buffer's depth. With `moving`, tiles a moving object
+   covers now are boosted to the highest level, and where only that puts them there, only the
+   moving objects' own pixels are traced (their shading changes under the eye, and the ¼ base
+   loses their detail: issue 11's inside-object PSNR). `TilePolicy` turns V into a level per
+   tile under the budget (¼-rate tiles are free: the base shades them).
+2. **Refine** (after the upsampling): every lit pixel of a full-rate tile, and one pixel of
+   each 2×2 block of a ½-rate tile (the block's phase cycles over four frames), gets `spp`
+   native paths (`PathIntegrator.render_pixels`, one call per spp group, the native camera and
+   cached static hits). Each refined pixel keeps a native history, reprojected through the
+   object's motion like `reuse` mode "motion" (bilinear over the taps that showed the same
+   object in the last frame, else the nearest, else none):
+
+       traced, history:       L = a·x + (1 − a)·h,    a = 1 − (1 − α)^spp
+       traced, no history:    L = a·x + (1 − a)·L_up  (the upsampled base seeds the history)
+       not traced, history:   L = h                   (½ rate, between its turns)
+       not traced, none:      L = L_up
+
+   The output is (1 − `base_weight`)·L + `base_weight`·L_up: the base is filtered and L is
+   not, so a share of it lowers the noise (0.3 measured best of 0 / 0.3 / 0.5, docs/lod.md).
+   A non-finite path sample counts as not traced. Refined pixels are marked resolved (the
+   adaptive sampler then skips them). Tiles at ¼ (and "history only", which in this pipeline
+   is the base's own reuse) keep L_up, and their native history lapses.
+
+Ray budget: `policy.allocate` grants samples while Σ spp · shaded pixels · rays_per_path ≤
+`rays` (rays_per_path = `rays_per_sample_bound`, the most rays a path can trace), and the
+pixels traced per tile are within `shaded_counts`, so the rays traced never exceed the budget.
+
+Everything per pixel is a numba kernel over the refined tiles only; per-tile bookkeeping is
+numpy over a (48 × 64)-tile grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from dpmhw.lod.policy import PolicySettings, TileDecisions, TilePolicy, dilate_max, rays_per_sample_bound
+from dpmhw.lod.visibility import LodSettingsError, VisibilityMap, VisibilitySettings, check_number, visibility_map
+from dpmhw.reconstruct.reuse import reproject
+
+
+@dataclass(frozen=True)
+class RefineSettings:
+    """What the session config's `lod` section sets (`session/config.py`)."""
+
+    rays: int = 0  # per-frame budget of native rays; 0: off
+    moving: bool = True  # tiles a moving object covers get its pixels at full rate (highest priority)
+    visible: bool = False  # tiles refined by the visibility map of the previous output (else no map is computed)
+    shading_rate: bool = True  # visible tiles: levels → ¼ (free) / ½ / full rate; off: every level ≥ 1 at full rate
+    adaptive_spp: bool = False  # visible tiles: levels → 1 / 2 / 4 spp; off: 1 spp
+    viewer_distance_m: float = 1.5
+    alpha_v: float = 0.0
+    thresholds: tuple[float, float, float] = (0.0, 20.0, 50.0)
+    base_weight: float = 0.3  # share of the upsampled base in a refined pixel's output (its history stays native)
+
+    def __post_init__(self):
+        object.__setattr__(self, "rays", check_number("rays", self.rays, 0, 1 << 40, integer=True))
+        object.__setattr__(self, "base_weight", check_number("base_weight", self.base_weight, 0.0, 1.0))
+
+
+    @property
+    def enabled(self) -> bool:
+        return self.rays > 0 and (self.moving or self.visible)
+
+
+@nb.njit(cache=True, nogil=True)
+def _select(rate, spp, moving_only, gid, dynamic, W, y0, y1, x0, x1, tile, phase):
+    """Lit pixels of the box in tiles of rate 1 or 2 (only the moving objects' pixels where
+    `moving_only`), in row-major order: flat index, spp if traced this frame (0: a ½-rate pixel
+    between its turns). Rate-2 pixels are traced when (y, x) ≡ phase mod 2. Visits only the
+    refined tiles' pixels."""
+    n = 0
+    pix = np.empty((y1 - y0) * (x1 - x0), np.int64)
+    s = np.empty((y1 - y0) * (x1 - x0), np.uint8)
+    py, px = phase // 2, phase % 2
+    for y in range(y0, y1):
+        ty = y // tile
+        for tx in range(x0 // tile, (x1 - 1) // tile + 1):
+            r = rate[ty, tx]
+            if r != 1 and r != 2:
+                continue
+            only = moving_only[ty, tx]
+            for x in range(max(x0, tx * tile), min(x1, tx * tile + tile)):
+                i = y * W + x
+                if gid[i] < 0 or (only and not dynamic[gid[i]]):
+                    continue
+                pix[n] = i
+                s[n] = spp[ty, tx] if (r == 1 or (y % 2 == py and x % 2 == px)) else 0
+                n += 1
+    return pix[:n], s[:n]
+
+
+@nb.njit(cache=True, nogil=True)
+def _fetch(pixels, gid, xy, ok, W, H, h_rad, h_id, h_frame, frame, out, valid):
+    """Reprojected native history of `pixels` from the last frame's refined pixels (bilinear
+    over the matching taps, renormalised; else the nearest matching tap; else invalid)."""
+    for k in range(pixels.shape[0]):
+        valid[k] = False
+        if not ok[k]:
+            continue
+        x, y = xy[k, 0], xy[k, 1]
+        if not (x > -0.5 and x < W - 0.5 and y > -0.5 and y < H - 0.5):
+            continue
+        o = gid[pixels[k]]
+        fx, fy = np.floor(x), np.floor(y)
+        ax, ay = x - fx, y - fy
+        s0 = s1 = s2 = wsum = 0.0
+        best, bestd = -1, 1e30
+        for dy in range(2):
+            for dx in range(2):
+                tx, ty = int(fx) + dx, int(fy) + dy
+                if tx < 0 or ty < 0 or tx >= W or ty >= H:
+                    continue
+                j = ty * W + tx
+                if h_frame[j] != frame - 1 or h_id[j] != o:
+                    continue
+                w = (ax if dx else 1.0 - ax) * (ay if dy else 1.0 - ay)
+                s0 += w * h_rad[j, 0]
+                s1 += w * h_rad[j, 1]
+                s2 += w * h_rad[j, 2]
+                wsum += w
+                d = (tx - x) ** 2 + (ty - y) ** 2
+                if d < bestd:
+                    best, bestd = j, d
+        if wsum >= 1e-6:
+            out[k, 0], out[k, 1], out[k, 2] = s0 / wsum, s1 / wsum, s2 / wsum
+            valid[k] = True
+        elif best >= 0:
+            out[k, 0], out[k, 1], out[k, 2] = h_rad[best, 0], h_rad[best, 1], h_rad[best, 2]
+            valid[k] = True
+
+
+@nb.njit(cache=True, nogil=True)
+def _merge(pixels, spp, samples, hist, valid, alpha, base_weight, radiance, wsum, unresolved, gid, h_rad, h_id, h_frame, frame):
+    """The blend of the module docstring; writes this frame's history and the output
+    (1 − base_weight)·L + base_weight·L_up."""
+    for k in range(pixels.shape[0]):
+        i = pixels[k]
+        s = spp[k]
+        traced = s > 0 and np.isfinite(samples[k, 0]) and np.isfinite(samples[k, 1]) and np.isfinite(samples[k, 2])
+        if not traced and not valid[k]:
+            continue  # L_up stays, no history starts here
+        a = 1.0 - (1.0 - alpha) ** s if traced else 0.0
+        for c in range(3):
+            up = radiance[i, c]
+            prior = hist[k, c] if valid[k] else up
+            est = a * samples[k, c] + (1.0 - a) * prior if traced else prior
+            h_rad[i, c] = est
+            radiance[i, c] = (1.0 - base_weight) * est + base_weight * up
+        h_id[i], h_frame[i] = gid[i], frame
+        unresolved[i] = False
+        wsum[i] = np.inf  # resolved: the adaptive sampler leaves it alone
+
+
+@nb.njit(cache=True, nogil=True)
+def _lit_per_tile(gid, W, y0, y1, x0, x1, tile, out):
+    """out[ty, tx] = pixels of the box showing a surface (the only ones the refiner traces)."""
+    out[:] = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            if gid[y * W + x] >= 0:
+                out[y // tile, x // tile] += 1
+
+
+def _tile_any(mask: np.ndarray, tile: int, shape: tuple[int, int], y0: int, x0: int) -> np.ndarray:
+    """(TY, TX) bool: tiles holding a True pixel of `mask`, a tile-aligned region starting at (y0, x0)."""
+    out = np.zeros(shape, np.bool_)
+    h, w = mask.shape
+    ph, pw = -(-h // tile) * tile, -(-w // tile) * tile
+    padded = np.zeros((ph, pw), np.bool_)
+    padded[:h, :w] = mask
+    t = padded.reshape(ph // tile, tile, pw // tile, tile).any(axis=(1, 3))
+    out[y0 // tile : y0 // tile + t.shape[0], x0 // tile : x0 // tile + t.shape[1]] = t
+    return out
+
+
+class TileRefiner:
+    """Native paths per tile for one session. `renderer`: the session's `PathIntegrator` (any
+    shading size); `gbuffer`: its `NativeGBuffer` (camera, cached static hits, ids, depth)."""
+
+    def __init__(self, renderer, gbuffer, settings: RefineSettings = RefineSettings(), tile: int = 16):
+        if not isinstance(settings, RefineSettings):
+            raise LodSettingsError(f"settings: expected RefineSettings, got {type(settings).__name__}")
+        self.renderer, self.gbuffer, self.settings = renderer, gbuffer, settings
+        self.W, self.H = gbuffer.width, gbuffer.height
+        self.visibility = VisibilitySettings(viewer_distance_m=settings.viewer_distance_m, alpha_v=settings.alpha_v, tile=tile)
+        self.rays_per_path = rays_per_sample_bound(renderer.max_bounces, renderer.mis_last)
+        self.policy = TilePolicy(self.H, self.W, PolicySettings(
+            thresholds=settings.thresholds, shading_rate=settings.shading_rate, adaptive_spp=settings.adaptive_spp,
+            ray_budget=settings.rays, rays_per_sample=self.rays_per_path, free_rate=4 if settings.shading_rate else 0))
+        self._dynamic = np.array([o.is_dynamic for o in gbuffer.scene.objects] + [False], np.bool_)  # [-1]: background
+        n = self.W * self.H
+        self._h = [(np.zeros((n, 3), np.float32), np.full(n, -1, np.int32), np.full(n, -2, np.int64)) for _ in range(2)]
+        self._frame = 0
+        self._prev_poses = None
+        self._moving_only = np.zeros((-(-self.H // tile), -(-self.W // tile)), np.bool_)
+        self.decisions: TileDecisions | None = None
+        self.vmap: VisibilityMap | None = None
+        self.last_rays = 0  # rays traced in the last frame (≤ settings.rays)
+        self.last_pixels = 0  # paths traced in the last frame (pixels × spp)
+
+    def reset(self) -> None:
+        for _, _, f in self._h:
+            f[:] = -2
+        self._prev_poses = None
+        self.policy.reset()
+
+    def plan(self, previous: np.ndarray, box) -> TileDecisions:
+        """Decide this frame's tiles from the previous output `previous` ((W*H, 3) linear
+        radiance, valid inside the lit box) and the current native G-buffer."""
+        g, t = self.gbuffer, self.visibility.tile
+        TY, TX = -(-self.H // t), -(-self.W // t)
+        lo = self.visibility.bounds[0]
+        vis = np.full((TY, TX), lo, np.float32)
+        y0, y1, x0, x1 = box
+        if self.settings.visible and y1 > y0 and x1 > x0:
+            y0, x0 = (y0 // t) * t, (x0 // t) * t  # tile-aligned, so the box's tiles are the map's
+            rad = previous.reshape(self.H, self.W, 3)[y0:y1, x0:x1]
+            depth = g.depth.reshape(self.H, self.W)[y0:y1, x0:x1]
+            m = visibility_map(rad, depth, g.camera.K, self.visibility)
+            vis[y0 // t : y0 // t + m.visibility.shape[0], x0 // t : x0 // t + m.visibility.shape[1]] = m.visibility
+        self.vmap = VisibilityMap(vis, np.full_like(vis, np.nan), np.zeros_like(vis), t)
+        boost = None
+        roi = g.roi_box
+        if self.settings.moving and roi is not None and roi[1] > roi[0] and roi[3] > roi[2]:
+            ry0, ry1, rx0, rx1 = roi
+            ry0, rx0 = (ry0 // t) * t, (rx0 // t) * t
+            ids = g.id.reshape(self.H, self.W)[ry0:ry1, rx0:rx1]
+            boost = _tile_any(self._dynamic[ids], t, (TY, TX), ry0, rx0)
+        lit = np.zeros((TY, TX), np.int64)
+        if box[1] > box[0] and box[3] > box[2]:
+            _lit_per_tile(g.id, self.W, *(int(v) for v in box), t, lit)
+        self.decisions = self.policy.decide(self.vmap, boost, lit)  # background pixels cost no budget
+        # tiles refined only because a moving object covers them: trace only its pixels
+        wanted = self.policy.levels(dilate_max(self.vmap.visibility, self.policy.settings.dilate))
+        self._moving_only = boost & (wanted < 2) if boost is not None else np.zeros((TY, TX), np.bool_)
+        return self.decisions
+
+    def refine(self, radiance, wsum, unresolved, box, poses, seed: int, alpha: float = 1.0) -> int:
+        """Trace and blend the planned tiles into `radiance` (W*H, 3) in place (after the
+        upsampling); returns the rays traced."""
+        g, dec = self.gbuffer, self.decisions
+        self._frame += 1
+        self.last_rays = self.last_pixels = 0
+        read, write = self._h[self._frame % 2], self._h[(self._frame + 1) % 2]
+        if dec is None or box[1] <= box[0] or box[3] <= box[2]:
+            self._prev_poses = list(poses)
+            return 0
+        pixels, spp = _select(dec.rate, dec.spp, self._moving_only, g.id, self._dynamic, self.W, *(int(v) for v in box), dec.tile, self._frame % 4)
+        n = len(pixels)
+        hist = np.zeros((n, 3), np.float32)
+        valid = np.zeros(n, np.bool_)
+        if n and self._prev_poses is not None and len(self._prev_poses) == len(poses):
+            if len(poses):
+                ids = g.id[pixels]
+                xm = _model_position(g.position[pixels], ids, poses)
+                xy, ok = reproject(ids.reshape(1, -1), xm.reshape(1, -1, 3), self._prev_poses, g.camera, g.camera)
+            else:  # no poses given: nothing moves, each pixel is its own history
+                xy = np.stack([pixels % self.W, pixels // self.W], axis=1).astype(np.float64)
+                ok = np.ones(n, np.bool_)
+            _fetch(pixels, g.id, xy, ok, self.W, self.H, read[0], read[1], read[2], self._frame, hist, valid)
+        samples = np.full((n, 3), np.nan, np.float32)
+        for s in (1, 2, 4):
+            sel = np.flatnonzero(spp == s)
+            if len(sel) == 0:
+                continue
+            samples[sel] = self.renderer.render_pixels(g.camera, pixels[sel], poses, seed * 8 + s, spp=s,
+                                                       static_hits=g.static_hits)
+            c = self.renderer.counts
+            self.last_rays += c.primary + c.intersect + c.occluded
+            self.last_pixels += len(sel) * s
+        _merge(pixels, spp, samples, hist, valid, np.float32(alpha), np.float32(self.settings.base_weight), radiance, wsum, unresolved, g.id,
+               write[0], write[1], write[2], self._frame)
+        self._prev_poses = list(poses)
+        return self.last_rays
+
+
+def _model_position(world: np.ndarray, ids: np.ndarray, poses) -> np.ndarray:
+    """x_m = Rᵀ (x_w − t) with each pixel's object pose (the G-buffer stores world positions)."""
+    R = np.stack([np.asarray(p.R, np.float64) for p in poses])
+    T = np.stack([np.asarray(p.t, np.float64) for p in poses])
+    ob = np.maximum(ids, 0)
+    return np.einsum("nji,nj->ni", R[ob], world.astype(np.float64) - T[ob]).astype(np.float32)
+
+
+def tile_refiner(renderer, gbuffer, section) -> TileRefiner | None:
+    """The session's refiner from its config's `lod` section (None when off or without a native
+    G-buffer, i.e. at shading_scale 1)."""
+    settings = RefineSettings(rays=section.rays, moving=section.moving, visible=section.visible,
+                              shading_rate=section.shading_rate, adaptive_spp=section.adaptive_spp,
+                              base_weight=section.base_weight, viewer_distance_m=section.viewer_distance_m,
+                              alpha_v=section.alpha_v)
+    return TileRefiner(renderer, gbuffer, settings) if gbuffer is not None and settings.enabled else None
