@@ -153,3 +153,28 @@ def test_api_process_runs_at_idle_priority_and_the_session_does_not(served):
     loop, api, client = served
     assert os.sched_getscheduler(api.process.pid) == os.SCHED_IDLE
     assert os.sched_getscheduler(0) == os.SCHED_OTHER
+
+
+def test_bind_host_is_a_trusted_host(monkeypatch):
+    """A service bound to a non-loopback-name address answers requests addressed to it without
+    DPMHW_API_HOSTS (127.0.0.2 is not in the loopback names, but Linux routes it to lo)."""
+    from server.app import trusted_hosts_for
+
+    monkeypatch.delenv("DPMHW_API_HOSTS", raising=False)
+    assert trusted_hosts_for("10.1.2.3") == ["127.0.0.1", "localhost", "10.1.2.3"]
+    assert socket.gethostname() in trusted_hosts_for("0.0.0.0")
+    monkeypatch.setenv("DPMHW_API_HOSTS", "projection.lab")
+    assert trusted_hosts_for("10.1.2.3") == ["projection.lab"]
+    monkeypatch.delenv("DPMHW_API_HOSTS")
+    loop = fake_session().start()
+    try:
+        api = ApiProcess(host="127.0.0.2", port=0, token=TOKEN).start(loop)
+        try:
+            with httpx.Client(base_url=api.url, timeout=10.0) as client:
+                assert client.get("/livez").status_code == 200
+                assert client.get("/livez", headers={"Host": "evil.example"}).status_code == 400
+        finally:
+            api.close()
+    finally:
+        loop.parts.renderer.block.set()
+        loop.stop()
