@@ -175,6 +175,39 @@ def test_finding_6_datagrams_from_other_hosts_are_counted_and_ignored():
         assert client.latest(1).translation[0] < 100  # never the injected pose
 
 
+def test_finding_6_replies_must_come_from_the_command_port_frames_from_the_server_address():
+    """The protocol fixes where replies come from (the command port the client sent to), not the
+    source port of frames (Motive's data socket): a server info or echo reply from the server's
+    address but another port is refused; a frame from there is read."""
+    client = natnet_client(server="127.0.0.1", command_port=1510)
+    client._server_ip = "127.0.0.1"
+    reply = (1).to_bytes(2, "little") + (4).to_bytes(2, "little") + b"\0" * 4  # a (short) SERVER_INFO
+    assert not client._from_server(("127.0.0.1", 40000), reply, command_socket=True)
+    assert client._from_server(("127.0.0.1", 1510), reply, command_socket=True)
+    genuine = frame(1, mid_ns=10**9)
+    assert client._from_server(("127.0.0.1", 1511), genuine, command_socket=True)
+    assert client._from_server(("127.0.0.1", 1511), genuine, command_socket=False)  # multicast data socket
+    assert not client._from_server(("127.0.0.9", 1510), genuine, command_socket=False)
+    assert client.status().details["foreign_senders"] == {"127.0.0.1:40000": 1, "127.0.0.9": 1}
+
+
+def test_finding_6_multicast_frames_from_another_address_are_counted_and_ignored():
+    with natnet_pair("4.1", unicast=False) as (world, server, client):
+        assert wait_for(lambda: client.status().frames >= 20, 20)
+        group, port = server.config.multicast_group, server.config.data_port
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as attacker:
+            attacker.bind(("127.0.0.2", 0))
+            attacker.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+            attacker.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+            for k in range(50):
+                attacker.sendto(frame(10**6 + k, (1000.0, 0.0, 0.0), mid_ns=1, transmit_ns=2), (group, port))
+        assert wait_for(lambda: client.foreign_datagrams == 50, 10), client.foreign_datagrams
+        assert client.status().details["foreign_senders"] == {"127.0.0.2": 50}
+        frames = client.status().frames
+        assert wait_for(lambda: client.status().frames > frames + 10, 10)  # the server's frames still arrive
+        assert client.latest(1).translation[0] < 100
+
+
 # ------------------------------------------------------------------------------- finding 7
 
 
