@@ -393,13 +393,21 @@ class NatNetClient(ReceiverTracker):
                     if data is not None:
                         self.process_datagram(data, time.monotonic_ns())
             now = time.monotonic_ns()
-            if not use_multicast and now - last_keepalive > self.keepalive_interval_s * 1e9:
-                self._send(encode_message(MessageId.KEEP_ALIVE))
-                last_keepalive = now
+            since = self._last_arrival_ns if self.frames > frames_at_start else connected_ns
+            if not use_multicast:
+                # A restarted Motive has forgotten its unicast clients: while frames are missing,
+                # connect again every `stale_after_s` (a CONNECT registers a client; its server-info
+                # reply is harmless) instead of waiting for the next keep-alive or the link timeout.
+                quiet = now - since > self.stale_after_s * 1e9
+                if quiet and now - last_keepalive > max(self.stale_after_s, 0.02) * 1e9:
+                    self._send(encode_connect((*(self.forced_version or self.version or (4, 1)), 0, 0)))
+                    last_keepalive = now
+                elif now - last_keepalive > self.keepalive_interval_s * 1e9:
+                    self._send(encode_message(MessageId.KEEP_ALIVE))
+                    last_keepalive = now
             if now - last_echo > self.echo_interval_s * 1e9:  # keeps following clock drift
                 last_echo = self._send_echo()
             if self._want_models:
                 self._want_models = False
                 self._send(encode_message(MessageId.REQUEST_MODEL_DEF))
-            since = self._last_arrival_ns if self.frames > frames_at_start else connected_ns
             self._check_alive(since, "frame of data")

@@ -57,6 +57,31 @@ def test_stale_tracking_blanks(make_loop):
     assert wait_for(lambda: state(loop) == "running", 10)
 
 
+def test_holdoff_counts_from_the_first_fresh_sample_and_no_lit_frame_comes_before_its_end(make_loop):
+    """Issue 14: the tracking cause clears at the stamp of the sample that ended it (not when the
+    loop noticed), and the first lit frame, rendered ahead, is presented no earlier than that
+    stamp + holdoff_s (checked on stamps, so a slow machine cannot fail it)."""
+    from dpmhw.tracking import PoseSample
+
+    loop = make_loop(["safety.holdoff_s=0.3", "safety.stale_after_ms=1000"]).start()
+    tracker = loop.parts.tracker
+    assert wait_for(lambda: state(loop) == "running", 20)
+    tracker.streaming = False
+    assert wait_for(lambda: loop.safety.active("tracking"), 10)
+    time.sleep(0.05)
+    arrival = time.monotonic_ns() - 20_000_000  # it reached the tracker 20 ms before the loop looks
+    dark_since = loop.safety.view().causes[0].since_ns
+    assert arrival > dark_since
+    tracker.poses.publish([PoseSample(1, np.eye(3), np.zeros(3), arrival - 4_500_000, arrival, True, frame_number=10**6)])
+    assert wait_for(lambda: not loop.safety.active("tracking"), 10)
+    cleared = [t for t in loop.safety.transitions() if t.name == "tracking" and not t.active][-1]
+    assert cleared.t_ns == arrival and loop.safety.resume_at_ns() == arrival + 300_000_000
+    tracker.streaming = True
+    assert wait_for(lambda: any(r.t_start_ns > dark_since for r in loop.frame_log), 10)
+    first_lit = next(r for r in loop.frame_log if r.t_start_ns > dark_since)
+    assert first_lit.t_present_ns >= arrival + 300_000_000
+
+
 def test_lost_tracker_link_is_a_fault(make_loop):
     loop = make_loop().start()
     assert wait_for(lambda: state(loop) == "running", 20)

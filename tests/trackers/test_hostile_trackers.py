@@ -251,3 +251,28 @@ def test_gate_limits_are_checked():
         PlausibilityLimits(workspace_min=(0, 0, 0), workspace_max=(1, 0, 1))
     with pytest.raises(ValueError, match="max_speed_m_s"):
         PlausibilityLimits(max_speed_m_s=float("nan"))
+
+
+# ------------------------------------------------------------------------------- resume timing
+
+
+def test_restarted_unicast_server_is_rejoined_without_waiting_for_the_keep_alive():
+    """Issue 14 (resume timing): a restarted Motive has forgotten its unicast clients. While
+    frames are missing the client connects again every `stale_after_s`, so streaming resumes as
+    soon as the new server answers — not at the next keep-alive or link timeout (30 s here, so
+    the old way could not pass)."""
+    from firmware_mocks.natnet_server import NatNetServer
+
+    kw = dict(stale_after_s=0.05, keepalive_interval_s=30.0, lost_after_s=30.0)
+    with natnet_pair("4.1", unicast=True, client_kw=kw) as (world, server, client):
+        assert wait_for(lambda: client.status().frames >= 20, 20)
+        port = server.command_port
+        server.stop()
+        assert wait_for(lambda: client.status().state.value == "stale", 10)
+        frames = client.status().frames
+        cfg = server.config
+        cfg.command_port = port
+        with NatNetServer(world, cfg) as again:
+            assert wait_for(lambda: client.status().frames > frames + 20, 10), client.status()
+            assert again.commands[0] >= 1  # it connected again (CONNECT = 0)
+        assert client.status().reconnects == 0
