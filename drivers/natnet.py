@@ -188,7 +188,11 @@ class NatNetClient(ReceiverTracker):
         if echoed not in self._echoes_sent or self.clock_hz is None:
             raise NatNetDecodeError(f"echo response: client time {echoed} is not one this client sent")
         self._echoes_sent.remove(echoed)
+        jumps = self.clock.jumps
         self.clock.add_round_trip(echoed, self._ticks_to_ns(server_ticks), arrival_ns)
+        if self.clock.jumps != jumps:  # the server restarted under us: its frame numbers begin again too
+            self._first_frame_of_session = True
+            log.warning("natnet: the server's clock changed (restarted?); clock mapping and frame numbers start over")
 
     def _handle_frame(self, payload, arrival_ns: int) -> list[PoseSample]:
         if self.version is None or self.clock_hz is None:
@@ -401,7 +405,7 @@ class NatNetClient(ReceiverTracker):
                 quiet = now - since > self.stale_after_s * 1e9
                 if quiet and now - last_keepalive > max(self.stale_after_s, 0.02) * 1e9:
                     self._send(encode_connect((*(self.forced_version or self.version or (4, 1)), 0, 0)))
-                    last_keepalive = now
+                    last_keepalive = last_echo = self._send_echo()  # a restarted server's clock, at once
                 elif now - last_keepalive > self.keepalive_interval_s * 1e9:
                     self._send(encode_message(MessageId.KEEP_ALIVE))
                     last_keepalive = now

@@ -9,6 +9,7 @@ depends on how fast the machine is.
 from __future__ import annotations
 
 import socket
+import struct
 
 import numpy as np
 import pytest
@@ -276,3 +277,45 @@ def test_restarted_unicast_server_is_rejoined_without_waiting_for_the_keep_alive
             assert wait_for(lambda: client.status().frames > frames + 20, 10), client.status()
             assert again.commands[0] >= 1  # it connected again (CONNECT = 0)
         assert client.status().reconnects == 0
+
+
+def test_a_round_trip_that_contradicts_the_offset_restarts_the_mapping_a_backlog_does_not():
+    """A Motive restarted without the link dropping: its clock begins again far behind. One-way
+    evidence cannot tell that from a backlog read late (both look like slow transits), so it is
+    kept; a round trip bounds the offset, and one that contradicts it restarts the mapping."""
+    clock = ClockMapping(window_s=2.0)
+    for k in range(10):
+        clock.add_one_way(device_ns=100 * 10**9 + k * 10 * MS, arrival_ns=200 * 10**9 + k * 10 * MS + MS)
+    clock.add_round_trip(sent_ns=200 * 10**9, device_ns=100 * 10**9, received_ns=200 * 10**9 + 2 * MS)
+    assert clock.offset_ns == 100 * 10**9 + MS
+    t = 200 * 10**9 + 200 * MS
+    for k in range(5):  # a 2 s backlog read at once: slow transits, no jump
+        assert clock.add_one_way(device_ns=100 * 10**9 - 2 * 10**9 + 200 * MS + k * 4 * MS, arrival_ns=t)
+    clock.add_round_trip(sent_ns=t, device_ns=100 * 10**9 + 200 * MS + 400 * MS, received_ns=t + 800 * MS)  # slow, consistent
+    assert clock.offset_ns == 100 * 10**9 + MS and clock.jumps == 0
+    # the new server's clock reads 5 s: a 2 ms round trip says the offset is now 195.2 s
+    clock.add_round_trip(sent_ns=t + 10**9, device_ns=5 * 10**9, received_ns=t + 10**9 + 2 * MS)
+    assert clock.offset_ns == t + 10**9 + MS - 5 * 10**9 and clock.jumps == 1 and clock.method == "round-trip"
+
+
+def test_restarted_server_frames_are_stamped_right_from_its_first_echo():
+    """The same at the driver: frames of a server whose clock and frame numbers began again (no
+    reconnect) are dropped until the first echo from it; then they are stamped right and its
+    frame numbers, below the old ones, are taken at once (not refused as reordered)."""
+    client = natnet_client()
+    stream(client, range(1, 400))  # the old server: host = device + 5 s
+    t = 10**12 + 5 * 10**9
+    client.clock.add_round_trip(t, t - 5 * 10**9 + MS // 2, t + MS)  # its echo: a 1 ms round trip (preferred)
+    h = 10**12 + 400 * PERIOD_NS + 5 * 10**9 + 200 * MS  # the new server's first frame, on the host
+    new_offset = h - 10**9  # its clock read 1 s then
+    before = stream(client, range(1, 3), start_ns=10**9, offset_ns=new_offset)
+    assert before == [[], []]
+    sent = h + 3 * MS  # the echo request the client sends while frames are missing, answered in 2 ms
+    client._echoes_sent.append(sent)
+    reply = struct.pack("<HHQQ", 13, 16, sent, sent + MS - new_offset)  # ECHO_RESPONSE: our stamp, its clock
+    client.process_datagram(reply, arrival_ns=sent + 2 * MS)
+    assert client.status().details["clock_jumps"] == 1
+    after = stream(client, range(3, 20), start_ns=10**9 + 2 * PERIOD_NS, offset_ns=new_offset)
+    assert all(after) and client.status().out_of_order <= 2
+    s = after[-1][0]
+    assert s.t_arrival_ns - s.t_exposure_ns == 4 * MS + 200_000  # mid-exposure → arrival, exactly
