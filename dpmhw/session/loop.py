@@ -312,11 +312,6 @@ class SessionLoop:
         """Feed the predictor; report tracking causes. Returns (samples, oldest age) or None."""
         tracker = self.parts.tracker
         status = tracker.status()
-        if status.state in (TrackerState.STREAMING, TrackerState.STALE):
-            self._ever_streamed = True
-            self.safety.update("tracker", False)
-        elif self._ever_streamed and status.state != TrackerState.STOPPED:
-            self.safety.update("tracker", True, f"tracker link {status.state.value}: {status.reason}", "fault")
         bodies = set(self.parts.bindings.values())
         first_valid: dict[int, int] = {}  # body -> arrival of its first valid sample since the last turn
         if self._samples is not None:
@@ -325,6 +320,12 @@ class SessionLoop:
                     self.predictor.observe(sample)
                     if sample.valid:
                         first_valid.setdefault(sample.rigid_body_id, sample.t_arrival_ns)
+        if status.state in (TrackerState.STREAMING, TrackerState.STALE):
+            self._ever_streamed = True
+            # the link was back when its first sample arrived (the hold-off counts from there)
+            self.safety.update("tracker", False, cleared_at_ns=min(first_valid.values(), default=status.last_arrival_ns))
+        elif self._ever_streamed and status.state != TrackerState.STOPPED:
+            self.safety.update("tracker", True, f"tracker link {status.state.value}: {status.reason}", "fault")
         samples = {}
         problems = []
         for body in sorted(bodies):
