@@ -385,7 +385,7 @@ class NatNetClient(ReceiverTracker):
         self._set_state(TrackerState.CONNECTED, f"{info.app_name} NatNet {self.version[0]}.{self.version[1]}, {mode}")
         self._send(encode_message(MessageId.REQUEST_MODEL_DEF))
         sockets = [s for s in (self._cmd, self._data) if s is not None]
-        connected_ns = last_keepalive = last_echo = time.monotonic_ns()
+        connected_ns = last_keepalive = last_echo = last_probe = time.monotonic_ns()
         frames_at_start = self.frames
         while not self._stop.is_set():
             for sock in select.select(sockets, [], [], 0.02)[0]:
@@ -398,17 +398,19 @@ class NatNetClient(ReceiverTracker):
                         self.process_datagram(data, time.monotonic_ns())
             now = time.monotonic_ns()
             since = self._last_arrival_ns if self.frames > frames_at_start else connected_ns
-            if not use_multicast:
-                # A restarted Motive has forgotten its unicast clients: while frames are missing,
-                # connect again every `stale_after_s` (a CONNECT registers a client; its server-info
-                # reply is harmless) instead of waiting for the next keep-alive or the link timeout.
-                quiet = now - since > self.stale_after_s * 1e9
-                if quiet and now - last_keepalive > max(self.stale_after_s, 0.02) * 1e9:
+            if now - since > self.stale_after_s * 1e9 and now - last_probe > max(self.stale_after_s, 0.02) * 1e9:
+                # Frames are missing: Motive may have restarted. Every `stale_after_s`, connect
+                # again (unicast: a restarted Motive has forgotten its clients; a CONNECT registers
+                # one, and its server-info reply is harmless) and send an echo (its round trip
+                # teaches the client a restarted server's clock at once), instead of waiting for
+                # the next keep-alive, echo or the link timeout.
+                if not use_multicast:
                     self._send(encode_connect((*(self.forced_version or self.version or (4, 1)), 0, 0)))
-                    last_keepalive = last_echo = self._send_echo()  # a restarted server's clock, at once
-                elif now - last_keepalive > self.keepalive_interval_s * 1e9:
-                    self._send(encode_message(MessageId.KEEP_ALIVE))
                     last_keepalive = now
+                last_probe = last_echo = self._send_echo()
+            elif not use_multicast and now - last_keepalive > self.keepalive_interval_s * 1e9:
+                self._send(encode_message(MessageId.KEEP_ALIVE))
+                last_keepalive = now
             if now - last_echo > self.echo_interval_s * 1e9:  # keeps following clock drift
                 last_echo = self._send_echo()
             if self._want_models:

@@ -257,26 +257,32 @@ def test_gate_limits_are_checked():
 # ------------------------------------------------------------------------------- resume timing
 
 
-def test_restarted_unicast_server_is_rejoined_without_waiting_for_the_keep_alive():
-    """Issue 14 (resume timing): a restarted Motive has forgotten its unicast clients. While
-    frames are missing the client connects again every `stale_after_s`, so streaming resumes as
-    soon as the new server answers — not at the next keep-alive or link timeout (30 s here, so
-    the old way could not pass)."""
+@pytest.mark.parametrize("unicast", [True, False], ids=["unicast", "multicast"])
+def test_restarted_server_is_rejoined_and_its_new_clock_learnt_without_a_reconnect(unicast):
+    """Issue 14 (resume timing): a restarted Motive has forgotten its unicast clients and its
+    clock began again. While frames are missing the client connects again (unicast) and sends an
+    echo every `stale_after_s`, so streaming resumes, stamped right, as soon as the new server
+    answers — not at the next keep-alive, echo or link timeout (all 30 s here, so the old way
+    could not pass)."""
+    import dataclasses
+
     from firmware_mocks.natnet_server import NatNetServer
 
-    kw = dict(stale_after_s=0.05, keepalive_interval_s=30.0, lost_after_s=30.0)
-    with natnet_pair("4.1", unicast=True, client_kw=kw) as (world, server, client):
+    from .test_natnet_loopback import check_against_truth
+
+    kw = dict(stale_after_s=0.05, keepalive_interval_s=30.0, echo_interval_s=30.0, lost_after_s=30.0)
+    with natnet_pair("4.1", unicast=unicast, client_kw=kw) as (world, server, client):
         assert wait_for(lambda: client.status().frames >= 20, 20)
-        port = server.command_port
         server.stop()
         assert wait_for(lambda: client.status().state.value == "stale", 10)
         frames = client.status().frames
-        cfg = server.config
-        cfg.command_port = port
+        cfg = dataclasses.replace(server.config, command_port=server.command_port, server_uptime_s=100.0)  # clock back 4900 s
         with NatNetServer(world, cfg) as again:
             assert wait_for(lambda: client.status().frames > frames + 20, 10), client.status()
-            assert again.commands[0] >= 1  # it connected again (CONNECT = 0)
-        assert client.status().reconnects == 0
+            assert again.commands[12] >= 1  # an echo request (ECHO_REQUEST = 12) reached the new server
+            assert check_against_truth([client.latest(1)], world, again) == 1
+        st = client.status()
+        assert st.reconnects == 0 and st.details["clock_jumps"] == 1
 
 
 def test_a_round_trip_that_contradicts_the_offset_restarts_the_mapping_a_backlog_does_not():
