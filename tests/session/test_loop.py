@@ -227,16 +227,21 @@ def test_dark_output_renders_only_at_the_probe_interval(make_loop):
     loop.blank()
     assert wait_for(lambda: state(loop) == "blanked", 5)
     calls0, withheld0, t0 = renderer.calls, loop.status()["counters"].get("frames_withheld", 0), time.monotonic()
+    # it does probe while dark (waited for: a starved loop thread may not turn within a fixed second)
+    assert wait_for(lambda: renderer.calls > calls0, 20)
     threading.Event().wait(1.0)
     dark_calls = renderer.calls - calls0
     # one probe per 0.2 s at most, not one per loop turn (the upper bound holds at any load)
-    assert 1 <= dark_calls <= (time.monotonic() - t0) / 0.2 + 2, dark_calls
+    assert dark_calls <= (time.monotonic() - t0) / 0.2 + 2, dark_calls
     # counted as withheld, not presented (the status snapshot may lag by one probe)
     assert abs(loop.status()["counters"]["frames_withheld"] - withheld0 - dark_calls) <= 1
     ok, _ = loop.resume()
     assert ok and wait_for(lambda: state(loop) == "running", 10)
-    calls1, t1 = renderer.calls, time.monotonic()
-    threading.Event().wait(1.0)
-    # lit: every loop turn renders again, not one probe per 0.2 s (a loaded 2-core machine still
-    # turns this 32×24 loop far more than 7 times a second)
-    assert renderer.calls - calls1 > (time.monotonic() - t1) / 0.2 + 2
+    # lit: every loop turn renders again, not one probe per 0.2 s: on the frames' own stamps, two
+    # consecutive lit frames start well under 0.2 s apart (however slowly a loaded machine turns)
+    resumed = time.monotonic_ns()
+
+    def close_pair() -> bool:
+        starts = [r.t_start_ns for r in list(loop.frame_log) if r.t_start_ns > resumed]
+        return any(b - a < 100_000_000 for a, b in zip(starts, starts[1:]))
+    assert wait_for(close_pair, 20)
