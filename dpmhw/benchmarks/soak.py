@@ -147,18 +147,20 @@ class _TruthCheck:
 
 class _SampleGaps:
     """A tracker callback (the public `add_callback`): per body, every gap between consecutive
-    published samples longer than `min_gap_ns`, as (last arrival, its exposure, next arrival).
-    Published means past the plausibility gate, so a dropped burst is a gap too. Bounded: gaps
+    good samples longer than `min_gap_ns`, as (last arrival, its exposure, next arrival). Good:
+    published (past the plausibility gate, so a dropped burst is a gap too), valid, and no older
+    than `stale_ns` when it arrived (one stamped older cannot end a stale spell). Bounded: gaps
     only, a few per fault."""
 
-    def __init__(self, min_gap_ns: int):
+    def __init__(self, min_gap_ns: int, stale_ns: int):
         self.min_gap_ns = min_gap_ns
+        self.stale_ns = stale_ns
         self._last: dict[int, tuple[int, int]] = {}
         self.gaps: dict[int, list[tuple[int, int, int]]] = collections.defaultdict(list)
         self._lock = threading.Lock()
 
     def __call__(self, sample) -> None:
-        if not sample.valid:
+        if not sample.valid or sample.t_arrival_ns - sample.t_exposure_ns > self.stale_ns:
             return
         with self._lock:
             last = self._last.get(sample.rigid_body_id)
@@ -468,7 +470,7 @@ def run_soak(minutes: float, *, seed: int = 0, tracker: str = "natnet", kinds: t
     loop.parts.sink = present_log
     truth_check = _TruthCheck(loop.parts.recorder, truths, world.epoch_s)
     loop.parts.recorder = truth_check
-    gaps = _SampleGaps(int(cfg.safety.stale_after_ms * 1e6 / 4))
+    gaps = _SampleGaps(int(cfg.safety.stale_after_ms * 1e6 / 4), int(cfg.safety.stale_after_ms * 1e6))
     loop.parts.tracker.add_callback(gaps)
     injector = _Injector(loop, rng, token)
     faults: list[_Fault] = []

@@ -313,12 +313,12 @@ class SessionLoop:
         tracker = self.parts.tracker
         status = tracker.status()
         bodies = set(self.parts.bindings.values())
-        first_valid: dict[int, int] = {}  # body -> arrival of its first valid sample since the last turn
+        first_valid: dict[int, int] = {}  # body -> arrival of its first valid, fresh sample since the last turn
         if self._samples is not None:
             for sample in self._samples.drain():
                 if sample.rigid_body_id in bodies:
                     self.predictor.observe(sample)
-                    if sample.valid:
+                    if sample.valid and sample.t_arrival_ns - sample.t_exposure_ns <= self.stale_ns:  # fresh on arrival
                         first_valid.setdefault(sample.rigid_body_id, sample.t_arrival_ns)
         if status.state in (TrackerState.STREAMING, TrackerState.STALE):
             self._ever_streamed = True

@@ -72,7 +72,9 @@ def test_holdoff_counts_from_the_first_fresh_sample_and_no_lit_frame_comes_befor
     arrival = time.monotonic_ns() - 20_000_000  # it reached the tracker 20 ms before the loop looks
     dark_since = loop.safety.view().causes[0].since_ns
     assert arrival > dark_since
-    tracker.poses.publish([PoseSample(1, np.eye(3), np.zeros(3), arrival - 4_500_000, arrival, True, frame_number=10**6)])
+    late = arrival - 10_000_000  # a sample already stale when it arrived (stamped 1.5 s before) cannot end the spell
+    tracker.poses.publish([PoseSample(1, np.eye(3), np.zeros(3), late - 1_500_000_000, late, True, frame_number=10**6 - 1),
+                           PoseSample(1, np.eye(3), np.zeros(3), arrival - 4_500_000, arrival, True, frame_number=10**6)])
     assert wait_for(lambda: not loop.safety.active("tracking"), 10)
     cleared = [t for t in loop.safety.transitions() if t.name == "tracking" and not t.active][-1]
     assert cleared.t_ns == arrival and loop.safety.resume_at_ns() == arrival + 300_000_000
