@@ -225,25 +225,32 @@ class ClockMapping:
     that far in the past for a whole window. So one-way evidence more than `jump_tolerance_s`
     below the current minimum is held back as an outlier (counted in `outliers`) unless
     `confirm` such readings in a row agree with each other within the tolerance: then the device
-    clock really jumped, and the mapping restarts from them. Evidence above the minimum cannot
-    lower it and needs no check (a device clock that jumps back is followed when the window
-    slides past the old evidence, or at once after a reconnect, which resets the mapping).
+    clock really jumped, and the mapping restarts from them (forgetting the round trips too: they
+    describe the old clock, and being preferred they would stamp every sample wrongly for a
+    window). Evidence above the minimum cannot lower it and needs no check: one-way evidence
+    cannot tell a clock that went back from a backlog read late. A round trip can: it bounds the
+    offset to within half its duration, so one that contradicts the current offset by more than
+    `jump_back_s` beyond that proves the device clock changed (a server restarted without the
+    link dropping), and the mapping restarts from it.
     The tolerance bounds the harm one corrupt stamp can do (stamps early by at most 10 ms for one
     window, against a 50 ms stale limit) and is above a USB-serial adapter's delivery jitter, so
     genuine evidence is held back only when the transit really changed (then for 2 samples).
     """
 
-    def __init__(self, window_s: float = 2.0, *, jump_tolerance_s: float = 0.01, confirm: int = 3):
+    def __init__(self, window_s: float = 2.0, *, jump_tolerance_s: float = 0.01, confirm: int = 3,
+                 jump_back_s: float = 1.0):
         if confirm < 1:
             raise ValueError(f"confirm must be >= 1, got {confirm}")
         self._window_ns = int(window_s * 1e9)
         self._tolerance_ns = int(jump_tolerance_s * 1e9)
+        self._jump_back_ns = int(jump_back_s * 1e9)
         self._confirm = confirm
         self._one_way = _SlidingMinimum(self._window_ns)
         self._round_trips = _SlidingMinimum(self._window_ns)
         self._suspects: list[tuple[int, int]] = []  # (arrival, offset) of consecutive low outliers
         self._lock = threading.Lock()
         self.outliers = 0
+        self.jumps = 0  # confirmed device clock jumps (the mapping restarted)
 
     def reset(self) -> None:
         """Forget all evidence: after a reconnect the device may have restarted, and its clock
@@ -265,10 +272,13 @@ class ClockMapping:
                     self.outliers += 1
                     del self._suspects[:-self._confirm]
                     return False
-                self._one_way = _SlidingMinimum(self._window_ns)  # the device clock jumped: start over
+                # the device clock jumped: start over from the agreeing readings
+                self._one_way = _SlidingMinimum(self._window_ns)
+                self._round_trips = _SlidingMinimum(self._window_ns)
                 for t, o in run:
                     self._one_way.push(t, o, o)
                 self._suspects = []
+                self.jumps += 1
                 return True
             self._suspects = []
             self._one_way.push(arrival_ns, offset, offset)
@@ -277,8 +287,17 @@ class ClockMapping:
     def add_round_trip(self, sent_ns: int, device_ns: int, received_ns: int) -> None:
         if received_ns < sent_ns:
             return  # not a round trip on a monotonic clock: ignore rather than corrupt
+        rtt, offset = received_ns - sent_ns, (sent_ns + received_ns) // 2 - device_ns
         with self._lock:
-            self._round_trips.push(received_ns, received_ns - sent_ns, (sent_ns + received_ns) // 2 - device_ns)
+            current = self._round_trips.best()
+            if current is None:
+                current = self._one_way.best()
+            if current is not None and abs(offset - current) > rtt // 2 + self._jump_back_ns:
+                self._one_way = _SlidingMinimum(self._window_ns)  # the device clock changed: start over
+                self._round_trips = _SlidingMinimum(self._window_ns)
+                self._suspects = []
+                self.jumps += 1
+            self._round_trips.push(received_ns, rtt, offset)
 
     @property
     def offset_ns(self) -> int | None:

@@ -12,9 +12,10 @@ mid-exposure instant mapped to `time.monotonic_ns()`.
 
 Every datagram is decoded defensively: malformed ones are counted (`status().malformed`) and
 dropped; a frame with a flagged-tracked body whose pose is not a pose is malformed too.
-Only datagrams from the configured server's address are read at all: any host on the network
-can send UDP to these ports, so others are counted (`foreign_datagrams`, per sender in
-`status().details`) and each new sender is logged once. Poses that decode but cannot be real
+Only datagrams from the configured server's address are read at all (and replies to commands
+only from its command port; see `_from_server`): any host on the network can send UDP to these
+ports, so others are counted (`foreign_datagrams`, per sender in `status().details`) and each new
+sender is logged once. Poses that decode but cannot be real
 (outside the workspace, too fast, stamped in the future) are dropped by the plausibility gate
 of `ReceiverTracker`.
 """
@@ -55,6 +56,7 @@ log = logging.getLogger(__name__)
 
 _MAX_DATAGRAM = 65536
 _DRAIN_LIMIT = 256  # datagrams handled per wake-up before checking timers
+_FRAME_ID = MessageId.FRAME_OF_DATA.to_bytes(2, "little")  # a datagram's first two bytes
 _FOREIGN_SENDERS_KEPT = 64  # distinct foreign addresses counted one by one (the rest as "other")
 
 
@@ -186,7 +188,11 @@ class NatNetClient(ReceiverTracker):
         if echoed not in self._echoes_sent or self.clock_hz is None:
             raise NatNetDecodeError(f"echo response: client time {echoed} is not one this client sent")
         self._echoes_sent.remove(echoed)
+        jumps = self.clock.jumps
         self.clock.add_round_trip(echoed, self._ticks_to_ns(server_ticks), arrival_ns)
+        if self.clock.jumps != jumps:  # the server restarted under us: its frame numbers begin again too
+            self._first_frame_of_session = True
+            log.warning("natnet: the server's clock changed (restarted?); clock mapping and frame numbers start over")
 
     def _handle_frame(self, payload, arrival_ns: int) -> list[PoseSample]:
         if self.version is None or self.clock_hz is None:
@@ -245,24 +251,36 @@ class NatNetClient(ReceiverTracker):
         return {**super()._details(), "foreign_datagrams": self.foreign_datagrams,
                 "foreign_senders": dict(self.foreign_senders)}
 
-    def _from_server(self, sender: tuple) -> bool:
-        """True for the configured server's address; others are counted, each logged once."""
-        host = sender[0]
-        if host == self._server_ip:
+    def _from_server(self, sender: tuple, data: bytes, command_socket: bool) -> bool:
+        """True for a datagram the configured server sent; others are counted, each sender logged once.
+
+        The address must be the server's (`server`, resolved): Motive sends multicast frames from
+        the interface it streams on, so `server` must be Motive's address on that interface (its
+        "local interface"); a datagram from any other address is refused. Replies to commands
+        (server info, model definitions, echoes) come from the command port the client sent them
+        to, which the protocol fixes, so on the command socket anything but a frame must also come
+        from `command_port`. Frames are checked by address only: their source port is Motive's
+        data socket, which the protocol does not fix (unicast frames may come from it)."""
+        host, port = sender[:2]
+        if host == self._server_ip and (
+                not command_socket or port == self.command_port
+                or data[:2] == _FRAME_ID):
             return True
         self.foreign_datagrams += 1
-        if host not in self.foreign_senders and len(self.foreign_senders) >= _FOREIGN_SENDERS_KEPT:
-            host = "other"
-        if host not in self.foreign_senders:
-            log.warning("natnet: ignoring datagrams from %s (only the server %s is accepted); further ones "
-                        "are counted in status().details['foreign_senders']", host, self._server_ip)
-        self.foreign_senders[host] += 1
+        who = host if host != self._server_ip else f"{host}:{port}"  # the server's address, a wrong port
+        if who not in self.foreign_senders and len(self.foreign_senders) >= _FOREIGN_SENDERS_KEPT:
+            who = "other"
+        if who not in self.foreign_senders:
+            log.warning("natnet: ignoring datagrams from %s (only the server %s is accepted, its replies from port "
+                        "%d); further ones are counted in status().details['foreign_senders']", who,
+                        self._server_ip, self.command_port)
+        self.foreign_senders[who] += 1
         return False
 
     def _recv(self, sock: socket.socket, flags: int = 0) -> bytes | None:
         """One datagram from the server, or None for one from anyone else."""
         data, sender = sock.recvfrom(_MAX_DATAGRAM, flags)
-        return data if self._from_server(sender) else None
+        return data if self._from_server(sender, data, sock is self._cmd) else None
 
     def _send(self, datagram: bytes) -> None:
         self._cmd.sendto(datagram, (self.server, self.command_port))
@@ -367,7 +385,7 @@ class NatNetClient(ReceiverTracker):
         self._set_state(TrackerState.CONNECTED, f"{info.app_name} NatNet {self.version[0]}.{self.version[1]}, {mode}")
         self._send(encode_message(MessageId.REQUEST_MODEL_DEF))
         sockets = [s for s in (self._cmd, self._data) if s is not None]
-        connected_ns = last_keepalive = last_echo = time.monotonic_ns()
+        connected_ns = last_keepalive = last_echo = last_probe = time.monotonic_ns()
         frames_at_start = self.frames
         while not self._stop.is_set():
             for sock in select.select(sockets, [], [], 0.02)[0]:
@@ -379,7 +397,18 @@ class NatNetClient(ReceiverTracker):
                     if data is not None:
                         self.process_datagram(data, time.monotonic_ns())
             now = time.monotonic_ns()
-            if not use_multicast and now - last_keepalive > self.keepalive_interval_s * 1e9:
+            since = self._last_arrival_ns if self.frames > frames_at_start else connected_ns
+            if now - since > self.stale_after_s * 1e9 and now - last_probe > max(self.stale_after_s, 0.02) * 1e9:
+                # Frames are missing: Motive may have restarted. Every `stale_after_s`, connect
+                # again (unicast: a restarted Motive has forgotten its clients; a CONNECT registers
+                # one, and its server-info reply is harmless) and send an echo (its round trip
+                # teaches the client a restarted server's clock at once), instead of waiting for
+                # the next keep-alive, echo or the link timeout.
+                if not use_multicast:
+                    self._send(encode_connect((*(self.forced_version or self.version or (4, 1)), 0, 0)))
+                    last_keepalive = now
+                last_probe = last_echo = self._send_echo()
+            elif not use_multicast and now - last_keepalive > self.keepalive_interval_s * 1e9:
                 self._send(encode_message(MessageId.KEEP_ALIVE))
                 last_keepalive = now
             if now - last_echo > self.echo_interval_s * 1e9:  # keeps following clock drift
@@ -387,5 +416,4 @@ class NatNetClient(ReceiverTracker):
             if self._want_models:
                 self._want_models = False
                 self._send(encode_message(MessageId.REQUEST_MODEL_DEF))
-            since = self._last_arrival_ns if self.frames > frames_at_start else connected_ns
             self._check_alive(since, "frame of data")

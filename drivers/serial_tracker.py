@@ -215,12 +215,22 @@ class PolhemusTracker(ReceiverTracker):
         self._write(b"C\r")
 
     def _stream(self) -> None:
-        started_ns = time.monotonic_ns()
+        started_ns = last_bytes_ns = last_probe_ns = time.monotonic_ns()
         frames_at_start = self.frames
+        probe_ns = max(self.stale_after_s, 0.02) * 1e9
         while not self._stop.is_set():
             data = self._read_available()
+            now = time.monotonic_ns()
             if data:
-                self.process_bytes(data, time.monotonic_ns())
+                last_bytes_ns = now
+                self.process_bytes(data, now)
+            elif now - last_bytes_ns > probe_ns and now - last_probe_ns > probe_ns:
+                # The line went quiet: a device that left continuous mode (a stray `P`, a glitch)
+                # streams again at once on `C`, instead of after the link timeout and a full
+                # re-initialisation. One that lost its settings sends what the parser refuses, and
+                # the timeout below re-initialises it as before.
+                self._write(b"C\r")
+                last_probe_ns = now
             since = self._last_arrival_ns if self.frames > frames_at_start else started_ns
             self._check_alive(since, "record")
 

@@ -161,7 +161,7 @@ class ReceiverTracker:
         """Release whatever `_session` opened (called after every session, even on error)."""
 
     def _details(self) -> dict:
-        return {"clock_method": self.clock.method, "clock_outliers": self.clock.outliers,
+        return {"clock_method": self.clock.method, "clock_outliers": self.clock.outliers, "clock_jumps": self.clock.jumps,
                 "internal_errors": self.internal_errors, "last_decode_error": self.last_decode_error,
                 "callback_errors": self._poses.callback_errors, "frame_resyncs": self.frame_resyncs,
                 **self.gate.counts()}

@@ -16,6 +16,7 @@ echoing the input (which may be huge, or NaN that JSON cannot carry).
 from __future__ import annotations
 
 import os
+import socket
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -28,12 +29,35 @@ from server.deps import Runtime, RuntimeUnavailable, bearer_problem
 from server.pages import add_pages
 from server.routers import session, settings, status
 
-__all__ = ["DEFAULT_TRUSTED_HOSTS", "MAX_BODY_BYTES", "build_app"]
+__all__ = ["DEFAULT_TRUSTED_HOSTS", "MAX_BODY_BYTES", "build_app", "trusted_hosts_for"]
 
 # The largest body any route takes is a settings patch of a few hundred bytes.
 MAX_BODY_BYTES = 16 * 1024
 DEFAULT_TRUSTED_HOSTS = ("127.0.0.1", "localhost")
 _SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+
+
+def trusted_hosts_for(bind_host: str) -> list[str]:
+    """The Host names a service bound to `bind_host` accepts: DPMHW_API_HOSTS (comma-separated)
+    if set, else the loopback names plus the bound address itself, or, for a wildcard bind
+    (0.0.0.0, ::), this machine's name and the addresses it resolves to. A client that reaches
+    the service through another name (a DNS alias, a NAT address) needs DPMHW_API_HOSTS."""
+    env = [h.strip() for h in os.environ.get("DPMHW_API_HOSTS", "").split(",") if h.strip()]
+    if env:
+        return env
+    hosts = list(DEFAULT_TRUSTED_HOSTS)
+    if bind_host in ("0.0.0.0", "::", ""):
+        names = {socket.gethostname(), socket.getfqdn()}
+        for name in sorted(names):
+            try:
+                addresses = {info[4][0] for info in socket.getaddrinfo(name, None, proto=socket.IPPROTO_TCP)}
+            except OSError:
+                addresses = set()
+            names |= addresses
+        hosts += sorted(names)
+    else:
+        hosts.append(bind_host)
+    return list(dict.fromkeys(hosts))
 
 
 class _GuardMutations:

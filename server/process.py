@@ -42,6 +42,7 @@ import numpy as np
 from dpmhw.session.config import LiveSettings
 from dpmhw.session.loop import LatestFrame, SettingsError
 from dpmhw.session.supervisor import describe_exit
+from server.app import trusted_hosts_for
 from server.deps import Runtime, RuntimeUnavailable
 from server.shared_slot import SharedSlot
 
@@ -88,6 +89,8 @@ class ApiProcess:
         # caller with the OS's message, and port 0 is resolved
         self.sock = sock if sock is not None else bind_api_socket(host, port)
         self.host, self.port = self.sock.getsockname()[:2]
+        # the Host names clients may use: the bound address too, so a lab-network bind works as is
+        self.trusted_hosts = trusted_hosts_for(self.host)
         self.status_capacity = status_capacity
         self.status_slot: SharedSlot | None = None
         self.frame_slot: SharedSlot | None = None
@@ -133,7 +136,7 @@ class ApiProcess:
         process = ctx.Process(
             target=_serve_child, name="dpmhw-api", daemon=True,
             args=(self.sock, child_conn, self.status_slot.name, self.frame_slot.name, self.token, self.priority,
-                  self.stale_after_s))
+                  self.stale_after_s, self.trusted_hosts))
         process.start()
         child_conn.close()
         self.process = process
@@ -395,7 +398,7 @@ class RemoteRuntime:
 
 
 def _serve_child(sock: socket.socket, conn, status_name: str, frame_name: str, token: str, priority: str,
-                 stale_after_s: float) -> None:
+                 stale_after_s: float, trusted_hosts: list[str]) -> None:
     """The API process: uvicorn on the inherited socket, serving a `RemoteRuntime`."""
     import uvicorn
 
@@ -404,7 +407,7 @@ def _serve_child(sock: socket.socket, conn, status_name: str, frame_name: str, t
     lower_priority(priority)
     runtime = RemoteRuntime(SharedSlot.attach(status_name), SharedSlot.attach(frame_name), conn,
                             stale_after_s=stale_after_s)
-    server = uvicorn.Server(uvicorn.Config(build_app(runtime=runtime, token=token), log_level="warning",
+    server = uvicorn.Server(uvicorn.Config(build_app(runtime=runtime, token=token, trusted_hosts=trusted_hosts), log_level="warning",
                                            lifespan="on", timeout_graceful_shutdown=2))
 
     def watch_parent() -> None:

@@ -184,15 +184,26 @@ def bench_soak(
     minutes: Annotated[float, typer.Option(min=0.05, help="How long to run.")] = 30.0,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results (per fault and per kind) here.")] = None,
     seed: Annotated[int, typer.Option(help="Seed of the fault schedule.")] = 0,
-    kinds: Annotated[Optional[str], typer.Option(help="Comma-separated fault kinds [default: all].")] = None,
+    kinds: Annotated[Optional[str], typer.Option(help="Comma-separated fault kinds [default: all of the tracker's].")] = None,
+    tracker: Annotated[str, typer.Option(help="natnet (emulated Motive) or serial (emulated Polhemus).")] = "natnet",
+    size: Annotated[str, typer.Option(help="Projector native size WxH (the loop renders at its shading scale).")] = "128x96",
 ) -> None:
-    """Mock session with random faults (tracker stall/restart, corrupt and foreign datagrams,
-    implausible poses, USB stall and unplug, API load): time to dark and to resume per fault kind,
-    lit frames while a cause was active, recording rows against frames presented, memory."""
-    from dpmhw.benchmarks.soak import FAULT_KINDS, format_table, plot_soak, run_soak
+    """Mock session with random faults (tracker stall/restart, corrupt and foreign datagrams, serial
+    stall/noise/unplug, implausible poses, USB stall and unplug, API load): time to dark and to
+    resume per fault kind against the goal, lit frames while a cause was active, recording rows
+    against frames presented, memory."""
+    from dpmhw.benchmarks.soak import format_table, plot_soak, run_soak
 
-    chosen = tuple(k.strip() for k in kinds.split(",")) if kinds else FAULT_KINDS
-    result = run_soak(minutes, seed=seed, kinds=chosen, progress=typer.echo)
+    chosen = tuple(k.strip() for k in kinds.split(",")) if kinds else None
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        raise typer.BadParameter(f"--size: expected WxH such as 1024x768, got {size!r}") from None
+    try:
+        result = run_soak(minutes, seed=seed, tracker=tracker, kinds=chosen, width=width, height=height,
+                          progress=typer.echo)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
     typer.echo(format_table(result))
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)

@@ -287,7 +287,16 @@ class SessionLoop:
             self._heartbeat_ns = self.clock()
             self._publish()
             if not presented:
-                self._stop.wait(poll_s)
+                self._stop.wait(self._idle_wait_s(poll_s))
+
+    def _idle_wait_s(self, poll_s: float) -> float:
+        """Sleep after a dark turn: `poll_s`, but wake one frame's work before the hold-off ends,
+        so the first lit frame is rendered by then and presented on time (issue 14)."""
+        resume_at, now = self.safety.resume_at_ns(), self.clock()
+        if resume_at is None or resume_at <= now:  # not holding off: nothing to wake for
+            return poll_s
+        lead_ns = resume_at - now - int(self.metrics.expected_pipeline_s() * 1e9)
+        return min(poll_s, max(0.0, lead_ns / 1e9))
 
     def _apply_queued(self) -> LiveSettings:
         with self._lock:
@@ -305,16 +314,20 @@ class SessionLoop:
         """Feed the predictor; report tracking causes. Returns (samples, oldest age) or None."""
         tracker = self.parts.tracker
         status = tracker.status()
-        if status.state in (TrackerState.STREAMING, TrackerState.STALE):
-            self._ever_streamed = True
-            self.safety.update("tracker", False)
-        elif self._ever_streamed and status.state != TrackerState.STOPPED:
-            self.safety.update("tracker", True, f"tracker link {status.state.value}: {status.reason}", "fault")
         bodies = set(self.parts.bindings.values())
+        first_valid: dict[int, int] = {}  # body -> arrival of its first valid, fresh sample since the last turn
         if self._samples is not None:
             for sample in self._samples.drain():
                 if sample.rigid_body_id in bodies:
                     self.predictor.observe(sample)
+                    if sample.valid and sample.t_arrival_ns - sample.t_exposure_ns <= self.stale_ns:  # fresh on arrival
+                        first_valid.setdefault(sample.rigid_body_id, sample.t_arrival_ns)
+        if status.state in (TrackerState.STREAMING, TrackerState.STALE):
+            self._ever_streamed = True
+            # the link was back when its first sample arrived (the hold-off counts from there)
+            self.safety.update("tracker", False, cleared_at_ns=min(first_valid.values(), default=status.last_arrival_ns))
+        elif self._ever_streamed and status.state != TrackerState.STOPPED:
+            self.safety.update("tracker", True, f"tracker link {status.state.value}: {status.reason}", "fault")
         samples = {}
         problems = []
         for body in sorted(bodies):
@@ -332,7 +345,9 @@ class SessionLoop:
                 if status.details.get("last_implausible_ns", 0) > s.t_arrival_ns:  # plausibility gate (issue 14)
                     problems[-1] += f"; newer samples dropped as implausible: {status.details['last_implausible']}"
             samples[body] = s
-        self.safety.update("tracking", bool(problems), "; ".join(problems), "blank")
+        # tracking became good when the last body's first fresh sample arrived: the hold-off counts from there
+        good_since = max((first_valid.get(b, s.t_arrival_ns) for b, s in samples.items()), default=None)
+        self.safety.update("tracking", bool(problems), "; ".join(problems), "blank", cleared_at_ns=good_since)
         if problems:
             return None
         oldest = min((s.t_exposure_ns for s in samples.values()), default=now)
@@ -363,9 +378,14 @@ class SessionLoop:
             used[body] = predicted[0]
         t1 = self.clock()
         stages["predict"] = (t1 - t_start) / 1e9
-        if not self.safety.output_allowed():
+        resume_at = None
+        if not self.safety.output_allowed(t1):
+            # about to resume (the hold-off ends within this frame's work): render now, present at the end
+            resume_at = self.safety.resume_at_ns()
+            if resume_at is not None and resume_at - t1 > self.metrics.expected_pipeline_s() * 1e9:
+                resume_at = None
             # dark: nothing is shown, so render only as often as it takes to see a render fault clear
-            if t1 - self._dark_render_ns < self.dark_render_interval_ns:
+            if resume_at is None and t1 - self._dark_render_ns < self.dark_render_interval_ns:
                 self._sync_output()
                 return False
             self._dark_render_ns = t1
@@ -388,6 +408,8 @@ class SessionLoop:
         image.setflags(write=False)
         stages.update(out.stages_s)
         t4 = self.clock()
+        if resume_at is not None and resume_at > t4:
+            self._stop.wait((resume_at - t4) / 1e9)  # less than one frame's work
         if not self._sync_output():
             self.metrics.count("frames_withheld")  # rendered while dark (keeps causes observable)
             return False

@@ -96,8 +96,14 @@ class SafetyMonitor:
             return [t for t in self._transitions if t.seq >= since_seq]
 
     # ---- reporting ------------------------------------------------------------------------
-    def update(self, name: str, active: bool, reason: str = "", kind: CauseKind = "blank") -> None:
-        """Set or clear one cause; repeated reports of an active cause keep its first `since`."""
+    def update(self, name: str, active: bool, reason: str = "", kind: CauseKind = "blank",
+               cleared_at_ns: int | None = None) -> None:
+        """Set or clear one cause; repeated reports of an active cause keep its first `since`.
+
+        `cleared_at_ns`: when the evidence that ends the cause appeared, if the reporter knows it
+        better than "now" (the loop passes the arrival of the first fresh tracker sample): the
+        hold-off then counts from that instant, not from when the loop got round to looking.
+        It is clamped to [the cause's start, now], so it can never shorten a hold-off into the past."""
         now = self.clock()
         with self._lock:
             current = self._causes.get(name)
@@ -112,8 +118,10 @@ class SafetyMonitor:
                     self._causes[name] = Cause(name, kind, reason, current.since_ns)
             elif current is not None:
                 del self._causes[name]
-                self._last_cleared = (name, now)
-                self._log(now, name, False, "")
+                at = now if cleared_at_ns is None else min(now, max(current.since_ns, cleared_at_ns))
+                if self._last_cleared is None or at >= self._last_cleared[1]:
+                    self._last_cleared = (name, at)
+                self._log(at, name, False, "")
 
     def operator_blank(self) -> None:
         self.update(OPERATOR, True, "blanked by the operator (POST /session/blank); resume to project")
@@ -148,6 +156,14 @@ class SafetyMonitor:
             return name in self._causes
 
     # ---- reading --------------------------------------------------------------------------
+    def resume_at_ns(self) -> int | None:
+        """When output becomes allowed if nothing changes (it may be past); None while a cause is
+        active, an explicit resume is awaited, or after stop. The loop wakes for this instant."""
+        with self._lock:
+            if self._causes or self._latched or self._stopped:
+                return None
+            return self._last_cleared[1] + self.holdoff_ns if self._last_cleared is not None else 0
+
     def output_allowed(self, now_ns: int | None = None) -> bool:
         return self.view(now_ns).output_on
 

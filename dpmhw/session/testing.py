@@ -57,6 +57,9 @@ class FakeTracker:
     def latest_all(self):
         return self.poses.latest_all()
 
+    def subscribe(self, maxlen: int = 4096):  # every sample, as the real drivers offer the loop
+        return self.poses.subscribe(maxlen)
+
     def status(self):
         return TrackerStatus(self.state, "" if self.state == TrackerState.STREAMING else "test says so")
 

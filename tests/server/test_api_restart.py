@@ -15,7 +15,8 @@ from server.process import ApiProcess
 
 def test_killed_api_process_comes_back_and_the_loop_keeps_projecting():
     loop = fake_session().start()
-    api = ApiProcess(port=0, token="t", publish_period_s=0.02, restart_backoff_s=0.2).start(loop)
+    # "low" priority: at the default SCHED_IDLE a CPU hog beside the suite starves the API process
+    api = ApiProcess(port=0, token="t", publish_period_s=0.02, restart_backoff_s=0.2, priority="low").start(loop)
     try:
         with httpx.Client(base_url=api.url, timeout=10.0) as client:
             def state():  # a fresh API process may take longer than one request's timeout to serve

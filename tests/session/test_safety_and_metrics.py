@@ -43,6 +43,45 @@ def test_cause_blanks_and_projection_resumes_only_after_holdoff():
     assert s.view().activations == {"tracking": 2}
 
 
+def test_holdoff_counts_from_when_the_evidence_arrived_not_from_when_the_loop_looked():
+    """Issue 14 (resume within holdoff_s + one frame of the first good sample): the loop reports
+    the first fresh sample's arrival; the hold-off and the logged transition count from it."""
+    clock = Clock()
+    s = SafetyMonitor(holdoff_s=0.5, clock=clock)
+    s.mark_started()
+    assert s.resume_at_ns() == 0  # nothing ever cleared: allowed now
+    clock.advance(1)
+    s.update("tracking", True, "stale")
+    assert s.resume_at_ns() is None
+    clock.advance(1)  # t = 2 s: the loop sees the sample that arrived at 1.97 s
+    s.update("tracking", False, cleared_at_ns=1_970_000_000)
+    assert s.resume_at_ns() == 2_470_000_000 and s.transitions()[-1].t_ns == 1_970_000_000
+    clock.advance(0.469)
+    assert not s.output_allowed()
+    clock.advance(0.002)
+    assert s.output_allowed()
+    # clamped: never before the cause began, never in the future
+    s.update("tracking", True, "stale")
+    s.update("tracking", False, cleared_at_ns=0)
+    assert s.transitions()[-1].t_ns == clock.t and s.resume_at_ns() == clock.t + 500_000_000
+    s.update("tracking", True, "stale")
+    s.update("tracking", False, cleared_at_ns=clock.t + 10**9)
+    assert s.resume_at_ns() == clock.t + 500_000_000
+    # a backdated clear never moves the hold-off of a later clear back
+    s.update("a", True, "x")
+    s.update("b", True, "y")
+    clock.advance(1)
+    s.update("a", False)
+    s.update("b", False, cleared_at_ns=clock.t - 10**8)
+    assert s.resume_at_ns() == clock.t + 500_000_000
+    s.operator_blank()
+    s.request_resume()
+    s.update("c", True, "z", "fault")
+    s.update("c", False)
+    s.mark_stopped("bye")
+    assert s.resume_at_ns() is None
+
+
 def test_fault_wins_over_blank_in_the_state_and_resume_is_refused_while_active():
     s = SafetyMonitor(holdoff_s=0.0, clock=Clock())
     s.mark_started()

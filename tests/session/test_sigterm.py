@@ -17,7 +17,9 @@ from dpmhw.tracking import wait_for
 
 
 def _start(api: bool):
-    args = ["session", "start", "--mock", "--status-every", "0", "--set", "render.width=32", "--set", "render.height=24"]
+    # api.priority=low: a SCHED_IDLE API process gets next to no CPU beside a CPU hog
+    args = ["session", "start", "--mock", "--status-every", "0", "--set", "render.width=32", "--set", "render.height=24",
+            "--set", "api.priority=low"]
     args += ["--port", "0"] if api else ["--no-api"]
     env = {**os.environ, "DPMHW_API_TOKEN": "t"}
     proc = subprocess.Popen([sys.executable, "-c", "from dpmhw.cli import main; main()", *args], env=env,

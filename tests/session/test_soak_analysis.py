@@ -53,3 +53,23 @@ def test_a_fault_that_never_darkens_and_a_dark_spell_nobody_caused():
     assert out["totals"]["unexplained_dark_spells"] == 1 and out["totals"]["unexplained_causes"] == ["tracking"]
     assert out["faults"][0]["implausible_frames_shown"] == 1 and out["totals"]["implausible_frames_shown"] == 1
     assert "| foreign_datagrams | 1 | 0 |" in format_table(out)
+
+
+def test_resume_is_measured_from_the_first_good_sample_against_that_moments_frame_interval():
+    """Issue 14's goal on the code's own stamps: last good exposure → first black frame within
+    stale_after_ms + one frame; first good sample → first lit frame within holdoff_s + one frame,
+    one frame being the lit-present interval in the second before the fault (10 ms here)."""
+    t, lit = timeline([(0, 1060), (2560, 10_000)])  # dark from 1060 ms, lit again at 2560 ms
+    transitions = [Transition(0, 1055 * MS, "tracking", True, "stale"), Transition(1, 2050 * MS, "tracking", False, "")]
+    gaps = {1: np.array([[1003 * MS, 999 * MS, 2050 * MS]], np.int64)}  # samples stopped at 1003, back at 2050 ms
+    out = _analyse(load_session_config(), [_Fault("tracker_stall", 1000 * MS, 2000 * MS)], t, lit, transitions, [],
+                   100, 100, 0, 200.0, 201.0, 1.0, 0, TrackerStatus(TrackerState.STREAMING), gaps)
+    (row,) = out["faults"]
+    assert row["frame_ms"] == 10 and row["dark_after_last_sample_ms"] == 61 and row["dark_within_goal"] is False
+    assert row["good_sample_after_fault_ms"] == 50 and row["cause_clear_after_good_sample_ms"] == 0
+    assert row["lit_after_good_sample_ms"] == 510 and row["lit_after_cause_clear_ms"] == 510
+    assert row["resume_within_goal"] is True  # 510 <= 500 + 10
+    (summary,) = out["summary"]
+    assert summary["resume_within_goal"] == "1/1" and summary["dark_within_goal"] == "0/1"
+    table = format_table(out)
+    assert "| tracker_stall | 1 | 1 | 10.0 |" in table and "0/1" in table and "1/1" in table

@@ -40,8 +40,9 @@ class Show:
         env.pop("DPMHW_TEST_FAULT", None)
         if fault:
             env["DPMHW_TEST_FAULT"] = fault
+        # api.priority=low: a SCHED_IDLE API process gets next to no CPU beside a CPU hog
         args = ["session", "start", "--mock", "--status-every", "0", "--port", "0", "--set", "render.width=32",
-                "--set", "render.height=24", "--set", "safety.stale_after_ms=2000"]
+                "--set", "render.height=24", "--set", "safety.stale_after_ms=2000", "--set", "api.priority=low"]
         for item in sets:
             args += ["--set", item]
         self.proc = subprocess.Popen([sys.executable, "-c", "from dpmhw.cli import main; main()", *args], env=env,

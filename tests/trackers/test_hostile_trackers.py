@@ -9,6 +9,7 @@ depends on how fast the machine is.
 from __future__ import annotations
 
 import socket
+import struct
 
 import numpy as np
 import pytest
@@ -175,6 +176,39 @@ def test_finding_6_datagrams_from_other_hosts_are_counted_and_ignored():
         assert client.latest(1).translation[0] < 100  # never the injected pose
 
 
+def test_finding_6_replies_must_come_from_the_command_port_frames_from_the_server_address():
+    """The protocol fixes where replies come from (the command port the client sent to), not the
+    source port of frames (Motive's data socket): a server info or echo reply from the server's
+    address but another port is refused; a frame from there is read."""
+    client = natnet_client(server="127.0.0.1", command_port=1510)
+    client._server_ip = "127.0.0.1"
+    reply = (1).to_bytes(2, "little") + (4).to_bytes(2, "little") + b"\0" * 4  # a (short) SERVER_INFO
+    assert not client._from_server(("127.0.0.1", 40000), reply, command_socket=True)
+    assert client._from_server(("127.0.0.1", 1510), reply, command_socket=True)
+    genuine = frame(1, mid_ns=10**9)
+    assert client._from_server(("127.0.0.1", 1511), genuine, command_socket=True)
+    assert client._from_server(("127.0.0.1", 1511), genuine, command_socket=False)  # multicast data socket
+    assert not client._from_server(("127.0.0.9", 1510), genuine, command_socket=False)
+    assert client.status().details["foreign_senders"] == {"127.0.0.1:40000": 1, "127.0.0.9": 1}
+
+
+def test_finding_6_multicast_frames_from_another_address_are_counted_and_ignored():
+    with natnet_pair("4.1", unicast=False) as (world, server, client):
+        assert wait_for(lambda: client.status().frames >= 20, 20)
+        group, port = server.config.multicast_group, server.config.data_port
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as attacker:
+            attacker.bind(("127.0.0.2", 0))
+            attacker.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+            attacker.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+            for k in range(50):
+                attacker.sendto(frame(10**6 + k, (1000.0, 0.0, 0.0), mid_ns=1, transmit_ns=2), (group, port))
+        assert wait_for(lambda: client.foreign_datagrams == 50, 10), client.foreign_datagrams
+        assert client.status().details["foreign_senders"] == {"127.0.0.2": 50}
+        frames = client.status().frames
+        assert wait_for(lambda: client.status().frames > frames + 10, 10)  # the server's frames still arrive
+        assert client.latest(1).translation[0] < 100
+
+
 # ------------------------------------------------------------------------------- finding 7
 
 
@@ -218,3 +252,76 @@ def test_gate_limits_are_checked():
         PlausibilityLimits(workspace_min=(0, 0, 0), workspace_max=(1, 0, 1))
     with pytest.raises(ValueError, match="max_speed_m_s"):
         PlausibilityLimits(max_speed_m_s=float("nan"))
+
+
+# ------------------------------------------------------------------------------- resume timing
+
+
+@pytest.mark.parametrize("unicast", [True, False], ids=["unicast", "multicast"])
+def test_restarted_server_is_rejoined_and_its_new_clock_learnt_without_a_reconnect(unicast):
+    """Issue 14 (resume timing): a restarted Motive has forgotten its unicast clients and its
+    clock began again. While frames are missing the client connects again (unicast) and sends an
+    echo every `stale_after_s`, so streaming resumes, stamped right, as soon as the new server
+    answers — not at the next keep-alive, echo or link timeout (all 30 s here, so the old way
+    could not pass)."""
+    import dataclasses
+
+    from firmware_mocks.natnet_server import NatNetServer
+
+    from .test_natnet_loopback import check_against_truth
+
+    kw = dict(stale_after_s=0.05, keepalive_interval_s=30.0, echo_interval_s=30.0, lost_after_s=30.0)
+    with natnet_pair("4.1", unicast=unicast, client_kw=kw) as (world, server, client):
+        assert wait_for(lambda: client.status().frames >= 20, 20)
+        server.stop()
+        assert wait_for(lambda: client.status().state.value == "stale", 10)
+        frames = client.status().frames
+        cfg = dataclasses.replace(server.config, command_port=server.command_port, server_uptime_s=100.0)  # clock back 4900 s
+        with NatNetServer(world, cfg) as again:
+            assert wait_for(lambda: client.status().frames > frames + 20, 10), client.status()
+            assert again.commands[12] >= 1  # an echo request (ECHO_REQUEST = 12) reached the new server
+            assert check_against_truth([client.latest(1)], world, again) == 1
+        st = client.status()
+        assert st.reconnects == 0 and st.details["clock_jumps"] == 1
+
+
+def test_a_round_trip_that_contradicts_the_offset_restarts_the_mapping_a_backlog_does_not():
+    """A Motive restarted without the link dropping: its clock begins again far behind. One-way
+    evidence cannot tell that from a backlog read late (both look like slow transits), so it is
+    kept; a round trip bounds the offset, and one that contradicts it restarts the mapping."""
+    clock = ClockMapping(window_s=2.0)
+    for k in range(10):
+        clock.add_one_way(device_ns=100 * 10**9 + k * 10 * MS, arrival_ns=200 * 10**9 + k * 10 * MS + MS)
+    clock.add_round_trip(sent_ns=200 * 10**9, device_ns=100 * 10**9, received_ns=200 * 10**9 + 2 * MS)
+    assert clock.offset_ns == 100 * 10**9 + MS
+    t = 200 * 10**9 + 200 * MS
+    for k in range(5):  # a 2 s backlog read at once: slow transits, no jump
+        assert clock.add_one_way(device_ns=100 * 10**9 - 2 * 10**9 + 200 * MS + k * 4 * MS, arrival_ns=t)
+    clock.add_round_trip(sent_ns=t, device_ns=100 * 10**9 + 200 * MS + 400 * MS, received_ns=t + 800 * MS)  # slow, consistent
+    assert clock.offset_ns == 100 * 10**9 + MS and clock.jumps == 0
+    # the new server's clock reads 5 s: a 2 ms round trip says the offset is now 195.2 s
+    clock.add_round_trip(sent_ns=t + 10**9, device_ns=5 * 10**9, received_ns=t + 10**9 + 2 * MS)
+    assert clock.offset_ns == t + 10**9 + MS - 5 * 10**9 and clock.jumps == 1 and clock.method == "round-trip"
+
+
+def test_restarted_server_frames_are_stamped_right_from_its_first_echo():
+    """The same at the driver: frames of a server whose clock and frame numbers began again (no
+    reconnect) are dropped until the first echo from it; then they are stamped right and its
+    frame numbers, below the old ones, are taken at once (not refused as reordered)."""
+    client = natnet_client()
+    stream(client, range(1, 400))  # the old server: host = device + 5 s
+    t = 10**12 + 5 * 10**9
+    client.clock.add_round_trip(t, t - 5 * 10**9 + MS // 2, t + MS)  # its echo: a 1 ms round trip (preferred)
+    h = 10**12 + 400 * PERIOD_NS + 5 * 10**9 + 200 * MS  # the new server's first frame, on the host
+    new_offset = h - 10**9  # its clock read 1 s then
+    before = stream(client, range(1, 3), start_ns=10**9, offset_ns=new_offset)
+    assert before == [[], []]
+    sent = h + 3 * MS  # the echo request the client sends while frames are missing, answered in 2 ms
+    client._echoes_sent.append(sent)
+    reply = struct.pack("<HHQQ", 13, 16, sent, sent + MS - new_offset)  # ECHO_RESPONSE: our stamp, its clock
+    client.process_datagram(reply, arrival_ns=sent + 2 * MS)
+    assert client.status().details["clock_jumps"] == 1
+    after = stream(client, range(3, 20), start_ns=10**9 + 2 * PERIOD_NS, offset_ns=new_offset)
+    assert all(after) and client.status().out_of_order <= 2
+    s = after[-1][0]
+    assert s.t_arrival_ns - s.t_exposure_ns == 4 * MS + 200_000  # mid-exposure → arrival, exactly

@@ -25,7 +25,9 @@ from .conftest import free_udp_port, settle
 pytestmark = pytest.mark.realtime
 
 LATENCY_MS = 4.5
-REALTIME_TOL_NS = 15e6  # scheduling delay a loaded 2-core machine can add to one stamp
+# scheduling delay a loaded 2-core machine can add to one stamp (15 ms was exceeded, 16.9 ms, with a
+# CPU hog beside the suite at load average 20: the echo round trips that set the offset were slow)
+REALTIME_TOL_NS = 30e6
 VERSIONS = ["3.0", "3.1", "4.0", "4.1", "4.2"]
 
 

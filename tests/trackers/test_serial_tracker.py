@@ -124,15 +124,29 @@ def check_against_truth(samples, world, emulator, time_tol_ns=15e6):
     return len(samples)
 
 
+class WedgedEmulator(PolhemusEmulator):
+    """A device that, once wedged, ignores every command but the Ctrl-Y reset."""
+
+    wedged = False
+
+    def _handle(self, line: bytes) -> None:
+        if self.wedged and line.strip(b" ")[:1] != b"\x19":
+            self.commands.append(line)
+            return
+        self.wedged = False
+        super()._handle(line)
+
+
 @pytest.mark.parametrize("units", ["cm", "inch"])
 @pytest.mark.realtime
 def test_round_trip_with_garbage_between_records(units):
     world = World.demo("rotate-oscillate", epoch_s=time.monotonic(), count=2)
-    with PolhemusEmulator(world, garbage_prob=0.2, corrupt_prob=0.05, seed=1) as emu:
+    with WedgedEmulator(world, garbage_prob=0.2, corrupt_prob=0.05, seed=1) as emu:
         tracker = PolhemusTracker(emu.port, units=units, reset_wait_s=0.05, device_latency_s=0.0035)
         assert isinstance(tracker, Tracker)
         with tracker, tracker.subscribe(maxlen=10_000) as sub:
             assert wait_for(lambda: tracker.status().frames >= 200 and emu.records_corrupted >= 3, 20), tracker.status()
+            emu.wedged = True  # the driver's `C` must not restart the stream while we count
             emu.pause_streaming()  # the device stops streaming; let the reader drain
             # A record right behind a truncated one is decoded once a record's worth of bytes
             # follows (the parser must first see the truncated one fail): push line noise.
@@ -233,16 +247,34 @@ def test_silent_port_fails_the_init_with_an_actionable_reason():
         os.close(slave)
 
 
+def test_device_that_left_continuous_mode_streams_again_without_a_reconnect():
+    """Issue 14 (resume timing): when the line goes quiet the driver sends `C` every
+    `stale_after_s`, so a device that merely stopped streaming is back at once, not after the
+    link timeout (30 s here: the old way could not pass) and a re-initialisation."""
+    world = World.demo("circular", epoch_s=time.monotonic())
+    with PolhemusEmulator(world) as emu:
+        tracker = PolhemusTracker(emu.port, reset_wait_s=0.02, stale_after_s=0.05, lost_after_s=30.0)
+        with tracker:
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 10)
+            for _ in range(3):
+                emu.pause_streaming()
+                assert wait_for(lambda: tracker.status().state == TrackerState.STALE, 10)
+                frames = tracker.status().frames
+                assert wait_for(lambda: tracker.status().frames > frames + 20, 10), tracker.status()
+            assert tracker.status().reconnects == 0 and list(emu.commands).count(b"\x19") == 1
+
+
 @pytest.mark.realtime
 def test_silent_device_is_lost_then_reinitialised():
     world = World.demo("circular", epoch_s=time.monotonic())
-    with PolhemusEmulator(world) as emu:
+    with WedgedEmulator(world) as emu:
         tracker = PolhemusTracker(
             emu.port, reset_wait_s=0.02, stale_after_s=0.05, lost_after_s=0.3, backoff_initial_s=0.05, backoff_max_s=0.1
         )
         with tracker:
             assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 10)
-            emu.pause_streaming()  # the device stops talking, the port stays
+            emu.wedged = True
+            emu.pause_streaming()  # the device stops talking (and ignores `C`), the port stays
             assert wait_for(lambda: tracker.status().state == TrackerState.STALE, 5)
             assert wait_for(lambda: (s := tracker.status()).state == TrackerState.LOST and "no record for" in s.reason, 5)
             frames = tracker.status().frames
