@@ -23,11 +23,18 @@ fixes them per frame against the native G-buffer).
 
 Pixels outside the lit box show the background, encoded once (`base` frame): the frame copy
 is the only full-frame work.
+
+Overlap: the shading-resolution branch (guides, demodulation, reuse, filter) does not read the
+native G-buffer, so it runs on a helper thread while this one brings the native G-buffer up
+to date (every kernel of both releases the GIL). The native G-buffer's work is mostly serial
+steps and small parallel ones that leave the second core idle; the branch fills it. The
+sub-stage timings are each branch's own wall time (`gbuffer` overlaps `reuse` + `filter`).
 """
 
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,6 +97,12 @@ class ReconstructStage:
         self._base: tuple[float, np.ndarray] | None = None
         self._native_roi = "none yet"  # the moving objects' box this stage's native guides last followed
         self._exact: bool | None = None  # which path the last frame took
+        self._helper: ThreadPoolExecutor | None = None  # runs the shading-resolution branch (see module doc)
+
+    def close(self) -> None:
+        if self._helper is not None:
+            self._helper.shutdown(wait=True)
+            self._helper = None
 
     def _now(self) -> float:
         return self.clock() / 1e9
@@ -115,6 +128,46 @@ class ReconstructStage:
             self._base = (exposure, encode_srgb8(bg, self.W, exposure))
         return self._base[1]
 
+    def _update_native(self, poses, frame) -> tuple[int, int, int, int]:
+        """Native G-buffer (moving objects' region re-traced) and this stage's native guides;
+        returns the lit box."""
+        from dpmhw.render.gbuffer import box_minus  # loaded already (the G-buffer's module); kept out of
+        # this module's imports so that importers of the stage (the API process) skip numba/Embree
+
+        g = self.gbuffer
+        box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
+        # this stage's native guides: everything once, then the current region and the rest of its last
+        if self._native_roi == "none yet":
+            dirty = [(0, self.H, 0, self.W)]
+        elif self._native_roi is None:
+            dirty = [g.roi_box]
+        else:  # the current region, and what of the last one lies outside it (each pixel once)
+            dirty = [g.roi_box] + box_minus(self._native_roi, g.roi_box)
+        self._native_roi = g.roi_box
+        for b in dirty:
+            if b is not None and b[1] > b[0] and b[3] > b[2]:
+                self.native.update(g.id, g.position, g.normal, g.depth, g.albedo, g.spec_albedo, g.roughness,
+                                   self.viewer, b)
+        return box
+
+    def _shading_branch(self, frame, filter: str, poses, camera):
+        """Shading-resolution guides, demodulation, reuse and filter (reads nothing native);
+        returns (diffuse, specular, emitted, {reuse, filter} seconds)."""
+        t1 = self._now()
+        low = self.low
+        low.update(frame.object_id, frame.position, frame.normal, frame.depth, frame.albedo, frame.specular_albedo,
+                   frame.roughness, self.viewer, (0, self.h, 0, self.w))
+        diffuse = np.asarray(frame.diffuse, np.float32).reshape(-1, 3)
+        specular = np.asarray(frame.specular, np.float32).reshape(-1, 3)
+        emitted = np.asarray(frame.radiance, np.float32).reshape(-1, 3) - diffuse - specular
+        d_in = (diffuse / low.albedo).reshape(self.h, self.w, 3)
+        s_in = (specular / low.spec_albedo).reshape(self.h, self.w, 3)
+        d = self.reuse_d.update(d_in, frame.object_id, frame.model_position, poses, camera)
+        s = self.reuse_s.update(s_in, frame.object_id, frame.model_position, poses, camera)
+        t2 = self._now()
+        d, s, _ = cross_bilateral(d, s, low, filter)
+        return d, s, emitted, {"reuse": t2 - t1, "filter": self._now() - t2}
+
     def apply(self, frame, *, mode: str, alpha: float, filter: str = "lobe", split_screen: bool = False,
               exposure: float = 1.0, poses=None, camera=None) -> StageOutput:
         """Reconstruct one native frame from a shading-resolution renderer `Frame`."""
@@ -135,49 +188,25 @@ class ReconstructStage:
             st.update(gbuffer=0.0, reuse=t1 - t0, filter=0.0, upsample=0.0, post=self._now() - t1)
             return StageOutput(image.reshape(self.H, self.W, 3), st, (0, self.H, 0, self.W), 0)
 
-        # native G-buffer (moving objects' region re-traced) and its guides
+        # the shading-resolution branch on the helper thread while the native G-buffer updates here
+        branch = None
         if self.gbuffer is not None:
-            from dpmhw.render.gbuffer import box_minus  # loaded already (the G-buffer's module); kept out of
-            # this module's imports so that importers of the stage (the API process) skip numba/Embree
-
-            g = self.gbuffer
-            box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
-            # this stage's native guides: everything once, then the current region and the rest of its last
-            if self._native_roi == "none yet":
-                dirty = [(0, self.H, 0, self.W)]
-            elif self._native_roi is None:
-                dirty = [g.roi_box]
-            else:  # the current region, and what of the last one lies outside it (each pixel once)
-                dirty = [g.roi_box] + box_minus(self._native_roi, g.roi_box)
-            self._native_roi = g.roi_box
-            for b in dirty:
-                if b is not None and b[1] > b[0] and b[3] > b[2]:
-                    self.native.update(g.id, g.position, g.normal, g.depth, g.albedo, g.spec_albedo, g.roughness,
-                                       self.viewer, b)
+            if self._helper is None:
+                self._helper = ThreadPoolExecutor(1, thread_name_prefix="reconstruct")
+            branch = self._helper.submit(self._shading_branch, frame, filter, poses, camera)
+            try:
+                box = self._update_native(poses, frame)
+                st["gbuffer"] = self._now() - t0
+            finally:
+                d, s, emitted, st_low = branch.result()  # never leave the branch running into the next frame
         else:
             box = (0, self.H, 0, self.W)
-        t1 = self._now()
-        st["gbuffer"] = t1 - t0
-
-        # shading-resolution guides, demodulation, reuse
-        low = self.low
-        low.update(frame.object_id, frame.position, frame.normal, frame.depth, frame.albedo, frame.specular_albedo,
-                   frame.roughness, self.viewer, (0, self.h, 0, self.w))
-        diffuse = np.asarray(frame.diffuse, np.float32).reshape(-1, 3)
-        specular = np.asarray(frame.specular, np.float32).reshape(-1, 3)
-        emitted = np.asarray(frame.radiance, np.float32).reshape(-1, 3) - diffuse - specular
-        d_in = (diffuse / low.albedo).reshape(self.h, self.w, 3)
-        s_in = (specular / low.spec_albedo).reshape(self.h, self.w, 3)
-        d = self.reuse_d.update(d_in, frame.object_id, frame.model_position, poses, camera)
-        s = self.reuse_s.update(s_in, frame.object_id, frame.model_position, poses, camera)
-        t2 = self._now()
-        st["reuse"] = t2 - t1
-
-        d, s, _ = cross_bilateral(d, s, low, filter)
+            st["gbuffer"] = 0.0
+            d, s, emitted, st_low = self._shading_branch(frame, filter, poses, camera)
+        st.update(st_low)
         t3 = self._now()
-        st["filter"] = t3 - t2
 
-        upsample(low, d, s, emitted, self.native, filter, box, self.background, self._radiance, self._wsum, self._unresolved)
+        upsample(self.low, d, s, emitted, self.native, filter, box, self.background, self._radiance, self._wsum, self._unresolved)
         t4 = self._now()
         st["upsample"] = t4 - t3
 
