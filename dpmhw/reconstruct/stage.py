@@ -26,8 +26,9 @@ is the only full-frame work.
 
 Overlap: the shading-resolution branch (guides, demodulation, reuse, filter) does not read the
 native G-buffer, so it runs on a helper thread while this one brings the native G-buffer up
-to date (every kernel of both releases the GIL). The native G-buffer's work is mostly serial
-steps and small parallel ones that leave the second core idle; the branch fills it. The
+to date (every kernel of both releases the GIL; the helper runs its kernels on one thread). The
+native G-buffer's work is mostly serial steps and small parallel ones that leave the second core
+idle; the branch fills it. The
 sub-stage timings are each branch's own wall time (`gbuffer` overlaps `reuse` + `filter`).
 """
 
@@ -54,6 +55,14 @@ class StageOutput:
     stages_s: dict  # seconds per sub-stage: gbuffer, reuse, filter, upsample, [adaptive,] post
     lit_box: tuple[int, int, int, int]
     unresolved: int  # native pixels no shading sample supports (see upsample)
+
+
+def _one_kernel_thread() -> None:
+    """The helper runs its (small, shading-resolution) kernels on itself alone: a second team of
+    kernel threads would only compete for the two cores with the native G-buffer's."""
+    import numba
+
+    numba.set_num_threads(1)
 
 
 class ReconstructStage:
@@ -192,7 +201,7 @@ class ReconstructStage:
         branch = None
         if self.gbuffer is not None:
             if self._helper is None:
-                self._helper = ThreadPoolExecutor(1, thread_name_prefix="reconstruct")
+                self._helper = ThreadPoolExecutor(1, thread_name_prefix="reconstruct", initializer=_one_kernel_thread)
             branch = self._helper.submit(self._shading_branch, frame, filter, poses, camera)
             try:
                 box = self._update_native(poses, frame)

@@ -218,3 +218,37 @@ def test_raster_mode_gives_the_ray_cast_gbuffer_except_at_ties(dist):
         ras.close()
         full.close()
         r.close()
+
+
+def test_the_shading_branch_on_the_helper_thread_gives_the_same_frames_as_in_line():
+    """The shading-resolution branch runs beside the native G-buffer on a helper thread; the
+    frames equal those of running it in line, bit for bit, and close() stops the helper."""
+
+    class _InLine:  # an executor that runs the branch at submit, on the calling thread
+        def submit(self, fn, *args):
+            value = fn(*args)
+            return type("Done", (), {"result": lambda self: value})()
+
+        def shutdown(self, wait=True):
+            pass
+
+    native = scale_to(load_scene("dpm-bunny"), 256, 192)
+    r = PathIntegrator(shading_scene(native, 0.25), threads=2)
+    gs = [NativeGBuffer(native, r.geometry, 256, 192, threads=2) for _ in range(2)]
+    stages = [ReconstructStage((256, 192), (64, 48), background=native.render.background, viewer=native.viewer_position,
+                               gbuffer=g) for g in gs]
+    stages[1]._helper = _InLine()
+    try:
+        for i in range(5):
+            poses = native.object_poses(i / 10)
+            frame = r.render(time=i / 10, seed=i, poses=poses)
+            a, b = (s.apply(frame, mode="motion", alpha=0.2, filter="lobe", poses=poses, camera=r.camera) for s in stages)
+            assert np.array_equal(a.image, b.image) and a.image.sum() > 0
+            assert set(a.stages_s) == {"gbuffer", "reuse", "filter", "upsample", "adaptive", "post"}
+        assert stages[0]._helper is not None
+        stages[0].close()
+        assert stages[0]._helper is None
+    finally:
+        for g in gs:
+            g.close()
+        r.close()
