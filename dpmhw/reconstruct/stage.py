@@ -177,6 +177,9 @@ class ReconstructStage:
         d, s, _ = cross_bilateral(d, s, low, filter)
         return d, s, emitted, {"reuse": t2 - t1, "filter": self._now() - t2}
 
+    def _background_copy(self, exposure: float) -> np.ndarray:
+        return self.base_frame(exposure).copy()
+
     def apply(self, frame, *, mode: str, alpha: float, filter: str = "lobe", split_screen: bool = False,
               exposure: float = 1.0, poses=None, camera=None) -> StageOutput:
         """Reconstruct one native frame from a shading-resolution renderer `Frame`."""
@@ -203,6 +206,7 @@ class ReconstructStage:
             if self._helper is None:
                 self._helper = ThreadPoolExecutor(1, thread_name_prefix="reconstruct", initializer=_one_kernel_thread)
             branch = self._helper.submit(self._shading_branch, frame, filter, poses, camera)
+            image = self._helper.submit(self._background_copy, exposure)  # the frame to draw into, after the branch
             try:
                 box = self._update_native(poses, frame)
                 st["gbuffer"] = self._now() - t0
@@ -212,6 +216,7 @@ class ReconstructStage:
             box = (0, self.H, 0, self.W)
             st["gbuffer"] = 0.0
             d, s, emitted, st_low = self._shading_branch(frame, filter, poses, camera)
+            image = None
         st.update(st_low)
         t3 = self._now()
 
@@ -226,7 +231,7 @@ class ReconstructStage:
             t5 = self._now()
             st["adaptive"] = t5 - t4
             t4 = t5
-        image = self.base_frame(exposure).copy()
+        image = self._background_copy(exposure) if image is None else image.result()
         if box[1] > box[0] and box[3] > box[2]:
             encode_srgb8(self._radiance, self.W, exposure, box, image)
         st["post"] = self._now() - t4
