@@ -28,8 +28,8 @@ Overlap: the shading-resolution branch (guides, demodulation, reuse, filter) doe
 native G-buffer, so it runs on a helper thread while this one brings the native G-buffer up
 to date (every kernel of both releases the GIL; the helper runs its kernels on one thread). The
 native G-buffer's work is mostly serial steps and small parallel ones that leave the second core
-idle; the branch fills it. The
-sub-stage timings are each branch's own wall time (`gbuffer` overlaps `reuse` + `filter`).
+idle; the branch fills it. The sub-stage timings are each branch's own wall time (`gbuffer`
+overlaps `reuse` + `filter`), so they no longer add up to the frame time.
 """
 
 from __future__ import annotations
@@ -73,8 +73,8 @@ class ReconstructStage:
     viewer : the eye position (lobe axes are reflections of the direction to it)
     gbuffer : a `render.gbuffer.NativeGBuffer` (needed when the sizes differ; at equal sizes the
         shading frame's own G-buffer is the native one)
-    gbuffer_mode : "edges" (trace only near the shading frame's discontinuities) or "trace"
-        (every pixel of the moving objects' region); see `render.gbuffer`
+    gbuffer_mode : "edges" (trace only near the shading frame's discontinuities), "trace"
+        (every pixel of the moving objects' region) or "raster"; see `render.gbuffer`
     clock : monotonic nanoseconds, for the sub-stage timings
     adaptive : a `reconstruct.adaptive.AdaptiveSampler` (None: no adaptive sampling): extra
         native paths for unresolved and under-supported pixels, merged before post
