@@ -149,6 +149,20 @@ def _trace_pixels(acc, R, T, o, d, index, first, end, s_t, s_obj, s_prim, s_u, s
         traversal.closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, True)
 
 
+@nb.njit(inline="always")
+def _static_back(p, s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough, g_id, g_pos, g_normal, g_depth, g_alb, g_spec,
+                 g_rough):
+    """Pixel p shows its cached static attributes again."""
+    g_id[p] = s_id[p]
+    g_depth[p] = s_dep[p]
+    g_rough[p] = s_rough[p]
+    for c in range(3):
+        g_pos[p, c] = s_pos[p, c]
+        g_normal[p, c] = s_nrm[p, c]
+        g_alb[p, c] = s_alb[p, c]
+        g_spec[p, c] = s_spec[p, c]
+
+
 @nb.njit(parallel=True, cache=True, nogil=True)
 def _classify(W, H, y0, y1, x0, x1, w, h, lid, lpos, lnrm, ldep, lalb, lspec, lrough, dynamic,
               s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough,
@@ -177,14 +191,8 @@ def _classify(W, H, y0, y1, x0, x1, w, h, lid, lpos, lnrm, ldep, lalb, lspec, lr
                     if static_px[p]:
                         continue
                     static_px[p] = True
-                    g_id[p] = s_id[p]
-                    g_depth[p] = s_dep[p]
-                    g_rough[p] = s_rough[p]
-                    for c in range(3):
-                        g_pos[p, c] = s_pos[p, c]
-                        g_normal[p, c] = s_nrm[p, c]
-                        g_alb[p, c] = s_alb[p, c]
-                        g_spec[p, c] = s_spec[p, c]
+                    _static_back(p, s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough,
+                                 g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough)
                     continue
             elif same:
                 z0, z1, z2, z3 = ldep[j00], ldep[j01], ldep[j10], ldep[j11]
@@ -332,14 +340,8 @@ def _raster_pixels(W, y0, y1, x0, x1, stamp, sid, static_px, s_id, s_pos, s_nrm,
                 static_px[p] = False
             elif not static_px[p]:
                 static_px[p] = True
-                g_id[p] = s_id[p]
-                g_depth[p] = s_dep[p]
-                g_rough[p] = s_rough[p]
-                for c in range(3):
-                    g_pos[p, c] = s_pos[p, c]
-                    g_normal[p, c] = s_nrm[p, c]
-                    g_alb[p, c] = s_alb[p, c]
-                    g_spec[p, c] = s_spec[p, c]
+                _static_back(p, s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough,
+                             g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough)
     return out[:n]
 
 
