@@ -386,7 +386,8 @@ class NativeGBuffer:
         self._o, self._d = self.camera.generate_rays()
         self._is_dynamic = np.array([o.is_dynamic for o in scene.objects], np.bool_)
         self._trace_flags = np.zeros(self.width * self.height, np.bool_)
-        self._raster_setup()
+        self._meshes = None  # the rasteriser's tables, made on its first use (`_raster_setup`)
+        self.pixels_rasterised = 0  # pixels a moving object covered in the last "raster" update
         self.rays_traced = 0  # camera rays traced in the last update (for the benchmark)
         self._trace_static()
         self._prev_box: tuple[int, int, int, int] | None = None
@@ -439,12 +440,13 @@ class NativeGBuffer:
         self._qy_row = (np.arange(self.height) - K[1, 2]) / K[1, 1]
         self._stamp = np.zeros(len(self._dcz), np.int32)  # see `_raster`
         self._sid = 0
-        self.pixels_rasterised = 0  # pixels a moving object covered in the last "raster" update
 
     # ---- per frame -------------------------------------------------------------------------
     def _raster_box(self, box, poses) -> None:
         """Mode "raster": z-buffer the moving objects' meshes into the box (see `_raster`); falls
         back to tracing the box when a moving vertex reaches the projector's plane."""
+        if self._meshes is None:
+            self._raster_setup()
         R, T = self.geometry.poses(poses)
         cam = self.camera
         K, cam_R, cam_t = cam.K, cam.pose.R.astype(np.float64), cam.pose.t.astype(np.float64)
