@@ -52,7 +52,7 @@ def depth_weight(zi, zj):
     return fast_exp_neg(-0.5 * r * r)
 
 
-@nb.njit(parallel=True, cache=True, fastmath=FASTMATH)
+@nb.njit(parallel=True, cache=True, nogil=True, fastmath=FASTMATH)
 def _filter_kernel(mode, radius, spatial, W, H, gid, z, nrm, axis, sharp, dif, spe, out_d, out_s, wsum):
     for y in nb.prange(H):
         for x in range(W):

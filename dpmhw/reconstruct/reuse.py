@@ -234,7 +234,7 @@ def _serial_and_parallel(py_func):
 
     serial = types.FunctionType(py_func.__code__, py_func.__globals__, py_func.__name__ + "_serial")
     serial.__qualname__ = py_func.__qualname__ + "_serial"
-    return nb.njit(cache=True)(serial), nb.njit(parallel=True, cache=True)(py_func)
+    return nb.njit(cache=True, nogil=True)(serial), nb.njit(parallel=True, cache=True, nogil=True)(py_func)
 
 
 _same_pixel_kernel = _serial_and_parallel(_same_pixel_py)

@@ -23,11 +23,19 @@ fixes them per frame against the native G-buffer).
 
 Pixels outside the lit box show the background, encoded once (`base` frame): the frame copy
 is the only full-frame work.
+
+Overlap: the shading-resolution branch (guides, demodulation, reuse, filter) does not read the
+native G-buffer, so it runs on a helper thread while this one brings the native G-buffer up
+to date (every kernel of both releases the GIL; the helper runs its kernels on one thread). The
+native G-buffer's work is mostly serial steps and small parallel ones that leave the second core
+idle; the branch fills it. The sub-stage timings are each branch's own wall time (`gbuffer`
+overlaps `reuse` + `filter`), so they no longer add up to the frame time.
 """
 
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +57,14 @@ class StageOutput:
     unresolved: int  # native pixels no shading sample supports (see upsample)
 
 
+def _one_kernel_thread() -> None:
+    """The helper runs its (small, shading-resolution) kernels on itself alone: a second team of
+    kernel threads would only compete for the two cores with the native G-buffer's."""
+    import numba
+
+    numba.set_num_threads(1)
+
+
 class ReconstructStage:
     """One per session.
 
@@ -57,8 +73,8 @@ class ReconstructStage:
     viewer : the eye position (lobe axes are reflections of the direction to it)
     gbuffer : a `render.gbuffer.NativeGBuffer` (needed when the sizes differ; at equal sizes the
         shading frame's own G-buffer is the native one)
-    gbuffer_mode : "edges" (trace only near the shading frame's discontinuities) or "trace"
-        (every pixel of the moving objects' region); see `render.gbuffer`
+    gbuffer_mode : "edges" (trace only near the shading frame's discontinuities), "trace"
+        (every pixel of the moving objects' region) or "raster"; see `render.gbuffer`
     clock : monotonic nanoseconds, for the sub-stage timings
     adaptive : a `reconstruct.adaptive.AdaptiveSampler` (None: no adaptive sampling): extra
         native paths for unresolved and under-supported pixels, merged before post
@@ -95,6 +111,12 @@ class ReconstructStage:
         self._base: tuple[float, np.ndarray] | None = None
         self._native_roi = "none yet"  # the moving objects' box this stage's native guides last followed
         self._exact: bool | None = None  # which path the last frame took
+        self._helper: ThreadPoolExecutor | None = None  # runs the shading-resolution branch (see module doc)
+
+    def close(self) -> None:
+        if self._helper is not None:
+            self._helper.shutdown(wait=True)
+            self._helper = None
 
     def _now(self) -> float:
         return self.clock() / 1e9
@@ -122,6 +144,49 @@ class ReconstructStage:
             self._base = (exposure, encode_srgb8(bg, self.W, exposure))
         return self._base[1]
 
+    def _update_native(self, poses, frame) -> tuple[int, int, int, int]:
+        """Native G-buffer (moving objects' region re-traced) and this stage's native guides;
+        returns the lit box."""
+        from dpmhw.render.gbuffer import box_minus  # loaded already (the G-buffer's module); kept out of
+        # this module's imports so that importers of the stage (the API process) skip numba/Embree
+
+        g = self.gbuffer
+        box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
+        # this stage's native guides: everything once, then the current region and the rest of its last
+        if self._native_roi == "none yet":
+            dirty = [(0, self.H, 0, self.W)]
+        elif self._native_roi is None:
+            dirty = [g.roi_box]
+        else:  # the current region, and what of the last one lies outside it (each pixel once)
+            dirty = [g.roi_box] + box_minus(self._native_roi, g.roi_box)
+        self._native_roi = g.roi_box
+        for b in dirty:
+            if b is not None and b[1] > b[0] and b[3] > b[2]:
+                self.native.update(g.id, g.position, g.normal, g.depth, g.albedo, g.spec_albedo, g.roughness,
+                                   self.viewer, b)
+        return box
+
+    def _shading_branch(self, frame, filter: str, poses, camera):
+        """Shading-resolution guides, demodulation, reuse and filter (reads nothing native);
+        returns (diffuse, specular, emitted, {reuse, filter} seconds)."""
+        t1 = self._now()
+        low = self.low
+        low.update(frame.object_id, frame.position, frame.normal, frame.depth, frame.albedo, frame.specular_albedo,
+                   frame.roughness, self.viewer, (0, self.h, 0, self.w))
+        diffuse = np.asarray(frame.diffuse, np.float32).reshape(-1, 3)
+        specular = np.asarray(frame.specular, np.float32).reshape(-1, 3)
+        emitted = np.asarray(frame.radiance, np.float32).reshape(-1, 3) - diffuse - specular
+        d_in = (diffuse / low.albedo).reshape(self.h, self.w, 3)
+        s_in = (specular / low.spec_albedo).reshape(self.h, self.w, 3)
+        d = self.reuse_d.update(d_in, frame.object_id, frame.model_position, poses, camera)
+        s = self.reuse_s.update(s_in, frame.object_id, frame.model_position, poses, camera)
+        t2 = self._now()
+        d, s, _ = cross_bilateral(d, s, low, filter)
+        return d, s, emitted, {"reuse": t2 - t1, "filter": self._now() - t2}
+
+    def _background_copy(self, exposure: float) -> np.ndarray:
+        return self.base_frame(exposure).copy()
+
     def apply(self, frame, *, mode: str, alpha: float, filter: str = "lobe", split_screen: bool = False,
               exposure: float = 1.0, poses=None, camera=None) -> StageOutput:
         """Reconstruct one native frame from a shading-resolution renderer `Frame`."""
@@ -142,53 +207,31 @@ class ReconstructStage:
             st.update(gbuffer=0.0, reuse=t1 - t0, filter=0.0, upsample=0.0, post=self._now() - t1)
             return StageOutput(image.reshape(self.H, self.W, 3), st, (0, self.H, 0, self.W), 0)
 
-        # native G-buffer (moving objects' region re-traced) and its guides
+        # the shading-resolution branch on the helper thread while the native G-buffer updates here
+        branch = None
         if self.gbuffer is not None:
-            from dpmhw.render.gbuffer import box_minus  # loaded already (the G-buffer's module); kept out of
-            # this module's imports so that importers of the stage (the API process) skip numba/Embree
-
-            g = self.gbuffer
-            box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
-            # this stage's native guides: everything once, then the current region and the rest of its last
-            if self._native_roi == "none yet":
-                dirty = [(0, self.H, 0, self.W)]
-            elif self._native_roi is None:
-                dirty = [g.roi_box]
-            else:  # the current region, and what of the last one lies outside it (each pixel once)
-                dirty = [g.roi_box] + box_minus(self._native_roi, g.roi_box)
-            self._native_roi = g.roi_box
-            for b in dirty:
-                if b is not None and b[1] > b[0] and b[3] > b[2]:
-                    self.native.update(g.id, g.position, g.normal, g.depth, g.albedo, g.spec_albedo, g.roughness,
-                                       self.viewer, b)
+            if self._helper is None:
+                self._helper = ThreadPoolExecutor(1, thread_name_prefix="reconstruct", initializer=_one_kernel_thread)
+            branch = self._helper.submit(self._shading_branch, frame, filter, poses, camera)
+            image = self._helper.submit(self._background_copy, exposure)  # the frame to draw into, after the branch
+            try:
+                box = self._update_native(poses, frame)
+                st["gbuffer"] = self._now() - t0
+            finally:
+                d, s, emitted, st_low = branch.result()  # never leave the branch running into the next frame
         else:
             box = (0, self.H, 0, self.W)
-        t1 = self._now()
-        st["gbuffer"] = t1 - t0
-
-        # shading-resolution guides, demodulation, reuse
-        low = self.low
-        low.update(frame.object_id, frame.position, frame.normal, frame.depth, frame.albedo, frame.specular_albedo,
-                   frame.roughness, self.viewer, (0, self.h, 0, self.w))
-        diffuse = np.asarray(frame.diffuse, np.float32).reshape(-1, 3)
-        specular = np.asarray(frame.specular, np.float32).reshape(-1, 3)
-        emitted = np.asarray(frame.radiance, np.float32).reshape(-1, 3) - diffuse - specular
-        d_in = (diffuse / low.albedo).reshape(self.h, self.w, 3)
-        s_in = (specular / low.spec_albedo).reshape(self.h, self.w, 3)
-        d = self.reuse_d.update(d_in, frame.object_id, frame.model_position, poses, camera)
-        s = self.reuse_s.update(s_in, frame.object_id, frame.model_position, poses, camera)
-        t2 = self._now()
-        st["reuse"] = t2 - t1
-
-        d, s, _ = cross_bilateral(d, s, low, filter)
+            st["gbuffer"] = 0.0
+            d, s, emitted, st_low = self._shading_branch(frame, filter, poses, camera)
+            image = None
+        st.update(st_low)
         t3 = self._now()
-        st["filter"] = t3 - t2
 
         if self.lod is not None:  # --- issue 13: plan from the previous output before the upsampling overwrites it
             self.lod.plan(self._radiance, box)
             t_lod = self._now() - t3
             t3 = self._now()
-        upsample(low, d, s, emitted, self.native, filter, box, self.background, self._radiance, self._wsum, self._unresolved)
+        upsample(self.low, d, s, emitted, self.native, filter, box, self.background, self._radiance, self._wsum, self._unresolved)
         t4 = self._now()
         st["upsample"] = t4 - t3
 
@@ -206,7 +249,7 @@ class ReconstructStage:
             t5 = self._now()
             st["adaptive"] = t5 - t4
             t4 = t5
-        image = self.base_frame(exposure).copy()
+        image = self._background_copy(exposure) if image is None else image.result()
         if box[1] > box[0] and box[3] > box[2]:
             encode_srgb8(self._radiance, self.W, exposure, box, image)
         st["post"] = self._now() - t4

@@ -57,7 +57,7 @@ def _add_tap(d0, d1, d2, e0, e1, e2, s0, s1, s2, wd_sum, ws_sum, wd, ws, ld, le,
             wd_sum + wd, ws_sum + ws)
 
 
-@nb.njit(parallel=True, cache=True, fastmath=FASTMATH)
+@nb.njit(parallel=True, cache=True, nogil=True, fastmath=FASTMATH)
 def _upsample_kernel(mode, w, h, lid, lz, ln, la, ls, ld, lsp, le, W, H, gid, z, nrm, axis, sharp, alb, spec,
                      background, y0, y1, x0, x1, out, wsum, unresolved):
     sx = w / W

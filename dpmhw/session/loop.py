@@ -190,6 +190,7 @@ class SessionLoop:
                 log.error("%s did not stop within %.0f s", t.name, timeout_s)
         self._threads.clear()
         self._go_dark(reason, force=True)
+        self.reconstruct.close()
         self.final_blank = self._last_blank
         if self._samples is not None:
             self._samples.close()
