@@ -42,7 +42,7 @@ from typing import Callable
 
 import numpy as np
 
-from dpmhw.benchmarks.native_quality import _masked_psnr, _masks, flip_error
+from dpmhw.benchmarks.native_quality import _masked_psnr, flip_error
 from dpmhw.benchmarks.quality import ReferenceCache, _save
 from dpmhw.lod.mesh_lod import MeshLevels, MeshLodSelector, MeshLodSettings, object_visibility, scene_at_levels
 from dpmhw.lod.refine import RefineSettings, TileRefiner
@@ -206,6 +206,7 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
     native = with_fps(scaled_scene(load_scene(name), cfg.scale) if cfg.scale != 1.0 else load_scene(name), FPS)
     W, H = native.render.width, native.render.height
     levels, build_s = _mesh_levels(native)
+    meshes = [i for i, o in enumerate(native.objects) if o.shape == "mesh"]
     eval_k = sorted({int(round(t * FPS)) for t in cfg.eval_times})
     start = max(0, eval_k[0] - cfg.history_frames)
     ks = list(range(start, eval_k[-1] + 1))
@@ -235,7 +236,7 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                 if k in refs:
                     ref = refs[k]
                     ref8 = postprocess(ref["radiance"])
-                    mask = _masks(native, ref["object_id"])[0]
+                    mask = np.isin(ref["object_id"], meshes)  # inside the objects (the meshes)
                     img = row["image"]
                     st["psnr"].append(psnr(img, ref8))
                     st["ssim"].append(ssim(img, ref8))
