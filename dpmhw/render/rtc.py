@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import ctypes
 import glob
-import math
 import os
 import warnings
 
@@ -176,24 +175,11 @@ def aligned_words(nwords, align=64):
 
 
 @nb.njit(inline="always", nogil=True, cache=True)
-def intersect1(scene, f, iv, o0, o1, o2, d0, d1, d2, tfar):
-    """Closest hit of one ray in scene before tfar. f / iv: float32 / int32 views of one
-    RAYHIT_WORDS scratch. Returns (hit?, t, geomID, primID, u, v)."""
+def set_ray1(f, iv, o0, o1, o2, d0, d1, d2, tfar):
+    """Write one ray into a RAYHIT_WORDS scratch (f / iv: its float32 / int32 views), with the
+    hit reset (geomID, instID, primID invalid), ready for rtcIntersect1 or rtcOccluded1."""
     f[0], f[1], f[2], f[R_TNEAR] = o0, o1, o2, 0.0
     f[4], f[5], f[6], f[R_TIME] = d0, d1, d2, 0.0
     f[R_TFAR] = tfar
     iv[R_MASK], iv[R_ID], iv[R_FLAGS] = INVALID, 0, 0
     iv[H_GEOM], iv[H_INST], iv[H_PRIM] = INVALID, INVALID, INVALID
-    rtcIntersect1(scene, f.ctypes.data, 0)
-    return iv[H_GEOM] != INVALID, f[R_TFAR], iv[H_GEOM], iv[H_PRIM], f[H_U], f[H_V]
-
-
-@nb.njit(inline="always", nogil=True, cache=True)
-def occluded1(scene, f, iv, o0, o1, o2, d0, d1, d2, tfar):
-    """Is anything in scene along the ray closer than tfar? (the same scratch f / iv)."""
-    f[0], f[1], f[2], f[R_TNEAR] = o0, o1, o2, 0.0
-    f[4], f[5], f[6], f[R_TIME] = d0, d1, d2, 0.0
-    f[R_TFAR] = tfar
-    iv[R_MASK], iv[R_ID], iv[R_FLAGS] = INVALID, 0, 0
-    rtcOccluded1(scene, f.ctypes.data, 0)
-    return f[R_TFAR] == -math.inf
