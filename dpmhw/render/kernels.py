@@ -18,12 +18,14 @@ import numba as nb
 import numpy as np
 
 from dpmhw.render import traversal
+from dpmhw.render.prefetch import prefetch_row
 
 INV_PI = 1.0 / math.pi
 DIMS_PER_BOUNCE = 8
 MIN_ALPHA = 1e-3  # GGX α floor: mirror-like lobes stay finite
 RR_START_DEPTH = 3
 RR_MAX_SURVIVAL = 0.95
+PREFETCH_AHEAD = 8  # vertices: the triangle row of vertex k + 8 is fetched while vertex k is shaded
 SHADOW_SHORTEN = 1e-4  # relative: stop shadow rays just before the sampled light point
 OFFSET_REL = 3e-5  # origin offset along the geometric normal, relative to coordinate magnitude
 
@@ -166,7 +168,10 @@ def shade(
     base_dim = depth * DIMS_PER_BOUNCE
     ns = first  # next shadow-ray row
     nc = first  # next surviving-path row
-    for k in range(first, first + count):
+    end = first + count
+    for k in range(first, end):
+        if k + PREFETCH_AHEAD < end and hit_prim[k + PREFETCH_AHEAD] >= 0:
+            prefetch_row(tri, hit_prim[k + PREFETCH_AHEAD])
         pix = k if depth == 0 else pixel[k]
         d0, d1, d2 = rd[k, 0], rd[k, 1], rd[k, 2]
         ob = hit_obj[k]
