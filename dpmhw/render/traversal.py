@@ -11,8 +11,8 @@ exactly, so both paths return the same hits bit for bit.
 `RtcAccel.tables`: scenes[0] is the static RTCScene (0 if none), scenes[1 + j] the BVH of moving
 object dyn_obj[j], whose model-space bounding sphere is dyn_sphere[j] = (cx, cy, cz, r).
 
-Queries come in single rays (`closest1`, `occluded1`) and 16-wide packets (`closest16`,
-`occluded16`); packets take rows [a, a + n) of ray arrays with n ≤ 16.
+Queries take rows of the caller's ray arrays, as 16-wide packets or one ray per call (an
+RTCRayHit has the layout of a 1-wide packet, so both share one loop body).
 """
 
 from __future__ import annotations
@@ -62,12 +62,30 @@ def _into_model(o0, o1, o2, d0, d1, d2, R, T, k):
 
 
 @nb.njit(inline="always", nogil=True, cache=True)
-def _load16(f, iv, j, o0, o1, o2, d0, d1, d2, tfar):
-    f[j], f[16 + j], f[32 + j], f[48 + j] = o0, o1, o2, 0.0
-    f[64 + j], f[80 + j], f[96 + j], f[112 + j] = d0, d1, d2, 0.0
-    f[rtc.P_TFAR + j] = tfar
-    iv[rtc.P_MASK + j], iv[rtc.P_ID + j], iv[rtc.P_FLAGS + j] = rtc.INVALID, 0, 0
-    iv[rtc.P_GEOM + j], iv[rtc.P_INST + j], iv[rtc.P_PRIM + j] = rtc.INVALID, rtc.INVALID, rtc.INVALID
+def _load(f, iv, W, j, o0, o1, o2, d0, d1, d2, tfar):
+    """Write ray j of a W-wide packet (W = 1: an RTCRayHit, whose layout is the 1-wide packet's:
+    field k of lane j at word W * k + j), with the hit reset."""
+    f[j], f[W + j], f[2 * W + j], f[3 * W + j] = o0, o1, o2, 0.0
+    f[4 * W + j], f[5 * W + j], f[6 * W + j], f[7 * W + j] = d0, d1, d2, 0.0
+    f[rtc.R_TFAR * W + j] = tfar
+    iv[rtc.R_MASK * W + j], iv[rtc.R_ID * W + j], iv[rtc.R_FLAGS * W + j] = rtc.INVALID, 0, 0
+    iv[rtc.H_GEOM * W + j], iv[rtc.H_INST * W + j], iv[rtc.H_PRIM * W + j] = rtc.INVALID, rtc.INVALID, rtc.INVALID
+
+
+@nb.njit(inline="always", nogil=True, cache=True)
+def _intersect(packets, vp, scene, fp):
+    if packets:
+        rtc.rtcIntersect16(vp, scene, fp, 0)
+    else:
+        rtc.rtcIntersect1(scene, fp, 0)
+
+
+@nb.njit(inline="always", nogil=True, cache=True)
+def _occluded(packets, vp, scene, fp):
+    if packets:
+        rtc.rtcOccluded16(vp, scene, fp, 0)
+    else:
+        rtc.rtcOccluded1(scene, fp, 0)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -102,39 +120,30 @@ def _closest_rows(acc, R, T, f, iv, valid, o, d, order, first, end, t, obj, prim
     scenes, static_objects, tri_offsets, dyn_obj, dyn_sphere = acc
     scene0 = scenes[0]
     direct = order.shape[0] == 0
-    width = 16 if packets else 1
+    W = 16 if packets else 1
     fp, vp = f.ctypes.data, valid.ctypes.data
     rows = np.empty(16, np.int64)
-    for a in range(first, end, width):
-        n = min(width, end - a)
+    for a in range(first, end, W):
+        n = min(W, end - a)
         for i in range(n):
             r = a + i if direct else order[a + i]
             rows[i] = r
             if not resume:
                 t[r], obj[r], prim[r], u[r], v[r] = np.inf, -1, -1, 0.0, 0.0
-        if packets:
-            for i in range(16):
-                valid[i] = -1 if i < n else 0
+        for i in range(16):
+            valid[i] = -1 if i < n else 0
         if scene0 != 0:
-            if packets:
-                for i in range(n):
-                    r = rows[i]
-                    _load16(f, iv, i, o[r, 0], o[r, 1], o[r, 2], d[r, 0], d[r, 1], d[r, 2], NO_HIT_TFAR)
-                rtc.rtcIntersect16(vp, scene0, fp, 0)
-                for i in range(n):
-                    g = iv[rtc.P_GEOM + i]
-                    if g != rtc.INVALID:
-                        r = rows[i]
-                        k = static_objects[g]
-                        t[r], obj[r], prim[r], u[r], v[r] = f[rtc.P_TFAR + i], k, tri_offsets[k] + iv[rtc.P_PRIM + i], f[rtc.P_U + i], f[rtc.P_V + i]
-            else:
-                r = rows[0]
-                rtc.set_ray1(f, iv, o[r, 0], o[r, 1], o[r, 2], d[r, 0], d[r, 1], d[r, 2], NO_HIT_TFAR)
-                rtc.rtcIntersect1(scene0, fp, 0)
-                g = iv[rtc.H_GEOM]
+            for i in range(n):
+                r = rows[i]
+                _load(f, iv, W, i, o[r, 0], o[r, 1], o[r, 2], d[r, 0], d[r, 1], d[r, 2], NO_HIT_TFAR)
+            _intersect(packets, vp, scene0, fp)
+            for i in range(n):
+                g = iv[rtc.H_GEOM * W + i]
                 if g != rtc.INVALID:
+                    r = rows[i]
                     k = static_objects[g]
-                    t[r], obj[r], prim[r], u[r], v[r] = f[rtc.R_TFAR], k, tri_offsets[k] + iv[rtc.H_PRIM], f[rtc.H_U], f[rtc.H_V]
+                    t[r], obj[r], prim[r] = f[rtc.R_TFAR * W + i], k, tri_offsets[k] + iv[rtc.H_PRIM * W + i]
+                    u[r], v[r] = f[rtc.H_U * W + i], f[rtc.H_V * W + i]
         for j in range(dyn_obj.shape[0]):
             k = dyn_obj[j]
             c0, c1, c2, rad = _centre(R, T, k, dyn_sphere, j)
@@ -145,26 +154,17 @@ def _closest_rows(acc, R, T, f, iv, valid, o, d, order, first, end, t, obj, prim
                 near = _near(o0, o1, o2, d0, d1, d2, t[r], c0, c1, c2, rad)
                 if near:
                     m0, m1, m2, e0, e1, e2 = _into_model(o0, o1, o2, d0, d1, d2, R, T, k)
-                    if packets:
-                        _load16(f, iv, i, m0, m1, m2, e0, e1, e2, t[r])
-                    else:
-                        rtc.set_ray1(f, iv, m0, m1, m2, e0, e1, e2, t[r])
+                    _load(f, iv, W, i, m0, m1, m2, e0, e1, e2, t[r])
                     lanes += 1
-                if packets:
-                    valid[i] = -1 if near else 0
+                valid[i] = -1 if near else 0
             if lanes == 0:
                 continue
-            if packets:
-                rtc.rtcIntersect16(vp, scenes[1 + j], fp, 0)
-                for i in range(n):
-                    if valid[i] != 0 and iv[rtc.P_GEOM + i] != rtc.INVALID:
-                        r = rows[i]
-                        t[r], obj[r], prim[r], u[r], v[r] = f[rtc.P_TFAR + i], k, tri_offsets[k] + iv[rtc.P_PRIM + i], f[rtc.P_U + i], f[rtc.P_V + i]
-            else:
-                rtc.rtcIntersect1(scenes[1 + j], fp, 0)
-                if iv[rtc.H_GEOM] != rtc.INVALID:
-                    r = rows[0]
-                    t[r], obj[r], prim[r], u[r], v[r] = f[rtc.R_TFAR], k, tri_offsets[k] + iv[rtc.H_PRIM], f[rtc.H_U], f[rtc.H_V]
+            _intersect(packets, vp, scenes[1 + j], fp)
+            for i in range(n):
+                if valid[i] != 0 and iv[rtc.H_GEOM * W + i] != rtc.INVALID:
+                    r = rows[i]
+                    t[r], obj[r], prim[r] = f[rtc.R_TFAR * W + i], k, tri_offsets[k] + iv[rtc.H_PRIM * W + i]
+                    u[r], v[r] = f[rtc.H_U * W + i], f[rtc.H_V * W + i]
 
 
 @nb.njit(nogil=True, cache=True)
@@ -201,27 +201,21 @@ def occluded_range(acc, R, T, o, d, tmax, first, end, blocked, packets):
     16-wide packets of consecutive rows or one ray per call."""
     scenes, static_objects, tri_offsets, dyn_obj, dyn_sphere = acc
     scene0 = scenes[0]
-    width = 16 if packets else 1
+    W = 16 if packets else 1
     f, iv, valid = scratch16()
     fp, vp = f.ctypes.data, valid.ctypes.data
-    for a in range(first, end, width):
-        n = min(width, end - a)
+    for a in range(first, end, W):
+        n = min(W, end - a)
+        for i in range(16):
+            valid[i] = -1 if i < n else 0
         for i in range(n):
             blocked[a + i] = False
-        if packets:
-            for i in range(16):
-                valid[i] = -1 if i < n else 0
         if scene0 != 0:
-            if packets:
-                for i in range(n):
-                    _load16(f, iv, i, o[a + i, 0], o[a + i, 1], o[a + i, 2], d[a + i, 0], d[a + i, 1], d[a + i, 2], tmax[a + i])
-                rtc.rtcOccluded16(vp, scene0, fp, 0)
-                for i in range(n):
-                    blocked[a + i] = f[rtc.P_TFAR + i] == -math.inf
-            else:
-                rtc.set_ray1(f, iv, o[a, 0], o[a, 1], o[a, 2], d[a, 0], d[a, 1], d[a, 2], tmax[a])
-                rtc.rtcOccluded1(scene0, fp, 0)
-                blocked[a] = f[rtc.R_TFAR] == -math.inf
+            for i in range(n):
+                _load(f, iv, W, i, o[a + i, 0], o[a + i, 1], o[a + i, 2], d[a + i, 0], d[a + i, 1], d[a + i, 2], tmax[a + i])
+            _occluded(packets, vp, scene0, fp)
+            for i in range(n):
+                blocked[a + i] = f[rtc.R_TFAR * W + i] == -math.inf
         for j in range(dyn_obj.shape[0]):
             k = dyn_obj[j]
             c0, c1, c2, rad = _centre(R, T, k, dyn_sphere, j)
@@ -231,24 +225,15 @@ def occluded_range(acc, R, T, o, d, tmax, first, end, blocked, packets):
                 near = not blocked[a + i] and _near(o0, o1, o2, d0, d1, d2, tmax[a + i], c0, c1, c2, rad)
                 if near:
                     m0, m1, m2, e0, e1, e2 = _into_model(o0, o1, o2, d0, d1, d2, R, T, k)
-                    if packets:
-                        _load16(f, iv, i, m0, m1, m2, e0, e1, e2, tmax[a + i])
-                    else:
-                        rtc.set_ray1(f, iv, m0, m1, m2, e0, e1, e2, tmax[a + i])
+                    _load(f, iv, W, i, m0, m1, m2, e0, e1, e2, tmax[a + i])
                     lanes += 1
-                if packets:
-                    valid[i] = -1 if near else 0
+                valid[i] = -1 if near else 0
             if lanes == 0:
                 continue
-            if packets:
-                rtc.rtcOccluded16(vp, scenes[1 + j], fp, 0)
-                for i in range(n):
-                    if valid[i] != 0 and f[rtc.P_TFAR + i] == -math.inf:
-                        blocked[a + i] = True
-            else:
-                rtc.rtcOccluded1(scenes[1 + j], fp, 0)
-                if f[rtc.R_TFAR] == -math.inf:
-                    blocked[a] = True
+            _occluded(packets, vp, scenes[1 + j], fp)
+            for i in range(n):
+                if valid[i] != 0 and f[rtc.R_TFAR * W + i] == -math.inf:
+                    blocked[a + i] = True
 
 
 class RtcAccel:
