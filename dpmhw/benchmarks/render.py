@@ -6,7 +6,8 @@ segment runs shading and every ray query (`frame_ms_*`). Inside that call nothin
 per stage, so the split is measured on the same frames rendered staged (Python between the
 stages, the same kernels and queries, the same image): time inside the ray queries
 (`inside_embree_ms_median`) and in the shading kernel (`shade_kernel_ms_median`), each as
-thread-seconds / threads. Raw throughput replays this scene's own ray batches of one frame
+thread CPU-seconds / threads, and the shading kernel's CPU-ns per path vertex
+(`shade_ns_per_vertex`). Raw throughput replays this scene's own ray batches of one frame
 (camera, continuation and shadow rays, each query type alone) on the same thread count, in
 Mrays per second of wall time and per CPU-second.
 """
@@ -30,18 +31,20 @@ QUERIES = ("intersect_range", "occluded_range", "intersect_static")
 
 
 class _Timed:
-    """Wraps a query method or kernel and adds up the seconds spent in it, per thread."""
+    """Wraps a query method or kernel and adds up the CPU-seconds its calling thread spends in
+    it, per thread (thread CPU time: on a quiet machine the same as wall time, and on a shared
+    one not inflated by waiting for a core)."""
 
     def __init__(self, fn, clock: dict):
         self._fn, self._clock = fn, clock
 
     def __call__(self, *args, **kwargs):
-        start = time.perf_counter()
+        start = time.thread_time()
         try:
             return self._fn(*args, **kwargs)
         finally:
             ident = threading.get_ident()
-            self._clock[ident] = self._clock.get(ident, 0.0) + time.perf_counter() - start
+            self._clock[ident] = self._clock.get(ident, 0.0) + time.thread_time() - start
 
 
 def bench_render(scene_name: str = "paper-static", frames: int = 9, threads: int = 2, mesh=None) -> dict:
@@ -86,6 +89,7 @@ def bench_render(scene_name: str = "paper-static", frames: int = 9, threads: int
         "frame_cpu_ms_median": med["cpu_ms"], "frame_cpu_ms_cold_camera_median": float(np.median(cold_cpu)),
         "inside_embree_ms_median": split["embree_ms"], "inside_embree_fraction": split["embree_ms"] / split["ms"],
         "shade_kernel_ms_median": split["shade_ms"], "staged_frame_ms_median": split["ms"],
+        "shade_ns_per_vertex": split["shade_ns_per_vertex"],
         "rays_per_frame": {"camera": int(med["camera"]), "continuation": int(med["continuation"]), "shadow": int(med["shadow"]), "total": int(rays)},
         "raw_embree": raw, "raw_embree_ms_for_frame_rays": embree_only_ms,
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "processor": platform.processor() or platform.machine()},
@@ -123,7 +127,9 @@ def _staged_split(integrator: PathIntegrator, frames: int, fps: float) -> dict:
         for name in QUERIES:
             setattr(accel, name, originals[name])
     ms, embree_ms, shade_ms = (float(np.median(col)) for col in zip(*rows))
-    return {"ms": ms, "embree_ms": embree_ms, "shade_ms": shade_ms}
+    c = integrator.counts
+    vertices = c.primary + c.intersect  # shaded path vertices: one per camera ray and per continuation ray
+    return {"ms": ms, "embree_ms": embree_ms, "shade_ms": shade_ms, "shade_ns_per_vertex": shade_ms * integrator.threads * 1e6 / vertices}
 
 
 def _replay(fn, batch, threads: int, repeats: int = 5) -> tuple[float, float]:
@@ -195,8 +201,9 @@ def format_table(r: dict) -> str:
         f"{'1-spp frame, camera fixed (median)':44s} {r['frame_ms_median']:8.1f} ms   (min {r['frame_ms_min']:.1f}, max {r['frame_ms_max']:.1f})",
         f"{'1-spp frame, camera moved every frame':44s} {r['frame_ms_cold_camera_median']:8.1f} ms",
         f"{'  CPU time, camera fixed / moved':44s} {r['frame_cpu_ms_median']:8.1f} / {r['frame_cpu_ms_cold_camera_median']:.1f} CPU-ms",
-        f"{'  inside Embree (staged frames, timed queries)':44s} {r['inside_embree_ms_median']:8.1f} ms   ({100 * r['inside_embree_fraction']:.0f} % of the frame)",
-        f"{'  shading kernel (thread-seconds / threads)':44s} {r['shade_kernel_ms_median']:8.1f} ms   (staged frame {r['staged_frame_ms_median']:.1f} ms)",
+        f"{'  inside Embree (staged frames, query CPU time)':44s} {r['inside_embree_ms_median']:8.1f} ms   ({100 * r['inside_embree_fraction']:.0f} % of the frame)",
+        f"{'  shading kernel (thread CPU-s / threads)':44s} {r['shade_kernel_ms_median']:8.1f} ms   (staged frame {r['staged_frame_ms_median']:.1f} ms, "
+        f"{r['shade_ns_per_vertex']:.0f} ns per vertex)",
         f"{'rays per frame: camera / continuation / shadow':44s} {rays['camera']:,} / {rays['continuation']:,} / {rays['shadow']:,}",
         f"{'raw queries, camera rays (static BVH)':44s} {raw['camera_rays_per_s'] / 1e6:8.1f} Mrays/s   ({raw['camera_rays_per_cpu_s'] / 1e6:.1f} per CPU-s)",
         f"{'raw queries, continuation rays':44s} {raw['continuation_rays_per_s'] / 1e6:8.1f} Mrays/s   ({raw['continuation_rays_per_cpu_s'] / 1e6:.1f} per CPU-s)",

@@ -43,7 +43,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numba as nb
 import numpy as np
 
-from dpmhw.render import traversal
+from dpmhw.render import kernels, traversal
 from dpmhw.render.accel import empty_hits
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.geometry import SceneGeometry
@@ -61,7 +61,7 @@ NEAR_Z = 1e-4  # a moving vertex this close to the projector's plane (metres): t
 def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, viewer, use_viewer, cam_fwd,
                 g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough):
     """G-buffer attributes of pixels `index` from their camera rays' hits (d, t, obj, prim, u, v
-    indexed by pixel); same formulas as the renderer's first vertex (`kernels.shade` at depth 0)."""
+    indexed by pixel); the renderer's first-vertex helpers (`kernels.shade` at depth 0)."""
     for k in nb.prange(index.shape[0]):
         p = index[k]
         ob = obj[p]
@@ -76,39 +76,11 @@ def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, vi
             g_rough[p] = 0.0
             continue
         i = prim[p]
-        uu, vv = u[p], v[p]
-        w0 = 1.0 - uu - vv
         d0, d1, d2 = d[p, 0], d[p, 1], d[p, 2]
-        pm0 = tri[i, 0] + uu * tri[i, 3] + vv * tri[i, 6]
-        pm1 = tri[i, 1] + uu * tri[i, 4] + vv * tri[i, 7]
-        pm2 = tri[i, 2] + uu * tri[i, 5] + vv * tri[i, 8]
-        p0 = R[ob, 0, 0] * pm0 + R[ob, 0, 1] * pm1 + R[ob, 0, 2] * pm2 + T[ob, 0]
-        p1 = R[ob, 1, 0] * pm0 + R[ob, 1, 1] * pm1 + R[ob, 1, 2] * pm2 + T[ob, 1]
-        p2 = R[ob, 2, 0] * pm0 + R[ob, 2, 1] * pm1 + R[ob, 2, 2] * pm2 + T[ob, 2]
-        g0 = R[ob, 0, 0] * tri[i, 9] + R[ob, 0, 1] * tri[i, 10] + R[ob, 0, 2] * tri[i, 11]
-        g1 = R[ob, 1, 0] * tri[i, 9] + R[ob, 1, 1] * tri[i, 10] + R[ob, 1, 2] * tri[i, 11]
-        g2 = R[ob, 2, 0] * tri[i, 9] + R[ob, 2, 1] * tri[i, 10] + R[ob, 2, 2] * tri[i, 11]
-        sm0 = w0 * tri[i, 12] + uu * tri[i, 15] + vv * tri[i, 18]
-        sm1 = w0 * tri[i, 13] + uu * tri[i, 16] + vv * tri[i, 19]
-        sm2 = w0 * tri[i, 14] + uu * tri[i, 17] + vv * tri[i, 20]
-        s0 = R[ob, 0, 0] * sm0 + R[ob, 0, 1] * sm1 + R[ob, 0, 2] * sm2
-        s1 = R[ob, 1, 0] * sm0 + R[ob, 1, 1] * sm1 + R[ob, 1, 2] * sm2
-        s2 = R[ob, 2, 0] * sm0 + R[ob, 2, 1] * sm1 + R[ob, 2, 2] * sm2
-        sl = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-        if sl > 1e-12:
-            s0, s1, s2 = s0 / sl, s1 / sl, s2 / sl
-        else:
-            s0, s1, s2 = g0, g1, g2
-        wo0, wo1, wo2 = -d0, -d1, -d2
-        if use_viewer:
-            e0, e1, e2 = viewer[0] - p0, viewer[1] - p1, viewer[2] - p2
-            el = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-            if el > 1e-12:
-                wo0, wo1, wo2 = e0 / el, e1 / el, e2 / el
-        if g0 * wo0 + g1 * wo1 + g2 * wo2 <= 0.0:
-            g0, g1, g2, s0, s1, s2 = -g0, -g1, -g2, -s0, -s1, -s2
-        if s0 * wo0 + s1 * wo1 + s2 * wo2 <= 1e-6:
-            s0, s1, s2 = g0, g1, g2
+        g0, g1, g2 = kernels.geometric_normal(tri, R, ob, i)
+        pm0, pm1, pm2, p0, p1, p2, s0, s1, s2 = kernels.hit_point(tri, R, T, ob, i, u[p], v[p])
+        g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, front = kernels.face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2,
+                                                                            viewer[0], viewer[1], viewer[2], use_viewer)
         g_id[p] = ob
         g_pos[p, 0], g_pos[p, 1], g_pos[p, 2] = p0, p1, p2
         g_normal[p, 0], g_normal[p, 1], g_normal[p, 2] = s0, s1, s2

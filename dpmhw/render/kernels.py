@@ -18,12 +18,14 @@ import numba as nb
 import numpy as np
 
 from dpmhw.render import traversal
+from dpmhw.render.prefetch import prefetch_row
 
 INV_PI = 1.0 / math.pi
 DIMS_PER_BOUNCE = 8
 MIN_ALPHA = 1e-3  # GGX α floor: mirror-like lobes stay finite
 RR_START_DEPTH = 3
 RR_MAX_SURVIVAL = 0.95
+PREFETCH_AHEAD = 8  # vertices: the triangle row of vertex k + 8 is fetched while vertex k is shaded
 SHADOW_SHORTEN = 1e-4  # relative: stop shadow rays just before the sampled light point
 OFFSET_REL = 3e-5  # origin offset along the geometric normal, relative to coordinate magnitude
 
@@ -131,6 +133,61 @@ def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, ar, ag, ab, sr, sg, sb,
     return fd0, fd1, fd2, fs0, fs1, fs2, pdf
 
 
+@nb.njit(inline="always", **_jit)
+def geometric_normal(tri, R, ob, i):
+    """World-space unit geometric normal of triangle i (`tri` rows, see `shade`) of object ob."""
+    g0 = R[ob, 0, 0] * tri[i, 9] + R[ob, 0, 1] * tri[i, 10] + R[ob, 0, 2] * tri[i, 11]
+    g1 = R[ob, 1, 0] * tri[i, 9] + R[ob, 1, 1] * tri[i, 10] + R[ob, 1, 2] * tri[i, 11]
+    g2 = R[ob, 2, 0] * tri[i, 9] + R[ob, 2, 1] * tri[i, 10] + R[ob, 2, 2] * tri[i, 11]
+    return g0, g1, g2
+
+
+@nb.njit(inline="always", **_jit)
+def hit_point(tri, R, T, ob, i, u, v):
+    """The point at barycentrics (u, v) of triangle i of object ob, in model space and in world
+    space, and its interpolated shading normal in world space (not normalised). Straight-line
+    code: inlined into a loop, it adds no reference counting (see traversal)."""
+    w0 = 1.0 - u - v
+    pm0 = tri[i, 0] + u * tri[i, 3] + v * tri[i, 6]
+    pm1 = tri[i, 1] + u * tri[i, 4] + v * tri[i, 7]
+    pm2 = tri[i, 2] + u * tri[i, 5] + v * tri[i, 8]
+    p0 = R[ob, 0, 0] * pm0 + R[ob, 0, 1] * pm1 + R[ob, 0, 2] * pm2 + T[ob, 0]
+    p1 = R[ob, 1, 0] * pm0 + R[ob, 1, 1] * pm1 + R[ob, 1, 2] * pm2 + T[ob, 1]
+    p2 = R[ob, 2, 0] * pm0 + R[ob, 2, 1] * pm1 + R[ob, 2, 2] * pm2 + T[ob, 2]
+    sm0 = w0 * tri[i, 12] + u * tri[i, 15] + v * tri[i, 18]
+    sm1 = w0 * tri[i, 13] + u * tri[i, 16] + v * tri[i, 19]
+    sm2 = w0 * tri[i, 14] + u * tri[i, 17] + v * tri[i, 20]
+    s0 = R[ob, 0, 0] * sm0 + R[ob, 0, 1] * sm1 + R[ob, 0, 2] * sm2
+    s1 = R[ob, 1, 0] * sm0 + R[ob, 1, 1] * sm1 + R[ob, 1, 2] * sm2
+    s2 = R[ob, 2, 0] * sm0 + R[ob, 2, 1] * sm1 + R[ob, 2, 2] * sm2
+    return pm0, pm1, pm2, p0, p1, p2, s0, s1, s2
+
+
+@nb.njit(inline="always", **_jit)
+def face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2, v0, v1, v2, use_viewer):
+    """Normalise the shading normal s (g where it vanishes), take the outgoing direction wo (−d,
+    or towards the viewer at v when `use_viewer`: in DPM the eye, not the projector, sees the
+    surface), and face both normals towards wo (two-sided shading; s falls back to g where it
+    is not in wo's hemisphere). Scalars only. Returns g, s, wo and whether the ray hit the front."""
+    sl = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+    if sl > 1e-12:
+        s0, s1, s2 = s0 / sl, s1 / sl, s2 / sl
+    else:
+        s0, s1, s2 = g0, g1, g2
+    wo0, wo1, wo2 = -d0, -d1, -d2
+    if use_viewer:
+        e0, e1, e2 = v0 - p0, v1 - p1, v2 - p2
+        el = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        if el > 1e-12:
+            wo0, wo1, wo2 = e0 / el, e1 / el, e2 / el
+    front = _dot(g0, g1, g2, wo0, wo1, wo2) > 0.0
+    if not front:
+        g0, g1, g2, s0, s1, s2 = -g0, -g1, -g2, -s0, -s1, -s2
+    if _dot(s0, s1, s2, wo0, wo1, wo2) <= 1e-6:
+        s0, s1, s2 = g0, g1, g2
+    return g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, front
+
+
 @nb.njit(nogil=True, **_jit)
 def shade(
     depth, max_bounces, mis_last, key, first, count, pixel, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v,
@@ -167,7 +224,10 @@ def shade(
     base_dim = depth * DIMS_PER_BOUNCE
     ns = first  # next shadow-ray row
     nc = first  # next surviving-path row
-    for k in range(first, first + count):
+    end = first + count
+    for k in range(first, end):
+        if k + PREFETCH_AHEAD < end and hit_prim[k + PREFETCH_AHEAD] >= 0:
+            prefetch_row(tri, hit_prim[k + PREFETCH_AHEAD])
         pix = k if depth == 0 else pixel[k]
         d0, d1, d2 = rd[k, 0], rd[k, 1], rd[k, 2]
         ob = hit_obj[k]
@@ -196,9 +256,7 @@ def shade(
         else:
             tri_i = hit_prim[k]
             u, v = hit_u[k], hit_v[k]
-            g0 = obj_R[ob, 0, 0] * tri[tri_i, 9] + obj_R[ob, 0, 1] * tri[tri_i, 10] + obj_R[ob, 0, 2] * tri[tri_i, 11]
-            g1 = obj_R[ob, 1, 0] * tri[tri_i, 9] + obj_R[ob, 1, 1] * tri[tri_i, 10] + obj_R[ob, 1, 2] * tri[tri_i, 11]
-            g2 = obj_R[ob, 2, 0] * tri[tri_i, 9] + obj_R[ob, 2, 1] * tri[tri_i, 10] + obj_R[ob, 2, 2] * tri[tri_i, 11]
+            g0, g1, g2 = geometric_normal(tri, obj_R, ob, tri_i)
             if (obj_emit[ob, 0] > 0.0 or obj_emit[ob, 1] > 0.0 or obj_emit[ob, 2] > 0.0) and _dot(g0, g1, g2, d0, d1, d2) < 0.0:
                 if depth == 0:
                     if not use_viewer:
@@ -230,35 +288,9 @@ def shade(
         if ob < 0 or depth > max_bounces:
             continue  # escaped, or the extra ray that only looked for emitters (mis_last)
         # ---- surface interaction: hit point from barycentrics in model space, then to world ----
-        w0 = 1.0 - u - v
-        pm0 = tri[tri_i, 0] + u * tri[tri_i, 3] + v * tri[tri_i, 6]
-        pm1 = tri[tri_i, 1] + u * tri[tri_i, 4] + v * tri[tri_i, 7]
-        pm2 = tri[tri_i, 2] + u * tri[tri_i, 5] + v * tri[tri_i, 8]
-        p0 = obj_R[ob, 0, 0] * pm0 + obj_R[ob, 0, 1] * pm1 + obj_R[ob, 0, 2] * pm2 + obj_t[ob, 0]
-        p1 = obj_R[ob, 1, 0] * pm0 + obj_R[ob, 1, 1] * pm1 + obj_R[ob, 1, 2] * pm2 + obj_t[ob, 1]
-        p2 = obj_R[ob, 2, 0] * pm0 + obj_R[ob, 2, 1] * pm1 + obj_R[ob, 2, 2] * pm2 + obj_t[ob, 2]
-        sm0 = w0 * tri[tri_i, 12] + u * tri[tri_i, 15] + v * tri[tri_i, 18]
-        sm1 = w0 * tri[tri_i, 13] + u * tri[tri_i, 16] + v * tri[tri_i, 19]
-        sm2 = w0 * tri[tri_i, 14] + u * tri[tri_i, 17] + v * tri[tri_i, 20]
-        s0 = obj_R[ob, 0, 0] * sm0 + obj_R[ob, 0, 1] * sm1 + obj_R[ob, 0, 2] * sm2
-        s1 = obj_R[ob, 1, 0] * sm0 + obj_R[ob, 1, 1] * sm1 + obj_R[ob, 1, 2] * sm2
-        s2 = obj_R[ob, 2, 0] * sm0 + obj_R[ob, 2, 1] * sm1 + obj_R[ob, 2, 2] * sm2
-        sl = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-        if sl > 1e-12:
-            s0, s1, s2 = s0 / sl, s1 / sl, s2 / sl
-        else:
-            s0, s1, s2 = g0, g1, g2
-        wo0, wo1, wo2 = -d0, -d1, -d2
-        if depth == 0 and use_viewer:  # in DPM the eye, not the projector, sees the surface
-            e0, e1, e2 = viewer[0] - p0, viewer[1] - p1, viewer[2] - p2
-            el = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-            if el > 1e-12:
-                wo0, wo1, wo2 = e0 / el, e1 / el, e2 / el
-        front = _dot(g0, g1, g2, wo0, wo1, wo2) > 0.0
-        if not front:  # two-sided shading: face both normals towards wo
-            g0, g1, g2, s0, s1, s2 = -g0, -g1, -g2, -s0, -s1, -s2
-        if _dot(s0, s1, s2, wo0, wo1, wo2) <= 1e-6:
-            s0, s1, s2 = g0, g1, g2
+        pm0, pm1, pm2, p0, p1, p2, s0, s1, s2 = hit_point(tri, obj_R, obj_t, ob, tri_i, u, v)
+        g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, front = face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2,
+                                                                    viewer[0], viewer[1], viewer[2], depth == 0 and use_viewer)
         alpha = obj_alpha[ob]
         if tri[tri_i, 21] > 0.0:  # per-triangle α (a scene's roughness_map)
             alpha = tri[tri_i, 21]

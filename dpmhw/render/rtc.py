@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import ctypes
 import glob
-import math
 import os
 import warnings
 
@@ -30,10 +29,8 @@ from numba import types
 # mask 9, id 10, flags 11, then the hit: Ng 12-14, u 15, v 16, primID 17, geomID 18, instID 19
 R_TNEAR, R_TIME, R_TFAR, R_MASK, R_ID, R_FLAGS = 3, 7, 8, 9, 10, 11
 H_U, H_V, H_PRIM, H_GEOM, H_INST = 15, 16, 17, 18, 19
-RAYHIT_WORDS = 24
-# 16-wide packets: field f (in the order above) of lane j at word 16 * f + j
-P_TFAR, P_MASK, P_ID, P_FLAGS = 128, 144, 160, 176
-P_U, P_V, P_PRIM, P_GEOM, P_INST = 240, 256, 272, 288, 304
+# A W-wide packet (RTCRayHit16: W = 16) has field k of lane j at word W * k + j: the RTCRayHit
+# above is the 1-wide case (its 20 words padded to 24).
 P16_RAYHIT_WORDS = 336
 INVALID = -1  # RTC_INVALID_GEOMETRY_ID (0xFFFFFFFF) as int32; also "all mask bits"
 
@@ -173,27 +170,3 @@ def aligned_words(nwords, align=64):
     addr = buf.ctypes.data
     off = ((align - addr % align) % align) // 4
     return buf[off : off + nwords]
-
-
-@nb.njit(inline="always", nogil=True, cache=True)
-def intersect1(scene, f, iv, o0, o1, o2, d0, d1, d2, tfar):
-    """Closest hit of one ray in scene before tfar. f / iv: float32 / int32 views of one
-    RAYHIT_WORDS scratch. Returns (hit?, t, geomID, primID, u, v)."""
-    f[0], f[1], f[2], f[R_TNEAR] = o0, o1, o2, 0.0
-    f[4], f[5], f[6], f[R_TIME] = d0, d1, d2, 0.0
-    f[R_TFAR] = tfar
-    iv[R_MASK], iv[R_ID], iv[R_FLAGS] = INVALID, 0, 0
-    iv[H_GEOM], iv[H_INST], iv[H_PRIM] = INVALID, INVALID, INVALID
-    rtcIntersect1(scene, f.ctypes.data, 0)
-    return iv[H_GEOM] != INVALID, f[R_TFAR], iv[H_GEOM], iv[H_PRIM], f[H_U], f[H_V]
-
-
-@nb.njit(inline="always", nogil=True, cache=True)
-def occluded1(scene, f, iv, o0, o1, o2, d0, d1, d2, tfar):
-    """Is anything in scene along the ray closer than tfar? (the same scratch f / iv)."""
-    f[0], f[1], f[2], f[R_TNEAR] = o0, o1, o2, 0.0
-    f[4], f[5], f[6], f[R_TIME] = d0, d1, d2, 0.0
-    f[R_TFAR] = tfar
-    iv[R_MASK], iv[R_ID], iv[R_FLAGS] = INVALID, 0, 0
-    rtcOccluded1(scene, f.ctypes.data, 0)
-    return f[R_TFAR] == -math.inf
