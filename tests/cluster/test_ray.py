@@ -52,7 +52,7 @@ def test_cli_with_ray_writes_the_same_image_as_without(pool, scene_file, tmp_pat
     _register()
     runner = CliRunner()
     outs = {}
-    for name, extra in (("local", []), ("ray", ["--ray", "local", "--threads", "1"])):
+    for name, extra in (("local", []), ("ray", ["--ray", "--threads", "1"])):  # a bare --ray: a local Ray instance
         outs[name] = tmp_path / f"{name}.npy"
         result = runner.invoke(app, ["render", str(scene_file), "--spp", str(SPP), "--seed", "4", "--time", str(TIME),
                                      "--out", str(outs[name]), *extra])
