@@ -20,7 +20,7 @@ from dpmhw.cluster import ClusterError
 class MissingReference(Exception):
     def __init__(self, request: tuple):
         super().__init__("reference not shipped")
-        self.request = request  # (scene, scene_name, time, spp, seed)
+        self.request = request  # (scene, scene_name, time, spp, seed, key options)
 
 
 class ShippedReferences(ReferenceCache):
@@ -30,10 +30,13 @@ class ShippedReferences(ReferenceCache):
         super().__init__(threads=threads)
         self.known = known
 
-    def get(self, scene, scene_name: str, time: float, spp: int, seed: int = REFERENCE_SEED, integrator=None) -> dict:
-        key, _ = self.key(scene, time, spp, seed)
+    def get(self, scene, scene_name: str, time: float, spp: int, seed: int = REFERENCE_SEED, integrator=None,
+            **key_options) -> dict:
+        """`key_options`: ReferenceCache's other keyed options (how the reference samples), passed on
+        as they are, so a unit on Ray asks for the same reference as it would locally."""
+        key, _ = self.key(scene, time, spp, seed, **key_options)
         if key not in self.known:
-            raise MissingReference((scene, scene_name, time, spp, seed))
+            raise MissingReference((scene, scene_name, time, spp, seed, key_options))
         self.hits += 1
         return self.known[key]
 
@@ -77,11 +80,11 @@ def run_units_on_ray(pool, units: list[QualityConfig], cache: ReferenceCache,
                 outcomes[i] = value
                 progress("bench units on Ray (static part, each dynamic timeline)", sum(o is not None for o in outcomes), len(units))
                 continue
-            scene, name, time, spp, seed = value
-            key, _ = cache.key(scene, time, spp, seed)
+            scene, name, time, spp, seed, options = value
+            key, _ = cache.key(scene, time, spp, seed, **options)
             if key in known[i]:
                 raise ClusterError(f"unit {i} asked twice for reference {key}: keys differ between driver and worker")
-            known[i][key] = cache.get(scene, name, time, spp, seed)
+            known[i][key] = cache.get(scene, name, time, spp, seed, **options)
             ref = submit(i)
             index[ref] = i
             pending.append(ref)
