@@ -142,6 +142,7 @@ class ReferenceCache:
         self.renderer = renderer_digest()
         self.rendered = 0
         self.hits = 0
+        self.cpu_seconds = 0.0  # the rendered references' CPU time, wherever they rendered
 
     def key(self, scene: Scene, time: float, spp: int, seed: int, pixel_sampling: str = "centre") -> tuple[str, dict]:
         key_fields = dict(scene=scene_digest(scene), time=repr(float(time)), spp=int(spp), seed=int(seed), renderer=self.renderer)
@@ -171,8 +172,11 @@ class ReferenceCache:
         tmp = path.with_name(path.stem + ".partial.npz")
         np.savez(tmp, radiance=frame.radiance.astype(np.float32), object_id=frame.object_id)
         tmp.replace(path)
+        cpu = float(sum(frame.block_cpu_seconds))
+        self.cpu_seconds += cpu
         meta = dict(key_fields, scene_name=scene_name, width=scene.render.width, height=scene.render.height,
                     max_bounces=scene.render.max_bounces, seconds=round(_time.perf_counter() - started, 1),
+                    cpu_seconds=round(cpu, 3),
                     nonfinite_samples=frame.nonfinite_samples, dpmhw=__version__,
                     equivalent_command=f"dpmhw render {scene_name} --spp {spp} --seed {seed} --time {time!r} "
                     f"--pixel-sampling {pixel_sampling} --out ref.npy"
@@ -404,7 +408,7 @@ def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path
     units run as Ray tasks (their ms are the workers')."""
     progress = progress or (lambda desc, done, total: None)
     cache = ReferenceCache(cache_dir, threads=cfg.threads, progress=progress, pool=pool)
-    started = _time.perf_counter()
+    started, cpu_started = _time.perf_counter(), _time.process_time()
     load0 = os.getloadavg()
     images: dict = {}
     result = dict(config=asdict(cfg), dpmhw=__version__, renderer=cache.renderer,
@@ -416,7 +420,7 @@ def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path
     else:
         from dpmhw.cluster.bench import run_units_on_ray
 
-        outcomes = run_units_on_ray(pool, sweep_units(cfg), cache, progress)
+        outcomes, units_cpu = run_units_on_ray(pool, sweep_units(cfg), cache, progress)
     for out, imgs in outcomes:  # the dynamic timelines come back one unit each
         if "dynamic" in out and "dynamic" in result:
             result["dynamic"]["timelines"] += out.pop("dynamic")["timelines"]
@@ -427,8 +431,12 @@ def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path
             else:
                 images[name] = img
     result["references"] = dict(cache_dir=str(cache.dir), rendered=cache.rendered, cache_hits=cache.hits)
+    # CPU time: on Ray the work is in worker processes, which this process's own CPU time (and
+    # /usr/bin/time of the command) does not include; the workers measure theirs
+    result["cpu_seconds"] = dict(this_process=round(_time.process_time() - cpu_started, 3))
     if pool is not None:
         result["ray"] = dict(address=pool.address or "local", cpus=pool.cpus)
+        result["cpu_seconds"].update(ray_references=round(cache.cpu_seconds, 3), ray_units=round(units_cpu, 3))
     result["seconds"] = round(_time.perf_counter() - started, 1)
     result["loadavg_start_end"] = [list(load0), list(os.getloadavg())]
     if out_dir is not None:
@@ -585,6 +593,8 @@ def format_table(result: dict) -> str:
 
         lines += format_native(result)
     lines.append(f"references: {result['references']['rendered']} rendered, {result['references']['cache_hits']} from cache "
-                 f"({result['references']['cache_dir']}); {result['seconds']} s; load average start/end "
+                 f"({result['references']['cache_dir']}); {result['seconds']} s, CPU "
+                 + " + ".join(f"{v:.1f} s {k.replace('_', ' ')}" for k, v in result["cpu_seconds"].items())
+                 + "; load average start/end "
                  f"{result['loadavg_start_end'][0][0]:.1f}/{result['loadavg_start_end'][1][0]:.1f}")
     return "\n".join(lines)

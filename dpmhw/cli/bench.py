@@ -10,6 +10,7 @@ import typer
 
 from dpmhw.cli import bench_app
 from dpmhw.cli.choices import QualityPart
+from dpmhw.cli.optional_value import optional_values
 from dpmhw.progress import Progress
 
 
@@ -32,7 +33,7 @@ def bench_render(
         typer.echo(f"wrote {json_path}")
 
 
-@bench_app.command("quality")
+@bench_app.command("quality", cls=optional_values({"--ray": "local"}))
 def bench_quality(
     quick: Annotated[bool, typer.Option("--quick", help="Quarter resolution (256×192), fewer frames, 256-spp dynamic references: a few minutes.")] = False,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Write the results as JSON here.")] = None,
@@ -44,7 +45,7 @@ def bench_quality(
     dynamic_ref_spp: Annotated[Optional[int], typer.Option(min=1, help="Override the dynamic references' spp.")] = None,
     dynamic_times: Annotated[Optional[str], typer.Option(help="Override the dynamic eval times, comma-separated seconds, e.g. 0.2,0.5.")] = None,
     threads: Annotated[int, typer.Option(min=1)] = 2,
-    ray: Annotated[Optional[str], typer.Option(metavar="ADDRESS", help="References and sweep units as Ray tasks: 'local' = this machine, or a cluster's address (docs/cluster.md).")] = None,
+    ray: Annotated[Optional[str], typer.Option(metavar="[ADDRESS]", help="References and sweep units as Ray tasks: no address or 'local' = a Ray instance on this machine, or a cluster's address (docs/cluster.md).")] = None,
 ) -> None:
     """Speed against error: PSNR/SSIM against converged references for plain path tracing and
     temporal reuse (static table vs the paper's Table 1, dynamic per-frame error), and native

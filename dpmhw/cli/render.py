@@ -13,10 +13,11 @@ import typer
 
 from dpmhw.cli import app
 from dpmhw.cli.choices import PixelSampling, ReuseMode, Tonemap
+from dpmhw.cli.optional_value import optional_values
 from dpmhw.progress import Progress
 
 
-@app.command()
+@app.command(cls=optional_values({"--ray": "local"}))
 def render(
     scene: Annotated[str, typer.Argument(help="Scene file (TOML) or built-in name: paper-static, paper-dynamic, dpm-bunny.")] = "paper-static",
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help=".npy = float32 (H, W, 3) linear radiance; .png = sRGB; the parameters go to FILE.png.json (FILE.npy.json) beside it [default: frame.png; with --frames and --out-dir: none, the frames go to DIR only].")] = None,
@@ -35,7 +36,7 @@ def render(
     out_dir: Annotated[Optional[Path], typer.Option(help="With --frames: write every frame here as frame_00000.png (or the suffix of --out), and the parameters as frames.json.")] = None,
     tonemap: Annotated[Tonemap, typer.Option(help="Tone-mapping operator for .png output.")] = Tonemap("clip"),
     pixel_sampling: Annotated[PixelSampling, typer.Option(help="Single frame: jitter (converges to the pixel integral) or centre (pixel centres).")] = PixelSampling("jitter"),
-    ray: Annotated[Optional[str], typer.Option(metavar="ADDRESS", help="Render the passes as Ray tasks (same image, bit for bit): 'local' = a Ray instance on this machine, or a cluster's ray://HOST:10001 / HOST:6379 / auto (docs/cluster.md).")] = None,
+    ray: Annotated[Optional[str], typer.Option(metavar="[ADDRESS]", help="Render the passes as Ray tasks (same image, bit for bit): no address or 'local' = a Ray instance on this machine, or a cluster's ray://HOST:10001 / HOST:6379 / auto (docs/cluster.md). A bare --ray goes last or before another option.")] = None,
 ) -> None:
     """Render one frame, or K frames through temporal reuse. Ctrl-C stops after the current pass
     (or frame) and still writes what is finished."""

@@ -1,42 +1,13 @@
-"""A small scene (a room, a light and a mesh read from an OBJ file by a relative path)."""
+"""A small scene: the tests' lit room with a turning mesh read from an OBJ file by a relative path."""
 
 import textwrap
 
 import pytest
+from scene_texts import lit_room
 
 from dpmhw.scene_file import load_scene
 
-SCENE = """
-[render]
-width = 40
-height = 30
-max_bounces = 1
-
-[camera]
-fx = 32.0
-fy = 32.0
-cx = 20.0
-cy = 15.0
-position = [0.0, 0.5, 1.8]
-look_at = [0.0, 0.4, 0.0]
-
-[[objects]]
-name = "room"
-shape = "box"
-size = [1.0, 1.0, 1.0]
-position = [0.0, 0.5, 0.0]
-open = ["+z"]
-albedo = [0.7, 0.6, 0.5]
-
-[[objects]]
-name = "light"
-shape = "quad"
-size = [0.3, 0.3]
-position = [0.0, 0.99, 0.0]
-rotation = [180.0, 0.0, 0.0]
-albedo = 0.0
-emission = [10.0, 10.0, 10.0]
-
+SCENE = lit_room("""
 [[objects]]
 name = "wedge"
 shape = "mesh"
@@ -48,7 +19,7 @@ albedo = [0.5, 0.6, 0.5]
 specular = [0.3, 0.3, 0.3]
 roughness = 0.3
 motion = { rotate_axis = [0.0, 1.0, 0.0], rotate_deg_per_s = 60.0 }
-"""
+""", width=40, height=30, f=32.0, cx=20.0, cy=15.0, max_bounces=1)
 
 WEDGE_OBJ = """\
 v -0.5 0 -0.5

@@ -52,7 +52,7 @@ def test_cli_with_ray_writes_the_same_image_as_without(pool, scene_file, tmp_pat
     _register()
     runner = CliRunner()
     outs = {}
-    for name, extra in (("local", []), ("ray", ["--ray", "local", "--threads", "1"])):
+    for name, extra in (("local", []), ("ray", ["--ray", "--threads", "1"])):  # a bare --ray: a local Ray instance
         outs[name] = tmp_path / f"{name}.npy"
         result = runner.invoke(app, ["render", str(scene_file), "--spp", str(SPP), "--seed", "4", "--time", str(TIME),
                                      "--out", str(outs[name]), *extra])
@@ -97,7 +97,7 @@ def test_relative_mesh_path_renders_on_a_worker_elsewhere_without_the_file(pool,
 def test_bench_quality_on_ray_matches_local_and_its_references_are_reused_locally(pool, tmp_path):
     import dataclasses
 
-    from dpmhw.benchmarks.quality import QualityConfig, ReferenceCache, run_quality
+    from dpmhw.benchmarks.quality import QualityConfig, ReferenceCache, format_table, run_quality
     from dpmhw.sequence import scaled_scene
 
     cfg = dataclasses.replace(
@@ -106,9 +106,12 @@ def test_bench_quality_on_ray_matches_local_and_its_references_are_reused_locall
     on_ray = run_quality(cfg, cache_dir=tmp_path / "cluster-cache", pool=pool)
     assert on_ray["references"]["rendered"] == 1 + 2 + 2 and on_ray["ray"]["address"] == "local"
     assert [t["fps"] for t in on_ray["dynamic"]["timelines"]] == [947.0, 60.0]
+    cpu = on_ray["cpu_seconds"]  # the workers' CPU, which no process here accounts for
+    assert cpu["ray_references"] > 0 and cpu["ray_units"] > 0 and "ray units" in format_table(on_ray)
     # the same cache keys: a local run finds every reference the cluster rendered
     local = run_quality(cfg, cache_dir=tmp_path / "cluster-cache")
     assert local["references"]["rendered"] == 0 and local["references"]["cache_hits"] == 5
+    assert list(local["cpu_seconds"]) == ["this_process"]
 
     def psnrs(result):
         return [r["psnr_samples"] for r in result["static"]["rows"]] + \

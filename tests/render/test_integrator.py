@@ -1,41 +1,12 @@
 """Sampling behaviour: determinism, convergence, robustness on awkward geometry, moving objects."""
 
 import numpy as np
+from scene_texts import lit_room
 
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.transforms import Pose, rotation_from_euler_xyz_deg
 
-ROOM = """
-[render]
-width = 32
-height = 24
-max_bounces = 2
-
-[camera]
-fx = 26.0
-fy = 26.0
-cx = 16.0
-cy = 12.0
-position = [0.0, 0.5, 1.8]
-look_at = [0.0, 0.4, 0.0]
-
-[[objects]]
-name = "room"
-shape = "box"
-size = [1.0, 1.0, 1.0]
-position = [0.0, 0.5, 0.0]
-open = ["+z"]
-albedo = [0.7, 0.6, 0.5]
-
-[[objects]]
-name = "light"
-shape = "quad"
-size = [0.3, 0.3]
-position = [0.0, 0.99, 0.0]
-rotation = [180.0, 0.0, 0.0]
-albedo = 0.0
-emission = [10.0, 10.0, 10.0]
-
+ROOM = lit_room("""
 [[objects]]
 name = "ball"
 shape = "sphere"
@@ -45,7 +16,7 @@ albedo = [0.5, 0.5, 0.5]
 specular = [0.4, 0.4, 0.4]
 roughness = 0.3
 {extra}
-"""
+""", width=32, height=24, f=26.0, cx=16.0, cy=12.0, max_bounces=2)
 
 
 def test_same_seed_repeats_bit_for_bit_and_seeds_differ(make_scene, render):

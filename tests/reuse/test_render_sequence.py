@@ -5,6 +5,7 @@ import textwrap
 
 import numpy as np
 import pytest
+from scene_texts import lit_room
 from typer.testing import CliRunner
 
 from dpmhw.cli import _register, app
@@ -13,38 +14,7 @@ from dpmhw.reconstruct.reuse import TemporalReuse
 from dpmhw.scene_file import load_scene
 from dpmhw.sequence import run_sequence, scaled_scene
 
-SCENE = """
-[render]
-width = 32
-height = 24
-max_bounces = 1
-fps = 100.0
-
-[camera]
-fx = 26.0
-fy = 26.0
-cx = 15.5
-cy = 11.5
-position = [0.0, 0.5, 1.8]
-look_at = [0.0, 0.4, 0.0]
-
-[[objects]]
-name = "room"
-shape = "box"
-size = [1.0, 1.0, 1.0]
-position = [0.0, 0.5, 0.0]
-open = ["+z"]
-albedo = [0.7, 0.6, 0.5]
-
-[[objects]]
-name = "light"
-shape = "quad"
-size = [0.3, 0.3]
-position = [0.0, 0.99, 0.0]
-rotation = [180.0, 0.0, 0.0]
-albedo = 0.0
-emission = [10.0, 10.0, 10.0]
-
+SCENE = lit_room("""
 [[objects]]
 name = "ball"
 shape = "sphere"
@@ -52,7 +22,7 @@ radius = 0.2
 position = [0.0, 0.3, 0.1]
 albedo = [0.5, 0.5, 0.5]
 motion = {{ rotate_axis = [0.0, 1.0, 0.0], rotate_deg_per_s = {spin}, velocity = [{vx}, 0.0, 0.0] }}
-"""
+""", width=32, height=24, f=26.0, cx=15.5, cy=11.5, max_bounces=1, fps=100.0)
 
 
 @pytest.fixture
