@@ -409,6 +409,12 @@ class SessionLoop:
         image.setflags(write=False)
         stages.update(out.stages_s)
         t4 = self.clock()
+        # the newest sample may have gone stale while this frame was made: never light it then
+        # (dark within stale_after_ms + one frame, issue 14), and take in what arrived meanwhile
+        if self._check_tracking(t4) is None:
+            self._sync_output()
+            self.metrics.count("frames_withheld")
+            return False
         if resume_at is not None and resume_at > t4:
             self._stop.wait((resume_at - t4) / 1e9)  # less than one frame's work
         if not self._sync_output():

@@ -247,3 +247,25 @@ def test_dark_output_renders_only_at_the_probe_interval(make_loop):
         starts = [r.t_start_ns for r in list(loop.frame_log) if r.t_start_ns > resumed]
         return any(b - a < 100_000_000 for a, b in zip(starts, starts[1:]))
     assert wait_for(close_pair, 20)
+
+
+def test_a_frame_whose_samples_went_stale_while_it_was_made_is_never_shown(make_loop):
+    """Dark within stale_after_ms + one frame (issue 14): staleness is checked again before present."""
+    loop = make_loop().start()
+    renderer, tracker = loop.parts.renderer, loop.parts.tracker
+    assert wait_for(lambda: state(loop) == "running", 20)
+    lit_before = []
+    real_render = renderer.render
+
+    def stalling_render(**kw):
+        frame = real_render(**kw)
+        if not lit_before:
+            tracker.streaming = False
+            lit_before.append(loop._frame_number)
+            time.sleep(0.3)  # longer than stale_after_ms = 200: once made, this frame's samples are stale
+        return frame
+
+    renderer.render = stalling_render
+    assert wait_for(lambda: state(loop) == "blanked", 10)
+    assert "ms old" in loop.status()["reason"]
+    assert loop._frame_number == lit_before[0]  # the frame being made when tracking went stale was withheld
