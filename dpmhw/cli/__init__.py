@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import typer
 
 from dpmhw import __version__
@@ -11,6 +14,13 @@ bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks that print and sa
 mock_app = typer.Typer(no_args_is_help=True, help="Run emulated devices (firmware mocks) standalone.")
 app.add_typer(bench_app, name="bench")
 app.add_typer(mock_app, name="mock")
+
+
+def write_json(data, path: Path) -> Path:
+    """Write a benchmark's result as indented JSON (making the folder); returns the path."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2))
+    return path
 
 
 def _version(value: bool) -> None:

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli import bench_app
+from dpmhw.cli import bench_app, write_json
 from dpmhw.cli.choices import QualityPart
 from dpmhw.cli.optional_value import optional_values
 from dpmhw.progress import Progress
@@ -28,9 +27,7 @@ def bench_render(
     result = run(scene, frames=frames, threads=threads, mesh=mesh)
     typer.echo(format_table(result))
     if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(result, indent=2))
-        typer.echo(f"wrote {json_path}")
+        typer.echo(f"wrote {write_json(result, json_path)}")
 
 
 @bench_app.command("quality", cls=optional_values({"--ray": "local"}))
@@ -88,9 +85,7 @@ def bench_quality(
     for f in result.get("files", []):
         typer.echo(f"wrote {f}")
     if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(result, indent=2))
-        typer.echo(f"wrote {json_path}")
+        typer.echo(f"wrote {write_json(result, json_path)}")
 
 
 @bench_app.command("lod")
@@ -139,9 +134,7 @@ def bench_lod(
     for f in result["files"]:
         typer.echo(f"wrote {f}")
     if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(result["rows"], indent=2))
-        typer.echo(f"wrote {json_path}")
+        typer.echo(f"wrote {write_json(result['rows'], json_path)}")
 
 
 @bench_app.command("ray-scaling")
@@ -175,9 +168,7 @@ def bench_ray_scaling(
     if plot is not None:
         typer.echo(f"wrote {plot_png(result, plot)}")
     if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(result, indent=2))
-        typer.echo(f"wrote {json_path}")
+        typer.echo(f"wrote {write_json(result, json_path)}")
 
 
 @bench_app.command("soak")
@@ -207,7 +198,6 @@ def bench_soak(
         raise typer.BadParameter(str(exc)) from None
     typer.echo(format_table(result))
     if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(result, indent=2))
+        write_json(result, json_path)
         plot_soak(result, json_path.with_suffix(".png"))
         typer.echo(f"wrote {json_path} and {json_path.with_suffix('.png')}")

@@ -15,7 +15,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli import app, bench_app
+from dpmhw.cli import app, bench_app, write_json
 from dpmhw.cli.choices import ApiMode, BenchTrajectory, ClientPriority
 
 session_app = typer.Typer(no_args_is_help=True, help="Projection sessions: tracker → prediction → render → projector.")
@@ -152,6 +152,4 @@ def bench_session(
 
         typer.echo(f"wrote {plot_bench_session(results['cases'], series, plot)}")
     if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(results, indent=2))
-        typer.echo(f"wrote {json_path}")
+        typer.echo(f"wrote {write_json(results, json_path)}")
