@@ -171,34 +171,55 @@ class PathIntegrator:
         shades at a lower resolution). `static_hits`: the camera's cached hits on static
         objects for every pixel (else traced here). Deterministic per (seed, pixels): the random
         numbers hash the pixel's position in `pixels` and a key of the seed independent of
-        `render`'s. `counts` then holds this call's rays."""
+        `render`'s. `counts` then holds this call's rays.
+
+        Per path this costs what the same path costs inside `render` (the kernels are the same);
+        what is per call is kept small: the working arrays are views of one buffer that only
+        grows (callers ask for a different n every frame; fresh arrays would cost page faults
+        and evict `render`'s), and no G-buffer is allocated (none is written)."""
         if spp < 1:
             raise ValueError(f"spp must be ≥ 1, got {spp}")
         pixels = np.asarray(pixels, np.int64)
         n = len(pixels)
-        o_all, d_all = camera.generate_rays()
-        o, d = np.ascontiguousarray(o_all[pixels]), np.ascontiguousarray(d_all[pixels])
         R, T = self.geometry.poses(poses)
         self.counts = RayCounts(primary=n)
         film = {k: np.zeros((n, 3), f32) for k in ("emit", "diff", "spec")}
         if n == 0:
             return film["emit"]
+        if pixels.min() < 0 or pixels.max() >= camera.width * camera.height:
+            raise ValueError(f"pixels: indices must lie in [0, {camera.width * camera.height}) for a "
+                             f"{camera.width}×{camera.height} camera")
+        work, o, d = self._pixel_work(n)
+        o_all, d_all = camera.generate_rays()
+        np.take(o_all, pixels, axis=0, out=o)
+        np.take(d_all, pixels, axis=0, out=d)
+        moving = bool(self.geometry.accel.dynamic_objects)
+        primary = work.primary  # camera hits of the subset: the static ones gathered (completed in pass 0 when objects move)
         if static_hits is None:
             sh = self.geometry.accel.intersect_static(o, d)
+            for name in ("t", "obj", "prim", "u", "v"):
+                getattr(primary, name)[:] = getattr(sh, name)
             self.counts.primary_static_traced = n
         else:
-            sh = Hits(static_hits.t[pixels], static_hits.obj[pixels], static_hits.prim[pixels], static_hits.u[pixels],
-                      static_hits.v[pixels])
-        moving = bool(self.geometry.accel.dynamic_objects)
-        # every path of a subset is usually lit: one segment per thread, however few
-        work = self._work_buffers(n, self.threads)
-        primary = work.primary if moving else sh
-        gbuf, nonfinite = _GBuffer(n), np.zeros(n, np.int32)
+            for name in ("t", "obj", "prim", "u", "v"):
+                np.take(getattr(static_hits, name), pixels, out=getattr(primary, name))
+        nonfinite = np.zeros(n, np.int32)
         for p in range(spp):
             key = np.uint64(int(kernels.pass_key(seed, p)) ^ SUBSET_SALT)
-            self._trace_pass(key, o, d, sh if moving and p == 0 else None, primary, R, T, camera, film, gbuf, nonfinite, False,
-                             work=work)
+            self._trace_pass(key, o, d, primary if moving and p == 0 else None, primary, R, T, camera, film, _NO_GBUFFER,
+                             nonfinite, False, work=work)
         return (film["emit"] + film["diff"] + film["spec"]) / f32(spp)
+
+    def _pixel_work(self, n: int) -> tuple["_Work", np.ndarray, np.ndarray]:
+        """`render_pixels`' working arrays for n paths in ≥ `threads` segments, and its camera
+        rays' origins and directions: views of buffers kept apart from `render`'s, grown by a
+        quarter when too small."""
+        pool = getattr(self, "_pixel_pool", None)
+        if pool is None or pool[0].n < n:
+            cap = max(n, n + n // 4, 1024)
+            pool = self._pixel_pool = (_Work(cap, self.threads), np.empty((cap, 3), f32), np.empty((cap, 3), f32))
+        full, o, d = pool
+        return full.prefix(n), o[:n], d[:n]
 
     def _static_primary(self, camera: PinholeCamera, o, d):
         """Primary hits on static objects depend only on the camera pose: trace them once per pose."""
@@ -320,10 +341,7 @@ class _Work:
 
     def __init__(self, n: int, min_segments: int = 1):
         self.n, self.min_segments = n, min_segments
-        segments = min(MAX_SEGMENTS, max(1, min(min_segments, n // 64), -(-n // SEGMENT_PIXELS)))
-        size = -(-n // segments)
-        self.starts = np.minimum(np.arange(segments, dtype=np.int64) * size, n)
-        self.full_counts = np.minimum(self.starts + size, n) - self.starts
+        self.starts, self.full_counts = _segments(n, min_segments)
         self.pixel = np.empty(n, np.int32)
         self.beta = np.empty((n, 3), f32)
         self.kd = np.empty((n, 3), f32)
@@ -341,6 +359,29 @@ class _Work:
         self.sh_pix = np.empty(n, np.int32)
         self.blocked = np.empty(n, np.bool_)
 
+    def prefix(self, n: int) -> "_Work":
+        """The first n rows of every array (views), segmented for n paths (`render_pixels`)."""
+        w = object.__new__(_Work)
+        for k, a in vars(self).items():
+            if isinstance(a, np.ndarray):
+                a = a[:n]
+            elif isinstance(a, tuple):
+                a = tuple(x[:n] for x in a)
+            elif isinstance(a, Hits):
+                a = Hits(a.t[:n], a.obj[:n], a.prim[:n], a.u[:n], a.v[:n])
+            setattr(w, k, a)
+        w.n = n
+        w.starts, w.full_counts = _segments(n, self.min_segments)
+        return w
+
+
+def _segments(n: int, min_segments: int) -> tuple[np.ndarray, np.ndarray]:
+    """First row and row count of each segment of n paths (at least `min_segments` of ≥ 64 paths)."""
+    segments = min(MAX_SEGMENTS, max(1, min(min_segments, n // 64), -(-n // SEGMENT_PIXELS)))
+    size = -(-n // segments)
+    starts = np.minimum(np.arange(segments, dtype=np.int64) * size, n)
+    return starts, np.minimum(starts + size, n) - starts
+
 
 class _GBuffer:
     def __init__(self, npix: int):
@@ -352,3 +393,6 @@ class _GBuffer:
         self.alb = np.zeros((npix, 3), f32)
         self.spec = np.zeros((npix, 3), f32)
         self.rough = np.zeros(npix, f32)
+
+
+_NO_GBUFFER = _GBuffer(0)  # render_pixels writes no G-buffer: the kernels take empty arrays of the right types
