@@ -252,7 +252,7 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
             if k in refs:  # the maps a converged frame and a raw 1-spp native frame give, for comparison
                 depth = shared[1.0].frame.depth
                 vs = runs[0].cfg.visibility
-                for m in ("shading-rate", "spp", "all"):
+                for m in [m for m in ("shading-rate", "spp", "all") if m in stats]:
                     stats[m]["vis_ref"].append(_visible_tiles(refs[k]["radiance"], depth, native.camera.K, vs))
                     stats[m]["vis_1spp"].append(_visible_tiles(shared[1.0].frame.radiance, depth, native.camera.K, vs))
                     stats[m]["vis_1spp_raw"].append(_visible_tiles(shared[1.0].frame.radiance, depth, native.camera.K,

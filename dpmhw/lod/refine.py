@@ -63,10 +63,13 @@ class RefineSettings:
     alpha_v: float = 0.0
     thresholds: tuple[float, float, float] = (0.0, 20.0, 50.0)
     base_weight: float = 0.3  # share of the upsampled base in a refined pixel's output (its history stays native)
+    moving_every: int = 1  # a moving object's pixel (in a tile refined only for it) is traced every 1, 2 or 4 frames
 
     def __post_init__(self):
         object.__setattr__(self, "rays", check_number("rays", self.rays, 0, 1 << 40, integer=True))
         object.__setattr__(self, "base_weight", check_number("base_weight", self.base_weight, 0.0, 1.0))
+        if self.moving_every not in (1, 2, 4):
+            raise LodSettingsError(f"moving_every: expected 1, 2 or 4, got {self.moving_every!r}")
 
 
     @property
@@ -75,11 +78,13 @@ class RefineSettings:
 
 
 @nb.njit(cache=True, nogil=True)
-def _select(rate, spp, moving_only, gid, dynamic, W, y0, y1, x0, x1, tile, phase):
+def _select(rate, spp, moving_only, gid, dynamic, W, y0, y1, x0, x1, tile, phase, frame, every):
     """Lit pixels of the box in tiles of rate 1 or 2 (only the moving objects' pixels where
-    `moving_only`), in row-major order: flat index, spp if traced this frame (0: a ½-rate pixel
-    between its turns). Rate-2 pixels are traced when (y, x) ≡ phase mod 2. Visits only the
-    refined tiles' pixels."""
+    `moving_only`), in row-major order: flat index, spp if traced this frame (0: a pixel between
+    its turns, which keeps its history). Rate-2 pixels are traced when (y, x) ≡ phase mod 2.
+    Full-rate pixels of `moving_only` tiles are traced every `every` frames (1, 2: a
+    checkerboard alternating per frame, 4: each 2×2 block's four pixels in turn), so a moving
+    object costs 1/every of its paths. Visits only the refined tiles' pixels."""
     n = 0
     pix = np.empty((y1 - y0) * (x1 - x0), np.int64)
     s = np.empty((y1 - y0) * (x1 - x0), np.uint8)
@@ -96,9 +101,58 @@ def _select(rate, spp, moving_only, gid, dynamic, W, y0, y1, x0, x1, tile, phase
                 if gid[i] < 0 or (only and not dynamic[gid[i]]):
                     continue
                 pix[n] = i
-                s[n] = spp[ty, tx] if (r == 1 or (y % 2 == py and x % 2 == px)) else 0
+                if r == 2:
+                    on = y % 2 == py and x % 2 == px
+                elif only and every == 2:
+                    on = (x + y + frame) % 2 == 0
+                elif only and every == 4:
+                    on = (2 * ((x + y) % 2) + y % 2 + frame) % 4 == 0
+                else:
+                    on = True
+                s[n] = spp[ty, tx] if on else 0
                 n += 1
     return pix[:n], s[:n]
+
+
+@nb.njit(cache=True, nogil=True)
+def _fill(pixels, spp, samples, moving_only, tile, gid, normal, W, H, stamp, fresh, frame):
+    """Untraced pixels of `moving_only` tiles (moving_every > 1) take the mean of this frame's
+    samples at their 3×3 neighbours that show the same object with a normal within ~25°, and
+    count as traced at 1 spp: every pixel of a moving object gets fresh light every frame (at
+    the density of the traced ones) instead of holding its reprojected history, which lags
+    and blurs (measured). A pixel with no such neighbour keeps its history."""
+    for k in range(pixels.shape[0]):
+        if spp[k] > 0 and np.isfinite(samples[k, 0]) and np.isfinite(samples[k, 1]) and np.isfinite(samples[k, 2]):
+            i = pixels[k]
+            fresh[i, 0], fresh[i, 1], fresh[i, 2] = samples[k, 0], samples[k, 1], samples[k, 2]
+            stamp[i] = frame
+    for k in range(pixels.shape[0]):
+        if spp[k] != 0:
+            continue
+        i = pixels[k]
+        y, x = i // W, i % W
+        if not moving_only[y // tile, x // tile]:
+            continue
+        o = gid[i]
+        s0 = s1 = s2 = 0.0
+        m = 0
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                yy, xx = y + dy, x + dx
+                if yy < 0 or xx < 0 or yy >= H or xx >= W:
+                    continue
+                j = yy * W + xx
+                if stamp[j] != frame or gid[j] != o:
+                    continue
+                if normal[i, 0] * normal[j, 0] + normal[i, 1] * normal[j, 1] + normal[i, 2] * normal[j, 2] < 0.9:
+                    continue
+                s0 += fresh[j, 0]
+                s1 += fresh[j, 1]
+                s2 += fresh[j, 2]
+                m += 1
+        if m > 0:
+            samples[k, 0], samples[k, 1], samples[k, 2] = s0 / m, s1 / m, s2 / m
+            spp[k] = 1
 
 
 @nb.njit(cache=True, nogil=True)
@@ -202,6 +256,7 @@ class TileRefiner:
         self._dynamic = np.array([o.is_dynamic for o in gbuffer.scene.objects] + [False], np.bool_)  # [-1]: background
         n = self.W * self.H
         self._h = [(np.zeros((n, 3), np.float32), np.full(n, -1, np.int32), np.full(n, -2, np.int64)) for _ in range(2)]
+        self._fresh = (np.full(n, -1, np.int64), np.zeros((n, 3), np.float32))  # this frame's samples by pixel (`_fill`)
         self._frame = 0
         self._prev_poses = None
         self._moving_only = np.zeros((-(-self.H // tile), -(-self.W // tile)), np.bool_)
@@ -257,7 +312,8 @@ class TileRefiner:
         if dec is None or box[1] <= box[0] or box[3] <= box[2]:
             self._prev_poses = list(poses)
             return 0
-        pixels, spp = _select(dec.rate, dec.spp, self._moving_only, g.id, self._dynamic, self.W, *(int(v) for v in box), dec.tile, self._frame % 4)
+        pixels, spp = _select(dec.rate, dec.spp, self._moving_only, g.id, self._dynamic, self.W, *(int(v) for v in box), dec.tile,
+                              self._frame % 4, self._frame, self.settings.moving_every)
         n = len(pixels)
         hist = np.zeros((n, 3), np.float32)
         valid = np.zeros(n, np.bool_)
@@ -280,6 +336,8 @@ class TileRefiner:
             c = self.renderer.counts
             self.last_rays += c.primary + c.intersect + c.occluded
             self.last_pixels += len(sel) * s
+        if self.settings.moving_every > 1:
+            _fill(pixels, spp, samples, self._moving_only, dec.tile, g.id, g.normal, self.W, self.H, *self._fresh, self._frame)
         _merge(pixels, spp, samples, hist, valid, np.float32(alpha), np.float32(self.settings.base_weight), radiance, wsum, unresolved, g.id,
                write[0], write[1], write[2], self._frame)
         self._prev_poses = list(poses)
@@ -299,6 +357,6 @@ def tile_refiner(renderer, gbuffer, section) -> TileRefiner | None:
     G-buffer, i.e. at shading_scale 1)."""
     settings = RefineSettings(rays=section.rays, moving=section.moving, visible=section.visible,
                               shading_rate=section.shading_rate, adaptive_spp=section.adaptive_spp,
-                              base_weight=section.base_weight, viewer_distance_m=section.viewer_distance_m,
+                              base_weight=section.base_weight, moving_every=section.moving_every, viewer_distance_m=section.viewer_distance_m,
                               alpha_v=section.alpha_v)
     return TileRefiner(renderer, gbuffer, settings) if gbuffer is not None and settings.enabled else None

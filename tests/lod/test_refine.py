@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from dpmhw.lod.refine import RefineSettings, TileRefiner, _fetch, _merge, tile_refiner
+from dpmhw.lod.refine import RefineSettings, TileRefiner, _fetch, _fill, _merge, _select, tile_refiner
 from dpmhw.lod.visibility import LodSettingsError
 from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.stage import ReconstructStage
@@ -153,3 +153,54 @@ def test_settings_errors_name_the_field():
         RefineSettings(rays=1, base_weight=2.0)
     with pytest.raises(ValidationError, match="rays"):
         LodSection(rays=-5)
+    with pytest.raises(LodSettingsError, match="moving_every"):
+        RefineSettings(rays=1, moving_every=3)
+    with pytest.raises(ValidationError, match="moving_every"):
+        LodSection(moving_every=3)
+    assert load_session_config(overrides=["lod.moving_every=2"]).lod.moving_every == 2
+
+
+@pytest.mark.parametrize("every", [1, 2, 4])
+def test_moving_every_traces_each_moving_pixel_once_per_cycle(every):
+    """In a tile refined only for a moving object, every pixel is traced exactly once in any
+    `every` consecutive frames (2: a checkerboard; 4: each 2×2 block's pixels in turn)."""
+    Wt, Ht, tile = 32, 16, 16
+    rate = np.ones((1, 2), np.uint8)
+    spp = np.ones((1, 2), np.uint8)
+    only = np.array([[True, False]])  # left tile: moving only; right tile: full rate by visibility
+    gid = np.zeros(Wt * Ht, np.int32)
+    gid[5] = -1  # background: never selected
+    dynamic = np.array([True, False])
+    traced = np.zeros(Wt * Ht, np.int64)
+    for frame in range(1, 1 + every):
+        pix, s = _select(rate, spp, only, gid, dynamic, Wt, 0, Ht, 0, Wt, tile, frame % 4, frame, every)
+        assert 5 not in pix
+        traced[pix[s > 0]] += 1
+        per_frame = (s[pix % Wt < 16] > 0).sum()
+        assert abs(per_frame - 255 / every) <= 1  # 1/every of the tile's 255 lit pixels
+    left = (np.arange(Wt * Ht) % Wt < 16) & (gid >= 0)
+    assert (traced[left] == 1).all()  # once per cycle in the moving-only tile
+    assert (traced[~left & (gid >= 0)] == every).all()  # every frame elsewhere
+
+
+def test_fill_gives_untraced_moving_pixels_their_same_object_neighbours_mean():
+    Wt, Ht = 4, 3
+    gid = np.array([0, 0, 0, 1,
+                    0, 0, 0, 1,
+                    0, 0, 0, 1], np.int32)
+    normal = np.tile(np.array([0, 0, 1], np.float32), (Wt * Ht, 1))
+    normal[2] = (1, 0, 0)  # a crease: pixel 2 is not a neighbour of pixel 6
+    pixels = np.arange(Wt * Ht, dtype=np.int64)
+    spp = np.array([1, 0, 1, 0, 0, 1, 0, 1, 1, 0, 1, 0], np.uint8)
+    samples = np.full((Wt * Ht, 3), np.nan, np.float32)
+    samples[spp > 0] = np.arange(1, 7, dtype=np.float32)[:, None]  # pixels 0, 2, 5, 7, 8, 10 → 1 … 6
+    stamp, fresh = np.full(Wt * Ht, -1, np.int64), np.zeros((Wt * Ht, 3), np.float32)
+    _fill(pixels, spp, samples, np.array([[True]]), 16, gid, normal, Wt, Ht, stamp, fresh, 7)
+    assert spp[1] == 1 and samples[1, 0] == pytest.approx((1 + 2 + 3) / 3)  # 0, 2, 5 (same object)
+    assert samples[6, 0] == pytest.approx((3 + 6) / 2)  # 5 and 10; not 2 (crease), not 7 (object 1)
+    assert samples[3, 0] == 4.0  # object 1: only pixel 7
+    assert np.isfinite(samples).all() and (spp == 1).all()
+    spp2 = np.array([0, 0], np.uint8)  # a frame with nothing traced near them: they keep their history
+    samples2 = np.full((2, 3), np.nan, np.float32)
+    _fill(np.array([0, 1]), spp2, samples2, np.array([[True]]), 16, gid, normal, Wt, Ht, stamp, fresh, 8)
+    assert (spp2 == 0).all() and np.isnan(samples2).all()
