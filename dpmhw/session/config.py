@@ -107,7 +107,7 @@ class LodSection(_Section):
     shading_rate: bool = Field(True, description="visible tiles: ½ or full rate by visibility (off: all full rate)")
     adaptive_spp: bool = Field(False, description="visible tiles: 1, 2 or 4 paths per pixel by visibility")
     base_weight: float = Field(0.3, ge=0.0, le=1.0, description="share of the upsampled frame in a refined pixel")
-    moving_every: Literal[1, 2, 4] = Field(1, description="with moving: each of a moving object's pixels gets a native "
+    moving_every: Literal[1, 2, 4] = Field(2, description="with moving: each of a moving object's pixels gets a native "
                                            "path every 1, 2 or 4 frames (1/every of the paths; between, its history)")
     viewer_distance_m: float = Field(1.5, gt=0.0, le=1e4, description="the audience's distance to the surface")
     alpha_v: float = Field(0.0, ge=-1e4, le=1e4, description="added to the visibility (higher refines more)")
