@@ -9,8 +9,8 @@ its own state; frames shared by methods (the same renderer, the same seed) are r
   costs the same; the stage's exact path, the pipeline before reconstruction existed).
 - quarter: ¼ shading + reuse + lobe-aware filter + upsampling + adaptive sampling: issue 11's
   default, no LOD (the floor every LOD method below builds on).
-- moving: quarter + native paths on the moving objects' pixels (`lod.refine`, `moving`): the
-  session default (`lod` section).
+- moving: quarter + native paths on the moving objects' pixels (`lod.refine`, `moving`, each
+  pixel every `moving_every` frames: the `lod` section's default).
 - shading-rate: quarter + tiles the visibility map of the previous output calls visible at ½
   or full rate (`visible`, `shading_rate`).
 - spp: quarter + visible tiles at full rate with 1, 2 or 4 paths per pixel (`visible`,

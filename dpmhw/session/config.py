@@ -100,8 +100,8 @@ class LodSection(_Section):
 
     rays: int = Field(400_000, ge=0, le=1 << 30, description="most native rays per frame for the refined tiles "
                       "(worst case per path; 0 = off; only below shading_scale 1)")
-    moving: bool = Field(False, description="the pixels of moving objects get native paths every frame (the ¼ "
-                         "shading loses their detail; costs ~29 ms a frame on dpm-bunny, docs/lod.md)")
+    moving: bool = Field(False, description="the pixels of moving objects get native paths (every moving_every frames; the ¼ "
+                         "shading loses their detail; ≈ 28 CPU-ms a frame on dpm-bunny at moving_every 2, docs/lod.md)")
     visible: bool = Field(False, description="tiles the visibility map of the previous output calls visible get "
                           "native paths at ½ or full rate")
     shading_rate: bool = Field(True, description="visible tiles: ½ or full rate by visibility (off: all full rate)")
