@@ -325,7 +325,7 @@ class PathIntegrator:
 
     def _work_buffers(self, n: int, min_segments: int = 1) -> "_Work":
         """The working arrays for n paths in at least `min_segments` segments (of ≥ 64 paths);
-        the two last sizes are kept (the frame's, and `render_pixels`' in between)."""
+        the two last sizes are kept (`render_pixels` has its own, `_pixel_work`)."""
         for w in self._work:
             if w.n == n and w.min_segments == min_segments:
                 self._work = [w] + [x for x in self._work if x is not w]
