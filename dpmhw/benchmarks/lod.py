@@ -249,10 +249,11 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                             image=img, vmap=r.refiner.vmap if r.refiner else None, decisions=r.refiner.decisions if r.refiner else None,
                             choice=r.choice)
                 progress(f"lod {name}: frames × methods", i * len(runs) + j + 1, len(ks) * len(runs))
-            if k in refs:  # the maps a converged frame and a raw 1-spp native frame give, for comparison
+            mapped = [m for m in ("shading-rate", "spp", "all") if m in stats]
+            if k in refs and mapped and shared[1.0].frame is not None:  # the maps a converged and a raw 1-spp native frame give
                 depth = shared[1.0].frame.depth
                 vs = runs[0].cfg.visibility
-                for m in [m for m in ("shading-rate", "spp", "all") if m in stats]:
+                for m in mapped:
                     stats[m]["vis_ref"].append(_visible_tiles(refs[k]["radiance"], depth, native.camera.K, vs))
                     stats[m]["vis_1spp"].append(_visible_tiles(shared[1.0].frame.radiance, depth, native.camera.K, vs))
                     stats[m]["vis_1spp_raw"].append(_visible_tiles(shared[1.0].frame.radiance, depth, native.camera.K,
