@@ -24,6 +24,12 @@ per-frame ray budget on native-resolution paths where a viewer can see the diffe
        not traced, history:   L = h                   (½ rate, between its turns)
        not traced, none:      L = L_up
 
+   With `moving_every` = 2 or 4, tiles refined only for a moving object trace each of its
+   pixels every 2 frames (an alternating checkerboard) or 4 (each 2×2 block in turn); an
+   untraced pixel there takes the mean of this frame's paths at its same-object 3×3
+   neighbours as its sample x (`_fill`; 1/every of the paths, and every pixel still gets
+   fresh light each frame: holding L = h instead lagged the moving shading, docs/lod.md).
+
    The output is (1 − `base_weight`)·L + `base_weight`·L_up: the base is filtered and L is
    not, so a share of it lowers the noise (0.3 measured best of 0 / 0.3 / 0.5, docs/lod.md).
    A non-finite path sample counts as not traced. Refined pixels are marked resolved (the
@@ -81,7 +87,7 @@ class RefineSettings:
 def _select(rate, spp, moving_only, gid, dynamic, W, y0, y1, x0, x1, tile, phase, frame, every):
     """Lit pixels of the box in tiles of rate 1 or 2 (only the moving objects' pixels where
     `moving_only`), in row-major order: flat index, spp if traced this frame (0: a pixel between
-    its turns, which keeps its history). Rate-2 pixels are traced when (y, x) ≡ phase mod 2.
+    its turns: `_fill` may give it its neighbours' paths, else it keeps its history). Rate-2 pixels are traced when (y, x) ≡ phase mod 2.
     Full-rate pixels of `moving_only` tiles are traced every `every` frames (1, 2: a
     checkerboard alternating per frame, 4: each 2×2 block's four pixels in turn), so a moving
     object costs 1/every of its paths. Visits only the refined tiles' pixels."""
