@@ -123,20 +123,35 @@ class MeshLevels:
     def triangle_counts(self) -> list[int]:
         return [lv.triangles for lv in self.levels]
 
+    @property
+    def edges_m(self) -> np.ndarray:
+        """Mean triangle edge length per level (model metres): the projected size's scale."""
+        if not hasattr(self, "_edges_m"):
+            out = []
+            for lv in self.levels:
+                tri = lv.mesh.triangles
+                out.append(float(np.mean(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2))))
+            self._edges_m = np.array(out)
+        return self._edges_m
+
 
 @dataclass(frozen=True)
 class MeshLodSettings:
     """invisible_error_px: geometric error allowed on objects nobody can see (V ≤ 0 on all their
-    tiles); hysteresis: relative margin before moving to a coarser level; far_m / step: the
-    depth scan for pop-safe switch depths (from far_m nearer by factor `step`)."""
+    tiles); edge_px: a level is left for a coarser one only while its own triangles project to
+    at most this many projector pixels per edge (finer than the projector can draw);
+    hysteresis: relative margin before moving to a coarser level; far_m / step: the depth scan
+    for pop-safe switch depths (from far_m nearer by factor `step`)."""
 
     invisible_error_px: float = 2.0
+    edge_px: float = 1.0
     hysteresis: float = 0.2
     far_m: float = 100.0
     step: float = 1.15
 
     def __post_init__(self):
         object.__setattr__(self, "invisible_error_px", check_number("invisible_error_px", self.invisible_error_px, 0.0, 1e3, lo_open=True))
+        object.__setattr__(self, "edge_px", check_number("edge_px", self.edge_px, 0.0, 1e3, lo_open=True))
         object.__setattr__(self, "hysteresis", check_number("hysteresis", self.hysteresis, 0.0, 0.99))
         object.__setattr__(self, "far_m", check_number("far_m", self.far_m, 0.0, 1e4, lo_open=True))
         object.__setattr__(self, "step", check_number("step", self.step, 1.0, 4.0, lo_open=True))
@@ -209,12 +224,23 @@ class MeshLodSelector:
         centre_cam = (pose.apply(c[None])[0] - camera_pose.t) @ camera_pose.R
         return float(centre_cam[2] - r)
 
+    def edge_px(self, k: int, depth: float) -> np.ndarray:
+        """Projected size: projector pixels per mean triangle edge of each level at `depth`
+        (inf at or behind the projector's plane)."""
+        return self.levels[k].edges_m * self.focal_px / depth if depth > 0 else np.full(len(self.levels[k]), np.inf)
+
     def _allowed(self, k: int, depth: float, visible: bool, margin: float) -> int:
-        """Coarsest allowed level (margin 0: as is; > 0: with the hysteresis margin)."""
+        """Coarsest allowed level (margin 0: as is; > 0: with the hysteresis margin). Level l
+        needs the pop (visible) or error (invisible) rule, and level l − 1's triangles at most
+        `edge_px` wide on screen. A NaN depth or one at or behind the plane allows level 0 only."""
+        if not depth > 0:
+            return 0
         if visible:
             ok = self.safe_depths[k] * (1.0 + margin) <= depth
         else:
-            ok = self.levels[k].errors_m * self.focal_px / max(depth, 1e-6) <= self.settings.invisible_error_px * (1.0 - margin)
+            ok = self.levels[k].errors_m * self.focal_px / depth <= self.settings.invisible_error_px * (1.0 - margin)
+        small = self.edge_px(k, depth) <= self.settings.edge_px * (1.0 - margin)
+        ok[1:] &= small[:-1]
         ok = np.logical_and.accumulate(ok)
         return int(np.nonzero(ok)[0].max()) if ok.any() else 0
 
