@@ -337,18 +337,31 @@ def pop_visibility(levels: MeshLevels, level: int, depth_m: float, focal_px: flo
     size = int(min(max_size, max(16, math.ceil(2.2 * radius * focal_px / max(depth_m, 1e-6)))))
     tile = settings.tile
     size = -(-size // tile) * tile
-    theta = math.degrees(math.atan(depth_m / focal_px / settings.viewer_distance_m))
-    s_px = sensitivity(1.0 / (2.0 * theta), settings.peak_sensitivity, A_PEAK)
     worst = -math.inf
     for rot in _views():
         la = _shade(a.mesh, a.bvh, depth_m + radius, rot, focal_px, size, supersample)
         lb = _shade(b.mesh, b.bvh, depth_m + radius, rot, focal_px, size, supersample)
-        t = size // tile
-        blocks = lambda img: img.reshape(t, tile, t, tile).swapaxes(1, 2).reshape(t, t, -1)  # noqa: E731
-        diff = blocks(np.abs(la - lb)).max(-1)
-        both = np.concatenate([blocks(la), blocks(lb)], -1)
-        denom = both.max(-1) + both.min(-1)
-        c = np.where(denom > 0, diff / np.where(denom > 0, denom, 1.0), 0.0)
-        inv_c = np.where(c > 1e-4, 1.0 / np.maximum(c, 1e-4), 1e4)
-        worst = max(worst, float((s_px - inv_c + settings.alpha_v).max()))
+        worst = max(worst, image_pop_visibility(la, lb, depth_m, focal_px, settings))
     return worst
+
+
+def image_pop_visibility(before: np.ndarray, after: np.ndarray, depth_m: float, focal_px: float,
+                         settings: VisibilitySettings = VisibilitySettings()) -> float:
+    """Worst visibility of the change between two luminance images (H, W) of the same view, a
+    level switch apart, of a surface at `depth_m`: per tile c = max |ΔL| / (L_max + L_min) over
+    the tile's pixels of both images, at the frequency of a one-pixel feature for the viewer;
+    V = S(f) − 1/c + α_v (≤ 0: the pop is below the threshold; −1e4 + α_v when nothing changed)."""
+    tile = settings.tile
+    H, W = before.shape
+    th, tw = -(-H // tile), -(-W // tile)
+    pad = lambda img: np.pad(np.nan_to_num(np.asarray(img, np.float64)), ((0, th * tile - H), (0, tw * tile - W)))  # noqa: E731
+    blocks = lambda img: pad(img).reshape(th, tile, tw, tile).swapaxes(1, 2).reshape(th, tw, -1)  # noqa: E731
+    la, lb = blocks(before), blocks(after)
+    diff = np.abs(la - lb).max(-1)
+    both = np.concatenate([la, lb], -1)
+    denom = both.max(-1) + both.min(-1)
+    c = np.where(denom > 0, diff / np.where(denom > 0, denom, 1.0), 0.0)
+    inv_c = np.where(c > 1e-4, 1.0 / np.maximum(c, 1e-4), 1e4)
+    theta = math.degrees(math.atan(depth_m / focal_px / settings.viewer_distance_m))
+    s_px = sensitivity(1.0 / (2.0 * theta), settings.peak_sensitivity, A_PEAK)
+    return float((s_px - inv_c + settings.alpha_v).max())
