@@ -175,3 +175,27 @@ def test_levels_only_for_moving_meshes():
     with pytest.raises(ValueError, match="objects\\[0\\]"):
         with PathIntegrator(scaled_scene(scene, 0.05), threads=1) as r:
             r.geometry.add_levels(0, [scene.objects[0].mesh])
+
+
+def test_the_session_loop_chooses_levels_every_frame():
+    """`lod.mesh=true`: the loop installs the levels, chooses before each render (stage
+    "mesh_lod" timed), reads the output's visibility after it; the lit bunny 1 m away stays at
+    level 0; `lod.mesh=false` (default): no MeshLod at all."""
+    from dpmhw.session.factory import scale_to
+    from dpmhw.session.testing import fake_session
+    from dpmhw.tracking import wait_for
+
+    scene = scale_to(load_scene("dpm-bunny"), 32, 24)
+    for on in (True, False):
+        renderer = PathIntegrator(scene, threads=1)
+        loop = fake_session(["lod.mesh=true"] if on else [], renderer=renderer)
+        try:
+            assert (loop.mesh_lod is not None) == on
+            loop.start()
+            assert wait_for(lambda: len(loop.frame_log) >= 5, 30), loop.status()
+        finally:
+            loop.stop()
+            renderer.close()
+        assert all(("mesh_lod" in r.stages_s) == on for r in loop.frame_log)
+        if on:
+            assert loop.mesh_lod.choice[0] == 0 and np.isfinite(loop.mesh_lod.object_vis[0])
