@@ -12,13 +12,16 @@ the Hausdorff distance between the level and the original, taken as the larger o
 one-sided maxima; a vertex's distance to the other surface is bounded above by the nearer of
 (a) the hit along its normal (both ways) through the other surface's BVH and (b) the nearest
 vertex of the other surface. The BVH (embreex, model space) is built once per level and serves
-these queries and the pop renders; the renderer uses it once it can take per-object BVHs (issue
-12's Embree layer; until then `scene_at_levels` swaps the meshes and the renderer rebuilds).
+these queries and the pop renders. In the pipeline (`mesh_loop.MeshLod`) the renderer gets its
+own copy of each level's rows and BVH once (`SceneGeometry.add_levels`) and swaps them in place;
+`scene_at_levels` builds the equivalent scene from scratch (the tests' reference).
 
 Selection per object per frame (`MeshLodSelector`): from the object's nearest depth and its
 visibility (max V over the tiles it covered last frame). For visible objects a level is allowed
 only beyond the depth where the measured pop of every switch up to it is below the visibility
-threshold; for invisible ones, where its projected error ε · f_px / z is below a pixel allowance.
+threshold; for invisible ones, where its projected error ε · f_px / z is below a pixel allowance;
+for both, only once the next finer level's triangles project to at most `edge_px` projector
+pixels per edge (projected size: mean edge · f_px / z).
 Coarsening needs a hysteresis margin, so an object at a switch depth does not flip every frame.
 """
 

@@ -123,9 +123,12 @@ class SceneGeometry:
     def add_levels(self, k: int, meshes) -> None:
         """Install the levels of moving object k (`meshes[0]` its own mesh, then coarser ones):
         their triangle rows are appended to `tri` and their model-space BVHs built, once; then
-        `set_level` swaps them in place. Instances of one level list share rows and BVHs."""
+        `set_level` swaps them in place. Objects given the same level list (instances of one
+        mesh, equal in content) share rows and BVHs."""
         obj = self.scene.objects[k]
-        if not obj.is_dynamic or obj.is_emissive or obj.face_roughness is not None or meshes[0] is not obj.mesh:
+        same = meshes[0] is obj.mesh or (np.array_equal(meshes[0].faces, obj.mesh.faces)
+                                         and np.array_equal(meshes[0].vertices, obj.mesh.vertices))
+        if not obj.is_dynamic or obj.is_emissive or obj.face_roughness is not None or not same:
             raise ValueError(f"objects[{k}]: mesh levels need a moving, non-emissive object without a roughness map, "
                              "and its own mesh as level 0")
         if not hasattr(self, "_levels"):

@@ -172,9 +172,16 @@ def test_levels_only_for_moving_meshes():
     assert levels[3] is levels[4]  # the two bunnies share one MeshLevels
     assert isinstance(levels[3], MeshLevels)
     assert mesh_loop.SRGB8_TO_LINEAR[0] == 0 and mesh_loop.SRGB8_TO_LINEAR[255] == pytest.approx(1.0)
-    with pytest.raises(ValueError, match="objects\\[0\\]"):
-        with PathIntegrator(scaled_scene(scene, 0.05), threads=1) as r:
+    with PathIntegrator(scaled_scene(scene, 0.1), threads=1) as r:
+        with pytest.raises(ValueError, match="objects\\[0\\]"):
             r.geometry.add_levels(0, [scene.objects[0].mesh])
+        before = r.render(time=T, seed=1)
+        lod = MeshLod(r, None, levels=levels)  # two bunnies (equal meshes, own objects) share rows and BVHs
+        assert len(r.geometry._level_scenes) == len(levels[3]) - 1
+        assert np.array_equal(r.render(time=T, seed=1).radiance, before.radiance)
+        far = Pose(scene.camera.pose.R, scene.camera.pose.t - scene.camera.pose.R[:, 2] * 100.0)
+        assert np.all(lod.choose(scene.object_poses(T), far)[3:] >= 1)
+        assert lod.triangles < r.geometry.triangle_count
 
 
 def test_the_session_loop_chooses_levels_every_frame():
