@@ -113,22 +113,23 @@ def test_pop_at_a_switch_is_no_more_visible_than_the_noise_and_below_threshold_b
 
 def test_gbuffer_follows_a_level_switch(bunny):
     """The native G-buffer (static cache + region re-trace) after a switch equals one built on
-    a renderer whose scene has that level, in "trace" and "raster" modes."""
+    a renderer whose scene has that level, in the "trace", "raster" and "edges" modes."""
     scene, levels = bunny
     native = scaled_scene(load_scene("dpm-bunny"), 0.5)  # 512×384 G-buffer over a 256×192 shading renderer
     poses = native.object_poses(T)
-    for mode in ("trace", "raster"):
+    for mode in ("trace", "raster", "edges"):
         with PathIntegrator(scene, threads=2) as a:
             ga = NativeGBuffer(native, a.geometry, 512, 384)
             lod = MeshLod(a, ga, levels=levels, native_K=native.camera.K)
-            ga.update(poses, mode=mode)
+            ga.update(poses, shading=a.render(time=T, poses=poses), mode=mode)
             a.geometry.set_level(0, 2)
             ga.use_mesh(0, levels[0].levels[2].mesh)
-            ga.update(native.object_poses(T + 0.01), mode=mode)
-            ga.update(poses, mode=mode)
+            moved = native.object_poses(T + 0.01)
+            ga.update(moved, shading=a.render(time=T, poses=moved), mode=mode)
+            ga.update(poses, shading=a.render(time=T, poses=poses), mode=mode)
             with PathIntegrator(scene_at_levels(scene, levels, [2, 0]), threads=2) as b:
                 gb = NativeGBuffer(scene_at_levels(native, levels, [2, 0]), b.geometry, 512, 384)
-                gb.update(poses, mode=mode)
+                gb.update(poses, shading=b.render(time=T, poses=poses), mode=mode)
                 for name in ("id", "depth", "normal", "albedo"):
                     assert np.array_equal(getattr(ga, name), getattr(gb, name)), (mode, name)
                 gb.close()
