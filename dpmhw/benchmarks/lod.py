@@ -35,6 +35,7 @@ map called visible (level ≥ ½ rate) against the map of the reference itself a
 from __future__ import annotations
 
 import dataclasses
+import math
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -97,11 +98,14 @@ def bench_scene(name: str) -> Scene:
     scene = load_scene(base)
     if not far:
         return scene
-    z = float(far.removesuffix("m"))
+    try:
+        z = float(far.removesuffix("m"))
+    except ValueError:
+        z = math.nan
     cam = scene.camera.pose
     moving = [o for o in scene.objects if o.is_dynamic]
-    if not (z > 0 and moving):
-        raise ValueError(f"scene {name!r}: expected NAME@Z with Z > 0 metres and a moving object")
+    if not (0 < z < 1e4 and moving):
+        raise ValueError(f"scenes: expected NAME@Z with 0 < Z < 10000 metres and a moving object, got {name!r}")
     forward = cam.R[:, 2]
     now = float((moving[0].pose.t - cam.t) @ forward)
     pose = Pose(cam.R, cam.t - forward * (z - now))

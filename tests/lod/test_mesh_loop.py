@@ -207,3 +207,14 @@ def test_the_session_loop_chooses_levels_every_frame():
         assert all(("mesh_lod" in r.stages_s) == on for r in loop.frame_log)
         if on:
             assert loop.mesh_lod.choice[0] == 0 and np.isfinite(loop.mesh_lod.object_vis[0])
+
+
+def test_bench_scene_moves_the_projector_back():
+    near = load_scene("dpm-bunny")
+    far = bench_scene("dpm-bunny@40")
+    cam = far.camera.pose
+    assert float((far.objects[0].pose.t - cam.t) @ cam.R[:, 2]) == pytest.approx(40.0)
+    assert np.array_equal(cam.R, near.camera.pose.R) and np.array_equal(far.viewer_position, near.viewer_position)
+    for bad in ("dpm-bunny@-1", "dpm-bunny@x", "dpm-bunny@inf", "paper-static@5"):
+        with pytest.raises(ValueError, match="scenes: expected NAME@Z"):
+            bench_scene(bad)
