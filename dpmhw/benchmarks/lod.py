@@ -272,7 +272,8 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                 rays_per_frame=int(np.median(st["rays"])), lod_rays=int(np.median(st["lod_rays"])),
                 triangles=int(np.median(st["tri"])),
                 psnr_db=float(np.mean(st["psnr"])), ssim=float(np.mean(st["ssim"])), flip=float(np.mean(st["flip"])),
-                psnr_db_object=float(np.nanmean(st["obj"])), lod_ms=float(np.median(st["lod_ms"])),
+                psnr_db_object=float(np.nanmean(st["obj"])) if np.isfinite(st["obj"]).any() else None,  # None: no object pixel
+                lod_ms=float(np.median(st["lod_ms"])),
                 shading_scale=r.scale, ray_budget=r.settings.rays if r.settings else None,
                 visible_tiles=float(np.mean(st["vis"])) if st["vis"] else None,
                 visible_tiles_reference=float(np.mean(st["vis_ref"])) if st["vis_ref"] else None,
@@ -356,6 +357,8 @@ def plot_rows(rows: list[dict], out_dir: Path) -> str:
     for i, name in enumerate(dict.fromkeys(r["scene"] for r in rows)):
         for r in (r for r in rows if r["scene"] == name):
             for ax, key in zip(axes, ("psnr_db", "psnr_db_object", "flip")):
+                if r[key] is None:  # no object pixel in the reference
+                    continue
                 ax.plot(r["frame_ms"], r[key], markers[r["method"]], color=f"C{i}", ms=8, label=f"{name} {r['method']}")
                 ax.annotate(r["method"], (r["frame_ms"], r[key]), textcoords="offset points", xytext=(5, 4), fontsize=7)
     axes[0].set_ylabel("PSNR (dB) against the converged reference ↑")
@@ -374,12 +377,16 @@ def plot_rows(rows: list[dict], out_dir: Path) -> str:
     return _save(fig, Path(out_dir) / "lod-ms-vs-error.png")
 
 
+def _or_dash(x) -> str:
+    return "–" if x is None else f"{x:.2f}"
+
+
 def format_table(result: dict) -> str:
     head = (f"{'scene':<15}{'method':<14}{'CPU ms':>9}{'×none':>7}{'lod ms':>8}{'lod rays':>10}{'triangles':>11}"
             f"{'PSNR':>7}{'obj':>7}{'SSIM':>8}{'FLIP':>8}  levels")
     lines = [head]
     for r in result["rows"]:
         lines.append(f"{r['scene']:<15}{r['method']:<14}{r['frame_ms']:>9.1f}{r['time_vs_none']:>7.2f}{r['lod_ms']:>8.1f}"
-                     f"{r['lod_rays']:>10,}{r['triangles']:>11,}{r['psnr_db']:>7.2f}{r['psnr_db_object']:>7.2f}"
+                     f"{r['lod_rays']:>10,}{r['triangles']:>11,}{r['psnr_db']:>7.2f}{_or_dash(r['psnr_db_object']):>7}"
                      f"{r['ssim']:>8.4f}{r['flip']:>8.4f}  {r['mesh_levels']}")
     return "\n".join(lines)
