@@ -22,6 +22,7 @@ that has levels (`MeshLod.active` False) nothing is installed and frames are unt
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 
 import numba as nb
@@ -31,6 +32,7 @@ from dpmhw.lod.mesh_lod import MeshLevels, MeshLodSelector, MeshLodSettings, obj
 from dpmhw.lod.visibility import VisibilitySettings, visibility_map
 from dpmhw.transforms import Pose
 
+log = logging.getLogger(__name__)
 MIN_FACES = 1000  # smaller meshes cost too little to be worth levels
 
 # sRGB 8-bit code → linear light (IEC 61966-2-1): the projector's output, before its gamma
@@ -147,6 +149,9 @@ def mesh_lod(renderer, gbuffer, section) -> MeshLod | None:
     """The loop's MeshLod from the config's `lod` section (None when `mesh` is off or the scene
     has no moving mesh to simplify)."""
     if not getattr(section, "mesh", False):
+        return None
+    if not hasattr(renderer, "geometry"):  # a renderer without Embree geometry (a test double): nothing to simplify
+        log.warning("lod.mesh: the renderer %s has no scene geometry; mesh levels off", type(renderer).__name__)
         return None
     lod = MeshLod(renderer, gbuffer, MeshLodSettings(),
                   VisibilitySettings(viewer_distance_m=section.viewer_distance_m, alpha_v=section.alpha_v))

@@ -111,7 +111,7 @@ class LodSection(_Section):
     alpha_v: float = Field(0.0, ge=-1e4, le=1e4, description="added to the visibility (higher refines more)")
     mesh: bool = Field(False, description="mesh level of detail per moving object per frame (dpmhw.lod.mesh_loop; "
                        "off: the renderer's meshes as loaded, bit for bit; at lab distances a visible object keeps "
-                       "level 0, docs/lod.md)")
+                       "level 0, docs/mesh-lod.md)")
 
 
 class PredictionSection(_Section):

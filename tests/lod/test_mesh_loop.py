@@ -160,6 +160,9 @@ def test_mesh_off_installs_nothing_and_on_needs_a_mesh(bunny):
         on = load_session_config(overrides=["lod.mesh=true"]).lod
         lod = mesh_lod(r, None, on)
         assert lod is not None and lod.active
+    from dpmhw.session.testing import FlatRenderer
+
+    assert mesh_lod(FlatRenderer(), None, on) is None  # no scene geometry: off, with a warning
     small = scaled_scene(load_scene("paper-static"), 0.1)
     with PathIntegrator(small, threads=1) as r:  # nothing moves: nothing to simplify
         assert mesh_lod(r, None, on) is None
