@@ -221,3 +221,19 @@ def test_bench_scene_moves_the_projector_back():
     for bad in ("dpm-bunny@-1", "dpm-bunny@x", "dpm-bunny@inf", "paper-static@5"):
         with pytest.raises(ValueError, match="scenes: expected NAME@Z"):
             bench_scene(bad)
+
+
+def test_no_flicker_at_a_switch_depth_in_the_pipeline(bunny):
+    """The projector's distance jitters ±5 % around the selector's level-1 switch depth for 40
+    frames: the level changes at most once (hysteresis), never back and forth."""
+    scene, levels = bunny
+    with PathIntegrator(scene, threads=1) as r:
+        lod = MeshLod(r, None, levels=levels)
+        lod.object_vis[:] = 50.0  # a visible object
+        z1 = lod.selector.safe_depths[0][1] * (1 + lod.selector.settings.hysteresis)
+        cam, poses = scene.camera.pose, scene.object_poses(T)
+        rng = np.random.default_rng(3)
+        seen = []
+        for f in 1 + 0.05 * rng.uniform(-1, 1, 40):
+            seen.append(int(lod.choose(poses, Pose(cam.R, cam.t + cam.R[:, 2] * (1.0 - z1 * f)))[0]))
+        assert sum(a != b for a, b in zip(seen, seen[1:])) <= 1 and lod.switches <= 1
