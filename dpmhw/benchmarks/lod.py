@@ -56,8 +56,8 @@ from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import Scene, load_scene
-from dpmhw.transforms import Pose
 from dpmhw.sequence import scaled_scene, with_fps
+from dpmhw.transforms import Pose
 
 METHODS = ("none", "quarter", "moving", "shading-rate", "spp", "mesh-LOD", "all")
 REFERENCE_SEED = 1_000_003
