@@ -15,7 +15,8 @@ Per frame:
   (the uint8 projector frame decoded to linear light: the contrast the audience sees) over the
   tiles the objects cover, reduced to one V per object for the next choice.
 
-Before the first observation every object counts as visible (the strict rule). With no object
+Before the first observation, and while it shows on no pixel, an object counts as visible (the
+strict rule); only one the map calls invisible where it shows uses the error allowance. With no object
 that has levels (`MeshLod.active` False) nothing is installed and frames are untouched.
 """
 
@@ -128,12 +129,14 @@ class MeshLod:
     def observe(self, image: np.ndarray, depth: np.ndarray, object_id: np.ndarray) -> np.ndarray:
         """Per-object visibility from the output frame (uint8 sRGB (H, W, 3), or linear float) with
         the G-buffer depth and object ids of the same frame (native size); only the tiles the
-        objects cover are mapped. Returns (n_objects,) V (−inf: not on screen)."""
+        objects cover are mapped. Returns (n_objects,) V; an object on no pixel (off screen,
+        hidden, too small) gets +inf, the strict rule: a coarse level chosen while it was unseen
+        would otherwise switch finer in plain view the frame after it appears."""
         ids = np.ascontiguousarray(object_id, np.int32)
         y0, y1, x0, x1 = _objects_box(ids, self.has_levels)
         n = len(self.levels)
         if y0 < 0:
-            self.object_vis = np.full(n, -np.inf)
+            self.object_vis = np.full(n, np.inf)
             return self.object_vis
         t = self.visibility.tile
         y0, x0 = y0 // t * t, x0 // t * t  # whole tiles of the frame's grid
@@ -141,7 +144,8 @@ class MeshLod:
         crop = image[y0:y1, x0:x1]
         radiance = SRGB8_TO_LINEAR[crop] if crop.dtype == np.uint8 else crop
         vmap = visibility_map(radiance, depth[y0:y1, x0:x1], self.K, self.visibility)
-        self.object_vis = object_visibility(vmap.visibility, t, ids[y0:y1, x0:x1], n)
+        v = object_visibility(vmap.visibility, t, ids[y0:y1, x0:x1], n)
+        self.object_vis = np.where(np.isneginf(v), np.inf, v)  # on no pixel: the strict rule (see the docstring)
         return self.object_vis
 
 

@@ -143,11 +143,11 @@ def test_observe_handles_no_objects_and_uint8_frames(bunny):
         lod = MeshLod(r, None, levels=levels)
         H, W = 192, 256
         none = lod.observe(np.zeros((H, W, 3), np.uint8), np.full((H, W), np.inf, np.float32), np.full((H, W), -1, np.int32))
-        assert np.all(none == -np.inf)
+        assert np.all(none == np.inf)  # on no pixel: the strict (visible) rule
         frame = r.render(time=T, seed=0, poses=scene.object_poses(T))
         img8 = (np.clip(frame.radiance, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
         v = lod.observe(img8, frame.depth, frame.object_id)
-        assert np.isfinite(v[0]) and v[0] > 0 and v[1] == -np.inf
+        assert np.isfinite(v[0]) and v[0] > 0 and v[1] == np.inf
 
 
 def test_mesh_off_installs_nothing_and_on_needs_a_mesh(bunny):
