@@ -15,9 +15,10 @@ its own state; frames shared by methods (the same renderer, the same seed) are r
   or full rate (`visible`, `shading_rate`).
 - spp: quarter + visible tiles at full rate with 1, 2 or 4 paths per pixel (`visible`,
   `adaptive_spp`, rate off).
-- mesh-LOD: none with the level per object from `MeshLodSelector` (levels and their BVHs built
-  once before the run); a new choice builds a new PathIntegrator outside the timed frame
-  (counted in `lod_switches`).
+- mesh-LOD: none with the level per object chosen every frame by the loop's own `MeshLod`
+  (levels, their triangle rows and BVHs built once before the run, swapped in place inside the
+  timed frame; `lod_switches` counts the swaps). Scene `NAME@Z` moves the projector back until
+  the object is Z m away (a long throw), where the levels switch.
 - all: moving + shading-rate + spp + mesh-LOD.
 
 Every refining method has the same per-frame budget of native rays (`rays`, worst case per
@@ -34,7 +35,7 @@ map called visible (level ≥ ½ rate) against the map of the reference itself a
 from __future__ import annotations
 
 import dataclasses
-import hashlib
+import math
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,7 +45,8 @@ import numpy as np
 
 from dpmhw.benchmarks.native_quality import _masked_psnr, flip_error
 from dpmhw.benchmarks.quality import ReferenceCache, _save
-from dpmhw.lod.mesh_lod import MeshLevels, MeshLodSelector, MeshLodSettings, object_visibility, scene_at_levels
+from dpmhw.lod.mesh_lod import MeshLodSettings
+from dpmhw.lod.mesh_loop import MeshLod, build_levels
 from dpmhw.lod.refine import RefineSettings, TileRefiner
 from dpmhw.lod.visibility import VisibilitySettings, visibility_map
 from dpmhw.metrics import psnr, ssim
@@ -55,6 +57,7 @@ from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import Scene, load_scene
 from dpmhw.sequence import scaled_scene, with_fps
+from dpmhw.transforms import Pose
 
 METHODS = ("none", "quarter", "moving", "shading-rate", "spp", "mesh-LOD", "all")
 REFERENCE_SEED = 1_000_003
@@ -87,20 +90,26 @@ def _refine_settings(method: str, cfg: LodBenchConfig) -> RefineSettings | None:
             "all": RefineSettings(moving=True, visible=True, adaptive_spp=True, **v)}.get(method)
 
 
-def _mesh_levels(scene: Scene) -> tuple[list[MeshLevels | None], float]:
-    """Levels for every mesh object (built once; identical meshes share them), and the seconds it took."""
-    start = _time.perf_counter()
-    by_content: dict[str, MeshLevels] = {}
-    out = []
-    for o in scene.objects:
-        if o.shape != "mesh" or len(o.mesh.faces) < 1000:
-            out.append(None)
-            continue
-        key = hashlib.sha256(o.mesh.vertices.tobytes() + o.mesh.faces.tobytes()).hexdigest()
-        if key not in by_content:
-            by_content[key] = MeshLevels(o.mesh)
-        out.append(by_content[key])
-    return out, _time.perf_counter() - start
+def bench_scene(name: str) -> Scene:
+    """A built-in scene, or `NAME@Z`: the same scene with the projector moved back along its
+    optical axis until the first moving object's origin is Z metres away (the audience, the
+    lights and the motion stay where they are): a long throw, where mesh levels switch."""
+    base, _, far = name.partition("@")
+    scene = load_scene(base)
+    if not far:
+        return scene
+    try:
+        z = float(far.removesuffix("m"))
+    except ValueError:
+        z = math.nan
+    cam = scene.camera.pose
+    moving = [o for o in scene.objects if o.is_dynamic]
+    if not (0 < z < 1e4 and moving):
+        raise ValueError(f"scenes: expected NAME@Z with 0 < Z < 10000 metres and a moving object, got {name!r}")
+    forward = cam.R[:, 2]
+    now = float((moving[0].pose.t - cam.t) @ forward)
+    pose = Pose(cam.R, cam.t - forward * (z - now))
+    return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, pose=pose))
 
 
 class _Pipeline:
@@ -132,20 +141,26 @@ class _Pipeline:
 
 
 class _Run:
-    """One method's state: its pipeline (shared unless its mesh levels differ), stage and refiner."""
+    """One method's state: its pipeline (shared by the methods without mesh levels; a method
+    with them has its own, whose levels `MeshLod` swaps in place), stage and refiner."""
 
     def __init__(self, name: str, native: Scene, cfg: LodBenchConfig, levels, shared: dict, build: Callable):
         self.name, self.native, self.cfg = name, native, cfg
         self.scale = 1.0 if name in ("none", "mesh-LOD") else 0.25
-        self.levels, self.build, self.shared = levels, build, shared
-        self.mesh_lod = name in ("mesh-LOD", "all")
-        self.choice = tuple(0 for _ in levels)
         self.settings = _refine_settings(name, cfg)
-        K = native.camera.K
-        self.selector = MeshLodSelector(levels, float(np.sqrt(abs(K[0, 0] * K[1, 1]))), cfg.mesh, cfg.visibility) if self.mesh_lod else None
-        self.lod_switches = 0
-        self._vis_source = None  # (visibility map, object ids) for the next level choice
-        self._bind(shared[self.scale])
+        self.mesh = None
+        if name in ("mesh-LOD", "all"):
+            shared[name] = p = build(native, self.scale)
+            self.mesh = MeshLod(p.integrator, p.gbuffer, cfg.mesh, cfg.visibility, levels=levels, native_K=native.camera.K)
+        self._bind(shared[name if self.mesh is not None else self.scale])
+
+    @property
+    def choice(self) -> tuple:
+        return tuple(int(c) for c in self.mesh.choice) if self.mesh is not None else ()
+
+    @property
+    def lod_switches(self) -> int:
+        return self.mesh.switches if self.mesh is not None else 0
 
     def _bind(self, p: _Pipeline) -> None:
         self.pipe = p
@@ -160,32 +175,21 @@ class _Run:
     def step(self, k: int, t: float, poses) -> dict:
         lod_cpu = 0.0
         n = self.native
-        if self.mesh_lod and self._vis_source is not None:
+        if self.mesh is not None:  # this frame's levels, swapped in place (part of the frame's time)
             c0 = _time.process_time()
-            vmap, ids = self._vis_source
-            obj_vis = object_visibility(vmap.visibility, vmap.tile, ids, len(n.objects))
-            choice = tuple(int(c) for c in self.selector.select(poses, n.camera.pose, obj_vis))
+            self.mesh.choose(poses, n.camera.pose)
             lod_cpu += (_time.process_time() - c0) * 1e3
-            if choice != self.choice:  # a new BVH set: outside the timed frame; the history starts again
-                self.choice = choice
-                self.lod_switches += 1
-                key = (self.scale, choice)
-                if key not in self.shared:
-                    self.shared[key] = self.build(scene_at_levels(n, self.levels, choice), self.scale)
-                self._bind(self.shared[key])
         p = self.pipe
         if p.frame is None:
             p.render(t, k, poses)
         out = self.stage.apply(p.frame, mode="motion", alpha=self.cfg.alpha, filter="off" if self.scale == 1.0 else "lobe",
                                poses=poses, camera=p.integrator.camera)
-        if self.mesh_lod:  # the map the next frame's level choice reads (the refiner's, or one of the reused output)
+        if self.mesh is not None:  # the output's visibility per object: the next frame's choice (as the loop does)
             c0 = _time.process_time()
-            if self.refiner is not None:  # (its first map after a (re)bind reads an empty previous output: no choice from it)
-                self._vis_source = (self.refiner.vmap, p.gbuffer.id.reshape(n.render.height, n.render.width)) \
-                    if self.refiner.policy.frame > 1 else None
-            else:
-                self._vis_source = (visibility_map(self.stage.reuse.history, p.frame.depth, n.camera.K, self.cfg.visibility),
-                                    p.frame.object_id)
+            H, W = out.image.shape[:2]
+            g = p.gbuffer
+            self.mesh.observe(out.image, g.depth.reshape(H, W) if g is not None else p.frame.depth,
+                              g.id.reshape(H, W) if g is not None else p.frame.object_id)
             lod_cpu += (_time.process_time() - c0) * 1e3
         lod_rays = 0 if self.refiner is None else self.refiner.last_rays
         if self.refiner is not None and lod_rays > self.settings.rays:
@@ -194,7 +198,8 @@ class _Run:
             (p.gbuffer.rays_traced if p.gbuffer is not None else 0)
         return dict(ms=p.cpu_ms + sum(out.stages_s.values()) * 1e3 + lod_cpu,
                     lod_ms=out.stages_s.get("lod", 0.0) * 1e3 + lod_cpu, lod_rays=int(lod_rays),
-                    rays=int(p.rays + lod_rays + extra), image=out.image, triangles=int(p.integrator.geometry.triangle_count))
+                    rays=int(p.rays + lod_rays + extra), image=out.image,
+                    triangles=self.mesh.triangles if self.mesh is not None else int(p.integrator.geometry.triangle_count))
 
 
 def _visible_tiles(radiance, depth, K, settings: VisibilitySettings) -> int:
@@ -203,9 +208,11 @@ def _visible_tiles(radiance, depth, K, settings: VisibilitySettings) -> int:
 
 
 def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: Callable, images: dict) -> list[dict]:
-    native = with_fps(scaled_scene(load_scene(name), cfg.scale) if cfg.scale != 1.0 else load_scene(name), FPS)
+    native = with_fps(scaled_scene(bench_scene(name), cfg.scale) if cfg.scale != 1.0 else bench_scene(name), FPS)
     W, H = native.render.width, native.render.height
-    levels, build_s = _mesh_levels(native)
+    start = _time.perf_counter()
+    levels = build_levels(native)
+    build_s = _time.perf_counter() - start
     meshes = [i for i, o in enumerate(native.objects) if o.shape == "mesh"]
     eval_k = sorted({int(round(t * FPS)) for t in cfg.eval_times})
     start = max(0, eval_k[0] - cfg.history_frames)
@@ -266,7 +273,8 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                 rays_per_frame=int(np.median(st["rays"])), lod_rays=int(np.median(st["lod_rays"])),
                 triangles=int(np.median(st["tri"])),
                 psnr_db=float(np.mean(st["psnr"])), ssim=float(np.mean(st["ssim"])), flip=float(np.mean(st["flip"])),
-                psnr_db_object=float(np.nanmean(st["obj"])), lod_ms=float(np.median(st["lod_ms"])),
+                psnr_db_object=float(np.nanmean(st["obj"])) if np.isfinite(st["obj"]).any() else None,  # None: no object pixel
+                lod_ms=float(np.median(st["lod_ms"])),
                 shading_scale=r.scale, ray_budget=r.settings.rays if r.settings else None,
                 visible_tiles=float(np.mean(st["vis"])) if st["vis"] else None,
                 visible_tiles_reference=float(np.mean(st["vis_ref"])) if st["vis_ref"] else None,
@@ -350,6 +358,8 @@ def plot_rows(rows: list[dict], out_dir: Path) -> str:
     for i, name in enumerate(dict.fromkeys(r["scene"] for r in rows)):
         for r in (r for r in rows if r["scene"] == name):
             for ax, key in zip(axes, ("psnr_db", "psnr_db_object", "flip")):
+                if r[key] is None:  # no object pixel in the reference
+                    continue
                 ax.plot(r["frame_ms"], r[key], markers[r["method"]], color=f"C{i}", ms=8, label=f"{name} {r['method']}")
                 ax.annotate(r["method"], (r["frame_ms"], r[key]), textcoords="offset points", xytext=(5, 4), fontsize=7)
     axes[0].set_ylabel("PSNR (dB) against the converged reference ↑")
@@ -368,12 +378,16 @@ def plot_rows(rows: list[dict], out_dir: Path) -> str:
     return _save(fig, Path(out_dir) / "lod-ms-vs-error.png")
 
 
+def _or_dash(x) -> str:
+    return "–" if x is None else f"{x:.2f}"
+
+
 def format_table(result: dict) -> str:
     head = (f"{'scene':<15}{'method':<14}{'CPU ms':>9}{'×none':>7}{'lod ms':>8}{'lod rays':>10}{'triangles':>11}"
             f"{'PSNR':>7}{'obj':>7}{'SSIM':>8}{'FLIP':>8}  levels")
     lines = [head]
     for r in result["rows"]:
         lines.append(f"{r['scene']:<15}{r['method']:<14}{r['frame_ms']:>9.1f}{r['time_vs_none']:>7.2f}{r['lod_ms']:>8.1f}"
-                     f"{r['lod_rays']:>10,}{r['triangles']:>11,}{r['psnr_db']:>7.2f}{r['psnr_db_object']:>7.2f}"
+                     f"{r['lod_rays']:>10,}{r['triangles']:>11,}{r['psnr_db']:>7.2f}{_or_dash(r['psnr_db_object']):>7}"
                      f"{r['ssim']:>8.4f}{r['flip']:>8.4f}  {r['mesh_levels']}")
     return "\n".join(lines)

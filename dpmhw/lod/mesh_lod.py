@@ -12,13 +12,16 @@ the Hausdorff distance between the level and the original, taken as the larger o
 one-sided maxima; a vertex's distance to the other surface is bounded above by the nearer of
 (a) the hit along its normal (both ways) through the other surface's BVH and (b) the nearest
 vertex of the other surface. The BVH (embreex, model space) is built once per level and serves
-these queries and the pop renders; the renderer uses it once it can take per-object BVHs (issue
-12's Embree layer; until then `scene_at_levels` swaps the meshes and the renderer rebuilds).
+these queries and the pop renders. In the pipeline (`mesh_loop.MeshLod`) the renderer gets its
+own copy of each level's rows and BVH once (`SceneGeometry.add_levels`) and swaps them in place;
+`scene_at_levels` builds the equivalent scene from scratch (the tests' reference).
 
 Selection per object per frame (`MeshLodSelector`): from the object's nearest depth and its
 visibility (max V over the tiles it covered last frame). For visible objects a level is allowed
 only beyond the depth where the measured pop of every switch up to it is below the visibility
-threshold; for invisible ones, where its projected error ε · f_px / z is below a pixel allowance.
+threshold; for invisible ones, where its projected error ε · f_px / z is below a pixel allowance;
+for both, only once the next finer level's triangles project to at most `edge_px` projector
+pixels per edge (projected size: mean edge · f_px / z).
 Coarsening needs a hysteresis margin, so an object at a switch depth does not flip every frame.
 """
 
@@ -123,20 +126,35 @@ class MeshLevels:
     def triangle_counts(self) -> list[int]:
         return [lv.triangles for lv in self.levels]
 
+    @property
+    def edges_m(self) -> np.ndarray:
+        """Mean triangle edge length per level (model metres): the projected size's scale."""
+        if not hasattr(self, "_edges_m"):
+            out = []
+            for lv in self.levels:
+                tri = lv.mesh.triangles
+                out.append(float(np.mean(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2))))
+            self._edges_m = np.array(out)
+        return self._edges_m
+
 
 @dataclass(frozen=True)
 class MeshLodSettings:
     """invisible_error_px: geometric error allowed on objects nobody can see (V ≤ 0 on all their
-    tiles); hysteresis: relative margin before moving to a coarser level; far_m / step: the
-    depth scan for pop-safe switch depths (from far_m nearer by factor `step`)."""
+    tiles); edge_px: a level is left for a coarser one only while its own triangles project to
+    at most this many projector pixels per edge (finer than the projector can draw);
+    hysteresis: relative margin before moving to a coarser level; far_m / step: the depth scan
+    for pop-safe switch depths (from far_m nearer by factor `step`)."""
 
     invisible_error_px: float = 2.0
+    edge_px: float = 1.0
     hysteresis: float = 0.2
     far_m: float = 100.0
     step: float = 1.15
 
     def __post_init__(self):
         object.__setattr__(self, "invisible_error_px", check_number("invisible_error_px", self.invisible_error_px, 0.0, 1e3, lo_open=True))
+        object.__setattr__(self, "edge_px", check_number("edge_px", self.edge_px, 0.0, 1e3, lo_open=True))
         object.__setattr__(self, "hysteresis", check_number("hysteresis", self.hysteresis, 0.0, 0.99))
         object.__setattr__(self, "far_m", check_number("far_m", self.far_m, 0.0, 1e4, lo_open=True))
         object.__setattr__(self, "step", check_number("step", self.step, 1.0, 4.0, lo_open=True))
@@ -209,12 +227,23 @@ class MeshLodSelector:
         centre_cam = (pose.apply(c[None])[0] - camera_pose.t) @ camera_pose.R
         return float(centre_cam[2] - r)
 
+    def edge_px(self, k: int, depth: float) -> np.ndarray:
+        """Projected size: projector pixels per mean triangle edge of each level at `depth`
+        (inf at or behind the projector's plane)."""
+        return self.levels[k].edges_m * self.focal_px / depth if depth > 0 else np.full(len(self.levels[k]), np.inf)
+
     def _allowed(self, k: int, depth: float, visible: bool, margin: float) -> int:
-        """Coarsest allowed level (margin 0: as is; > 0: with the hysteresis margin)."""
+        """Coarsest allowed level (margin 0: as is; > 0: with the hysteresis margin). Level l
+        needs the pop (visible) or error (invisible) rule, and level l − 1's triangles at most
+        `edge_px` wide on screen. A NaN depth or one at or behind the plane allows level 0 only."""
+        if not depth > 0:
+            return 0
         if visible:
             ok = self.safe_depths[k] * (1.0 + margin) <= depth
         else:
-            ok = self.levels[k].errors_m * self.focal_px / max(depth, 1e-6) <= self.settings.invisible_error_px * (1.0 - margin)
+            ok = self.levels[k].errors_m * self.focal_px / depth <= self.settings.invisible_error_px * (1.0 - margin)
+        small = self.edge_px(k, depth) <= self.settings.edge_px * (1.0 - margin)
+        ok[1:] &= small[:-1]
         ok = np.logical_and.accumulate(ok)
         return int(np.nonzero(ok)[0].max()) if ok.any() else 0
 
@@ -311,18 +340,31 @@ def pop_visibility(levels: MeshLevels, level: int, depth_m: float, focal_px: flo
     size = int(min(max_size, max(16, math.ceil(2.2 * radius * focal_px / max(depth_m, 1e-6)))))
     tile = settings.tile
     size = -(-size // tile) * tile
-    theta = math.degrees(math.atan(depth_m / focal_px / settings.viewer_distance_m))
-    s_px = sensitivity(1.0 / (2.0 * theta), settings.peak_sensitivity, A_PEAK)
     worst = -math.inf
     for rot in _views():
         la = _shade(a.mesh, a.bvh, depth_m + radius, rot, focal_px, size, supersample)
         lb = _shade(b.mesh, b.bvh, depth_m + radius, rot, focal_px, size, supersample)
-        t = size // tile
-        blocks = lambda img: img.reshape(t, tile, t, tile).swapaxes(1, 2).reshape(t, t, -1)  # noqa: E731
-        diff = blocks(np.abs(la - lb)).max(-1)
-        both = np.concatenate([blocks(la), blocks(lb)], -1)
-        denom = both.max(-1) + both.min(-1)
-        c = np.where(denom > 0, diff / np.where(denom > 0, denom, 1.0), 0.0)
-        inv_c = np.where(c > 1e-4, 1.0 / np.maximum(c, 1e-4), 1e4)
-        worst = max(worst, float((s_px - inv_c + settings.alpha_v).max()))
+        worst = max(worst, image_pop_visibility(la, lb, depth_m, focal_px, settings))
     return worst
+
+
+def image_pop_visibility(before: np.ndarray, after: np.ndarray, depth_m: float, focal_px: float,
+                         settings: VisibilitySettings = VisibilitySettings()) -> float:
+    """Worst visibility of the change between two luminance images (H, W) of the same view, a
+    level switch apart, of a surface at `depth_m`: per tile c = max |ΔL| / (L_max + L_min) over
+    the tile's pixels of both images, at the frequency of a one-pixel feature for the viewer;
+    V = S(f) − 1/c + α_v (≤ 0: the pop is below the threshold; −1e4 + α_v when nothing changed)."""
+    tile = settings.tile
+    H, W = before.shape
+    th, tw = -(-H // tile), -(-W // tile)
+    pad = lambda img: np.pad(np.nan_to_num(np.asarray(img, np.float64)), ((0, th * tile - H), (0, tw * tile - W)))  # noqa: E731
+    blocks = lambda img: pad(img).reshape(th, tile, tw, tile).swapaxes(1, 2).reshape(th, tw, -1)  # noqa: E731
+    la, lb = blocks(before), blocks(after)
+    diff = np.abs(la - lb).max(-1)
+    both = np.concatenate([la, lb], -1)
+    denom = both.max(-1) + both.min(-1)
+    c = np.where(denom > 0, diff / np.where(denom > 0, denom, 1.0), 0.0)
+    inv_c = np.where(c > 1e-4, 1.0 / np.maximum(c, 1e-4), 1e4)
+    theta = math.degrees(math.atan(depth_m / focal_px / settings.viewer_distance_m))
+    s_px = sensitivity(1.0 / (2.0 * theta), settings.peak_sensitivity, A_PEAK)
+    return float((s_px - inv_c + settings.alpha_v).max())

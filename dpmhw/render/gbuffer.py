@@ -401,7 +401,7 @@ class NativeGBuffer:
         self._dcz = np.ascontiguousarray(d_cam[:, 2], np.float32)
         self._meshes = []
         for i in self.dynamic:
-            mesh = self.scene.objects[i].mesh
+            mesh = getattr(self, "_mesh_now", {}).get(i, self.scene.objects[i].mesh)  # `use_mesh`'s level
             v = np.ascontiguousarray(mesh.vertices, np.float32)
             f = np.ascontiguousarray(mesh.faces, np.int64)
             self._meshes.append((i, int(self.geometry.tri_offsets[i]), v, f, np.empty((len(v), 3)), np.empty((len(v), 2)),
@@ -412,6 +412,22 @@ class NativeGBuffer:
         self._qy_row = (np.arange(self.height) - K[1, 2]) / K[1, 1]
         self._stamp = np.zeros(len(self._dcz), np.int32)  # see `_raster`
         self._sid = 0
+
+    # ---- issue 13 hook: mesh level of detail (dpmhw.lod.mesh_loop) --------------------------
+    def use_mesh(self, k: int, mesh, all_levels=None) -> None:
+        """Moving object k is drawn with `mesh` from the next update on (its triangle rows and
+        BVH already swapped by `SceneGeometry.set_level`). `all_levels` (every mesh it may use,
+        given once): the region of interest then holds each of them. The static caches need
+        nothing: they hold static objects only, and the region is re-traced every update."""
+        j = self.dynamic.index(k)
+        self._mesh_now = {**getattr(self, "_mesh_now", {}), k: mesh}
+        if all_levels is not None:
+            self._hulls[j] = _hull_vertices(np.concatenate([np.asarray(m.vertices) for m in all_levels]))
+        if self._meshes is not None:  # the rasteriser's tables of that object
+            v = np.ascontiguousarray(mesh.vertices, np.float32)
+            f = np.ascontiguousarray(mesh.faces, np.int64)
+            self._meshes[j] = (k, int(self.geometry.tri_offsets[k]), v, f, np.empty((len(v), 3)), np.empty((len(v), 2)),
+                               np.empty((len(f), 4), np.int32))
 
     # ---- per frame -------------------------------------------------------------------------
     def _raster_box(self, box, poses) -> None:

@@ -32,6 +32,18 @@ def make_accel(objects, tri_offsets, threads: int):
     return EmbreeAccel(objects, tri_offsets, threads=threads)
 
 
+def _triangle_rows(mesh) -> np.ndarray:
+    """`SceneGeometry.tri` rows of one mesh (no roughness map: column 21 is 0)."""
+    tri = mesh.triangles
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal = cross / np.linalg.norm(cross, axis=1, keepdims=True)
+    rows = np.zeros((len(tri), 24), f32)
+    rows[:, 0:3], rows[:, 3:6], rows[:, 6:9], rows[:, 9:12] = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], normal
+    corner = mesh.vertex_normals[mesh.faces] if mesh.vertex_normals is not None else np.repeat(normal[:, None], 3, 1)
+    rows[:, 12:21] = corner.reshape(len(tri), 9)
+    return rows
+
+
 class SceneGeometry:
     def __init__(self, scene: Scene, threads: int = 2):
         self.scene = scene
@@ -107,5 +119,83 @@ class SceneGeometry:
         t = np.array([p.t for p in poses], f32)
         return R, t
 
+    # ---- mesh levels of detail (issue 13, dpmhw.lod.mesh_loop) ---------------------------------
+    def add_levels(self, k: int, meshes) -> None:
+        """Install the levels of moving object k (`meshes[0]` its own mesh, then coarser ones):
+        their triangle rows are appended to `tri` and their model-space BVHs built, once; then
+        `set_level` swaps them in place. Objects given the same level list (instances of one
+        mesh, equal in content) share rows and BVHs."""
+        obj = self.scene.objects[k]
+        same = meshes[0] is obj.mesh or (np.array_equal(meshes[0].faces, obj.mesh.faces)
+                                         and np.array_equal(meshes[0].vertices, obj.mesh.vertices))
+        if not obj.is_dynamic or obj.is_emissive or obj.face_roughness is not None or not same:
+            raise ValueError(f"objects[{k}]: mesh levels need a moving, non-emissive object without a roughness map, "
+                             "and its own mesh as level 0")
+        if not hasattr(self, "_levels"):
+            self._levels: dict[int, list] = {}  # object → [(tri offset, bvh, sphere, triangles) per level]
+            self._level_cache: dict[int, list] = {}  # id(meshes[1]) → the same, shared by instances
+            self._level_scenes: list = []
+            self.level = np.zeros(len(self.scene.objects), np.int64)
+        j = self.accel.dynamic_objects.index(k)
+        base = (int(self.tri_offsets[k]), *self._dynamic_slot(j), len(obj.mesh.faces))
+        key = id(meshes[1]) if len(meshes) > 1 else None
+        if key not in self._level_cache:
+            rows, entries, offset = [], [], len(self.tri)
+            for mesh in meshes[1:]:
+                rows.append(_triangle_rows(mesh))
+                bvh, sphere = self._level_bvh(mesh)
+                entries.append((offset, bvh, sphere, len(mesh.faces)))
+                offset += len(mesh.faces)
+            self.tri = np.concatenate([self.tri, *rows])
+            self._level_cache[key] = entries
+        self._levels[k] = [base] + self._level_cache[key]
+
+    def _dynamic_slot(self, j: int):
+        """(BVH, bounding sphere) the accelerator holds for its j-th moving object."""
+        a = self.accel
+        if hasattr(a, "acc"):  # RtcAccel: handle table and sphere rows the kernels read
+            return int(a.acc[0][1 + j]), a.acc[4][j].copy()
+        return a.dynamic_scenes[j], a.dynamic_bounds[j]
+
+    def _level_bvh(self, mesh):
+        """One model-space BVH of a level for this geometry's accelerator, and its bounding
+        sphere (the accelerator's own formula)."""
+        from dpmhw.render.accel import _embree_scene
+
+        v = np.asarray(mesh.vertices)
+        centre = (v.min(axis=0) + v.max(axis=0)) / 2
+        radius = np.linalg.norm(v - centre, axis=1).max() * (1 + 1e-4) + 1e-9
+        if hasattr(self.accel, "acc"):
+            scene = rtc.RtcScene([np.asarray(v, np.float32)], [mesh.faces], robust=rtc.ROBUST)
+            self._level_scenes.append(scene)
+            return scene.handle, np.array([*centre.astype(f32), f32(radius)], f32)
+        return _embree_scene([v], [mesh.faces]), (centre.astype(f32), f32(radius))
+
+    def set_level(self, k: int, level: int) -> None:
+        """Object k uses its level `level` from the next query on: the global triangle offset,
+        its BVH and its bounding sphere are swapped in place (no rebuild, kernel signatures as
+        they are)."""
+        offset, bvh, sphere, _ = self._levels[k][level]
+        j = self.accel.dynamic_objects.index(k)
+        self.tri_offsets[k] = offset
+        a = self.accel
+        if hasattr(a, "acc"):
+            a.acc[0][1 + j] = bvh
+            a.acc_moving[0][1 + j] = bvh
+            a.acc[4][j] = sphere
+        else:
+            a.dynamic_scenes[j] = bvh
+            a.dynamic_bounds[j] = sphere
+        self.level[k] = level
+
+    @property
+    def active_triangles(self) -> int:
+        """Triangles of the levels in use (`triangle_count` without levels)."""
+        if not hasattr(self, "_levels"):
+            return self.triangle_count
+        return self.triangle_count + sum(lv[int(self.level[k])][3] - lv[0][3] for k, lv in self._levels.items())
+
     def close(self) -> None:
         self.accel.close()
+        for scene in getattr(self, "_level_scenes", []):
+            scene.close()

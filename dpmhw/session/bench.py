@@ -190,7 +190,7 @@ class _ApiLoad:
             self.sock.close()
 
 
-STAGE_KEYS = ("gbuffer", "render", "reuse", "filter", "upsample", "adaptive", "lod", "post", "present", "frame")
+STAGE_KEYS = ("gbuffer", "render", "reuse", "filter", "upsample", "adaptive", "lod", "mesh_lod", "post", "present", "frame")
 
 
 def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 0, height: int = 0,

@@ -25,6 +25,7 @@ import numpy as np
 
 from dpmhw.frame_sink import FrameSink
 from dpmhw.postprocess import NonFiniteFrameError
+from dpmhw.lod.mesh_loop import mesh_lod
 from dpmhw.lod.refine import tile_refiner
 from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.stage import ReconstructStage
@@ -134,6 +135,7 @@ class SessionLoop:
                                             adaptive=AdaptiveSampler(parts.renderer, parts.gbuffer, config.render.adaptive_rays)
                                             if parts.gbuffer is not None and config.render.adaptive_rays > 0 else None,
                                             lod=tile_refiner(parts.renderer, parts.gbuffer, config.lod))  # issue 13
+        self.mesh_lod = mesh_lod(parts.renderer, parts.gbuffer, config.lod)  # issue 13: mesh levels (None: off)
         self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
         self.frame_log: list[FrameRecord] | None = [] if frame_log else None
         self._frame_log_max = frame_log
@@ -390,6 +392,10 @@ class SessionLoop:
                 self._sync_output()
                 return False
             self._dark_render_ns = t1
+        if self.mesh_lod is not None:  # issue 13: this frame's mesh levels, before the render
+            self.mesh_lod.choose(poses, self.parts.renderer.camera.pose)
+            t1b = self.clock()
+            stages["mesh_lod"], t1 = (t1b - t1) / 1e9, t1b
         try:
             frame = self.parts.renderer.render(time=scene_time, seed=self._frame_number, spp=settings.spp, poses=poses)
             self.safety.update("render", False)
@@ -408,6 +414,13 @@ class SessionLoop:
         image = out.image
         image.setflags(write=False)
         stages.update(out.stages_s)
+        if self.mesh_lod is not None:  # issue 13: the output's visibility per object, for the next choice
+            t3 = self.clock()
+            g = self.parts.gbuffer
+            H, W = image.shape[:2]
+            self.mesh_lod.observe(image, g.depth.reshape(H, W) if g is not None else frame.depth,
+                                  g.id.reshape(H, W) if g is not None else frame.object_id)
+            stages["mesh_lod"] += (self.clock() - t3) / 1e9
         t4 = self.clock()
         # the newest sample may have gone stale while this frame was made: never light it then
         # (dark within stale_after_ms + one frame, issue 14), and take in what arrived meanwhile

@@ -28,3 +28,14 @@ def test_tiny_run_writes_rows_and_figures(tmp_path):
     assert by["none"]["triangles"] > 60000
     json.dumps(rows)
     assert {p.split("/")[-1] for p in result["files"]} == {"lod-map-dpm-bunny.png", "lod-ms-vs-error.png"}
+
+
+def test_mesh_lod_methods_switch_on_a_long_throw(tmp_path):
+    """dpm-bunny@80 at 128×96 (f 187 px): the bunny beyond its pop-safe depth (57 m here), so mesh-LOD and all
+    run coarser levels (fewer triangles); at 1 m (the test above) they do not."""
+    cfg = LodBenchConfig(scenes=("dpm-bunny@80",), scale=0.125, eval_times=(0.1,), history_frames=3, ref_spp=4, rays=20_000)
+    by = {r["method"]: r for r in run_lod(cfg, cache_dir=tmp_path / "cache")["rows"]}
+    for m in ("mesh-LOD", "all"):
+        assert by[m]["lod_switches"] >= 1 and by[m]["triangles"] < by["none"]["triangles"]
+        assert int(by[m]["mesh_levels"].split(",")[0]) >= 1
+    assert by["none"]["lod_switches"] == 0 and by["none"]["mesh_levels"] == ""

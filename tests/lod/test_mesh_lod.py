@@ -85,12 +85,43 @@ def test_hysteresis_stops_flicker_at_a_switch_depth(sphere_levels):
 
 
 def test_invisible_objects_use_the_pixel_allowance(sphere_levels):
-    sel = MeshLodSelector([sphere_levels], FOCAL, MeshLodSettings(invisible_error_px=2.0, hysteresis=0.0))
+    sel = MeshLodSelector([sphere_levels], FOCAL, MeshLodSettings(invisible_error_px=2.0, edge_px=1e3, hysteresis=0.0))
     errs = sphere_levels.errors_m
     z = errs[2] * FOCAL / 2.0 * 1.01  # level 2's error projects to just under 2 px
     got = sel.select([pose_at(z + 0.1)], Pose.identity(), np.array([-10.0]))
     expect = int(np.nonzero(errs * FOCAL / z <= 2.0)[0].max())
     assert got[0] == expect >= 2
+
+
+def test_level_follows_the_projected_triangle_size(sphere_levels):
+    """A level is left for a coarser one only once its triangles are below `edge_px` on screen:
+    a near object keeps level 0, a far one drops, and the projected edges say where."""
+    settings = MeshLodSettings(invisible_error_px=1e3, edge_px=1.0, hysteresis=0.0)
+    sel = MeshLodSelector([sphere_levels], FOCAL, settings)
+    edges = sphere_levels.edges_m
+    assert np.all(np.diff(edges) > 0)  # coarser levels have longer edges
+    invisible = np.array([-10.0])
+    z_near = edges[0] * FOCAL / 1.0 * 0.9  # level 0's edges are 1.1 px: keep it
+    assert sel.select([pose_at(z_near + 0.1)], Pose.identity(), invisible)[0] == 0
+    z_far = edges[1] * FOCAL / 1.0 * 1.05  # levels 0 and 1 below a pixel: at least level 2
+    got = int(sel.select([pose_at(z_far + 0.1)], Pose.identity(), invisible)[0])
+    assert got >= 2 and np.all(sel.edge_px(0, z_far)[:got] <= 1.0)
+    assert sel.select([pose_at(z_near + 0.1)], Pose.identity(), invisible)[0] == 0  # back near: finest again
+
+
+def test_zero_size_projection_and_behind_the_projector(sphere_levels):
+    """Hard cases: an object so far that it projects to nothing takes the coarsest level; one
+    behind (or straddling) the projector's plane, or at a NaN depth, takes level 0; all finite."""
+    sel = MeshLodSelector([sphere_levels], FOCAL)
+    far = sel.select([pose_at(1e6)], Pose.identity(), np.array([-np.inf]))
+    assert far[0] == len(sphere_levels) - 1
+    assert np.all(np.isfinite(sel.edge_px(0, 1e6))) and sel.edge_px(0, 1e6).max() < 1e-3
+    for z in (-5.0, 0.05, 0.0):  # behind, straddling the plane (nearest point behind), at the plane
+        assert sel.select([pose_at(z)], Pose.identity(), np.array([-np.inf]))[0] == 0
+        assert sel.select([pose_at(1e6)], Pose.identity(), np.array([-np.inf]))[0] == len(sphere_levels) - 1
+    assert np.all(np.isinf(sel.edge_px(0, -1.0)))
+    nan_pose = Pose(np.eye(3), np.array([0.0, 0.0, np.nan]))
+    assert sel.select([nan_pose], Pose.identity(), np.array([np.nan]))[0] == 0
 
 
 def test_selection_never_rebuilds_a_bvh(sphere_levels, monkeypatch):

@@ -1,0 +1,162 @@
+"""Mesh level of detail inside a running pipeline (the session loop, `dpmhw bench lod`).
+
+Built once (`MeshLod.__init__`): the levels of every moving mesh object (`MeshLevels`:
+quadric simplification with `fast-simplification`, ε per level; identical meshes share them),
+installed into the renderer's `SceneGeometry` (triangle rows and one model-space Embree BVH per
+level, `add_levels`) and into the native G-buffer (its region of interest holds every level,
+`use_mesh`), and the selector's pop-safe depths (`MeshLodSelector`, measured once per mesh).
+
+Per frame:
+- `choose(poses, camera_pose)`, before the render: the selector picks each object's level from
+  its nearest depth (its projected size through the intrinsics) and the visibility it had in
+  the previous output; a change swaps the object's triangle offset, BVH and bounding sphere in
+  place (`SceneGeometry.set_level`) and tells the G-buffer (`use_mesh`). Nothing is rebuilt.
+- `observe(image, depth, object_id)`, after the output: the visibility map of the output frame
+  (the uint8 projector frame decoded to linear light: the contrast the audience sees) over the
+  tiles the objects cover, reduced to one V per object for the next choice.
+
+Before the first observation, and while it shows on no pixel, an object counts as visible (the
+strict rule); only one the map calls invisible where it shows uses the error allowance. With no object
+that has levels (`MeshLod.active` False) nothing is installed and frames are untouched.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+
+import numba as nb
+import numpy as np
+
+from dpmhw.lod.mesh_lod import MeshLevels, MeshLodSelector, MeshLodSettings, object_visibility
+from dpmhw.lod.visibility import VisibilitySettings, visibility_map
+from dpmhw.transforms import Pose
+
+log = logging.getLogger(__name__)
+MIN_FACES = 1000  # smaller meshes cost too little to be worth levels
+
+# sRGB 8-bit code → linear light (IEC 61966-2-1): the projector's output, before its gamma
+_codes = np.arange(256) / 255.0
+SRGB8_TO_LINEAR = np.where(_codes <= 0.04045, _codes / 12.92, ((_codes + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def build_levels(scene, reductions=None) -> list[MeshLevels | None]:
+    """Levels for every moving, non-emissive mesh object of ≥ MIN_FACES triangles without a
+    roughness map (None for the others); objects with identical meshes share one MeshLevels."""
+    by_content: dict[str, MeshLevels] = {}
+    out: list[MeshLevels | None] = []
+    for o in scene.objects:
+        if o.shape != "mesh" or not o.is_dynamic or o.is_emissive or o.face_roughness is not None or len(o.mesh.faces) < MIN_FACES:
+            out.append(None)
+            continue
+        key = hashlib.sha256(o.mesh.vertices.tobytes() + o.mesh.faces.tobytes()).hexdigest()
+        if key not in by_content:
+            by_content[key] = MeshLevels(o.mesh) if reductions is None else MeshLevels(o.mesh, reductions)
+        out.append(by_content[key])
+    return out
+
+
+@nb.njit(nogil=True, cache=True)
+def _objects_box(object_id, has_levels):
+    """Bounding box (y0, y1, x0, x1) of the pixels showing an object with levels (y0 = −1: none)."""
+    H, W = object_id.shape
+    y0, y1, x0, x1 = -1, -1, W, -1
+    n = has_levels.shape[0]
+    for y in range(H):
+        for x in range(W):
+            k = object_id[y, x]
+            if 0 <= k < n and has_levels[k]:
+                if y0 < 0:
+                    y0 = y
+                y1 = y
+                if x < x0:
+                    x0 = x
+                if x > x1:
+                    x1 = x
+    return y0, y1 + 1, x0, x1 + 1
+
+
+class MeshLod:
+    """Levels of the moving meshes of one renderer (and its native G-buffer), chosen per frame."""
+
+    def __init__(self, renderer, gbuffer=None, settings: MeshLodSettings = MeshLodSettings(),
+                 visibility: VisibilitySettings = VisibilitySettings(), levels: list[MeshLevels | None] | None = None,
+                 native_K=None):
+        scene = renderer.scene
+        self.geometry = renderer.geometry
+        self.gbuffer = gbuffer
+        self.visibility = visibility
+        self.levels = build_levels(scene) if levels is None else levels
+        if len(self.levels) != len(scene.objects):
+            raise ValueError(f"levels: expected one entry per scene object ({len(scene.objects)}), got {len(self.levels)}")
+        self.has_levels = np.array([lv is not None for lv in self.levels], np.bool_)
+        self.active = bool(self.has_levels.any())
+        # the selector measures depth in projector pixels at the output (native) resolution
+        K = np.asarray(native_K if native_K is not None else (gbuffer.camera.K if gbuffer is not None else renderer.camera.K), float)
+        self.K = K
+        self.selector = MeshLodSelector(self.levels, math.sqrt(abs(K[0, 0] * K[1, 1])), settings, visibility)
+        self.object_vis = np.full(len(self.levels), np.inf)  # no map yet: every object counts as visible
+        self.switches = 0
+        for k, lv in enumerate(self.levels):
+            if lv is None:
+                continue
+            meshes = [level.mesh for level in lv.levels]
+            self.geometry.add_levels(k, meshes)
+            if gbuffer is not None:
+                gbuffer.use_mesh(k, meshes[0], all_levels=meshes)
+
+    @property
+    def choice(self) -> np.ndarray:
+        return self.selector.current.copy()
+
+    @property
+    def triangles(self) -> int:
+        """Triangles of the whole scene at the levels in use."""
+        return int(self.geometry.active_triangles)
+
+    def choose(self, poses: list[Pose], camera_pose: Pose) -> np.ndarray:
+        """Pick and install this frame's levels (before the render); returns them."""
+        before = self.selector.current.copy()
+        choice = self.selector.select(poses, camera_pose, self.object_vis)
+        for k in np.nonzero(choice != before)[0]:
+            self.geometry.set_level(int(k), int(choice[k]))
+            if self.gbuffer is not None:
+                self.gbuffer.use_mesh(int(k), self.levels[k].levels[int(choice[k])].mesh)
+            self.switches += 1
+        return choice
+
+    def observe(self, image: np.ndarray, depth: np.ndarray, object_id: np.ndarray) -> np.ndarray:
+        """Per-object visibility from the output frame (uint8 sRGB (H, W, 3), or linear float) with
+        the G-buffer depth and object ids of the same frame (native size); only the tiles the
+        objects cover are mapped. Returns (n_objects,) V; an object on no pixel (off screen,
+        hidden, too small) gets +inf, the strict rule: a coarse level chosen while it was unseen
+        would otherwise switch finer in plain view the frame after it appears."""
+        ids = np.ascontiguousarray(object_id, np.int32)
+        y0, y1, x0, x1 = _objects_box(ids, self.has_levels)
+        n = len(self.levels)
+        if y0 < 0:
+            self.object_vis = np.full(n, np.inf)
+            return self.object_vis
+        t = self.visibility.tile
+        y0, x0 = y0 // t * t, x0 // t * t  # whole tiles of the frame's grid
+        y1, x1 = min(-(-y1 // t) * t, ids.shape[0]), min(-(-x1 // t) * t, ids.shape[1])
+        crop = image[y0:y1, x0:x1]
+        radiance = SRGB8_TO_LINEAR[crop] if crop.dtype == np.uint8 else crop
+        vmap = visibility_map(radiance, depth[y0:y1, x0:x1], self.K, self.visibility)
+        v = object_visibility(vmap.visibility, t, ids[y0:y1, x0:x1], n)
+        self.object_vis = np.where(np.isneginf(v), np.inf, v)  # on no pixel: the strict rule (see the docstring)
+        return self.object_vis
+
+
+def mesh_lod(renderer, gbuffer, section) -> MeshLod | None:
+    """The loop's MeshLod from the config's `lod` section (None when `mesh` is off or the scene
+    has no moving mesh to simplify)."""
+    if not getattr(section, "mesh", False):
+        return None
+    if not hasattr(renderer, "geometry"):  # a renderer without Embree geometry (a test double): nothing to simplify
+        log.warning("lod.mesh: the renderer %s has no scene geometry; mesh levels off", type(renderer).__name__)
+        return None
+    lod = MeshLod(renderer, gbuffer, MeshLodSettings(),
+                  VisibilitySettings(viewer_distance_m=section.viewer_distance_m, alpha_v=section.alpha_v))
+    return lod if lod.active else None
