@@ -296,11 +296,12 @@ def bench_mitsuba(scene_name: str = "paper-static", frames: int = 9, threads: in
             mr.set_camera(scene.camera.pose)
         dr.set_flag(dr.JitFlag.KernelHistory, False)
         llvm = os.path.basename(os.environ.get("DRJIT_LIBLLVM_PATH", "")) if variant.startswith("llvm") else ""
+        tracer = "embree" if getattr(mr.mi, "MI_ENABLE_EMBREE", False) else "mitsuba kd-tree"
         rows = [_timing_row("mitsuba", variant, scene, scene_name, c, clocks["mitsuba", c], mr.threads,
                             max_depth=max_depth(scene.render.max_bounces), kernels_compiled=compiled[c][0],
                             render_kernel_cache_hit=compiled[c][1],
                             warmup_ms=warm.wall_ms[0], warmup_kernels_compiled=warmup_compiled, libllvm=llvm,
-                            mitsuba_version=mr.mi.__version__) for c in ("fixed", "moved")]
+                            mitsuba_version=mr.mi.__version__, ray_tracer=tracer) for c in ("fixed", "moved")]
         if integrator is not None:
             backend = type(integrator.geometry.accel).__name__
             rows += [_timing_row("dpmhw", backend, scene, scene_name, c, clocks["dpmhw", c], threads,
@@ -433,7 +434,7 @@ def format_table(rows: list[dict]) -> str:
                 lines.append(f"{r['region']}: dpmhw {r['pixels_dpmhw']}, Mitsuba {r['pixels_mitsuba']}")
             else:
                 lines.append(f"{r['region']:32s} {r['pixels']:8d} {r['mean_dpmhw']:9.4f} {r['mean_mitsuba']:9.4f} "
-                             f"{100 * r['rel_diff']:+11.2f} % ± {100 * r['rel_stderr']:.2f}")
+                             f"{100 * r['rel_diff']:+11.3f} % ± {100 * r['rel_stderr']:.3f}")
     return "\n".join(lines)
 
 
