@@ -1,9 +1,9 @@
 """`dpmhw bench mitsuba`: Mitsuba 3 (LLVM backend) on the same scene as dpmhw, the baseline of issue 12.
 
 The scene is converted in memory (`scene_dict`): every object becomes an `mi.Mesh` in world space
-(its pose at t = 0), with a two-sided diffuse BSDF (dpmhw shades both faces; Mitsuba's `diffuse`
-alone is black from behind) and an `area` emitter where it emits (one-sided, like dpmhw's); a
-background becomes a `constant` emitter. The camera is dpmhw's OpenCV pinhole as a `perspective`
+(its pose at t = 0), with a two-sided BSDF (dpmhw shades both faces; Mitsuba's BSDFs alone are
+black from behind: `bsdf_dict` for the glossy lobe) and an `area` emitter where it emits
+(one-sided, like dpmhw's); a background becomes a `constant` emitter. The camera is dpmhw's OpenCV pinhole as a `perspective`
 sensor (`sensor_dict`): horizontal FOV from fx, the principal point as an offset from the film
 centre, and OpenCV's axes (x right, y down) turned into Mitsuba's (x left, y up).
 
@@ -11,7 +11,8 @@ Light transport: dpmhw's `max_bounces` = B gives paths of B + 2 segments at most
 by the camera; direct light at vertices 1 … B + 1), which is Mitsuba's `max_depth` = B + 2. For
 paper-static (B = 1): `max_depth` = 3. Mitsuba reaches its last vertex's direct light with MIS
 (NEE plus one more BSDF ray per path), dpmhw with NEE alone for diffuse scenes: same estimator
-target, one extra continuation ray per path for Mitsuba. Russian roulette starts at depth 5 in
+target, one extra continuation ray per path for Mitsuba (with a sharp glossy lobe dpmhw traces
+that ray too: `mis_last`). Russian roulette starts at depth 5 in
 Mitsuba (never here) and at depth 3 in dpmhw (never here). Pixels: Mitsuba always samples a
 random point of the pixel; a `box` filter makes each sample land in its own pixel only, which is
 what dpmhw's `jitter` sampling does. dpmhw's default (`centre`) traces pixel centres: same ray
@@ -39,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dpmhw.errors import DpmhwError, SceneError
+from dpmhw.render.kernels import MIN_ALPHA
 from dpmhw.scene_file import Scene, load_scene
 from dpmhw.transforms import Pose, rotation_about_axis
 
@@ -46,7 +48,7 @@ VARIANT = "llvm_ad_rgb"  # the CPU variant PyPI's wheels ship (no non-AD llvm_rg
 WARMUP_FRAMES = 2
 PAN_DEG = 1.0  # the "moved" camera pans by up to this much, a different angle each frame
 EDGE_RADIUS_PX = 3  # comparison regions keep pixels at least this far from an object or normal edge
-NORMAL_EDGE = 0.2  # a normal component varying more than this within the radius is an edge
+NORMAL_EDGE = 0.2  # on a flat-shaded object, a normal component varying more than this within the radius is an edge
 MAX_SPP_PER_CALL = 16  # Mitsuba's wavefront is width × height × spp lanes: bounded memory
 
 
@@ -140,16 +142,43 @@ def _check_convertible(scene: Scene) -> None:
     if not np.allclose(scene.viewer_position, scene.camera.pose.t):
         raise SceneError(scene.source, "viewer", "Mitsuba shades towards the camera; the conversion needs no separate viewer")
     for i, obj in enumerate(scene.objects):
-        if np.any(obj.specular > 0):
-            raise SceneError(scene.source, f"objects[{i}].specular",
-                             "the conversion supports diffuse materials only (dpmhw's Lambert + GGX sum has no exact Mitsuba BSDF)")
+        if obj.face_roughness is not None:
+            raise SceneError(scene.source, f"objects[{i}].roughness_map", "the conversion supports one roughness per object")
+        bsdf_dict(obj, scene.source, i)  # refuses a specular colour it cannot express
+
+
+def bsdf_dict(obj, source: str = "", index: int = 0) -> dict:
+    """dpmhw's BSDF, albedo·(1 − s)/π + s·D·G/(4 cos_o cos_i) (GGX, separable Smith G, no
+    Fresnel), two-sided. Diffuse-only objects: `diffuse`. With a specular lobe the sum is a
+    `blendbsdf` of weight w = max(s): (1 − w)·diffuse(albedo·(1 − s)/(1 − w)) +
+    w·roughconductor(material "none" (Fresnel = 1), α as dpmhw's, specular_reflectance s/w),
+    equal to the sum exactly while both reflectances stay in [0, 1] (always for a grey s)."""
+    albedo, spec = np.asarray(obj.albedo, float), np.asarray(obj.specular, float)
+    diffuse = {"type": "diffuse", "reflectance": {"type": "rgb", "value": albedo.tolist()}}
+    if not np.any(spec > 0):
+        return {"type": "twosided", "bsdf": diffuse}
+    w = float(spec.max())
+    diffuse_part = albedo * (1.0 - spec)
+    if w >= 1.0:
+        if np.any(diffuse_part > 0):
+            raise SceneError(source, f"objects[{index}].specular", "a specular of 1 in one channel with a diffuse part in "
+                                                                   "another has no blendbsdf equivalent")
+        kd = np.zeros(3)
+    else:
+        kd = diffuse_part / (1.0 - w)
+    if np.any(kd > 1.0 + 1e-9):
+        raise SceneError(source, f"objects[{index}].specular", f"specular channels {spec.tolist()} differ too much for "
+                                                               "a blendbsdf with reflectances in [0, 1]")
+    diffuse["reflectance"]["value"] = np.minimum(kd, 1.0).tolist()
+    glossy = {"type": "roughconductor", "material": "none", "distribution": "ggx", "alpha": max(obj.roughness**2, MIN_ALPHA),
+              "specular_reflectance": {"type": "rgb", "value": (spec / w).tolist()}}
+    return {"type": "twosided", "bsdf": {"type": "blendbsdf", "weight": w, "bsdf_0": diffuse, "bsdf_1": glossy}}
 
 
 def _mesh(mi, obj, pose: Pose):
     """One object as an in-memory `mi.Mesh` in world space, with its BSDF and emitter."""
     props = mi.Properties()
-    props["bsdf"] = mi.load_dict({"type": "twosided", "bsdf": {"type": "diffuse",
-                                                              "reflectance": {"type": "rgb", "value": obj.albedo.tolist()}}})
+    props["bsdf"] = mi.load_dict(bsdf_dict(obj))
     if obj.is_emissive:
         props["emitter"] = mi.load_dict({"type": "area", "radiance": {"type": "rgb", "value": obj.emission.tolist()}})
     m = obj.mesh
@@ -319,8 +348,10 @@ def bench_mitsuba(scene_name: str = "paper-static", frames: int = 9, threads: in
 
 # ---- converged images compared ---------------------------------------------------------------
 
-def interior_mask(object_id: np.ndarray, normal: np.ndarray, radius: int = EDGE_RADIUS_PX) -> np.ndarray:
-    """Pixels at least `radius` from a change of object or of normal (wall corners, silhouettes)."""
+def interior_mask(object_id: np.ndarray, normal: np.ndarray, radius: int = EDGE_RADIUS_PX, crease_ids=None) -> np.ndarray:
+    """Pixels at least `radius` from a change of object, or of normal on the objects in
+    `crease_ids` (default: all; flat-shaded ones have creases, e.g. a box's wall corners, where a
+    smooth object's normals turn within a few pixels without an edge)."""
     from scipy import ndimage
 
     size = 2 * radius + 1
@@ -329,13 +360,16 @@ def interior_mask(object_id: np.ndarray, normal: np.ndarray, radius: int = EDGE_
     for c in range(3):
         n = normal[..., c]
         flat &= ndimage.maximum_filter(n, size) - ndimage.minimum_filter(n, size) <= NORMAL_EDGE
+    if crease_ids is not None:
+        flat |= ~np.isin(object_id, np.asarray(list(crease_ids), np.int64))
     return same_obj & flat & (object_id >= 0)
 
 
 def regions(scene: Scene, object_id: np.ndarray, normal: np.ndarray) -> dict[str, np.ndarray]:
-    """Named pixel masks away from edges: every interior pixel, each object, and an object's
-    faces split by their normal's dominant axis (a box: floor, walls, ceiling)."""
-    inside = interior_mask(object_id, normal)
+    """Named pixel masks away from edges (creases only on flat-shaded objects): every interior
+    pixel, each object, and a box's faces split by their normal's dominant axis (floor, walls,
+    ceiling)."""
+    inside = interior_mask(object_id, normal, crease_ids=[i for i, o in enumerate(scene.objects) if o.mesh.vertex_normals is None])
     out = {"all interior": inside}
     axis = np.argmax(np.abs(normal), axis=-1)
     sign = np.take_along_axis(normal, axis[..., None], -1)[..., 0] > 0
