@@ -3,17 +3,18 @@
 The scene is converted in memory (`scene_dict`): every object becomes an `mi.Mesh` in world space
 (its pose at t = 0), with a two-sided BSDF (dpmhw shades both faces; Mitsuba's BSDFs alone are
 black from behind: `bsdf_dict` for the glossy lobe) and an `area` emitter where it emits
-(one-sided, like dpmhw's); a background becomes a `constant` emitter. The camera is dpmhw's OpenCV pinhole as a `perspective`
-sensor (`sensor_dict`): horizontal FOV from fx, the principal point as an offset from the film
-centre, and OpenCV's axes (x right, y down) turned into Mitsuba's (x left, y up).
+(one-sided, like dpmhw's); a background becomes a `constant` emitter. The camera is dpmhw's
+OpenCV pinhole as a `perspective` sensor (`sensor_dict`): horizontal FOV from fx, the principal
+point as an offset from the film centre, and OpenCV's axes (x right, y down) turned into
+Mitsuba's (x left, y up).
 
 Light transport: dpmhw's `max_bounces` = B gives paths of B + 2 segments at most (an emitter seen
 by the camera; direct light at vertices 1 … B + 1), which is Mitsuba's `max_depth` = B + 2. For
 paper-static (B = 1): `max_depth` = 3. Mitsuba reaches its last vertex's direct light with MIS
 (NEE plus one more BSDF ray per path), dpmhw with NEE alone for diffuse scenes: same estimator
 target, one extra continuation ray per path for Mitsuba (with a sharp glossy lobe dpmhw traces
-that ray too: `mis_last`). Russian roulette starts at depth 5 in
-Mitsuba (never here) and at depth 3 in dpmhw (never here). Pixels: Mitsuba always samples a
+that ray too: `mis_last`). Russian roulette starts at depth 5 in Mitsuba and at depth 3 in dpmhw
+(never reached with one bounce). Pixels: Mitsuba always samples a
 random point of the pixel; a `box` filter makes each sample land in its own pixel only, which is
 what dpmhw's `jitter` sampling does. dpmhw's default (`centre`) traces pixel centres: same ray
 count, so timings compare, while the converged images are compared with dpmhw in `jitter` mode.
