@@ -394,7 +394,7 @@ def _luminance(img: np.ndarray) -> np.ndarray:
 
 
 def compare(scene_name: str = "paper-static", spp: int = 256, threads: int = 2, variant: str = VARIANT, mesh=None,
-            progress=None, images_out: dict | None = None) -> list[dict]:
+            progress=None) -> list[dict]:
     """Both renderers at `spp` (dpmhw with pixel jitter, the box-filtered pixel integral like
     Mitsuba's), in chunks of up to MAX_SPP_PER_CALL: mean luminance per region (see `regions`),
     relative difference, and its standard error from the spread of the chunks."""
@@ -418,8 +418,6 @@ def compare(scene_name: str = "paper-static", spp: int = 256, threads: int = 2, 
             if progress:
                 progress(f"converging at {spp} spp", c + 1, n_chunks)
     images = {k: v / n_chunks for k, v in sums.items()}
-    if images_out is not None:
-        images_out.update(images)
     rows = []
     pc = {k: np.array(v) for k, v in per_chunk.items()}  # (chunks, regions)
     for j, (name, m) in enumerate(masks.items()):

@@ -205,7 +205,7 @@ def bench_soak(
 
 @bench_app.command("mitsuba")
 def bench_mitsuba(
-    scene: Annotated[str, typer.Argument(help="Scene file or built-in name (diffuse, no distortion).")] = "paper-static",
+    scene: Annotated[str, typer.Argument(help="Scene file or built-in name (no lens distortion, no separate viewer).")] = "paper-static",
     frames: Annotated[int, typer.Option(min=3, help="Timed frames per camera mode (the median is reported).")] = 9,
     threads: Annotated[int, typer.Option(min=1, help="Threads for both renderers (drjit's pool, dpmhw's segments).")] = 2,
     variant: Annotated[str, typer.Option(help="Mitsuba variant; llvm_ad_rgb is the fair CPU comparison.")] = "llvm_ad_rgb",
