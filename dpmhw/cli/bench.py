@@ -201,3 +201,38 @@ def bench_soak(
         write_json(result, json_path)
         plot_soak(result, json_path.with_suffix(".png"))
         typer.echo(f"wrote {json_path} and {json_path.with_suffix('.png')}")
+
+
+@bench_app.command("mitsuba")
+def bench_mitsuba(
+    scene: Annotated[str, typer.Argument(help="Scene file or built-in name (no lens distortion, no separate viewer).")] = "paper-static",
+    frames: Annotated[int, typer.Option(min=3, help="Timed frames per camera mode (the median is reported).")] = 9,
+    threads: Annotated[int, typer.Option(min=1, help="Threads for both renderers (drjit's pool, dpmhw's segments).")] = 2,
+    variant: Annotated[str, typer.Option(help="Mitsuba variant; llvm_ad_rgb is the fair CPU comparison.")] = "llvm_ad_rgb",
+    dpmhw: Annotated[bool, typer.Option("--dpmhw/--no-dpmhw", help="Alternate dpmhw frames with Mitsuba's and report the ratios.")] = True,
+    compare_spp: Annotated[int, typer.Option(min=0, help="Also render both converged at this spp and compare region means (0: skip).")] = 0,
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the rows as JSON here (a list of flat rows).")] = None,
+    plot_path: Annotated[Optional[Path], typer.Option("--plot", help="Also save a labelled PNG plot here.")] = None,
+    mesh: Annotated[Optional[Path], typer.Option(help="Mesh for the built-in scenes' bunny.")] = None,
+) -> None:
+    """Mitsuba 3 (LLVM) on the same scene: ms per 1-spp frame with the camera fixed and moved,
+    alternated with dpmhw's frames, and optionally converged images compared (docs/mitsuba.md)."""
+    from dpmhw.benchmarks import mitsuba as mb
+    from dpmhw.errors import DpmhwError
+
+    try:
+        with Progress() as bar:
+            rows = mb.bench_mitsuba(scene, frames=frames, threads=threads, variant=variant, with_dpmhw=dpmhw, mesh=mesh,
+                                    progress=bar.callback)
+            if compare_spp:
+                rows += mb.compare(scene, spp=compare_spp, threads=threads, variant=variant, mesh=mesh, progress=bar.callback)
+    except DpmhwError as exc:
+        typer.secho(f"error: {exc}", fg="red", err=True)
+        raise typer.Exit(2)
+    typer.echo(mb.format_table(rows))
+    if json_path is not None:
+        typer.echo(f"wrote {write_json(rows, json_path)}")
+    if plot_path is not None:
+        plot_path.parent.mkdir(parents=True, exist_ok=True)
+        mb.plot(rows, plot_path)
+        typer.echo(f"wrote {plot_path}")
