@@ -159,11 +159,15 @@ class ReconstructStage:
             dirty = [g.roi_box]
         else:  # the current region, and what of the last one lies outside it (each pixel once)
             dirty = [g.roi_box] + box_minus(self._native_roi, g.roi_box)
+        first = self._native_roi == "none yet"
         self._native_roi = g.roi_box
-        for b in dirty:
+        for k, b in enumerate(dirty):
             if b is not None and b[1] > b[0] and b[3] > b[2]:
+                # inside the current region only the pixels the G-buffer changed (most of it is
+                # background that stays background); the rest of the last region in full
+                mask = g.changed if k == 0 and not first else None
                 self.native.update(g.id, g.position, g.normal, g.depth, g.albedo, g.spec_albedo, g.roughness,
-                                   self.viewer, b)
+                                   self.viewer, b, mask)
         return box
 
     def _shading_branch(self, frame, filter: str, poses, camera):
