@@ -365,6 +365,7 @@ class NativeGBuffer:
         # per pixel of the last update's region: its attributes may have changed (mode "edges";
         # the other modes mark the whole region); what `Guides.update(mask=…)` recomputes
         self.changed = np.ones(self.width * self.height, np.bool_)
+        self.updates = 0  # update() calls so far: a user of `changed` must have seen the one before
         self._meshes = None  # the rasteriser's tables, made on its first use (`_raster_setup`)
         self.pixels_rasterised = 0  # pixels a moving object covered in the last "raster" update
         self.rays_traced = 0  # camera rays traced in the last update (for the benchmark)
@@ -496,6 +497,7 @@ class NativeGBuffer:
         if mode not in MODES:
             raise ValueError(f"gbuffer mode: expected one of {', '.join(MODES)}, got {mode!r}")
         self.rays_traced = 0
+        self.updates += 1
         box = self.roi(poses) if self.dynamic else None
         prev = self._prev_box
         if prev is not None:  # pixels of the last region outside this one: back to static
