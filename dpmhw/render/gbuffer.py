@@ -33,6 +33,9 @@ a numba kernel (`traversal.closest16` on the moving objects' BVHs only, starting
 cached static hits) when the accelerator is the C-API `RtcAccel`; with embreex's fallback they
 are gathered and traced one by one. Work follows the region: only its pixels are classified,
 traced and written, and only the part of the last region outside the current one is restored.
+`changed` flags the region's pixels whose attributes may differ from the last update's (in mode
+"edges" all but those that kept their cached static attributes), so that users of the region
+(`reconstruct.stage`'s native guides) recompute only those.
 """
 
 from __future__ import annotations
