@@ -498,17 +498,11 @@ class SessionLoop:
             job = self._prepare(self._apply_queued(), ahead=False)
             if not isinstance(job, _Job):
                 return job
-            try:
-                frame = self._render(job)
-                self.safety.update("render", False)
-            except Exception as exc:
-                return self._stage_failed("render", "render_errors", f"render failed: {type(exc).__name__}: {exc}")
-        else:
-            try:
-                frame = job.frame.result()
-                self.safety.update("render", False)
-            except Exception as exc:
-                return self._stage_failed("render", "render_errors", f"render failed: {type(exc).__name__}: {exc}")
+        try:  # rendered now, or started ahead (pipelining)
+            frame = self._render(job) if job.frame is None else job.frame.result()
+            self.safety.update("render", False)
+        except Exception as exc:
+            return self._stage_failed("render", "render_errors", f"render failed: {type(exc).__name__}: {exc}")
         settings, stages, poses, t_start, t_target = job.settings, job.stages, job.poses, job.t_start, job.t_target
         samples, age_s, used, horizon_ns, resume_at = job.samples, job.age_s, job.used, job.horizon_ns, job.resume_at
         if self.pipeline:
