@@ -58,14 +58,23 @@ class Guides:
         g.update(object_id, position, normal, depth, albedo, spec_albedo, roughness, viewer, (0, H, 0, W))
         return g
 
-    def update(self, object_id, position, normal, depth, albedo, spec_albedo, roughness, viewer, box) -> None:
-        """Recompute the pixels of `box` = (y0, y1, x0, x1) from full-size (H, W, ...) G-buffer arrays."""
+    def update(self, object_id, position, normal, depth, albedo, spec_albedo, roughness, viewer, box,
+               mask: np.ndarray | None = None) -> None:
+        """Recompute the pixels of `box` = (y0, y1, x0, x1) from full-size (H, W, ...) G-buffer arrays;
+        with `mask` (flat bool, H*W) only those of them it flags (the others keep their guides)."""
         y0, y1, x0, x1 = (int(v) for v in box)
+        use_mask = mask is not None
+        mask = np.ascontiguousarray(mask, np.bool_).reshape(-1) if use_mask else _NO_MASK
+        if use_mask and mask.shape[0] != self.width * self.height:
+            raise ValueError(f"guides mask: expected {self.width * self.height} pixels, got {mask.shape[0]}")
         _guides_kernel(np.ascontiguousarray(object_id, np.int32).reshape(-1), _flat3(position), _flat3(normal),
                        np.ascontiguousarray(depth, np.float32).reshape(-1), _flat3(albedo), _flat3(spec_albedo),
                        np.ascontiguousarray(roughness, np.float32).reshape(-1), np.asarray(viewer, np.float32).reshape(3),
-                       self.width, y0, y1, x0, x1, self.id, self.depth, self.normal, self.axis, self.sharp,
-                       self.albedo, self.spec_albedo)
+                       self.width, y0, y1, x0, x1, use_mask, mask, self.id, self.depth, self.normal, self.axis,
+                       self.sharp, self.albedo, self.spec_albedo)
+
+
+_NO_MASK = np.zeros(1, np.bool_)
 
 
 def _flat3(a) -> np.ndarray:
@@ -73,11 +82,13 @@ def _flat3(a) -> np.ndarray:
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
-def _guides_kernel(gid, pos, nrm, dep, alb, spc, rough, viewer, W, y0, y1, x0, x1,
+def _guides_kernel(gid, pos, nrm, dep, alb, spc, rough, viewer, W, y0, y1, x0, x1, use_mask, mask,
                    out_id, out_z, out_n, out_axis, out_sharp, out_alb, out_spec):
     for y in nb.prange(y0, y1):
         for x in range(x0, x1):
             p = y * W + x
+            if use_mask and not mask[p]:
+                continue
             o = gid[p]
             for c in range(3):
                 out_alb[p, c] = max(alb[p, c], DEMOD_FLOOR) if math.isfinite(alb[p, c]) else DEMOD_FLOOR

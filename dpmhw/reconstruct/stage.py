@@ -110,6 +110,7 @@ class ReconstructStage:
         self._unresolved = np.zeros(n, np.bool_)
         self._base: tuple[float, np.ndarray] | None = None
         self._native_roi = "none yet"  # the moving objects' box this stage's native guides last followed
+        self._gbuffer_updates = -1  # the native G-buffer's update count this stage's guides last followed
         self._exact: bool | None = None  # which path the last frame took
         self._helper: ThreadPoolExecutor | None = None  # runs the shading-resolution branch (see module doc)
 
@@ -159,11 +160,17 @@ class ReconstructStage:
             dirty = [g.roi_box]
         else:  # the current region, and what of the last one lies outside it (each pixel once)
             dirty = [g.roi_box] + box_minus(self._native_roi, g.roi_box)
+        # inside the current region only the pixels the G-buffer changed (most of it is background
+        # that stays background), if this stage saw the update before (another user of the same
+        # G-buffer, e.g. a benchmark's other stage, may have changed pixels since); the rest in full
+        masked = self._native_roi != "none yet" and self._gbuffer_updates == g.updates - 1
+        self._gbuffer_updates = g.updates
         self._native_roi = g.roi_box
-        for b in dirty:
+        for k, b in enumerate(dirty):
             if b is not None and b[1] > b[0] and b[3] > b[2]:
+                mask = g.changed if k == 0 and masked else None
                 self.native.update(g.id, g.position, g.normal, g.depth, g.albedo, g.spec_albedo, g.roughness,
-                                   self.viewer, b)
+                                   self.viewer, b, mask)
         return box
 
     def _shading_branch(self, frame, filter: str, poses, camera):

@@ -29,22 +29,38 @@ import math
 import numba as nb
 import numpy as np
 
-from dpmhw.reconstruct.filter import finite_rgb, depth_weight, mode_code
+from dpmhw.reconstruct.filter import DEPTH_GATE, DEPTH_SIGMA, finite_rgb, depth_weight, mode_code
 from dpmhw.reconstruct.guides import Guides
-from dpmhw.reconstruct.weights import FASTMATH, fast_exp_neg, fast_lobe_weight, fast_normal_weight
+from dpmhw.reconstruct.weights import BETA, FASTMATH, SIGMA_N2, fast_exp_neg
 
 FALLBACK_RADIUS = 2
 
 
 @nb.njit(inline="always", fastmath=FASTMATH)
 def _tap(mode, zi, n0, n1, n2, a0, a1, a2, si, lz, ln, la, ls, j):
-    """(diffuse, specular) guide weights of low-resolution tap j."""
-    wz = depth_weight(zi, lz[j])
-    if wz <= 0.0 or mode == 0:
-        return wz, wz
-    wd = wz * fast_normal_weight(n0 * ln[j, 0] + n1 * ln[j, 1] + n2 * ln[j, 2])
-    if mode == 2:
-        return wd, wz * fast_lobe_weight(a0 * la[j, 0] + a1 * la[j, 1] + a2 * la[j, 2], si, ls[j])
+    """(diffuse, specular) guide weights of low-resolution tap j: the filter's depth weight times
+    its normal- or lobe-aware weight. Every factor is an exponential, so each weight is one
+    `fast_exp_neg` of the summed exponents (the lobe weight's power factor aside): one or two
+    exponentials per tap instead of two or three; the same weights within `fast_exp_neg`'s error."""
+    d = abs(zi - lz[j])
+    if d > DEPTH_GATE * zi:
+        return 0.0, 0.0
+    r = d / (DEPTH_SIGMA * zi)
+    ez = -0.5 * r * r
+    if mode == 0:
+        w = fast_exp_neg(ez)
+        return w, w
+    wd = fast_exp_neg(ez + (min(n0 * ln[j, 0] + n1 * ln[j, 1] + n2 * ln[j, 2], 1.0) - 1.0) * (1.0 / SIGMA_N2))
+    if mode == 2:  # weights.fast_lobe_weight with the depth exponent folded in
+        b = ls[j]
+        sab = si + b
+        t = (si - b) / sab
+        u = 1.0 - t * t
+        u2 = u * u
+        u4 = u2 * u2
+        u8 = u4 * u4
+        cos = min(a0 * la[j, 0] + a1 * la[j, 1] + a2 * la[j, 2], 1.0)
+        return wd, u8 * u2 * fast_exp_neg(ez + BETA * si * b / sab * (cos - 1.0))
     return wd, wd
 
 

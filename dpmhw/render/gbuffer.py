@@ -33,6 +33,9 @@ a numba kernel (`traversal.closest16` on the moving objects' BVHs only, starting
 cached static hits) when the accelerator is the C-API `RtcAccel`; with embreex's fallback they
 are gathered and traced one by one. Work follows the region: only its pixels are classified,
 traced and written, and only the part of the last region outside the current one is restored.
+`changed` flags the region's pixels whose attributes may differ from the last update's (in mode
+"edges" all but those that kept their cached static attributes), so that users of the region
+(`reconstruct.stage`'s native guides) recompute only those.
 """
 
 from __future__ import annotations
@@ -138,8 +141,10 @@ def _static_back(p, s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough, g_id, g_p
 @nb.njit(parallel=True, cache=True, nogil=True)
 def _classify(W, H, y0, y1, x0, x1, w, h, lid, lpos, lnrm, ldep, lalb, lspec, lrough, dynamic,
               s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough,
-              g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough, static_px, trace):
-    """Per native pixel of the box: interpolate (1), keep static (2) or trace (0, flag in `trace`)."""
+              g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough, static_px, trace, changed):
+    """Per native pixel of the box: interpolate (1), keep static (2) or trace (0, flag in `trace`).
+    `changed`: whether the pixel's attributes may differ from the last update's (False only for
+    a pixel that kept its cached static attributes and held them already)."""
     sx = w / W
     sy = h / H
     for y in nb.prange(y0, y1):
@@ -158,9 +163,11 @@ def _classify(W, H, y0, y1, x0, x1, w, h, lid, lpos, lnrm, ldep, lalb, lspec, lr
             o = lid[j00]
             same = lid[j01] == o and lid[j10] == o and lid[j11] == o
             trace[p] = False
+            changed[p] = True
             if same and (o < 0 or not dynamic[o]):
                 if s_id[p] == o:  # static or empty, and the cache agrees: keep it
                     if static_px[p]:
+                        changed[p] = False
                         continue
                     static_px[p] = True
                     _static_back(p, s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough,
@@ -358,6 +365,10 @@ class NativeGBuffer:
         self._o, self._d = self.camera.generate_rays()
         self._is_dynamic = np.array([o.is_dynamic for o in scene.objects], np.bool_)
         self._trace_flags = np.zeros(self.width * self.height, np.bool_)
+        # per pixel of the last update's region: its attributes may have changed (mode "edges";
+        # the other modes mark the whole region); what `Guides.update(mask=…)` recomputes
+        self.changed = np.ones(self.width * self.height, np.bool_)
+        self.updates = 0  # update() calls so far: a user of `changed` must have seen the one before
         self._meshes = None  # the rasteriser's tables, made on its first use (`_raster_setup`)
         self.pixels_rasterised = 0  # pixels a moving object covered in the last "raster" update
         self.rays_traced = 0  # camera rays traced in the last update (for the benchmark)
@@ -469,7 +480,7 @@ class NativeGBuffer:
                   _flat(f.depth, np.float32, 1), _flat(f.albedo), _flat(f.specular_albedo), _flat(f.roughness, np.float32, 1),
                   self._is_dynamic, st["id"], st["position"], st["normal"], st["depth"], st["albedo"], st["spec_albedo"],
                   st["roughness"], self.id, self.position, self.normal, self.depth, self.albedo, self.spec_albedo,
-                  self.roughness, self.static_px, trace)
+                  self.roughness, self.static_px, trace, self.changed)
         return _tile_order(trace, False, self.width, *box)
 
     def roi(self, poses: list[Pose]) -> tuple[int, int, int, int] | None:
@@ -505,6 +516,7 @@ class NativeGBuffer:
         if mode not in MODES:
             raise ValueError(f"gbuffer mode: expected one of {', '.join(MODES)}, got {mode!r}")
         self.rays_traced = 0
+        self.updates += 1
         box = self.roi(poses) if self.dynamic else None
         prev = self._prev_box
         if prev is not None:  # pixels of the last region outside this one: back to static
@@ -513,6 +525,8 @@ class NativeGBuffer:
                     _restore_kernel(getattr(self, k), a, self.width, *part)
         self.pixels_rasterised = 0
         if box is not None:
+            if mode != "edges" or shading is None:  # every pixel of the region may change
+                self.changed.reshape(self.height, self.width)[box[0]:box[1], box[2]:box[3]] = True
             if mode == "raster":
                 self._raster_box(box, poses)
             else:

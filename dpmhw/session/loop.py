@@ -1,6 +1,16 @@
 """The real-time loop: latest pose → prediction → render (shading resolution) → reuse → filter /
 upsample (native) → post → present, with safety.
 
+Pipelining (`render.pipeline`, on by default): while frame n is reconstructed at native size,
+frame n+1 is predicted and rendered on a render thread. The reconstruction leaves a core idle
+for much of its time (serial steps of the native G-buffer, the tail after the upsampling) and
+the shading-resolution render fills it, so the frame period falls towards the reconstruction's
+time instead of render + reconstruction. Each frame keeps its own prediction, settings and
+checks: a frame rendered ahead is dropped unseen if the output went dark meanwhile, staleness
+is checked again before present as always, and its pose is predicted to its own present time
+(the measured pipeline, one frame longer). The renderer is shared with adaptive sampling, so
+its calls take turns (`OneCallAtATime`).
+
 One thread runs the frames; a watchdog thread blanks the projector if that thread stalls; a
 health thread reads device status (USB reads can block) so the loop never waits on them. The
 loop publishes immutable snapshots (status, latest frame); readers (the HTTP service) only swap
@@ -17,6 +27,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Callable, Protocol
@@ -111,6 +122,51 @@ class LatestFrame:
     blank: bool
 
 
+class OneCallAtATime:
+    """The renderer as the loop's threads see it: with pipelining, `render` (render thread) and
+    `render_pixels` (adaptive sampling, lod; loop thread) may be called at once, and they share
+    the renderer's work buffers, so calls take turns. `counts` is that of this view's last
+    `render_pixels` call (the one its caller asks about); anything else is the renderer's."""
+
+    def __init__(self, renderer):
+        self._r = renderer
+        self._lock = threading.Lock()
+        self.counts = None
+
+    def render(self, *args, **kw):
+        with self._lock:
+            return self._r.render(*args, **kw)
+
+    def render_pixels(self, *args, **kw):
+        with self._lock:
+            out = self._r.render_pixels(*args, **kw)
+            self.counts = self._r.counts
+            return out
+
+    def __getattr__(self, name):
+        return getattr(self._r, name)
+
+
+@dataclass
+class _Job:
+    """One frame between its prediction and its present (`frame`: the rendered `Frame`, or the
+    future of a render started ahead)."""
+
+    settings: LiveSettings
+    t_start: int
+    stages: dict
+    samples: dict
+    age_s: float
+    scene_time: float
+    poses: list
+    used: dict
+    horizon_ns: int
+    t_target: int
+    resume_at: int | None
+    seed: int
+    frame: Any = None
+
+
 class SessionLoop:
     """Runs one projection session. `start()`, then `stop()` (idempotent) for a verified dark end."""
 
@@ -129,14 +185,21 @@ class SessionLoop:
                                        config.prediction.model)
         scene = parts.scene
         self.output_size = (scene.render.width, scene.render.height)  # the projector's native (W, H)
+        self._renderer = OneCallAtATime(parts.renderer)  # pipelining renders on a second thread
         self.reconstruct = ReconstructStage(self.output_size, (parts.renderer.width, parts.renderer.height),
                                             background=scene.render.background, viewer=scene.viewer_position,
                                             warmup=config.reuse.warmup, gbuffer=parts.gbuffer, clock=clock,
-                                            adaptive=AdaptiveSampler(parts.renderer, parts.gbuffer, config.render.adaptive_rays)
+                                            adaptive=AdaptiveSampler(self._renderer, parts.gbuffer, config.render.adaptive_rays,
+                                                                     config.render.adaptive_threshold)
                                             if parts.gbuffer is not None and config.render.adaptive_rays > 0 else None,
-                                            lod=tile_refiner(parts.renderer, parts.gbuffer, config.lod))  # issue 13
+                                            lod=tile_refiner(self._renderer, parts.gbuffer, config.lod))  # issue 13
         self.mesh_lod = mesh_lod(parts.renderer, parts.gbuffer, config.lod)  # issue 13: mesh levels (None: off)
         self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
+        # render frame n+1 beside frame n's reconstruction; not with mesh LOD, whose level switch must hold for
+        # a whole frame (render, G-buffer, refinement)
+        self.pipeline = bool(config.render.pipeline) and self.mesh_lod is None
+        self._render_thread: ThreadPoolExecutor | None = None
+        self._next: _Job | None = None  # the frame whose render was started ahead
         self.frame_log: list[FrameRecord] | None = [] if frame_log else None
         self._frame_log_max = frame_log
         self._settings = config.live_settings()
@@ -191,6 +254,10 @@ class SessionLoop:
             if t.is_alive():
                 log.error("%s did not stop within %.0f s", t.name, timeout_s)
         self._threads.clear()
+        if self._render_thread is not None:  # a render started ahead finishes before the renderer closes
+            self._render_thread.shutdown(wait=True)
+            self._render_thread = None
+        self._next = None
         self._go_dark(reason, force=True)
         self.reconstruct.close()
         self.final_blank = self._last_blank
@@ -356,8 +423,11 @@ class SessionLoop:
         oldest = min((s.t_exposure_ns for s in samples.values()), default=now)
         return samples, (now - oldest) / 1e9
 
-    def _iteration(self) -> bool:
-        settings = self._apply_queued()
+    def _prepare(self, settings: LiveSettings, ahead: bool) -> "_Job | bool":
+        """Tracking check, prediction and the dark-state decisions of one frame; returns the job to
+        render, or False (nothing to present this turn). `ahead`: prepared while the previous
+        frame is still being reconstructed (pipelining); then only a frame that may be lit now is
+        prepared (a dark or resuming output renders in line, as without pipelining)."""
         t_start = self.clock()
         stages: dict[str, float] = {}
         tracking = self._check_tracking(t_start)
@@ -375,7 +445,8 @@ class SessionLoop:
         for index, body in self.parts.bindings.items():
             predicted = self.predictor.predict(body, t_target, enabled=settings.prediction)
             if predicted is None:  # no valid sample kept yet (only invalid ones arrived)
-                self._sync_output()
+                if not ahead:
+                    self._sync_output()
                 return False
             poses[index], horizon_ns = predicted
             used[body] = predicted[0]
@@ -383,6 +454,8 @@ class SessionLoop:
         stages["predict"] = (t1 - t_start) / 1e9
         resume_at = None
         if not self.safety.output_allowed(t1):
+            if ahead:
+                return False
             # about to resume (the hold-off ends within this frame's work): render now, present at the end
             resume_at = self.safety.resume_at_ns()
             if resume_at is not None and resume_at - t1 > self.metrics.expected_pipeline_s() * 1e9:
@@ -392,17 +465,56 @@ class SessionLoop:
                 self._sync_output()
                 return False
             self._dark_render_ns = t1
-        if self.mesh_lod is not None:  # issue 13: this frame's mesh levels, before the render
-            self.mesh_lod.choose(poses, self.parts.renderer.camera.pose)
-            t1b = self.clock()
-            stages["mesh_lod"], t1 = (t1b - t1) / 1e9, t1b
-        try:
-            frame = self.parts.renderer.render(time=scene_time, seed=self._frame_number, spp=settings.spp, poses=poses)
+        return _Job(settings, t_start, stages, samples, age_s, scene_time, poses, used, horizon_ns, t_target, resume_at,
+                    self._frame_number + (1 if ahead else 0))
+
+    def _render(self, job: "_Job"):
+        t = self.clock()
+        if self.mesh_lod is not None:  # issue 13: this frame's mesh levels, before its render
+            self.mesh_lod.choose(job.poses, self.parts.renderer.camera.pose)
+            t1 = self.clock()
+            job.stages["mesh_lod"], t = (t1 - t) / 1e9, t1
+        frame = self._renderer.render(time=job.scene_time, seed=job.seed, spp=job.settings.spp, poses=job.poses)
+        job.stages["render"] = (self.clock() - t) / 1e9
+        return frame
+
+    def _prefetch(self) -> None:
+        """Pipelining: prepare the next frame and start its render on the render thread now, so it
+        runs beside this frame's reconstruction (which leaves a core idle for much of its time)."""
+        job = self._prepare(self._apply_queued(), ahead=True)
+        if isinstance(job, _Job):
+            if self._render_thread is None:
+                self._render_thread = ThreadPoolExecutor(1, thread_name_prefix="session-render")
+            job.frame = self._render_thread.submit(self._render, job)
+            self._next = job
+
+    def _take_next(self) -> "_Job | None":
+        """The frame started ahead, if the output may still be lit (else it is dropped unseen: a
+        dark output renders only as its probe interval says)."""
+        job, self._next = self._next, None
+        if job is not None and not self.safety.output_allowed(self.clock()):
+            try:
+                job.frame.result()
+            except Exception:
+                pass  # its fault, if any, shows again when a frame is next rendered
+            return None
+        return job
+
+    def _iteration(self) -> bool:
+        job = self._take_next()
+        if job is None:
+            job = self._prepare(self._apply_queued(), ahead=False)
+            if not isinstance(job, _Job):
+                return job
+        try:  # rendered now, or started ahead (pipelining)
+            frame = self._render(job) if job.frame is None else job.frame.result()
             self.safety.update("render", False)
         except Exception as exc:
             return self._stage_failed("render", "render_errors", f"render failed: {type(exc).__name__}: {exc}")
-        t2 = self.clock()
-        stages["render"] = (t2 - t1) / 1e9
+        settings, stages, poses, t_start, t_target = job.settings, job.stages, job.poses, job.t_start, job.t_target
+        samples, age_s, used, horizon_ns, resume_at = job.samples, job.age_s, job.used, job.horizon_ns, job.resume_at
+        if self.pipeline:
+            self._prefetch()
         try:
             out = self.reconstruct.apply(frame, mode=settings.reuse_mode, alpha=settings.alpha, filter=settings.filter,
                                          split_screen=settings.split_screen, exposure=self.config.render.exposure,

@@ -29,6 +29,25 @@ def test_select_takes_unresolved_first_then_the_smallest_weight_sums_within_the_
     assert len(select(gid, wsum, unresolved, W, (0, H, 0, W), 0)) == 0
 
 
+def test_threshold_zero_samples_only_unresolved_pixels_and_replaces_them():
+    """The session default (render.adaptive_threshold = 0): weak pixels are left to the upsampling."""
+    W, H = 8, 4
+    gid = np.zeros(W * H, np.int32)
+    wsum = np.ones(W * H, np.float32)
+    wsum[[9, 10, 11]] = [0.01, 0.0, 0.04]
+    unresolved = np.zeros(W * H, np.bool_)
+    unresolved[[20, 30]] = True
+    wsum[[20, 30]] = 0.0
+    pixels = select(gid, wsum, unresolved, W, (0, H, 0, W), 100, 0.0)
+    assert list(pixels) == [20, 30]
+    radiance = np.full((W * H, 3), 2.0, np.float32)
+    hist = (np.zeros((W * H, 3), np.float32), np.full(W * H, -1, np.int32), np.full(W * H, -2, np.int64))
+    _merge(pixels, np.full((2, 3), 5.0, np.float32), wsum, unresolved, np.float32(0.0), radiance, gid, np.float32(1.0),
+           *hist, 1)
+    assert np.all(radiance[[20, 30]] == 5.0) and np.all(np.isfinite(radiance)) and not unresolved.any()
+    assert np.all(radiance[[9, 10, 11]] == 2.0)
+
+
 def test_merge_replaces_unresolved_blends_weak_and_keeps_non_finite_samples_out():
     radiance = np.full((4, 3), 2.0, np.float32)
     wsum = np.array([0.0, 0.025, 0.05, 0.0], np.float32)

@@ -133,3 +133,71 @@ def test_lobe_aware_keeps_a_roughness_edge_the_normal_aware_filter_blurs():
         _, fs, _ = cross_bilateral(s, s, g, mode)
         err[mode] = np.abs(fs[:, 0].reshape(h, w) - truth).max()
     assert err["normal"] > 1.0 and err["lobe"] < 0.2 * err["normal"]
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_upsampling_weights_equal_the_reference_weights(mode):
+    """Each native pixel is the weighted mean of its 2×2 same-object taps with the reference
+    (float64, log-space) depth × normal / lobe weights: the kernel folds the exponentials into
+    one per weight, which must not change them beyond the fast exponential's error."""
+    from dpmhw.reconstruct.filter import DEPTH_GATE, DEPTH_SIGMA
+    from dpmhw.reconstruct.weights import BETA, normal_weight
+
+    rng = np.random.default_rng(7)
+    w, h, W, H = 12, 9, 48, 36
+
+    def random_gbuffer(w, h):
+        ids = (rng.random((h, w)) < 0.15).astype(np.int32)
+        depth = (1.0 + 0.04 * rng.random((h, w))).astype(np.float32)
+        normal = rng.normal(size=(h, w, 3)) * 0.15
+        normal[..., 2] = -1.0
+        normal = (normal / np.linalg.norm(normal, axis=2, keepdims=True)).astype(np.float32)
+        pos = np.zeros((h, w, 3), np.float32)
+        pos[..., 2] = depth
+        alb = np.full((h, w, 3), 0.5, np.float32)
+        rough = rng.uniform(0.3, 0.9, (h, w)).astype(np.float32)
+        return Guides.from_gbuffer(ids, pos, normal, depth, alb, alb, rough, (0, 0, -1.0))
+
+    low, native = random_gbuffer(w, h), random_gbuffer(W, H)
+    dif = rng.random((w * h, 3)).astype(np.float32)
+    spe = rng.random((w * h, 3)).astype(np.float32)
+    out, _, unresolved = upsample(low, dif, spe, np.zeros_like(dif), native, mode)
+    checked = 0
+    for Y in range(H):
+        v = (Y + 0.5) * h / H - 0.5
+        for X in range(W):
+            u = (X + 0.5) * w / W - 0.5
+            i = Y * W + X
+            ty0, tx0 = int(np.floor(v)), int(np.floor(u))
+            fy, fx = v - ty0, u - tx0
+            num_d, num_s, den_d, den_s = np.zeros(3), np.zeros(3), 0.0, 0.0
+            for dy in (0, 1):
+                for dx in (0, 1):
+                    ty, tx = ty0 + dy, tx0 + dx
+                    if not (0 <= ty < h and 0 <= tx < w):
+                        continue
+                    j = ty * w + tx
+                    if low.id[j] != native.id[i]:
+                        continue
+                    zi, zj = float(native.depth[i]), float(low.depth[j])
+                    if abs(zi - zj) > DEPTH_GATE * zi:
+                        continue
+                    b = (fy if dy else 1 - fy) * (fx if dx else 1 - fx)
+                    wz = np.exp(-0.5 * (abs(zi - zj) / (DEPTH_SIGMA * zi)) ** 2)
+                    wd = ws = wz
+                    if mode != "off":
+                        wd = ws = wz * normal_weight(native.normal[i], low.normal[j])
+                    if mode == "lobe":
+                        a_, b_ = float(native.sharp[i]), float(low.sharp[j])  # the guides hold λ̄ (smoothed)
+                        cos = min(float(np.dot(native.axis[i].astype(float), low.axis[j].astype(float))), 1.0)
+                        ws = wz * np.exp(BETA * (np.log(2 * np.sqrt(a_ * b_) / (a_ + b_)) + a_ * b_ / (a_ + b_) * (cos - 1)))
+                    num_d += b * wd * dif[j]
+                    num_s += b * ws * spe[j]
+                    den_d += b * wd
+                    den_s += b * ws
+            if native.id[i] < 0 or den_d < 1e-3 or den_s < 1e-3:
+                continue  # background, or a weight too small to compare (or the fallback window)
+            expect = 0.5 * num_d / den_d + 0.5 * num_s / den_s
+            np.testing.assert_allclose(out[i], expect, rtol=0, atol=3e-3)
+            checked += 1
+    assert checked > 0.4 * int((native.id >= 0).sum())

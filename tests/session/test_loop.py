@@ -173,7 +173,8 @@ def test_operator_blank_resume_and_reset(make_loop):
     loop.reset_history()
     ok, _ = loop.resume()
     assert ok and wait_for(lambda: state(loop) == "running", 10)
-    assert loop.status()["counters"]["history_resets"] == 1
+    # the counters come from the published snapshot (every 50 ms), the state is live: wait for it
+    assert wait_for(lambda: loop.status()["counters"].get("history_resets") == 1, 5)
 
 
 def test_stop_leaves_the_projector_dark_and_closes_everything(make_loop):
@@ -261,11 +262,74 @@ def test_a_frame_whose_samples_went_stale_while_it_was_made_is_never_shown(make_
         frame = real_render(**kw)
         if not lit_before:
             tracker.streaming = False
-            lit_before.append(loop._frame_number)
+            lit_before.append(kw["seed"])  # the frame's number (seed) once presented: with pipelining one ahead
             time.sleep(0.3)  # longer than stale_after_ms = 200: once made, this frame's samples are stale
         return frame
 
     renderer.render = stalling_render
     assert wait_for(lambda: state(loop) == "blanked", 10)
     assert "ms old" in loop.status()["reason"]
-    assert loop._frame_number == lit_before[0]  # the frame being made when tracking went stale was withheld
+    # the frame being made when tracking went stale was withheld: frames presented = those before it
+    assert loop._frame_number == lit_before[0]
+
+
+def test_pipelined_frames_render_ahead_in_order_and_renderer_calls_never_overlap(make_loop):
+    """render.pipeline (default): frame n+1 is rendered on its own thread while frame n is
+    reconstructed; frames are presented in order, each exactly once, and the renderer (shared
+    with adaptive sampling) never runs two calls at once."""
+    from dpmhw.session.testing import FlatRenderer
+
+    class Watched(FlatRenderer):
+        def __init__(self):
+            super().__init__()
+            self.inside = 0
+            self.overlaps = 0
+            self.threads = set()
+            self.seeds = []
+            self.counts = None
+
+        def render(self, **kw):
+            self.inside += 1
+            self.overlaps += self.inside > 1
+            self.threads.add(threading.current_thread().name)
+            self.seeds.append(kw["seed"])
+            try:
+                time.sleep(0.002)
+                return super().render(**kw)
+            finally:
+                self.inside -= 1
+
+        def render_pixels(self, *a, **kw):  # as adaptive sampling calls it, from the loop thread
+            return self.render(seed=0)
+
+    renderer = Watched()
+    loop = make_loop(renderer=renderer)
+    assert loop.pipeline
+    loop.start()
+    assert wait_for(lambda: len(loop.frame_log) >= 20, 30)
+    for _ in range(20):  # the loop view's render_pixels while the loop renders ahead
+        loop._renderer.render_pixels(None, np.zeros(0), [], 0)
+    loop.stop()
+    numbers = [r.number for r in loop.frame_log]
+    assert numbers == list(range(numbers[0], numbers[0] + len(numbers)))
+    assert any(name.startswith("session-render") for name in renderer.threads)  # rendered ahead
+    assert renderer.overlaps == 0
+    starts = [r.t_start_ns for r in loop.frame_log]
+    assert starts == sorted(starts) and all(r.t_present_ns >= r.t_start_ns for r in loop.frame_log)
+
+
+def test_without_pipelining_every_frame_renders_on_the_loop_thread(make_loop):
+    from dpmhw.session.testing import FlatRenderer
+
+    class Where(FlatRenderer):
+        threads: set = set()
+
+        def render(self, **kw):
+            self.threads.add(threading.current_thread().name)
+            return super().render(**kw)
+
+    renderer = Where()
+    loop = make_loop(["render.pipeline=false"], renderer=renderer).start()
+    assert wait_for(lambda: len(loop.frame_log) >= 5, 30)
+    loop.stop()
+    assert renderer.threads == {"session-loop"}
