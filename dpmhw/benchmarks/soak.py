@@ -130,6 +130,10 @@ class _TruthCheck:
         self.lit_t = array("q")
         self.wrong: list[tuple[int, float]] = []  # (t_present_ns, metres off)
 
+    def lit_since(self, t_ns: int) -> bool:
+        """A lit frame was presented after `t_ns` (read on another thread: one int, no lock needed)."""
+        return len(self.lit_t) > 0 and self.lit_t[-1] > t_ns
+
     def frame(self, record, image) -> None:
         self.lit_t.append(record.t_present_ns)
         for body, pose in record.measured.items():
@@ -490,8 +494,13 @@ def run_soak(minutes: float, *, seed: int = 0, tracker: str = "natnet", kinds: t
         next_report = t_start + 30
         while time.monotonic() < t_end:
             time.sleep(rng.uniform(*gap_s))
-            # inject only into a projecting session, so each fault's dark and resume are its own
-            if not wait_for(lambda: loop.status()["state"] == "running", 30):
+            # inject only into a projecting session that has lit a frame since the last fault ended, so
+            # each fault's dark and resume are its own: "running" alone turns true as the hold-off
+            # ends, a frame before the first lit present, and a fault injected then pre-empts the
+            # resume (the next fault's clear was counted as this one's: 2 of the 5 "late" serial
+            # unplugs of session 4)
+            since = faults[-1].t_clear_ns if faults else 0
+            if not wait_for(lambda: loop.status()["state"] == "running" and truth_check.lit_since(since), 30):
                 say(f"soak: not running 30 s after the last fault: {loop.status()['reason']}")
                 continue
             kind = rng.choice(kinds)
@@ -570,8 +579,9 @@ def _analyse(cfg, faults, t, lit, transitions, wrong, frames_presented, rows, ro
         if t_dark is not None:
             attributed |= (t >= t_dark) & (t <= (t_lit or t_next))
         frame = _frame_ns(t, lit, f.t_inject_ns)
-        # the end of this dark spell (it may end before the fault does, e.g. a stale spell amid noise)
-        relit_idx = np.flatnonzero((t > (t_dark or 0)) & lit)
+        # the end of this dark spell (it may end before the fault does, e.g. a stale spell amid noise);
+        # one the next fault pre-empted has none here: the next fault's clear is not this one's
+        relit_idx = np.flatnonzero((t > (t_dark or 0)) & (t < t_next) & lit)
         t_relit = int(t[relit_idx[0]]) if t_dark is not None and len(relit_idx) else None
         gap = _tracker_gap(gaps, t_dark) if t_dark is not None else None
         t_good = gap[1] if gap is not None and t_relit is not None and gap[1] <= t_relit else None
@@ -597,6 +607,8 @@ def _analyse(cfg, faults, t, lit, transitions, wrong, frames_presented, rows, ro
             "lit_after_good_sample_ms": None if t_good is None else _ms(t_relit - t_good),
             "lit_after_cause_clear_ms": None if t_cleared is None else _ms(t_relit - t_cleared),
             "causes": causes,
+            # dark, and the next fault came before a lit frame (the injector waits for one, so ~never)
+            "resume_preempted": t_dark is not None and t_relit is None and k + 1 < len(faults),
             "lit_frames_while_cause_active": int((lit_in_cause & window).sum()),
             "implausible_frames_shown": int(((wrong_t >= f.t_inject_ns) & (wrong_t < t_next)).sum()),
             "api_requests": f.api_requests, "api_5xx": f.api_5xx,
@@ -662,6 +674,7 @@ def _summarise(kind: str, rs: list[dict]) -> dict:
         "lit_after_good_sample_ms_max": stat("lit_after_good_sample_ms", np.max),
         "lit_after_cause_clear_ms_median": stat("lit_after_cause_clear_ms", np.median),
         "resume_within_goal": goal("resume_within_goal"),
+        "resume_preempted": sum(r["resume_preempted"] for r in rs),
         "lit_frames_while_cause_active": sum(r["lit_frames_while_cause_active"] for r in rs),
         "implausible_frames_shown": sum(r["implausible_frames_shown"] for r in rs),
         "api_5xx": sum(r["api_5xx"] for r in rs),
@@ -698,6 +711,8 @@ def format_table(result: dict) -> str:
                   f"(dropped {t['recording_rows_dropped']}); lit frames while a cause was active "
                   f"{t['lit_frames_while_cause_active']}; implausible frames shown {t['implausible_frames_shown']}; "
                   f"RSS {t['rss_mb_start']} → {t['rss_mb_end']} MB",
+              f"resumes pre-empted by the next fault (not counted against the goal): "
+              f"{sum(s['resume_preempted'] for s in result['summary'])}",
               f"dark spells no injected fault explains: {t['unexplained_dark_spells']} "
               f"(causes: {', '.join(t['unexplained_causes']) or '–'})",
               f"tracker: {json.dumps(t['tracker'])}",
