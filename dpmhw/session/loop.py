@@ -384,7 +384,10 @@ class SessionLoop:
             # about to resume (the hold-off ends within this frame's work): render now, present at the end
             resume_at = self.safety.resume_at_ns()
             if resume_at is not None and resume_at - t1 > self.metrics.expected_pipeline_s() * 1e9:
-                resume_at = None
+                # holding off, no cause active (so no render fault to watch clear): a dark render now
+                # could still be running when the resume render is due, and light it a frame late
+                self._sync_output()
+                return False
             # dark: nothing is shown, so render only as often as it takes to see a render fault clear
             if resume_at is None and t1 - self._dark_render_ns < self.dark_render_interval_ns:
                 self._sync_output()

@@ -84,6 +84,37 @@ def test_holdoff_counts_from_the_first_fresh_sample_and_no_lit_frame_comes_befor
     assert first_lit.t_present_ns >= arrival + 300_000_000
 
 
+def test_no_dark_render_while_holding_off_so_the_resume_render_is_never_delayed(make_loop):
+    """Issue 14 (a serial unplug lit 518 ms after its first good sample, goal 517): while holding
+    off no cause is active, so a dark render has nothing to show; one begun just before the resume
+    render was due pushed the first lit frame a frame late. Checked on the loop's own stamps."""
+    from dpmhw.session.testing import FlatRenderer
+
+    class StampingRenderer(FlatRenderer):
+        def __init__(self):
+            super().__init__()
+            self.starts = []
+
+        def render(self, **kw):
+            self.starts.append(time.monotonic_ns())
+            return super().render(**kw)
+
+    renderer = StampingRenderer()
+    loop = make_loop(["safety.holdoff_s=0.6", "safety.dark_render_interval_s=0.02"], renderer=renderer).start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    loop.parts.tracker.streaming = False
+    assert wait_for(lambda: loop.safety.active("tracking"), 10)
+    time.sleep(0.1)
+    loop.parts.tracker.streaming = True
+    assert wait_for(lambda: not loop.safety.active("tracking"), 10)
+    resume_at = loop.safety.resume_at_ns()
+    cleared = [t for t in loop.safety.transitions() if t.name == "tracking" and not t.active][-1].t_ns
+    assert wait_for(lambda: state(loop) == "running" and presented(loop) > 0 and not loop.latest_frame().blank, 10)
+    # dark renders went on while the cause was active (every 20 ms), none in the hold-off but the resume render
+    assert sum(t < cleared for t in renderer.starts) >= 3
+    assert [t for t in renderer.starts if cleared < t < resume_at - 300_000_000] == []
+
+
 def test_lost_tracker_link_is_a_fault(make_loop):
     loop = make_loop().start()
     assert wait_for(lambda: state(loop) == "running", 20)
