@@ -5,8 +5,8 @@ injected one at a time at random moments, for `minutes`.
 Fault kinds, each injected only while the session is projecting. NatNet (`NATNET_KINDS`):
 
     tracker_stall        the NatNet server sends nothing for 0.3–1.5 s
-    tracker_restart      the server stops; 0.2–1 s later a new one (frame numbers and clock begin
-                         again, its unicast clients forgotten) answers on the same port
+    tracker_restart      Motive quits; 0.2–1 s later it runs again on the same ports (the mock's
+                         `restart`: frame numbers and clock begin again, unicast clients forgotten)
     corrupt_datagrams    for 1–3 s, 30 % of the frames are truncated or have bytes flipped
     foreign_datagrams    for 1–3 s, another address (127.0.0.2) sends frames at 360 Hz with a pose
                          1 km away and frame numbers 10⁶ ahead
@@ -16,9 +16,10 @@ Serial (`SERIAL_KINDS`):
     serial_stall         the device leaves continuous mode (as on a stray `P`): nothing more until
                          the driver asks again
     serial_noise         for 1–3 s, 15 % garbage bytes between records and 15 % corrupted records
-    serial_unplug        the device disappears (its port closes) for 0.5–2 s; it comes back on a new
-                         pty, which the tracker is pointed at (as a udev name follows a replugged
-                         adapter); the driver reconnects and re-initialises it
+    serial_unplug        the device disappears (its pty and its stable name go) for 0.5–2 s, then is
+                         replugged: powered up afresh on a new pty behind the same name, as udev's
+                         by-id name follows a replugged adapter; the driver sees the name come back,
+                         reconnects and re-initialises it (incl. the 2-s reset wait real units need)
 
 Either tracker (`COMMON_KINDS`):
 
@@ -209,8 +210,6 @@ class _Injector:
         self.tracker = loop.parts.tracker
         self.token = token
         self.glitches: dict[int, _Glitch] = {}
-        self.first_server = self.rig.natnet
-        self.first_serial = self.rig.serial
         world = self.rig.world
         for body, obj in list(world.objects.items()):
             glitch = _Glitch(obj.trajectory)
@@ -248,21 +247,7 @@ class _Injector:
 
     def tracker_restart(self, fault: _Fault) -> None:
         down = self.rng.uniform(0.2, 1.0)
-        old = self.server
-        port = old.command_port
-        old.stop()
-        time.sleep(down)
-        cfg = dataclasses.replace(old.config, command_port=port, server_uptime_s=self.rng.uniform(10.0, 1e5),
-                                  seed=self.rng.randrange(2**31))
-        for _ in range(50):  # the old socket may take a moment to release the port
-            try:
-                new = type(old)(self.rig.world, cfg).start()
-                break
-            except OSError:
-                time.sleep(0.02)
-        else:
-            raise RuntimeError(f"soak: cannot restart the NatNet mock on port {port}")
-        self.rig.natnet = new
+        self.server.restart(down, server_uptime_s=self.rng.uniform(10.0, 1e5))  # the mock's fault surface
         fault.t_clear_ns = time.monotonic_ns()
         fault.detail = f"down {down:.2f} s"
 
@@ -343,15 +328,9 @@ class _Injector:
 
     def serial_unplug(self, fault: _Fault) -> None:
         seconds = self.rng.uniform(0.5, 2.0)
-        old = self.rig.serial
-        old.unplug()
+        self.rig.serial.unplug()  # the mock's fault surface: the pty and its name are gone
         time.sleep(seconds)
-        new = type(old)(self.rig.world, rate_hz=old.rate_hz, latency_ms=old.latency_ns / 1e6,
-                        device_uptime_s=self.rng.uniform(10.0, 1e5)).start()
-        self.tracker.port = new.port  # the same device name, as a udev rule gives a replugged adapter
-        self.rig.serial = new
-        if old is not self.first_serial:
-            old.close()
+        self.rig.serial.replug(device_uptime_s=self.rng.uniform(0.5, 1e5))  # same name, a fresh device
         fault.detail = f"gone {seconds:.2f} s"
         fault.t_clear_ns = time.monotonic_ns()
 
@@ -418,10 +397,6 @@ class _Injector:
     def close(self) -> None:
         if self.api is not None:
             self.api.close()
-        if self.rig.natnet is not self.first_server:  # a restarted server: the rig only stops the first
-            self.rig.natnet.stop()
-        if self.rig.serial is not self.first_serial:
-            self.rig.serial.close()
 
 
 def _cause_intervals(transitions, t_end_ns: int) -> list[tuple[int, int, str]]:
