@@ -13,7 +13,7 @@ mid-exposure instant; `mid_exposure_host_ns(k)` gives the instant on the host cl
 can check a client's timestamps.
 
 Faults to inject: tracking dropouts (tracked flag off), marker noise, truncated and corrupted
-datagrams, a stalled stream (`stall(seconds)`), and Motive quit and started again
+datagrams, a stalled stream (`stall(seconds)`), mis-solved poses (`pose_offset_m`), and Motive quit and started again
 (`restart(down_s)`: same ports, a new clock origin, frame numbers from 1, unicast clients forgotten).
 """
 
@@ -227,6 +227,9 @@ class NatNetServer:
         self.bad_commands = 0
 
         self.restarts = 0
+        # a mis-solve (a body fitted onto the wrong markers): every reported pose and its markers
+        # are this far (metres) from the world's truth while set; the world itself is unchanged
+        self.pose_offset_m = np.zeros(3)
         self._open_sockets(cfg.command_port)
         self._zero_ns = time.monotonic_ns() - int(cfg.server_uptime_s * 1e9)
         self._ticks_per_ns = cfg.clock_hz * (1 + cfg.clock_drift_ppm * 1e-6) / 1e9
@@ -446,8 +449,10 @@ class NatNetServer:
         with self._lock:
             objects = list(self.world.objects.values())
             params, self._models_changed = (2 if self._models_changed else 0), False
+        offset = self.pose_offset_m
         for obj in objects:
             rot, pos = self.world.pose(obj.rigid_body_id, t)
+            pos = pos + offset
             ideal = obj.markers @ rot.T + pos
             noise = self._rng.normal(0.0, cfg.marker_noise_m, ideal.shape) if cfg.marker_noise_m > 0 else 0.0
             markers = ideal + noise

@@ -10,7 +10,8 @@ Commands (terminated by CR): Ctrl-Y reset, Ctrl-V who-am-I, `F0`/`F1` ASCII/bina
 station (and leave continuous mode). Each station is one body of the simulated `World`; each
 record samples the world at an integer millisecond of the device clock and goes out
 `latency_ms` later. Faults to inject: garbage bytes between records, truncated records, sensor
-errors, leaving continuous mode, and unplugging / replugging the device.
+errors, poses off the truth (`pose_offset_m`), leaving continuous mode, and unplugging /
+replugging the device.
 
 `port` is a stable name (a symlink in a private folder, as udev's /dev/serial/by-id/… names a
 USB-serial adapter) for the current pty: `unplug()` removes the pty and the name, `replug()` brings
@@ -90,6 +91,7 @@ class PolhemusEmulator:
         self.garbage_bytes = 0
         self.overflows = 0  # records dropped because nobody read the port
         self.replugs = 0
+        self.pose_offset_m = np.zeros(3)  # a sensor disturbance (metal nearby): poses this far off the truth
 
     def _plug_in(self, device_uptime_s: float) -> None:
         """A powered-up device on a new pty, named `port`: factory settings, clock at its uptime."""
@@ -213,7 +215,7 @@ class PolhemusEmulator:
 
     def _record(self, station: int, ms: int, command: int) -> bytes:
         rot, pos = self.world.pose(self.stations[station], self.device_ms_to_host_ns(ms) / 1e9)
-        pos = pos / (0.01 if self.metric else _INCH_M)
+        pos = (pos + self.pose_offset_m) / (0.01 if self.metric else _INCH_M)
         qx, qy, qz, qw = _quat_xyzw(rot)
         error = 1 if self.error_prob > 0 and self._rng.random() < self.error_prob else 0
         if not self.binary:

@@ -24,7 +24,8 @@ Serial (`SERIAL_KINDS`):
 Either tracker (`COMMON_KINDS`):
 
     implausible_sample   one or two genuine frames carry a pose 2 m away (inside the workspace:
-                         caught by the speed limit) or 1 km away (outside it)
+                         caught by the speed limit) or 1 km away (outside it): the tracker mock's
+                         `pose_offset_m` (a mis-solve; the world's truth is unchanged)
     implausible_burst    genuine frames carry a pose 50 m away (outside the workspace) for 0.2–1 s
                          (a sustained offset *inside* the workspace is, by design, accepted once
                          it is reachable at `max_speed_m_s`: kinematics cannot tell it from a move)
@@ -32,6 +33,12 @@ Either tracker (`COMMON_KINDS`):
     usb_unplug           the projector is unplugged for 0.5–2 s, then replugged (power-cycled)
     api_load             for 3 s, two clients hammer the API process with hostile requests (NaN,
                          wrong types, oversized bodies, bad tokens) and status reads
+
+Every fault goes in through a fault surface of the mock it concerns (the NatNet server's
+`stall`, `restart`, corruption probabilities and `pose_offset_m`; the Polhemus emulator's
+`pause_streaming`, noise probabilities, `pose_offset_m`, `unplug`/`replug`; the DLPC900's `stall`,
+`unplug`/`replug`), or from outside (foreign datagrams, API clients), so the real drivers meet
+real faults. The soak's wrappers around the sink and the recorder only observe.
 
 What is measured comes from stamps the session's own code recorded, seen through public
 surfaces: every present (the sink's return value), the lit ones (the records the loop hands its
@@ -122,7 +129,7 @@ class _PresentLog:
 class _TruthCheck:
     """Wraps the recorder, which the loop hands every lit frame it presented (and nothing else):
     logs their present times, and compares each frame's measured pose with the world's true pose
-    at the sample's instant (the trajectories as built, before any glitch)."""
+    at the sample's instant (the world's trajectories: the mocks' pose offsets never touch them)."""
 
     def __init__(self, recorder, truths: dict[int, Callable], epoch_s: float):
         self.recorder = recorder
@@ -178,18 +185,6 @@ class _SampleGaps:
             return {body: np.array(g, np.int64).reshape(-1, 3) for body, g in self.gaps.items()}
 
 
-class _Glitch:
-    """A trajectory that adds `offset` (metres) to another one's translation while set."""
-
-    def __init__(self, inner):
-        self.inner = inner
-        self.offset = np.zeros(3)
-
-    def pose(self, t):
-        rot, pos = self.inner.pose(t)
-        return rot, pos + self.offset
-
-
 @dataclasses.dataclass
 class _Fault:
     kind: str
@@ -209,12 +204,6 @@ class _Injector:
         self.rig = loop.parts.mock
         self.tracker = loop.parts.tracker
         self.token = token
-        self.glitches: dict[int, _Glitch] = {}
-        world = self.rig.world
-        for body, obj in list(world.objects.items()):
-            glitch = _Glitch(obj.trajectory)
-            world.objects[body] = dataclasses.replace(obj, trajectory=glitch)
-            self.glitches[body] = glitch
         self.api = None
 
     @property
@@ -265,7 +254,7 @@ class _Injector:
         seconds = self.rng.uniform(1.0, 3.0)
         mod = self._natnet_module()
         target = self.tracker.local_address
-        bodies = list(self.glitches)
+        bodies = list(self.rig.world.objects)
         sent = 0
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
             sock.bind(("127.0.0.2", 0))
@@ -282,13 +271,13 @@ class _Injector:
         fault.t_clear_ns = time.monotonic_ns()
 
     def _glitch(self, offset, until: Callable[[], bool]) -> None:
-        for g in self.glitches.values():
-            g.offset = np.asarray(offset, float)
+        """Poses off the truth by `offset` until `until()`: the tracker mock's own fault surface."""
+        mock = self.server if self.server is not None else self.rig.serial
+        mock.pose_offset_m = np.asarray(offset, float)
         try:
             wait_for(until, 5.0, poll_s=0.0005)
         finally:
-            for g in self.glitches.values():
-                g.offset = np.zeros(3)
+            mock.pose_offset_m = np.zeros(3)
 
     def _frames_sent(self) -> int:
         return self.server.frames_sent if self.server is not None else self.rig.serial.records_sent
@@ -298,7 +287,7 @@ class _Injector:
         metres = self.rng.choice([2.0, 1000.0])
         # NatNet: the mock encodes each frame one period ahead, so two frames sent means one
         # glitched; serial: one record per station per period, sampled when sent
-        more = 1 if self.server is not None else len(self.glitches)
+        more = 1 if self.server is not None else len(self.rig.world.objects)
         self._glitch((metres, 0.0, 0.0), lambda: self._frames_sent() > sent + more)
         fault.detail = f"{self._frames_sent() - sent} frame(s) {metres:g} m off"
         fault.t_clear_ns = time.monotonic_ns()

@@ -115,6 +115,24 @@ def test_no_dark_render_while_holding_off_so_the_resume_render_is_never_delayed(
     assert [t for t in renderer.starts if cleared < t < resume_at - 300_000_000] == []
 
 
+def test_first_frame_after_a_hold_off_is_begun_ahead_and_predicted_for_the_hold_offs_end(make_loop):
+    """Issue 14: the resume frame is begun a margin ahead (twice its expected work plus the GIL
+    switch interval: the first frame after a dark spell runs slow) and predicted for the instant it
+    is lit, the hold-off's end; it is never presented before that end. On the loop's own stamps."""
+    loop = make_loop(["safety.holdoff_s=0.3"]).start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    loop.parts.tracker.streaming = False
+    assert wait_for(lambda: loop.safety.active("tracking"), 10)
+    n = len(loop.parts.sink.frames)
+    loop.parts.tracker.streaming = True
+    assert wait_for(lambda: not loop.safety.active("tracking"), 10)
+    resume_at = loop.safety.resume_at_ns()
+    assert wait_for(lambda: any(f.frame.any() for f in loop.parts.sink.frames[n:]), 10)
+    first = next(f for f in loop.parts.sink.frames[n:] if f.frame.any())  # the first lit one
+    assert first.t_target_ns == resume_at + loop.display_latency_ns
+    assert first.presented_at_ns >= resume_at
+
+
 def test_lost_tracker_link_is_a_fault(make_loop):
     loop = make_loop().start()
     assert wait_for(lambda: state(loop) == "running", 20)
