@@ -50,7 +50,8 @@ exposure stamps; the soak keeps only the gaps), and the safety monitor's transit
 - when the tracker's samples stopped, the first good sample after the gap, the safety cause's
   clear and the first lit frame: good sample → lit frame is the resume time the goal bounds
   (`holdoff_s` + one frame); fault's end → good sample is the device's or reconnect's part;
-- one frame: the median interval between lit presents in the second before the fault;
+- one frame: the median interval between lit presents in the second before the fault (the run's
+  median when that second had fewer than 3);
 - lit frames presented while a safety cause was active (must be 0), and lit frames whose pose was
   more than 0.5 m from the truth (the implausible ones; must be 0);
 - the API answers with status ≥ 500 (must be 0).
@@ -457,14 +458,18 @@ def run_soak(minutes: float, *, seed: int = 0, tracker: str = "natnet", kinds: t
         t_end = t_start + minutes * 60
         next_report = t_start + 30
         while time.monotonic() < t_end:
-            time.sleep(rng.uniform(*gap_s))
-            # inject only into a projecting session that has lit a frame since the last fault ended, so
-            # each fault's dark and resume are its own: "running" alone turns true as the hold-off
-            # ends, a frame before the first lit present, and a fault injected then pre-empts the
-            # resume (the next fault's clear was counted as this one's: 2 of the 5 "late" serial
-            # unplugs of session 4)
+            # each fault's dark and resume must be its own: wait until the session has lit a frame
+            # since the last fault ended, then 1.5–4 s of projecting (so the frame interval before the
+            # fault is measured), and inject only into a projecting session. "running" alone turns
+            # true as the hold-off ends, a frame before the first lit present: a fault injected then
+            # pre-empted the resume, and its clear was counted as the previous fault's (2 of the 5
+            # "late" serial unplugs of session 4)
             since = faults[-1].t_clear_ns if faults else 0
-            if not wait_for(lambda: loop.status()["state"] == "running" and truth_check.lit_since(since), 30):
+            if not wait_for(lambda: truth_check.lit_since(since), 30):
+                say(f"soak: no lit frame 30 s after the last fault: {loop.status()['reason']}")
+            gap_start = time.monotonic_ns()
+            time.sleep(rng.uniform(*gap_s))
+            if not wait_for(lambda: loop.status()["state"] == "running" and truth_check.lit_since(gap_start), 30):
                 say(f"soak: not running 30 s after the last fault: {loop.status()['reason']}")
                 continue
             kind = rng.choice(kinds)
@@ -529,6 +534,9 @@ def _analyse(cfg, faults, t, lit, transitions, wrong, frames_presented, rows, ro
     wrong_t = np.array([w[0] for w in wrong], np.int64)
     rows_out = []
     activations = [(tr.t_ns, tr.name) for tr in transitions if tr.active]
+    # one frame where the second before a fault had too few lit frames to tell: the run's median
+    lit_t = t[lit]
+    run_frame = int(np.median(np.diff(lit_t))) if len(lit_t) >= 3 else None
     clears = np.array(sorted(tr.t_ns for tr in transitions if not tr.active), np.int64)
     attributed = np.zeros(len(t), bool)
     for k, f in enumerate(faults):
@@ -542,7 +550,7 @@ def _analyse(cfg, faults, t, lit, transitions, wrong, frames_presented, rows, ro
         t_lit = int(t[resume_idx[0]]) if len(resume_idx) and t_dark is not None else None
         if t_dark is not None:
             attributed |= (t >= t_dark) & (t <= (t_lit or t_next))
-        frame = _frame_ns(t, lit, f.t_inject_ns)
+        frame = _frame_ns(t, lit, f.t_inject_ns) or run_frame
         # the end of this dark spell (it may end before the fault does, e.g. a stale spell amid noise);
         # one the next fault pre-empted has none here: the next fault's clear is not this one's
         relit_idx = np.flatnonzero((t > (t_dark or 0)) & (t < t_next) & lit)
