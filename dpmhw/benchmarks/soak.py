@@ -67,6 +67,7 @@ import dataclasses
 import json
 import logging
 import random
+import shutil
 import socket
 import tempfile
 import threading
@@ -490,6 +491,7 @@ def run_soak(minutes: float, *, seed: int = 0, tracker: str = "natnet", kinds: t
     frames_presented = loop.status()["frame_number"]  # final: published by stop()
     # the recorder flushed and closed with the loop: count its rows now
     rows = sum(max(0, sum(1 for _ in open(p)) - 1) for p in rec_dir.glob("*/frames.csv"))
+    shutil.rmtree(rec_dir, ignore_errors=True)  # counted: soak recordings (tens of MB each) must not pile up in /tmp
     t = present_log.snapshot()
     lit = np.isin(t, np.frombuffer(truth_check.lit_t, np.int64))
     result = _analyse(cfg, faults, t, lit, transitions, truth_check.wrong, frames_presented, rows,
