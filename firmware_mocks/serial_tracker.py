@@ -149,7 +149,7 @@ class PolhemusEmulator:
             os.close(self._master)
             os.close(self._slave)
 
-    def replug(self, device_uptime_s: float = 0.5) -> "PolhemusEmulator":
+    def replug(self, device_uptime_s: float = 0.5) -> PolhemusEmulator:
         """The device is plugged in again: powered up afresh (factory settings, not streaming, its
         clock restarted at `device_uptime_s`) on a new pty behind the same `port` name."""
         self.unplug()

@@ -466,11 +466,11 @@ def run_soak(minutes: float, *, seed: int = 0, tracker: str = "natnet", kinds: t
             # pre-empted the resume, and its clear was counted as the previous fault's (2 of the 5
             # "late" serial unplugs of session 4)
             since = faults[-1].t_clear_ns if faults else 0
-            if not wait_for(lambda: truth_check.lit_since(since), 30):
+            if not wait_for(lambda since=since: truth_check.lit_since(since), 30):
                 say(f"soak: no lit frame 30 s after the last fault: {loop.status()['reason']}")
             gap_start = time.monotonic_ns()
             time.sleep(rng.uniform(*gap_s))
-            if not wait_for(lambda: loop.status()["state"] == "running" and truth_check.lit_since(gap_start), 30):
+            if not wait_for(lambda t=gap_start: loop.status()["state"] == "running" and truth_check.lit_since(t), 30):
                 say(f"soak: not running 30 s after the last fault: {loop.status()['reason']}")
                 continue
             kind = rng.choice(kinds)
@@ -685,8 +685,8 @@ def format_table(result: dict) -> str:
                   f"(dropped {t['recording_rows_dropped']}); lit frames while a cause was active "
                   f"{t['lit_frames_while_cause_active']}; implausible frames shown {t['implausible_frames_shown']}; "
                   f"RSS {t['rss_mb_start']} → {t['rss_mb_end']} MB",
-              f"resumes pre-empted by the next fault (not counted against the goal): "
-              f"{sum(s['resume_preempted'] for s in result['summary'])}",
+              (f"resumes pre-empted by the next fault (not counted against the goal): "
+               f"{sum(s['resume_preempted'] for s in result['summary'])}"),
               f"dark spells no injected fault explains: {t['unexplained_dark_spells']} "
               f"(causes: {', '.join(t['unexplained_causes']) or '–'})",
               f"tracker: {json.dumps(t['tracker'])}",

@@ -290,7 +290,7 @@ def test_mock_server_restart_surface_is_what_the_driver_sees_of_a_restarted_moti
     clock begun again; the real client follows it and stamps its frames right."""
     from .test_natnet_loopback import check_against_truth
 
-    kw = dict(stale_after_s=0.05, lost_after_s=30.0)
+    kw = {"stale_after_s": 0.05, "lost_after_s": 30.0}
     with natnet_pair("4.1", unicast=True, client_kw=kw) as (world, server, client):
         assert wait_for(lambda: client.status().frames >= 300, 20)
         port, before = server.command_port, client.latest(1).frame_number

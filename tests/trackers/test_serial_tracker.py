@@ -349,7 +349,7 @@ def test_replugged_device_is_back_under_its_name_powered_up_afresh():
         emu.replug(device_uptime_s=5.0)
         assert os.path.realpath(name) == emu.pty and emu.replugs == 1
         assert not emu.continuous and not emu.binary  # factory settings: nothing streams until asked
-        assert abs(emu.device_ms(time.monotonic_ns()) - 5000) < 60_000 < 1_000_000
+        assert 5000 <= emu.device_ms(time.monotonic_ns()) < 65_000  # was 1,000,000+ before the replug
 
 
 def test_unplugged_port_is_reopened_as_soon_as_its_name_is_back_not_after_the_backoff():
