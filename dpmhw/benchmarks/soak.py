@@ -458,6 +458,7 @@ def run_soak(minutes: float, *, seed: int = 0, tracker: str = "natnet", kinds: t
         t_start = time.monotonic()
         t_end = t_start + minutes * 60
         next_report = t_start + 30
+        recent_ns = max(int(cfg.safety.holdoff_s * 1e9), 100_000_000)
         while time.monotonic() < t_end:
             # each fault's dark and resume must be its own: wait until the session has lit a frame
             # since the last fault ended, then 1.5–4 s of projecting (so the frame interval before the
@@ -468,9 +469,11 @@ def run_soak(minutes: float, *, seed: int = 0, tracker: str = "natnet", kinds: t
             since = faults[-1].t_clear_ns if faults else 0
             if not wait_for(lambda since=since: truth_check.lit_since(since), 30):
                 say(f"soak: no lit frame 30 s after the last fault: {loop.status()['reason']}")
-            gap_start = time.monotonic_ns()
             time.sleep(rng.uniform(*gap_s))
-            if not wait_for(lambda t=gap_start: loop.status()["state"] == "running" and truth_check.lit_since(t), 30):
+            # lit within the last hold-off: not merely "running" at the end of an unexplained spell's
+            # hold-off, before its first lit frame (the last lit one is then over a hold-off old)
+            if not wait_for(lambda: loop.status()["state"] == "running"
+                            and truth_check.lit_since(time.monotonic_ns() - recent_ns), 30):
                 say(f"soak: not running 30 s after the last fault: {loop.status()['reason']}")
                 continue
             kind = rng.choice(kinds)
