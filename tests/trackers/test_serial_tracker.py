@@ -352,6 +352,7 @@ def test_replugged_device_is_back_under_its_name_powered_up_afresh():
         assert 5000 <= emu.device_ms(time.monotonic_ns()) < 65_000  # was 1,000,000+ before the replug
 
 
+@pytest.mark.realtime
 def test_unplugged_port_is_reopened_as_soon_as_its_name_is_back_not_after_the_backoff():
     """Issue 14 (serial unplug: fault end → good sample up to ~3.5 s): the retry waited out the
     doubled backoff even when the port's name had come back. Here the backoff is 60 s, so only a
