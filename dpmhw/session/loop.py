@@ -292,7 +292,7 @@ class SessionLoop:
                 self._stop.wait(self._idle_wait_s(poll_s))
 
     def _idle_wait_s(self, poll_s: float) -> float:
-        """Sleep after a dark turn: `poll_s`, but wake one frame's work before the hold-off ends,
+        """Sleep after a dark turn: `poll_s`, but wake the resume lead before the hold-off ends,
         so the first lit frame is rendered by then and presented on time (issue 14)."""
         resume_at, now = self.safety.resume_at_ns(), self.clock()
         if resume_at is None or resume_at <= now:  # not holding off: nothing to wake for
