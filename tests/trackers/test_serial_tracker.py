@@ -151,6 +151,10 @@ def test_round_trip_with_garbage_between_records(units):
             # A record right behind a truncated one is decoded once a record's worth of bytes
             # follows (the parser must first see the truncated one fail): push line noise.
             emu.inject(bytes(POSE_RECORD_BYTES))
+            # wait for what the emulator wrote, not only for 0.15 s of quiet (a receiver thread
+            # starved beside a CPU hog looked settled with records still in the pty); a lost
+            # record still fails below, 20 s later
+            wait_for(lambda: tracker.status().frames + tracker.warmup_skipped >= emu.records_sent, 20)
             frames, malformed = settle(tracker)
             samples = sub.drain()
             sent = emu.records_sent  # before the tracker stops: its closing `P` makes one more each
