@@ -15,6 +15,7 @@ the stamps of everything after it.
 
 from __future__ import annotations
 
+import os
 import time
 from collections import deque
 
@@ -29,6 +30,7 @@ from drivers.tracker_base import LinkLost, ReceiverTracker
 __all__ = ["PolhemusTracker", "SerialTracker"]
 
 _MAX_GAP_MS = 60_000
+_REPLUG_POLL_S = 0.02  # how often a vanished port's name is looked for while waiting to reconnect
 _UNITS = {"cm": (b"U1\r", 0.01), "inch": (b"U0\r", 0.0254)}
 
 
@@ -176,6 +178,16 @@ class PolhemusTracker(ReceiverTracker):
     def _read_available(self) -> bytes:
         n = max(1, min(self._serial.in_waiting, 4096))
         return self._serial.read(n)
+
+    def _wait_to_retry(self, backoff_s: float) -> None:
+        """A port whose name is gone (an unplugged adapter: udev removed its node) is tried again as
+        soon as the name is back, not after the doubled backoff (up to `backoff_max_s` later)."""
+        if "://" in self.port or os.path.exists(self.port):
+            return super()._wait_to_retry(backoff_s)
+        deadline = time.monotonic() + backoff_s
+        while not os.path.exists(self.port) and time.monotonic() < deadline:
+            if self._stop.wait(_REPLUG_POLL_S):
+                return
 
     def _session(self) -> None:
         try:

@@ -217,6 +217,10 @@ class ReceiverTracker:
             self._last_latency_ns = published[0].latency_ns
         return published
 
+    def _wait_to_retry(self, backoff_s: float) -> None:
+        """Wait before the next session (a driver that can see its device come back may return early)."""
+        self._stop.wait(backoff_s)
+
     def _check_alive(self, since_ns: int, what: str) -> None:
         """Raise LinkLost when nothing arrived for `lost_after_s` since `since_ns`."""
         age_s = (time.monotonic_ns() - since_ns) / 1e9
@@ -253,5 +257,5 @@ class ReceiverTracker:
             self.reconnects += 1
             last_failure = reason
             self._set_state(TrackerState.LOST, f"{reason}; reconnecting in {backoff:.2f} s")
-            self._stop.wait(backoff)
+            self._wait_to_retry(backoff)
             backoff = min(backoff * 2, self.backoff_max_s)

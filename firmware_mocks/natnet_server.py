@@ -13,7 +13,8 @@ mid-exposure instant; `mid_exposure_host_ns(k)` gives the instant on the host cl
 can check a client's timestamps.
 
 Faults to inject: tracking dropouts (tracked flag off), marker noise, truncated and corrupted
-datagrams, and a stalled stream (`stall(seconds)`).
+datagrams, a stalled stream (`stall(seconds)`), mis-solved poses (`pose_offset_m`), and Motive quit and started again
+(`restart(down_s)`: same ports, a new clock origin, frame numbers from 1, unicast clients forgotten).
 """
 
 from __future__ import annotations
@@ -225,10 +226,20 @@ class NatNetServer:
         self.commands: collections.Counter[int] = collections.Counter()
         self.bad_commands = 0
 
+        self.restarts = 0
+        # a mis-solve (a body fitted onto the wrong markers): every reported pose and its markers
+        # are this far (metres) from the world's truth while set; the world itself is unchanged
+        self.pose_offset_m = np.zeros(3)
+        self._open_sockets(cfg.command_port)
+        self._zero_ns = time.monotonic_ns() - int(cfg.server_uptime_s * 1e9)
+        self._ticks_per_ns = cfg.clock_hz * (1 + cfg.clock_drift_ppm * 1e-6) / 1e9
+
+    def _open_sockets(self, command_port: int) -> None:
+        cfg = self.config
         self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._mcast: socket.socket | None = None
         try:
-            self._cmd.bind((cfg.interface, cfg.command_port))
+            self._cmd.bind((cfg.interface, command_port))
             self.command_port = self._cmd.getsockname()[1]
             if not cfg.unicast:
                 self._mcast = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -240,8 +251,6 @@ class NatNetServer:
             if self._mcast is not None:
                 self._mcast.close()
             raise
-        self._zero_ns = time.monotonic_ns() - int(cfg.server_uptime_s * 1e9)
-        self._ticks_per_ns = cfg.clock_hz * (1 + cfg.clock_drift_ppm * 1e-6) / 1e9
 
     # -- clock ---------------------------------------------------------------------------------
 
@@ -287,6 +296,29 @@ class NatNetServer:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+    def restart(self, down_s: float, server_uptime_s: float = 10.0) -> None:
+        """Motive quits, and `down_s` later is running again on the same ports: its clock restarted
+        (reading `server_uptime_s`), frame numbers from 1, unicast clients forgotten (they must
+        connect again). Blocks for `down_s`."""
+        self.stop()
+        time.sleep(down_s)
+        for _ in range(50):  # the closed socket may take a moment to release its port
+            try:
+                self._open_sockets(self.command_port)
+                break
+            except OSError:
+                time.sleep(0.02)
+        else:
+            raise RuntimeError(f"NatNet mock: cannot bind command port {self.command_port} again")
+        with self._lock:
+            self._clients.clear()
+            self._truth.clear()
+        self._zero_ns = time.monotonic_ns() - int(server_uptime_s * 1e9)
+        self._stall_until_ns = 0
+        self._stop.clear()
+        self.restarts += 1
+        self.start()
 
     def stall(self, seconds: float) -> None:
         """Send no frames for `seconds` (frame numbers keep counting, like a network stall)."""
@@ -417,8 +449,10 @@ class NatNetServer:
         with self._lock:
             objects = list(self.world.objects.values())
             params, self._models_changed = (2 if self._models_changed else 0), False
+        offset = self.pose_offset_m
         for obj in objects:
             rot, pos = self.world.pose(obj.rigid_body_id, t)
+            pos = pos + offset
             ideal = obj.markers @ rot.T + pos
             noise = self._rng.normal(0.0, cfg.marker_noise_m, ideal.shape) if cfg.marker_noise_m > 0 else 0.0
             markers = ideal + noise

@@ -10,16 +10,25 @@ Commands (terminated by CR): Ctrl-Y reset, Ctrl-V who-am-I, `F0`/`F1` ASCII/bina
 station (and leave continuous mode). Each station is one body of the simulated `World`; each
 record samples the world at an integer millisecond of the device clock and goes out
 `latency_ms` later. Faults to inject: garbage bytes between records, truncated records, sensor
-errors, and unplugging the port.
+errors, poses off the truth (`pose_offset_m`), leaving continuous mode, and unplugging /
+replugging the device.
+
+`port` is a stable name (a symlink in a private folder, as udev's /dev/serial/by-id/… names a
+USB-serial adapter) for the current pty: `unplug()` removes the pty and the name, `replug()` brings
+a freshly powered device (factory settings, its clock restarted) back under the same name on a new
+pty, so a driver pointed at `port` sees exactly what a pulled and replugged adapter gives it.
 """
 
 from __future__ import annotations
 
 import collections
+import contextlib
 import fcntl
 import os
 import select
+import shutil
 import struct
+import tempfile
 import threading
 import time
 import tty
@@ -67,17 +76,13 @@ class PolhemusEmulator:
         self._rng = np.random.default_rng(seed)
         # station number (1-based) -> rigid body id in the world
         self.stations = {i + 1: rb_id for i, rb_id in enumerate(world.objects)}
-        self._zero_ns = time.monotonic_ns() - int(device_uptime_s * 1e9)
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        flags = fcntl.fcntl(self._master, fcntl.F_GETFL)
-        fcntl.fcntl(self._master, fcntl.F_SETFL, flags | os.O_NONBLOCK)
-        self.port = os.ttyname(self._slave)
+        self._dir = tempfile.mkdtemp(prefix="dpmhw-serial-")
+        self.port = os.path.join(self._dir, f"usb-Polhemus_{_MODELS[model]}-if00")
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._write_lock = threading.Lock()  # one writer at a time: records stay whole
-        self._closed = False
-        self._inbuf = bytearray()
+        self._closed = True  # no pty yet
+        self._plug_in(device_uptime_s)
         self.commands: collections.deque[bytes] = collections.deque(maxlen=256)
         self.records_sent = 0  # intact pose records written
         self.sent_log: collections.deque[tuple[int, int]] = collections.deque(maxlen=100_000)  # (station, ms)
@@ -85,7 +90,23 @@ class PolhemusEmulator:
         self.records_skipped = 0  # never produced because the host fell behind
         self.garbage_bytes = 0
         self.overflows = 0  # records dropped because nobody read the port
+        self.replugs = 0
+        self.pose_offset_m = np.zeros(3)  # a sensor disturbance (metal nearby): poses this far off the truth
+
+    def _plug_in(self, device_uptime_s: float) -> None:
+        """A powered-up device on a new pty, named `port`: factory settings, clock at its uptime."""
+        self._zero_ns = time.monotonic_ns() - int(device_uptime_s * 1e9)
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        flags = fcntl.fcntl(self._master, fcntl.F_GETFL)
+        fcntl.fcntl(self._master, fcntl.F_SETFL, flags | os.O_NONBLOCK)
+        self.pty = os.ttyname(self._slave)
+        self._inbuf = bytearray()
         self._reset()
+        self._closed = False
+        link = self.port + ".new"
+        os.symlink(self.pty, link)
+        os.replace(link, self.port)  # atomic: the name never points at a half-made device
 
     # -- device clock --------------------------------------------------------------------------
 
@@ -115,18 +136,31 @@ class PolhemusEmulator:
             self.continuous = False
 
     def unplug(self) -> None:
-        """The device disappears: the port's reads fail from now on (like a pulled USB cable)."""
-        self.close()
-
-    def close(self) -> None:
+        """The device disappears (a pulled USB cable): an open port's reads fail from now on, and
+        its name is gone until `replug()`."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
             self._thread = None
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.port)
         if not self._closed:
             self._closed = True
             os.close(self._master)
             os.close(self._slave)
+
+    def replug(self, device_uptime_s: float = 0.5) -> PolhemusEmulator:
+        """The device is plugged in again: powered up afresh (factory settings, not streaming, its
+        clock restarted at `device_uptime_s`) on a new pty behind the same `port` name."""
+        self.unplug()
+        self._stop.clear()
+        self._plug_in(device_uptime_s)
+        self.replugs += 1
+        return self.start()
+
+    def close(self) -> None:
+        self.unplug()
+        shutil.rmtree(self._dir, ignore_errors=True)
 
     def __enter__(self) -> "PolhemusEmulator":
         return self.start()
@@ -181,7 +215,7 @@ class PolhemusEmulator:
 
     def _record(self, station: int, ms: int, command: int) -> bytes:
         rot, pos = self.world.pose(self.stations[station], self.device_ms_to_host_ns(ms) / 1e9)
-        pos = pos / (0.01 if self.metric else _INCH_M)
+        pos = (pos + self.pose_offset_m) / (0.01 if self.metric else _INCH_M)
         qx, qy, qz, qw = _quat_xyzw(rot)
         error = 1 if self.error_prob > 0 and self._rng.random() < self.error_prob else 0
         if not self.binary:

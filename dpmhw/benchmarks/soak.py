@@ -5,8 +5,8 @@ injected one at a time at random moments, for `minutes`.
 Fault kinds, each injected only while the session is projecting. NatNet (`NATNET_KINDS`):
 
     tracker_stall        the NatNet server sends nothing for 0.3–1.5 s
-    tracker_restart      the server stops; 0.2–1 s later a new one (frame numbers and clock begin
-                         again, its unicast clients forgotten) answers on the same port
+    tracker_restart      Motive quits; 0.2–1 s later it runs again on the same ports (the mock's
+                         `restart`: frame numbers and clock begin again, unicast clients forgotten)
     corrupt_datagrams    for 1–3 s, 30 % of the frames are truncated or have bytes flipped
     foreign_datagrams    for 1–3 s, another address (127.0.0.2) sends frames at 360 Hz with a pose
                          1 km away and frame numbers 10⁶ ahead
@@ -16,14 +16,16 @@ Serial (`SERIAL_KINDS`):
     serial_stall         the device leaves continuous mode (as on a stray `P`): nothing more until
                          the driver asks again
     serial_noise         for 1–3 s, 15 % garbage bytes between records and 15 % corrupted records
-    serial_unplug        the device disappears (its port closes) for 0.5–2 s; it comes back on a new
-                         pty, which the tracker is pointed at (as a udev name follows a replugged
-                         adapter); the driver reconnects and re-initialises it
+    serial_unplug        the device disappears (its pty and its stable name go) for 0.5–2 s, then is
+                         replugged: powered up afresh on a new pty behind the same name, as udev's
+                         by-id name follows a replugged adapter; the driver sees the name come back,
+                         reconnects and re-initialises it (incl. the 2-s reset wait real units need)
 
 Either tracker (`COMMON_KINDS`):
 
     implausible_sample   one or two genuine frames carry a pose 2 m away (inside the workspace:
-                         caught by the speed limit) or 1 km away (outside it)
+                         caught by the speed limit) or 1 km away (outside it): the tracker mock's
+                         `pose_offset_m` (a mis-solve; the world's truth is unchanged)
     implausible_burst    genuine frames carry a pose 50 m away (outside the workspace) for 0.2–1 s
                          (a sustained offset *inside* the workspace is, by design, accepted once
                          it is reachable at `max_speed_m_s`: kinematics cannot tell it from a move)
@@ -31,6 +33,12 @@ Either tracker (`COMMON_KINDS`):
     usb_unplug           the projector is unplugged for 0.5–2 s, then replugged (power-cycled)
     api_load             for 3 s, two clients hammer the API process with hostile requests (NaN,
                          wrong types, oversized bodies, bad tokens) and status reads
+
+Every fault goes in through a fault surface of the mock it concerns (the NatNet server's
+`stall`, `restart`, corruption probabilities and `pose_offset_m`; the Polhemus emulator's
+`pause_streaming`, noise probabilities, `pose_offset_m`, `unplug`/`replug`; the DLPC900's `stall`,
+`unplug`/`replug`), or from outside (foreign datagrams, API clients), so the real drivers meet
+real faults. The soak's wrappers around the sink and the recorder only observe.
 
 What is measured comes from stamps the session's own code recorded, seen through public
 surfaces: every present (the sink's return value), the lit ones (the records the loop hands its
@@ -42,7 +50,8 @@ exposure stamps; the soak keeps only the gaps), and the safety monitor's transit
 - when the tracker's samples stopped, the first good sample after the gap, the safety cause's
   clear and the first lit frame: good sample → lit frame is the resume time the goal bounds
   (`holdoff_s` + one frame); fault's end → good sample is the device's or reconnect's part;
-- one frame: the median interval between lit presents in the second before the fault;
+- one frame: the median interval between lit presents in the second before the fault (the run's
+  median when that second had fewer than 3);
 - lit frames presented while a safety cause was active (must be 0), and lit frames whose pose was
   more than 0.5 m from the truth (the implausible ones; must be 0);
 - the API answers with status ≥ 500 (must be 0).
@@ -58,6 +67,7 @@ import dataclasses
 import json
 import logging
 import random
+import shutil
 import socket
 import tempfile
 import threading
@@ -121,7 +131,7 @@ class _PresentLog:
 class _TruthCheck:
     """Wraps the recorder, which the loop hands every lit frame it presented (and nothing else):
     logs their present times, and compares each frame's measured pose with the world's true pose
-    at the sample's instant (the trajectories as built, before any glitch)."""
+    at the sample's instant (the world's trajectories: the mocks' pose offsets never touch them)."""
 
     def __init__(self, recorder, truths: dict[int, Callable], epoch_s: float):
         self.recorder = recorder
@@ -129,6 +139,10 @@ class _TruthCheck:
         self.epoch_s = epoch_s
         self.lit_t = array("q")
         self.wrong: list[tuple[int, float]] = []  # (t_present_ns, metres off)
+
+    def lit_since(self, t_ns: int) -> bool:
+        """A lit frame was presented after `t_ns` (read on another thread: one int, no lock needed)."""
+        return len(self.lit_t) > 0 and self.lit_t[-1] > t_ns
 
     def frame(self, record, image) -> None:
         self.lit_t.append(record.t_present_ns)
@@ -173,18 +187,6 @@ class _SampleGaps:
             return {body: np.array(g, np.int64).reshape(-1, 3) for body, g in self.gaps.items()}
 
 
-class _Glitch:
-    """A trajectory that adds `offset` (metres) to another one's translation while set."""
-
-    def __init__(self, inner):
-        self.inner = inner
-        self.offset = np.zeros(3)
-
-    def pose(self, t):
-        rot, pos = self.inner.pose(t)
-        return rot, pos + self.offset
-
-
 @dataclasses.dataclass
 class _Fault:
     kind: str
@@ -204,14 +206,6 @@ class _Injector:
         self.rig = loop.parts.mock
         self.tracker = loop.parts.tracker
         self.token = token
-        self.glitches: dict[int, _Glitch] = {}
-        self.first_server = self.rig.natnet
-        self.first_serial = self.rig.serial
-        world = self.rig.world
-        for body, obj in list(world.objects.items()):
-            glitch = _Glitch(obj.trajectory)
-            world.objects[body] = dataclasses.replace(obj, trajectory=glitch)
-            self.glitches[body] = glitch
         self.api = None
 
     @property
@@ -244,21 +238,7 @@ class _Injector:
 
     def tracker_restart(self, fault: _Fault) -> None:
         down = self.rng.uniform(0.2, 1.0)
-        old = self.server
-        port = old.command_port
-        old.stop()
-        time.sleep(down)
-        cfg = dataclasses.replace(old.config, command_port=port, server_uptime_s=self.rng.uniform(10.0, 1e5),
-                                  seed=self.rng.randrange(2**31))
-        for _ in range(50):  # the old socket may take a moment to release the port
-            try:
-                new = type(old)(self.rig.world, cfg).start()
-                break
-            except OSError:
-                time.sleep(0.02)
-        else:
-            raise RuntimeError(f"soak: cannot restart the NatNet mock on port {port}")
-        self.rig.natnet = new
+        self.server.restart(down, server_uptime_s=self.rng.uniform(10.0, 1e5))  # the mock's fault surface
         fault.t_clear_ns = time.monotonic_ns()
         fault.detail = f"down {down:.2f} s"
 
@@ -276,7 +256,7 @@ class _Injector:
         seconds = self.rng.uniform(1.0, 3.0)
         mod = self._natnet_module()
         target = self.tracker.local_address
-        bodies = list(self.glitches)
+        bodies = list(self.rig.world.objects)
         sent = 0
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
             sock.bind(("127.0.0.2", 0))
@@ -293,13 +273,13 @@ class _Injector:
         fault.t_clear_ns = time.monotonic_ns()
 
     def _glitch(self, offset, until: Callable[[], bool]) -> None:
-        for g in self.glitches.values():
-            g.offset = np.asarray(offset, float)
+        """Poses off the truth by `offset` until `until()`: the tracker mock's own fault surface."""
+        mock = self.server if self.server is not None else self.rig.serial
+        mock.pose_offset_m = np.asarray(offset, float)
         try:
             wait_for(until, 5.0, poll_s=0.0005)
         finally:
-            for g in self.glitches.values():
-                g.offset = np.zeros(3)
+            mock.pose_offset_m = np.zeros(3)
 
     def _frames_sent(self) -> int:
         return self.server.frames_sent if self.server is not None else self.rig.serial.records_sent
@@ -309,7 +289,7 @@ class _Injector:
         metres = self.rng.choice([2.0, 1000.0])
         # NatNet: the mock encodes each frame one period ahead, so two frames sent means one
         # glitched; serial: one record per station per period, sampled when sent
-        more = 1 if self.server is not None else len(self.glitches)
+        more = 1 if self.server is not None else len(self.rig.world.objects)
         self._glitch((metres, 0.0, 0.0), lambda: self._frames_sent() > sent + more)
         fault.detail = f"{self._frames_sent() - sent} frame(s) {metres:g} m off"
         fault.t_clear_ns = time.monotonic_ns()
@@ -339,15 +319,9 @@ class _Injector:
 
     def serial_unplug(self, fault: _Fault) -> None:
         seconds = self.rng.uniform(0.5, 2.0)
-        old = self.rig.serial
-        old.unplug()
+        self.rig.serial.unplug()  # the mock's fault surface: the pty and its name are gone
         time.sleep(seconds)
-        new = type(old)(self.rig.world, rate_hz=old.rate_hz, latency_ms=old.latency_ns / 1e6,
-                        device_uptime_s=self.rng.uniform(10.0, 1e5)).start()
-        self.tracker.port = new.port  # the same device name, as a udev rule gives a replugged adapter
-        self.rig.serial = new
-        if old is not self.first_serial:
-            old.close()
+        self.rig.serial.replug(device_uptime_s=self.rng.uniform(0.5, 1e5))  # same name, a fresh device
         fault.detail = f"gone {seconds:.2f} s"
         fault.t_clear_ns = time.monotonic_ns()
 
@@ -414,10 +388,6 @@ class _Injector:
     def close(self) -> None:
         if self.api is not None:
             self.api.close()
-        if self.rig.natnet is not self.first_server:  # a restarted server: the rig only stops the first
-            self.rig.natnet.stop()
-        if self.rig.serial is not self.first_serial:
-            self.rig.serial.close()
 
 
 def _cause_intervals(transitions, t_end_ns: int) -> list[tuple[int, int, str]]:
@@ -488,10 +458,22 @@ def run_soak(minutes: float, *, seed: int = 0, tracker: str = "natnet", kinds: t
         t_start = time.monotonic()
         t_end = t_start + minutes * 60
         next_report = t_start + 30
+        recent_ns = max(int(cfg.safety.holdoff_s * 1e9), 100_000_000)
         while time.monotonic() < t_end:
+            # each fault's dark and resume must be its own: wait until the session has lit a frame
+            # since the last fault ended, then 1.5–4 s of projecting (so the frame interval before the
+            # fault is measured), and inject only into a projecting session. "running" alone turns
+            # true as the hold-off ends, a frame before the first lit present: a fault injected then
+            # pre-empted the resume, and its clear was counted as the previous fault's (2 of the 5
+            # "late" serial unplugs of session 4)
+            since = faults[-1].t_clear_ns if faults else 0
+            if not wait_for(lambda since=since: truth_check.lit_since(since), 30):
+                say(f"soak: no lit frame 30 s after the last fault: {loop.status()['reason']}")
             time.sleep(rng.uniform(*gap_s))
-            # inject only into a projecting session, so each fault's dark and resume are its own
-            if not wait_for(lambda: loop.status()["state"] == "running", 30):
+            # lit within the last hold-off: not merely "running" at the end of an unexplained spell's
+            # hold-off, before its first lit frame (the last lit one is then over a hold-off old)
+            if not wait_for(lambda: loop.status()["state"] == "running"
+                            and truth_check.lit_since(time.monotonic_ns() - recent_ns), 30):
                 say(f"soak: not running 30 s after the last fault: {loop.status()['reason']}")
                 continue
             kind = rng.choice(kinds)
@@ -512,6 +494,7 @@ def run_soak(minutes: float, *, seed: int = 0, tracker: str = "natnet", kinds: t
     frames_presented = loop.status()["frame_number"]  # final: published by stop()
     # the recorder flushed and closed with the loop: count its rows now
     rows = sum(max(0, sum(1 for _ in open(p)) - 1) for p in rec_dir.glob("*/frames.csv"))
+    shutil.rmtree(rec_dir, ignore_errors=True)  # counted: soak recordings (tens of MB each) must not pile up in /tmp
     t = present_log.snapshot()
     lit = np.isin(t, np.frombuffer(truth_check.lit_t, np.int64))
     result = _analyse(cfg, faults, t, lit, transitions, truth_check.wrong, frames_presented, rows,
@@ -556,6 +539,9 @@ def _analyse(cfg, faults, t, lit, transitions, wrong, frames_presented, rows, ro
     wrong_t = np.array([w[0] for w in wrong], np.int64)
     rows_out = []
     activations = [(tr.t_ns, tr.name) for tr in transitions if tr.active]
+    # one frame where the second before a fault had too few lit frames to tell: the run's median
+    lit_t = t[lit]
+    run_frame = int(np.median(np.diff(lit_t))) if len(lit_t) >= 3 else None
     clears = np.array(sorted(tr.t_ns for tr in transitions if not tr.active), np.int64)
     attributed = np.zeros(len(t), bool)
     for k, f in enumerate(faults):
@@ -569,9 +555,10 @@ def _analyse(cfg, faults, t, lit, transitions, wrong, frames_presented, rows, ro
         t_lit = int(t[resume_idx[0]]) if len(resume_idx) and t_dark is not None else None
         if t_dark is not None:
             attributed |= (t >= t_dark) & (t <= (t_lit or t_next))
-        frame = _frame_ns(t, lit, f.t_inject_ns)
-        # the end of this dark spell (it may end before the fault does, e.g. a stale spell amid noise)
-        relit_idx = np.flatnonzero((t > (t_dark or 0)) & lit)
+        frame = _frame_ns(t, lit, f.t_inject_ns) or run_frame
+        # the end of this dark spell (it may end before the fault does, e.g. a stale spell amid noise);
+        # one the next fault pre-empted has none here: the next fault's clear is not this one's
+        relit_idx = np.flatnonzero((t > (t_dark or 0)) & (t < t_next) & lit)
         t_relit = int(t[relit_idx[0]]) if t_dark is not None and len(relit_idx) else None
         gap = _tracker_gap(gaps, t_dark) if t_dark is not None else None
         t_good = gap[1] if gap is not None and t_relit is not None and gap[1] <= t_relit else None
@@ -597,6 +584,8 @@ def _analyse(cfg, faults, t, lit, transitions, wrong, frames_presented, rows, ro
             "lit_after_good_sample_ms": None if t_good is None else _ms(t_relit - t_good),
             "lit_after_cause_clear_ms": None if t_cleared is None else _ms(t_relit - t_cleared),
             "causes": causes,
+            # dark, and the next fault came before a lit frame (the injector waits for one, so ~never)
+            "resume_preempted": t_dark is not None and t_relit is None and k + 1 < len(faults),
             "lit_frames_while_cause_active": int((lit_in_cause & window).sum()),
             "implausible_frames_shown": int(((wrong_t >= f.t_inject_ns) & (wrong_t < t_next)).sum()),
             "api_requests": f.api_requests, "api_5xx": f.api_5xx,
@@ -662,6 +651,7 @@ def _summarise(kind: str, rs: list[dict]) -> dict:
         "lit_after_good_sample_ms_max": stat("lit_after_good_sample_ms", np.max),
         "lit_after_cause_clear_ms_median": stat("lit_after_cause_clear_ms", np.median),
         "resume_within_goal": goal("resume_within_goal"),
+        "resume_preempted": sum(r["resume_preempted"] for r in rs),
         "lit_frames_while_cause_active": sum(r["lit_frames_while_cause_active"] for r in rs),
         "implausible_frames_shown": sum(r["implausible_frames_shown"] for r in rs),
         "api_5xx": sum(r["api_5xx"] for r in rs),
@@ -698,6 +688,8 @@ def format_table(result: dict) -> str:
                   f"(dropped {t['recording_rows_dropped']}); lit frames while a cause was active "
                   f"{t['lit_frames_while_cause_active']}; implausible frames shown {t['implausible_frames_shown']}; "
                   f"RSS {t['rss_mb_start']} → {t['rss_mb_end']} MB",
+              (f"resumes pre-empted by the next fault (not counted against the goal): "
+               f"{sum(s['resume_preempted'] for s in result['summary'])}"),
               f"dark spells no injected fault explains: {t['unexplained_dark_spells']} "
               f"(causes: {', '.join(t['unexplained_causes']) or '–'})",
               f"tracker: {json.dumps(t['tracker'])}",

@@ -104,6 +104,7 @@ def serial(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2) from None
     with emulator:
-        typer.echo(f"{model.value} serial tracker on {emulator.port} ({stations} station(s), {rate:g} Hz)")
+        typer.echo(f"{model.value} serial tracker on {emulator.pty} (also {emulator.port}; {stations} station(s), "
+                   f"{rate:g} Hz)")
         _run_until(duration, lambda: None, 0)
     typer.echo(f"stopped after {emulator.records_sent} records")

@@ -25,6 +25,7 @@ frame to the sink and the projector idled (read back) — and the status says wh
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -360,13 +361,25 @@ class SessionLoop:
                 self._stop.wait(self._idle_wait_s(poll_s))
 
     def _idle_wait_s(self, poll_s: float) -> float:
-        """Sleep after a dark turn: `poll_s`, but wake one frame's work before the hold-off ends,
+        """Sleep after a dark turn: `poll_s`, but wake the resume lead before the hold-off ends,
         so the first lit frame is rendered by then and presented on time (issue 14)."""
         resume_at, now = self.safety.resume_at_ns(), self.clock()
         if resume_at is None or resume_at <= now:  # not holding off: nothing to wake for
             return poll_s
-        lead_ns = resume_at - now - int(self.metrics.expected_pipeline_s() * 1e9)
-        return min(poll_s, max(0.0, lead_ns / 1e9))
+        return min(poll_s, max(0.0, (resume_at - now - self._resume_lead_ns()) / 1e9))
+
+    def _resume_lead_ns(self) -> int:
+        """How long before the hold-off ends the first lit frame is begun: its expected work twice
+        (the first frame after a dark spell runs slower: cold caches and threads) plus the
+        interpreter's thread switch interval (a waking thread may wait that long for the GIL).
+        With one pipeline only, it was lit up to a frame late (issue 14, serial unplug)."""
+        return int((2 * self.metrics.expected_pipeline_s() + sys.getswitchinterval()) * 1e9)
+
+    def _resume_due(self, now: int) -> int | None:
+        """When the hold-off ends, if that is within the resume lead of `now` (the frame begun now
+        is then presented at that instant); else None."""
+        resume_at = self.safety.resume_at_ns()
+        return resume_at if resume_at is not None and resume_at - now <= self._resume_lead_ns() else None
 
     def _apply_queued(self) -> LiveSettings:
         with self._lock:
@@ -436,8 +449,10 @@ class SessionLoop:
             return False
         samples, age_s = tracking
         stages["tracker_age"] = age_s
-        # predict to the instant this frame will be lit: now + measured pipeline + display delay
-        t_target = t_start + int(self.metrics.expected_pipeline_s() * 1e9) + self.display_latency_ns
+        # predict to the instant this frame will be lit: now + measured pipeline + display delay, or,
+        # for the first frame after a hold-off (begun ahead of it), the hold-off's end + display delay
+        resume_due = self._resume_due(t_start)
+        t_target = max(t_start + int(self.metrics.expected_pipeline_s() * 1e9), resume_due or 0) + self.display_latency_ns
         scene_time = (t_start - self._t0_ns) / 1e9
         poses = self.parts.scene.object_poses(scene_time)
         used: dict[int, Pose] = {}
@@ -456,10 +471,13 @@ class SessionLoop:
         if not self.safety.output_allowed(t1):
             if ahead:
                 return False
-            # about to resume (the hold-off ends within this frame's work): render now, present at the end
-            resume_at = self.safety.resume_at_ns()
-            if resume_at is not None and resume_at - t1 > self.metrics.expected_pipeline_s() * 1e9:
-                resume_at = None
+            # about to resume (the hold-off ends within the resume lead): render now, present at its end
+            resume_at = resume_due
+            if resume_at is None and self.safety.resume_at_ns() is not None:
+                # holding off, no cause active (so no render fault to watch clear): a dark render now
+                # could still be running when the resume render is due, and light it a frame late
+                self._sync_output()
+                return False
             # dark: nothing is shown, so render only as often as it takes to see a render fault clear
             if resume_at is None and t1 - self._dark_render_ns < self.dark_render_interval_ns:
                 self._sync_output()

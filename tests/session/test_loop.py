@@ -84,6 +84,55 @@ def test_holdoff_counts_from_the_first_fresh_sample_and_no_lit_frame_comes_befor
     assert first_lit.t_present_ns >= arrival + 300_000_000
 
 
+def test_no_dark_render_while_holding_off_so_the_resume_render_is_never_delayed(make_loop):
+    """Issue 14 (a serial unplug lit 518 ms after its first good sample, goal 517): while holding
+    off no cause is active, so a dark render has nothing to show; one begun just before the resume
+    render was due pushed the first lit frame a frame late. Checked on the loop's own stamps."""
+    from dpmhw.session.testing import FlatRenderer
+
+    class StampingRenderer(FlatRenderer):
+        def __init__(self):
+            super().__init__()
+            self.starts = []
+
+        def render(self, **kw):
+            self.starts.append(time.monotonic_ns())
+            return super().render(**kw)
+
+    renderer = StampingRenderer()
+    loop = make_loop(["safety.holdoff_s=0.6", "safety.dark_render_interval_s=0.02"], renderer=renderer).start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    loop.parts.tracker.streaming = False
+    assert wait_for(lambda: loop.safety.active("tracking"), 10)
+    loop.parts.tracker.streaming = True
+    assert wait_for(lambda: not loop.safety.active("tracking"), 10)
+    resume_at = loop.safety.resume_at_ns()
+    cleared = [t for t in loop.safety.transitions() if t.name == "tracking" and not t.active][-1].t_ns
+    assert wait_for(lambda: state(loop) == "running" and presented(loop) > 0 and not loop.latest_frame().blank, 10)
+    # none in the hold-off but the resume render (begun at most its lead, well under 300 ms, before the end)
+    assert [t for t in renderer.starts if cleared < t < resume_at - 300_000_000] == []
+
+
+def test_first_frame_after_a_hold_off_is_never_lit_nor_predicted_before_the_hold_offs_end(make_loop):
+    """Issue 14: the resume frame is now begun further ahead (twice its expected work plus the GIL
+    switch interval: the first frame after a dark spell runs slow), so it must still be presented
+    no earlier than the hold-off's end and predicted for the instant it is lit. On the loop's stamps."""
+    loop = make_loop(["safety.holdoff_s=0.3"]).start()
+    assert wait_for(lambda: state(loop) == "running", 20)
+    loop.parts.tracker.streaming = False
+    assert wait_for(lambda: loop.safety.active("tracking"), 10)
+    n = len(loop.parts.sink.frames)
+    loop.parts.tracker.streaming = True
+    assert wait_for(lambda: not loop.safety.active("tracking"), 10)
+    resume_at = loop.safety.resume_at_ns()
+    assert wait_for(lambda: any(f.frame.any() for f in loop.parts.sink.frames[n:]), 10)
+    first = next(f for f in loop.parts.sink.frames[n:] if f.frame.any())  # the first lit one
+    # predicted for the instant it is lit, not before (exactly the hold-off's end when begun on time;
+    # later when a starved loop thread began it late)
+    assert first.t_target_ns >= resume_at + loop.display_latency_ns
+    assert first.presented_at_ns >= resume_at
+
+
 def test_lost_tracker_link_is_a_fault(make_loop):
     loop = make_loop().start()
     assert wait_for(lambda: state(loop) == "running", 20)

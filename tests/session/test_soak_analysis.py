@@ -73,3 +73,22 @@ def test_resume_is_measured_from_the_first_good_sample_against_that_moments_fram
     assert summary["resume_within_goal"] == "1/1" and summary["dark_within_goal"] == "0/1"
     table = format_table(out)
     assert "| tracker_stall | 1 | 1 | 10.0 |" in table and "0/1" in table and "1/1" in table
+
+
+def test_a_resume_the_next_fault_pre_empted_is_not_counted_as_that_faults_late_resume():
+    """Issue 14 (serial unplug 'back within holdoff_s + one frame' 3 of 5): the next fault was
+    injected as the hold-off ended, before the first lit frame, and its own clear was taken as the
+    end of the previous fault's spell (1,390 ms 'good sample → lit'). The spell now ends before the
+    next fault, or it is reported pre-empted and left out of the goal."""
+    t, lit = timeline([(0, 1060), (3410, 10_000)])  # dark from 1060 ms; lit only after the second fault
+    transitions = [Transition(0, 1055 * MS, "tracker", True, "lost"), Transition(1, 2050 * MS, "tracker", False, ""),
+                   Transition(2, 2560 * MS, "sink", True, "usb"), Transition(3, 2900 * MS, "sink", False, "")]
+    gaps = {1: np.array([[1003 * MS, 999 * MS, 2050 * MS]], np.int64)}
+    faults = [_Fault("serial_unplug", 1000 * MS, 1500 * MS), _Fault("usb_stall", 2550 * MS, 2551 * MS)]
+    out = _analyse(load_session_config(), faults, t, lit, transitions, [], 100, 100, 0, 200.0, 201.0, 1.0, 0,
+                   TrackerStatus(TrackerState.STREAMING), gaps)
+    first, second = out["faults"]
+    assert first["resume_preempted"] is True and first["lit_after_good_sample_ms"] is None
+    assert first["cause_clear_after_good_sample_ms"] is None and first.get("resume_within_goal") is None
+    assert second["resume_preempted"] is False and second["time_to_resume_ms"] == 859
+    assert "pre-empted by the next fault (not counted against the goal): 1" in format_table(out)

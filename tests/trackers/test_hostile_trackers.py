@@ -285,6 +285,24 @@ def test_restarted_server_is_rejoined_and_its_new_clock_learnt_without_a_reconne
         assert st.reconnects == 0 and st.details["clock_jumps"] == 1
 
 
+def test_mock_server_restart_surface_is_what_the_driver_sees_of_a_restarted_motive():
+    """The NatNet mock's `restart` (used by the soak): the same ports, frame numbers from 1, its
+    clock begun again; the real client follows it and stamps its frames right."""
+    from .test_natnet_loopback import check_against_truth
+
+    kw = {"stale_after_s": 0.05, "lost_after_s": 30.0}
+    with natnet_pair("4.1", unicast=True, client_kw=kw) as (world, server, client):
+        assert wait_for(lambda: client.status().frames >= 300, 20)
+        port, before = server.command_port, client.latest(1).frame_number
+        server.restart(0.1, server_uptime_s=100.0)
+        assert server.command_port == port and server.restarts == 1
+        frames = client.status().frames
+        assert wait_for(lambda: client.status().frames > frames + 20, 20), client.status()
+        newest = client.latest(1)
+        assert newest.frame_number < before and check_against_truth([newest], world, server) == 1
+        assert client.status().reconnects == 0
+
+
 def test_a_round_trip_that_contradicts_the_offset_restarts_the_mapping_a_backlog_does_not():
     """A Motive restarted without the link dropping: its clock begins again far behind. One-way
     evidence cannot tell that from a backlog read late (both look like slow transits), so it is

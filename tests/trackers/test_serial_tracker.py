@@ -151,6 +151,10 @@ def test_round_trip_with_garbage_between_records(units):
             # A record right behind a truncated one is decoded once a record's worth of bytes
             # follows (the parser must first see the truncated one fail): push line noise.
             emu.inject(bytes(POSE_RECORD_BYTES))
+            # wait for what the emulator wrote, not only for 0.15 s of quiet (a receiver thread
+            # starved beside a CPU hog looked settled with records still in the pty); a lost
+            # record still fails below, 20 s later
+            wait_for(lambda: tracker.status().frames + tracker.warmup_skipped >= emu.records_sent, 20)
             frames, malformed = settle(tracker)
             samples = sub.drain()
             sent = emu.records_sent  # before the tracker stops: its closing `P` makes one more each
@@ -334,3 +338,38 @@ def test_dropout_at_a_fractional_millisecond_period_counts_the_records_really_mi
         record_bytes(ms=round(j * 1000 / 240)), arrival_ns=10**9 + round(j * 1e9 / 240))]
     assert len(published) == len(kept)
     assert tracker.status().frames_missed == 240
+
+
+def test_replugged_device_is_back_under_its_name_powered_up_afresh():
+    """The emulator's unplug / replug fault surface: the stable name disappears with the device
+    and comes back pointing at a new pty; the device starts from factory settings, its clock
+    restarted, and an already open port stays dead."""
+    world = World.demo("static", epoch_s=time.monotonic())
+    with PolhemusEmulator(world, device_uptime_s=1000.0) as emu:
+        name, first_pty = emu.port, emu.pty
+        assert os.path.realpath(name) == first_pty
+        emu.unplug()
+        assert not os.path.exists(name)
+        emu.replug(device_uptime_s=5.0)
+        assert os.path.realpath(name) == emu.pty and emu.replugs == 1
+        assert not emu.continuous and not emu.binary  # factory settings: nothing streams until asked
+        assert 5000 <= emu.device_ms(time.monotonic_ns()) < 65_000  # was 1,000,000+ before the replug
+
+
+@pytest.mark.realtime
+def test_unplugged_port_is_reopened_as_soon_as_its_name_is_back_not_after_the_backoff():
+    """Issue 14 (serial unplug: fault end → good sample up to ~3.5 s): the retry waited out the
+    doubled backoff even when the port's name had come back. Here the backoff is 60 s, so only a
+    driver that watches for the name can stream again within the bound."""
+    world = World.demo("linear", epoch_s=time.monotonic())
+    with PolhemusEmulator(world) as emu:
+        tracker = PolhemusTracker(emu.port, reset_wait_s=0.02, lost_after_s=0.3, backoff_initial_s=60.0,
+                                  backoff_max_s=60.0)
+        with tracker:
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 10)
+            frames = tracker.status().frames
+            emu.unplug()
+            assert wait_for(lambda: tracker.status().state == TrackerState.LOST, 10), tracker.status()
+            emu.replug()
+            assert wait_for(lambda: tracker.status().frames > frames + 20, 30), tracker.status()
+            assert tracker.status().state == TrackerState.STREAMING
