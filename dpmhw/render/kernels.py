@@ -508,13 +508,18 @@ def jittered_directions(corners, R, width, key, first, end, out):
 # Without fast-math: LLVM inlines the ray queries here, and a fast-math caller would let it fuse
 # their float32 transforms into FMAs (moving objects' hits would change in the last bit).
 @nb.njit(nogil=True, cache=True, error_model="numpy")
-def trace_segment(acc, acc_moving, packets, split, depth_limit, max_bounces, mis_last, key, first, count, primary_dirs, primary, complete_primary,
-                  camera_o, scn, film, gb, work, jitter):
+def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_bounces, mis_last, key, first, count, primary_dirs, primary,
+                  complete_primary, static, camera_o, scn, film, gb, work, jitter):
     """All bounces of the paths through pixels [first, first + count) in one call, with Embree
     queried from inside (traversal): shade → shadow rays → continuation rays → shade …, no
-    Python between the stages. `primary` = (t, obj, prim, u, v) of the camera rays; with
-    `complete_primary` those rows hold the static hits only, and the moving objects are traced
-    first (from camera_o along primary_dirs). `packets` = (continuation, shadow): 16-wide
+    Python between the stages. `primary` = (t, obj, prim, u, v) of the camera rays. `static` =
+    (trace, t, obj, prim, u, v): the camera rays' hits on the static objects (the integrator's
+    per-pose cache, which is `primary` itself when nothing moves); with `trace` (a new camera
+    pose) this segment's rows of it are traced first, as 4×4-tile packets against the static
+    BVH (`acc_static`), here rather than in a separate pass over the image, so the camera rays
+    are spread over the threads with everything else and their hits are still in cache when
+    shaded. With `complete_primary` the static hits are copied into `primary`'s rows and the
+    moving objects traced (from camera_o along primary_dirs). `packets` = (continuation, shadow): 16-wide
     packets of consecutive rows, or single rays. Tuples, see the integrator: scn (scene tables),
     film (emit, diff, spec, nonfinite), gb (G-buffer arrays and write flag), work (per-path
     arrays, kept between frames). `jitter` = (on, jitter key, pixel corners, camera rotation,
@@ -532,8 +537,14 @@ def trace_segment(acc, acc_moving, packets, split, depth_limit, max_bounces, mis
     if jitter_on:
         jittered_directions(corners, cam_R, width, jkey, first, end, cam_d)
         traversal.closest_range(acc, R, T, camera_o, cam_d, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], False)
-    elif complete_primary:
-        traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], True)
+    else:
+        trace_static, s_t, s_obj, s_prim, s_u, s_v = static
+        if trace_static:
+            traversal.closest_tiles(acc_static, R, T, camera_o, primary_dirs, width, first, end, s_t, s_obj, s_prim, s_u, s_v)
+        if complete_primary:
+            for i in range(first, end):
+                p_t[i], p_obj[i], p_prim[i], p_u[i], p_v[i] = s_t[i], s_obj[i], s_prim[i], s_u[i], s_v[i]
+            traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], True)
     traced_shadow = traced_next = 0
     depth = 0
     while True:

@@ -196,6 +196,27 @@ def tile_order(width, height):
 
 
 @nb.njit(nogil=True, cache=True)
+def closest_tiles(acc, R, T, o, d, width, first, end, t, obj, prim, u, v):
+    """Closest hits of the camera rays of pixels [first, end) (one ray per pixel, row-major, rows
+    of `width`), as 16-wide packets of 4×4 pixel tiles (tiles aligned to the whole image's,
+    clipped to the range): what `RtcAccel.intersect_static` does for the whole image, done by
+    one image segment in its own thread."""
+    if end <= first:
+        return
+    order = np.empty(end - first, np.int64)
+    n = 0
+    for ty in range(first // width // 4 * 4, (end - 1) // width + 1, 4):
+        for tx in range(0, width, 4):
+            for y in range(ty, ty + 4):
+                for x in range(tx, min(tx + 4, width)):
+                    p = y * width + x
+                    if first <= p < end:
+                        order[n] = p
+                        n += 1
+    closest_rows(acc, R, T, o, d, order, 0, n, t, obj, prim, u, v, True)
+
+
+@nb.njit(nogil=True, cache=True)
 def occluded_range(acc, R, T, o, d, tmax, first, end, blocked, packets):
     """blocked[i] (something lies along ray i closer than tmax[i]) for rows [first, end), as
     16-wide packets of consecutive rows or one ray per call."""
