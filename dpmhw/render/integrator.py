@@ -212,7 +212,7 @@ class PathIntegrator:
     def _static_primary(self, camera: PinholeCamera, o, d, defer: bool = False) -> tuple[Hits, bool]:
         """Primary hits on static objects depend only on the camera pose: trace them once per pose.
         Returns (hits, whether they are still to be traced). `defer`: for a new pose, return the
-        cache's arrays (reused in place: a fresh 16 MB every moved frame costs page faults) to
+        cache's arrays (reused in place, not 16 MB allocated per moved frame) to
         be traced by the first pass's segments; the pose is recorded once that pass is done."""
         key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
         if self._static_primary_key == key:
