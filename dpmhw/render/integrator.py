@@ -88,6 +88,8 @@ class PathIntegrator:
         self._static_primary_key = None
         self._static_primary_hits = None
         self._pending_key = None  # the pose whose static hits the next pass traces
+        self._rays = None  # camera rays (origins, directions), rewritten in place for a new pose
+        self._rays_key = None
         self._work: list[_Work] = []  # most recently used first
         # (continuation, shadow) rays as 16-wide packets of consecutive paths, or single rays
         self.packets = PACKETS
@@ -131,7 +133,7 @@ class PathIntegrator:
         film = {k: np.zeros((npix, 3), f32) for k in ("emit", "diff", "spec")}
         gbuf = _GBuffer(npix)
         nonfinite = np.zeros(npix, np.int32)
-        o, d = camera.generate_rays()
+        o, d = self._camera_rays(camera)
         jitter = self.pixel_sampling == "jitter"
         if jitter:  # every pass traces its own camera rays in full, into the work buffers
             static_hits, moving, primary, trace_static = None, False, self._work_buffers(npix).primary, False
@@ -204,6 +206,25 @@ class PathIntegrator:
             self._trace_pass(key, o, d, sh if moving and p == 0 else None, primary, R, T, camera, film, gbuf, nonfinite, False,
                              work=work)
         return (film["emit"] + film["diff"] + film["spec"]) / f32(spp)
+
+    def _camera_rays(self, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+        """`camera.generate_rays()`, the same rays, in two arrays kept between frames: a new pose
+        rewrites them in place, split by segments between the render threads (compiled, no
+        numpy temporaries, no fresh 9 MB arrays and their page faults every moved frame)."""
+        key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
+        if self._rays_key is not None and self._rays_key[0] is camera._dirs_cam and self._rays_key[1] == key:
+            return self._rays
+        n = camera.width * camera.height
+        if self._rays is None or len(self._rays[0]) != n:
+            self._rays = (np.empty((n, 3), f32), np.empty((n, 3), f32))
+        self._rays_key = None
+        o, d = self._rays
+        w = self._work_buffers(n)
+        segments = [(int(a), int(a + c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
+        run = lambda s: camera.rays_into(o, d, *s)  # noqa: E731
+        list(self._pool.map(run, segments)) if self._pool is not None else [run(s) for s in segments]
+        self._rays_key = (camera._dirs_cam, key)
+        return self._rays
 
     def _fused_native(self) -> bool:
         """One compiled call per segment, Embree queried from inside (the C API is loaded)."""

@@ -16,6 +16,7 @@ import math
 
 import numba as nb
 import numpy as np
+from numba.core.extending import intrinsic
 
 from dpmhw.render import traversal
 from dpmhw.render.prefetch import prefetch_row
@@ -483,6 +484,29 @@ def add_unoccluded(first, count, sh_pix, contrib, blocked, film_diff, film_spec,
                 film_spec[p, 0] += contrib[k, 3]
                 film_spec[p, 1] += contrib[k, 4]
                 film_spec[p, 2] += contrib[k, 5]
+
+
+@intrinsic
+def _fma32(typingctx, a, b, c):
+    """a * b + c in float32, rounded once (LLVM's fma)."""
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+    return nb.float32(nb.float32, nb.float32, nb.float32), codegen
+
+
+@nb.njit(nogil=True, cache=True, error_model="numpy")
+def camera_rays(dirs_cam, R, t, first, end, o, d):
+    """Camera rays through the centres of pixels [first, end) into o, d (n, 3) float32: origin t,
+    direction R @ dirs_cam[pixel] (R camera→world, both float32). Each component is the FMA
+    chain x·R[j,0] → +y·R[j,1] → +z·R[j,2], as OpenBLAS's sgemm computes `dirs_cam @ R.T`
+    on FMA CPUs: the rays `PinholeCamera.generate_rays` made with numpy, bit for bit, on
+    such a machine, and the same rays on any machine. Compiled: a pose change costs a pass
+    over the buffers, not numpy temporaries."""
+    for i in range(first, end):
+        x, y, z = dirs_cam[i, 0], dirs_cam[i, 1], dirs_cam[i, 2]
+        for j in range(3):
+            d[i, j] = _fma32(z, R[j, 2], _fma32(y, R[j, 1], x * R[j, 0]))
+            o[i, j] = t[j]
 
 
 @nb.njit(nogil=True, **_jit)
