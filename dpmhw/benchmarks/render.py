@@ -5,12 +5,12 @@ seed k), as the projection loop renders them, with the projector fixed (`frame_m
 camera hits on static objects are cached) and moved (`*_cold_camera_*`: panned by up to
 ±1° about the vertical, a different angle each frame, so camera rays and static hits are made
 anew every frame; before session 5 these frames only dropped the hit cache's key). With the
-Embree C API one compiled call per image segment runs shading and every ray query. Inside that call nothing can be timed
-per stage, so the split is measured on the same frames rendered staged (Python between the
-stages, the same kernels and queries, the same image): time inside the ray queries
-(`inside_embree_ms_median`) and in the shading kernel (`shade_kernel_ms_median`), each as
-thread CPU-seconds / threads, and the shading kernel's CPU-ns per path vertex
-(`shade_ns_per_vertex`). Raw throughput replays this scene's own ray batches of one frame
+Embree C API one compiled call per image segment runs shading and every ray query. Inside that
+call nothing can be timed per stage, so the split is measured on the same frames rendered
+staged (Python between the stages, the same kernels and queries, the same image): time inside
+the ray queries (`inside_embree_ms_median`) and in the shading kernel
+(`shade_kernel_ms_median`), each as thread CPU-seconds / threads, and the shading kernel's
+CPU-ns per path vertex (`shade_ns_per_vertex`). Raw throughput replays this scene's own ray batches of one frame
 (camera, continuation and shadow rays, each query type alone) on the same thread count, in
 Mrays per second of wall time and per CPU-second.
 """

@@ -221,8 +221,11 @@ class PathIntegrator:
         o, d = self._rays
         w = self._work_buffers(n)
         segments = [(int(a), int(a + c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
-        run = lambda s: camera.rays_into(o, d, *s)  # noqa: E731
-        list(self._pool.map(run, segments)) if self._pool is not None else [run(s) for s in segments]
+        if self._pool is not None:
+            list(self._pool.map(lambda s: camera.rays_into(o, d, *s), segments))
+        else:
+            for s in segments:
+                camera.rays_into(o, d, *s)
         self._rays_key = (camera._dirs_cam, key)
         return self._rays
 
