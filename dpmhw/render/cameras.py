@@ -14,6 +14,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from dpmhw.render import kernels
 from dpmhw.transforms import Pose
 
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -62,14 +63,22 @@ class PinholeCamera:
 
     def generate_rays(self) -> tuple[np.ndarray, np.ndarray]:
         """Primary rays through every pixel centre: origins (n, 3), directions (n, 3), float32,
-        row-major. Cached per pose: a projector rarely moves between frames."""
+        row-major. Cached per pose: a projector rarely moves between frames. (A per-frame
+        renderer keeps its own buffers and calls `rays_into` instead.)"""
         key = (self.pose.R.tobytes(), self.pose.t.tobytes())
         if getattr(self, "_rays_key", None) != key:
-            d = self._dirs_cam @ self.pose.R.T.astype(np.float32)
-            o = np.ascontiguousarray(np.broadcast_to(self.pose.t.astype(np.float32), d.shape))
+            n = len(self._dirs_cam)
+            o, d = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+            self.rays_into(o, d, 0, n)
             o.flags.writeable = d.flags.writeable = False
             self._rays, self._rays_key = (o, d), key
         return self._rays
+
+    def rays_into(self, o: np.ndarray, d: np.ndarray, first: int, end: int) -> None:
+        """Write the rays of pixels [first, end) into rows [first, end) of o, d ((n, 3) float32),
+        compiled and without temporaries (`kernels.camera_rays`): callers split the image
+        between threads and reuse the buffers from frame to frame."""
+        kernels.camera_rays(self._dirs_cam, self.pose.R.astype(np.float32), self.pose.t.astype(np.float32), first, end, o, d)
 
     def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """points : (n, 3) world → pixels (n, 2) float64 and in_front (n,) bool (z > 0)."""

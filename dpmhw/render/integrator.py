@@ -87,6 +87,9 @@ class PathIntegrator:
         self.counts = RayCounts()
         self._static_primary_key = None
         self._static_primary_hits = None
+        self._pending_key = None  # the pose whose static hits the next pass traces
+        self._rays = None  # camera rays (origins, directions), rewritten in place for a new pose
+        self._rays_key = None
         self._work: list[_Work] = []  # most recently used first
         # (continuation, shadow) rays as 16-wide packets of consecutive paths, or single rays
         self.packets = PACKETS
@@ -130,12 +133,13 @@ class PathIntegrator:
         film = {k: np.zeros((npix, 3), f32) for k in ("emit", "diff", "spec")}
         gbuf = _GBuffer(npix)
         nonfinite = np.zeros(npix, np.int32)
-        o, d = camera.generate_rays()
+        o, d = self._camera_rays(camera)
         jitter = self.pixel_sampling == "jitter"
         if jitter:  # every pass traces its own camera rays in full, into the work buffers
-            static_hits, moving, primary = None, False, self._work_buffers(npix).primary
+            static_hits, moving, primary, trace_static = None, False, self._work_buffers(npix).primary, False
         else:
-            static_hits = self._static_primary(camera, o, d)
+            # with the C API a new pose's static hits are traced by the first pass's segments
+            static_hits, trace_static = self._static_primary(camera, o, d, defer=self._fused_native())
             # without moving objects the cached hits are the primary hits; with them, the first
             # pass completes them per segment (in its thread) into a work buffer later passes reuse
             moving = bool(self.geometry.accel.dynamic_objects)
@@ -146,7 +150,10 @@ class PathIntegrator:
             if should_stop is not None and done > 0 and should_stop():
                 break
             self._trace_pass(kernels.pass_key(seed, p), o, d, static_hits if moving and p == 0 else None, primary,
-                             R, T, camera, film, gbuf, nonfinite, p == 0, kernels.jitter_key(seed, p) if jitter else None)
+                             R, T, camera, film, gbuf, nonfinite, p == 0, kernels.jitter_key(seed, p) if jitter else None,
+                             trace_static=trace_static and p == 0)
+            if trace_static and p == 0:  # the cache is valid only once a pass has filled all of it
+                self._static_primary_key = self._pending_key
             if jitter:
                 self.counts.primary_traced += npix
             done += 1
@@ -221,21 +228,58 @@ class PathIntegrator:
         full, o, d = pool
         return full.prefix(n), o[:n], d[:n]
 
-    def _static_primary(self, camera: PinholeCamera, o, d):
-        """Primary hits on static objects depend only on the camera pose: trace them once per pose."""
+    def _camera_rays(self, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+        """`camera.generate_rays()`, the same rays, in two arrays kept between frames: a new pose
+        rewrites them in place, split by segments between the render threads (compiled, no
+        numpy temporaries, no fresh 9 MB arrays and their page faults every moved frame)."""
         key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
-        if self._static_primary_key != key:
+        if self._rays_key is not None and self._rays_key[0] is camera._dirs_cam and self._rays_key[1] == key:
+            return self._rays
+        n = camera.width * camera.height
+        if self._rays is None or len(self._rays[0]) != n:
+            self._rays = (np.empty((n, 3), f32), np.empty((n, 3), f32))
+        self._rays_key = None
+        o, d = self._rays
+        w = self._work_buffers(n)
+        segments = [(int(a), int(a + c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
+        if self._pool is not None:
+            list(self._pool.map(lambda s: camera.rays_into(o, d, *s), segments))
+        else:
+            for s in segments:
+                camera.rays_into(o, d, *s)
+        self._rays_key = (camera._dirs_cam, key)
+        return self._rays
+
+    def _fused_native(self) -> bool:
+        """One compiled call per segment, Embree queried from inside (the C API is loaded)."""
+        return self.fused and isinstance(self.geometry.accel, RtcAccel)
+
+    def _static_primary(self, camera: PinholeCamera, o, d, defer: bool = False) -> tuple[Hits, bool]:
+        """Primary hits on static objects depend only on the camera pose: trace them once per pose.
+        Returns (hits, whether they are still to be traced). `defer`: for a new pose, return the
+        cache's arrays (reused in place, not 16 MB allocated per moved frame) to
+        be traced by the first pass's segments; the pose is recorded once that pass is done."""
+        key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
+        if self._static_primary_key == key:
+            return self._static_primary_hits, False
+        self.counts.primary_static_traced = len(o)
+        if not defer:
             self._static_primary_hits = self.geometry.accel.intersect_static(o, d, width=self.width)
             self._static_primary_key = key
-            self.counts.primary_static_traced = len(o)
-        return self._static_primary_hits
+            return self._static_primary_hits, False
+        if self._static_primary_hits is None or len(self._static_primary_hits.t) != len(o):
+            self._static_primary_hits = empty_hits(len(o))
+        self._static_primary_key, self._pending_key = None, key
+        return self._static_primary_hits, True
 
     def _trace_pass(self, key, camera_o, primary_dirs, static_hits: Hits | None, primary: Hits, R, T, camera, film, gbuf,
-                    nonfinite, write_gbuffer, jitter_key=None, work: "_Work | None" = None):
+                    nonfinite, write_gbuffer, jitter_key=None, work: "_Work | None" = None, trace_static: bool = False):
         """One sample per pixel. The image is cut into row ranges (segments); each is traced to the
         end of its paths by one thread (shade → shadow rays → continuation rays → shade …), so a
         segment's rays and hits are still in cache when the next stage reads them, and the
-        threads never wait for each other between stages. Segments write disjoint pixels."""
+        threads never wait for each other between stages. Segments write disjoint pixels.
+        `trace_static` (fused path only): the camera rays' static hits (`static_hits`, or `primary`
+        when nothing moves) are still to be traced, by each segment for its own rows."""
         w = work if work is not None else self._work_buffers(len(primary.t))
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
@@ -244,7 +288,7 @@ class PathIntegrator:
         cam_R = camera.pose.R.astype(f32)
         if jitter_key is not None:  # camera rays through random points of the pixels, into the work buffer
             primary_dirs = w.cam_d
-        if self.fused and isinstance(accel, RtcAccel):  # queries from inside the kernel: one native call per segment
+        if self._fused_native():  # queries from inside the kernel: one native call per segment
             g = self.geometry
             scn = (g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area, g.light_prim, g.light_obj,
                    g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd)
@@ -252,22 +296,25 @@ class PathIntegrator:
             gb = (gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer)
             work = (w.pixel, w.beta, w.kd, w.prev_pdf, w.prev_env, w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.blocked,
                     w.ray_o[0], w.ray_d[0], w.ray_o[1], w.ray_d[1], w.hits.t, w.hits.obj, w.hits.prim, w.hits.u, w.hits.v)
-            if static_hits is not None:  # rows are completed in place: start from the cached static hits
-                for name in ("t", "obj", "prim", "u", "v"):
-                    getattr(primary, name)[:] = getattr(static_hits, name)
             prim = (primary.t, primary.obj, primary.prim, primary.u, primary.v)
+            # the static camera hits: traced per segment for a new pose, copied into `primary`'s
+            # rows and completed with the moving objects (static_hits given), or primary itself
+            cache = static_hits if static_hits is not None else primary
+            static = (trace_static, cache.t, cache.obj, cache.prim, cache.u, cache.v)
             depth_limit = self.max_bounces + (1 if self.mis_last else 0)
             jitter = (jitter_key is not None, np.uint64(jitter_key or 0), corners, cam_R, self.width, w.cam_d)
 
             def run(segment):
                 first, count = segment
-                traced = kernels.trace_segment(accel.acc, accel.acc_moving, self.packets, self.split, depth_limit, self.max_bounces, self.mis_last,
-                                               key, first, count, primary_dirs, prim, static_hits is not None, camera_o,
-                                               scn, films, gb, work, jitter)
+                traced = kernels.trace_segment(accel.acc, accel.acc_moving, accel.acc_static, self.packets, self.split, depth_limit,
+                                               self.max_bounces, self.mis_last, key, first, count, primary_dirs, prim,
+                                               static_hits is not None, static, camera_o, scn, films, gb, work, jitter)
                 if traced[0] < 0:
                     raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
                 return traced
         else:
+            if trace_static:
+                raise ValueError("trace_static needs the fused path")
             def run(segment):
                 first, count = segment
                 if jitter_key is not None:

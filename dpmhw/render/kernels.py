@@ -16,6 +16,7 @@ import math
 
 import numba as nb
 import numpy as np
+from numba.core.extending import intrinsic
 
 from dpmhw.render import traversal
 from dpmhw.render.prefetch import prefetch_row
@@ -485,6 +486,29 @@ def add_unoccluded(first, count, sh_pix, contrib, blocked, film_diff, film_spec,
                 film_spec[p, 2] += contrib[k, 5]
 
 
+@intrinsic
+def _fma32(typingctx, a, b, c):
+    """a * b + c in float32, rounded once (LLVM's fma)."""
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+    return nb.float32(nb.float32, nb.float32, nb.float32), codegen
+
+
+@nb.njit(nogil=True, cache=True, error_model="numpy")
+def camera_rays(dirs_cam, R, t, first, end, o, d):
+    """Camera rays through the centres of pixels [first, end) into o, d (n, 3) float32: origin t,
+    direction R @ dirs_cam[pixel] (R camera→world, both float32). Each component is the FMA
+    chain x·R[j,0] → +y·R[j,1] → +z·R[j,2], as OpenBLAS's sgemm computes `dirs_cam @ R.T`
+    on FMA CPUs: the rays `PinholeCamera.generate_rays` made with numpy, bit for bit, on
+    such a machine, and the same rays on any machine. Compiled: a pose change costs a pass
+    over the buffers, not numpy temporaries."""
+    for i in range(first, end):
+        x, y, z = dirs_cam[i, 0], dirs_cam[i, 1], dirs_cam[i, 2]
+        for j in range(3):
+            d[i, j] = _fma32(z, R[j, 2], _fma32(y, R[j, 1], x * R[j, 0]))
+            o[i, j] = t[j]
+
+
 @nb.njit(nogil=True, **_jit)
 def jittered_directions(corners, R, width, key, first, end, out):
     """World directions of camera rays through a random point of each pixel in [first, end)
@@ -508,13 +532,18 @@ def jittered_directions(corners, R, width, key, first, end, out):
 # Without fast-math: LLVM inlines the ray queries here, and a fast-math caller would let it fuse
 # their float32 transforms into FMAs (moving objects' hits would change in the last bit).
 @nb.njit(nogil=True, cache=True, error_model="numpy")
-def trace_segment(acc, acc_moving, packets, split, depth_limit, max_bounces, mis_last, key, first, count, primary_dirs, primary, complete_primary,
-                  camera_o, scn, film, gb, work, jitter):
+def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_bounces, mis_last, key, first, count, primary_dirs, primary,
+                  complete_primary, static, camera_o, scn, film, gb, work, jitter):
     """All bounces of the paths through pixels [first, first + count) in one call, with Embree
     queried from inside (traversal): shade → shadow rays → continuation rays → shade …, no
-    Python between the stages. `primary` = (t, obj, prim, u, v) of the camera rays; with
-    `complete_primary` those rows hold the static hits only, and the moving objects are traced
-    first (from camera_o along primary_dirs). `packets` = (continuation, shadow): 16-wide
+    Python between the stages. `primary` = (t, obj, prim, u, v) of the camera rays. `static` =
+    (trace, t, obj, prim, u, v): the camera rays' hits on the static objects (the integrator's
+    per-pose cache, which is `primary` itself when nothing moves); with `trace` (a new camera
+    pose) this segment's rows of it are traced first, as 4×4-tile packets against the static
+    BVH (`acc_static`), here rather than in a separate pass over the image, so the camera rays
+    are spread over the threads with everything else and their hits are still in cache when
+    shaded. With `complete_primary` the static hits are copied into `primary`'s rows and the
+    moving objects traced (from camera_o along primary_dirs). `packets` = (continuation, shadow): 16-wide
     packets of consecutive rows, or single rays. Tuples, see the integrator: scn (scene tables),
     film (emit, diff, spec, nonfinite), gb (G-buffer arrays and write flag), work (per-path
     arrays, kept between frames). `jitter` = (on, jitter key, pixel corners, camera rotation,
@@ -532,8 +561,14 @@ def trace_segment(acc, acc_moving, packets, split, depth_limit, max_bounces, mis
     if jitter_on:
         jittered_directions(corners, cam_R, width, jkey, first, end, cam_d)
         traversal.closest_range(acc, R, T, camera_o, cam_d, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], False)
-    elif complete_primary:
-        traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], True)
+    else:
+        trace_static, s_t, s_obj, s_prim, s_u, s_v = static
+        if trace_static:
+            traversal.closest_tiles(acc_static, R, T, camera_o, primary_dirs, width, first, end, s_t, s_obj, s_prim, s_u, s_v)
+        if complete_primary:
+            for i in range(first, end):
+                p_t[i], p_obj[i], p_prim[i], p_u[i], p_v[i] = s_t[i], s_obj[i], s_prim[i], s_u[i], s_v[i]
+            traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], True)
     traced_shadow = traced_next = 0
     depth = 0
     while True:

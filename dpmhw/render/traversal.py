@@ -181,18 +181,38 @@ def closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, resume
 
 
 @nb.njit(nogil=True, cache=True)
-def tile_order(width, height):
-    """Row-major pixel indices in 4×4-tile order (tiles row by row): 16 consecutive entries are
-    one tile, so a packet's camera rays are neighbours. Tile row ty starts at 4 * ty * width."""
-    order = np.empty(width * height, np.int64)
+def tile_order_range(width, first, end):
+    """Pixels [first, end) of a row-major image `width` wide in 4×4-tile order: tiles row by row,
+    aligned with the whole image's tiles and clipped to the range, so 16 consecutive entries of
+    a whole tile are one tile and a packet's camera rays are neighbours."""
+    order = np.empty(max(end - first, 0), np.int64)
     n = 0
-    for ty in range(0, height, 4):
-        for tx in range(0, width, 4):
-            for y in range(ty, min(ty + 4, height)):
-                for x in range(tx, min(tx + 4, width)):
-                    order[n] = y * width + x
-                    n += 1
+    if end > first:
+        for ty in range(first // width // 4 * 4, (end - 1) // width + 1, 4):
+            for tx in range(0, width, 4):
+                for y in range(ty, ty + 4):
+                    for x in range(tx, min(tx + 4, width)):
+                        p = y * width + x
+                        if first <= p < end:
+                            order[n] = p
+                            n += 1
     return order
+
+
+@nb.njit(nogil=True, cache=True)
+def tile_order(width, height):
+    """Row-major pixel indices of the whole image in 4×4-tile order (tile row ty starts at
+    4 * ty * width)."""
+    return tile_order_range(width, 0, width * height)
+
+
+@nb.njit(nogil=True, cache=True)
+def closest_tiles(acc, R, T, o, d, width, first, end, t, obj, prim, u, v):
+    """Closest hits of the camera rays of pixels [first, end) (one ray per pixel, row-major), as
+    16-wide packets in tile order: what `RtcAccel.intersect_static` does for the whole image,
+    done by one image segment in its own thread."""
+    order = tile_order_range(width, first, end)
+    closest_rows(acc, R, T, o, d, order, 0, order.shape[0], t, obj, prim, u, v, True)
 
 
 @nb.njit(nogil=True, cache=True)
