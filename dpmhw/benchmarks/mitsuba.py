@@ -40,14 +40,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dpmhw.benchmarks.render import PAN_DEG, panned_pose  # noqa: F401  (the same pans as bench render)
 from dpmhw.errors import DpmhwError, SceneError
 from dpmhw.render.kernels import MIN_ALPHA
 from dpmhw.scene_file import Scene, load_scene
-from dpmhw.transforms import Pose, rotation_about_axis
+from dpmhw.transforms import Pose
 
 VARIANT = "llvm_ad_rgb"  # the CPU variant PyPI's wheels ship (no non-AD llvm_rgb there)
 WARMUP_FRAMES = 2
-PAN_DEG = 1.0  # the "moved" camera pans by up to this much, a different angle each frame
 EDGE_RADIUS_PX = 3  # comparison regions keep pixels at least this far from an object or normal edge
 NORMAL_EDGE = 0.2  # on a flat-shaded object, a normal component varying more than this within the radius is an edge
 MAX_SPP_PER_CALL = 16  # Mitsuba's wavefront is width × height × spp lanes: bounded memory
@@ -248,13 +248,6 @@ class MitsubaRenderer:
         if camera_pose is not None:
             self.set_camera(camera_pose)
         return np.array(self.mi.render(self.mi_scene, spp=spp, seed=seed), dtype=np.float32)
-
-
-def panned_pose(pose: Pose, k: int) -> Pose:
-    """Frame k's camera for the "moved" runs: panned about the world's vertical axis by an angle
-    in ±PAN_DEG that differs every frame (the camera stays where it is)."""
-    angle = np.radians(PAN_DEG * np.sin(1.0 + 2.3 * k))
-    return Pose(rotation_about_axis((0.0, 1.0, 0.0), angle) @ pose.R, pose.t.copy())
 
 
 @dataclass
