@@ -31,7 +31,7 @@ import numpy as np
 
 from dpmhw.reconstruct.filter import DEPTH_GATE, DEPTH_SIGMA, finite_rgb, depth_weight, mode_code
 from dpmhw.reconstruct.guides import Guides
-from dpmhw.reconstruct.weights import BETA, FASTMATH, SIGMA_N2, fast_exp_neg
+from dpmhw.reconstruct.weights import FASTMATH, SIGMA_N2, fast_exp_neg, fast_lobe_weight
 
 FALLBACK_RADIUS = 2
 
@@ -51,16 +51,8 @@ def _tap(mode, zi, n0, n1, n2, a0, a1, a2, si, lz, ln, la, ls, j):
         w = fast_exp_neg(ez)
         return w, w
     wd = fast_exp_neg(ez + (min(n0 * ln[j, 0] + n1 * ln[j, 1] + n2 * ln[j, 2], 1.0) - 1.0) * (1.0 / SIGMA_N2))
-    if mode == 2:  # weights.fast_lobe_weight with the depth exponent folded in
-        b = ls[j]
-        sab = si + b
-        t = (si - b) / sab
-        u = 1.0 - t * t
-        u2 = u * u
-        u4 = u2 * u2
-        u8 = u4 * u4
-        cos = min(a0 * la[j, 0] + a1 * la[j, 1] + a2 * la[j, 2], 1.0)
-        return wd, u8 * u2 * fast_exp_neg(ez + BETA * si * b / sab * (cos - 1.0))
+    if mode == 2:  # the lobe weight with the depth exponent folded in
+        return wd, fast_lobe_weight(a0 * la[j, 0] + a1 * la[j, 1] + a2 * la[j, 2], si, ls[j], ez)
     return wd, wd
 
 

@@ -88,15 +88,16 @@ def fast_exp_neg(e):
 
 
 @nb.njit(inline="always", fastmath=FASTMATH)
-def fast_lobe_weight(cos_ij, a, b):
-    """Lobe weight from ξᵢ·ξⱼ and the smoothed sharpnesses λ̄ᵢ, λ̄ⱼ (both ≥ LAMBDA_BAR_MIN), β = 20."""
+def fast_lobe_weight(cos_ij, a, b, log_factor=0.0):
+    """Lobe weight from ξᵢ·ξⱼ and the smoothed sharpnesses λ̄ᵢ, λ̄ⱼ (both ≥ LAMBDA_BAR_MIN), β = 20,
+    times exp(log_factor) (≤ 0; the upsampler folds its depth weight in, one exponential for both)."""
     s = a + b
     t = (a - b) / s
     u = 1.0 - t * t
     u2 = u * u
     u4 = u2 * u2
     u8 = u4 * u4
-    return u8 * u2 * fast_exp_neg(BETA * a * b / s * (min(cos_ij, 1.0) - 1.0))
+    return u8 * u2 * fast_exp_neg(log_factor + BETA * a * b / s * (min(cos_ij, 1.0) - 1.0))
 
 
 @nb.njit(inline="always", fastmath=FASTMATH)
