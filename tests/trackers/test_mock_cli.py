@@ -63,8 +63,11 @@ def test_natnet_command_runs_until_interrupted():
     import sys
 
     port = free_udp_port()
+    # Ctrl-C as in a terminal: a child of a background job without job control starts with SIGINT
+    # ignored (POSIX shells), and Python then installs no KeyboardInterrupt handler (a hog run did that)
+    child = "import signal; signal.signal(signal.SIGINT, signal.default_int_handler); from dpmhw.cli import main; main()"
     proc = subprocess.Popen(
-        [sys.executable, "-c", "from dpmhw.cli import main; main()", "mock", "natnet", "--unicast",
+        [sys.executable, "-c", child, "mock", "natnet", "--unicast",
          "--command-port", str(port), "--status-every", "0"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
