@@ -32,8 +32,9 @@ def make_accel(objects, tri_offsets, threads: int):
     return EmbreeAccel(objects, tri_offsets, threads=threads)
 
 
-def _triangle_rows(mesh) -> np.ndarray:
-    """`SceneGeometry.tri` rows of one mesh (no roughness map: column 21 is 0)."""
+def _triangle_rows(mesh, alpha: np.ndarray | None = None) -> np.ndarray:
+    """`SceneGeometry.tri` rows of one mesh (see kernels.shade for the layout). Column 21: each
+    triangle's GGX α from a roughness map; 0 (no map) = the object's (obj_alpha)."""
     tri = mesh.triangles
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normal = cross / np.linalg.norm(cross, axis=1, keepdims=True)
@@ -41,6 +42,8 @@ def _triangle_rows(mesh) -> np.ndarray:
     rows[:, 0:3], rows[:, 3:6], rows[:, 6:9], rows[:, 9:12] = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], normal
     corner = mesh.vertex_normals[mesh.faces] if mesh.vertex_normals is not None else np.repeat(normal[:, None], 3, 1)
     rows[:, 12:21] = corner.reshape(len(tri), 9)
+    if alpha is not None:
+        rows[:, 21] = alpha
     return rows
 
 
@@ -49,33 +52,19 @@ class SceneGeometry:
         self.scene = scene
         objects = scene.objects
         unique: dict[tuple, int] = {}  # id(mesh) → offset of its triangles (own rows with a roughness map)
-        v0, e1, e2, ng, vn, ta = [], [], [], [], [], []
+        rows = []
         offset = 0
         self.tri_offsets = np.zeros(len(objects), np.int32)
         for i, obj in enumerate(objects):
             mesh = obj.mesh
             key = (id(mesh),) if obj.face_roughness is None else (id(mesh), i)
             if key not in unique:
-                tri = mesh.triangles
                 unique[key] = offset
-                cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-                normal = cross / np.linalg.norm(cross, axis=1, keepdims=True)
-                v0.append(tri[:, 0])
-                e1.append(tri[:, 1] - tri[:, 0])
-                e2.append(tri[:, 2] - tri[:, 0])
-                ng.append(normal)
-                corner = mesh.vertex_normals[mesh.faces] if mesh.vertex_normals is not None else np.repeat(normal[:, None], 3, 1)
-                vn.append(corner)
-                # column 21: the triangle's GGX α from a roughness map; 0 = the object's (obj_alpha)
-                ta.append(np.zeros(len(tri)) if obj.face_roughness is None else np.maximum(obj.face_roughness**2, MIN_ALPHA))
-                offset += len(tri)
+                alpha = None if obj.face_roughness is None else np.maximum(obj.face_roughness**2, MIN_ALPHA)
+                rows.append(_triangle_rows(mesh, alpha))
+                offset += len(mesh.faces)
             self.tri_offsets[i] = unique[key]
-        count = offset
-        self.tri = np.zeros((count, 24), f32)  # see kernels.shade for the row layout
-        for col, parts in ((0, v0), (3, e1), (6, e2), (9, ng)):
-            self.tri[:, col : col + 3] = np.concatenate(parts)
-        self.tri[:, 12:21] = np.concatenate(vn).reshape(count, 9)
-        self.tri[:, 21] = np.concatenate(ta)
+        self.tri = np.concatenate(rows)
         self.triangle_count = sum(len(o.mesh.faces) for o in objects)
 
         self.obj_albedo = np.array([o.albedo for o in objects], f32)
