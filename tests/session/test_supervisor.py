@@ -153,6 +153,9 @@ def test_sigkill_of_the_loop_process_idles_the_projector_and_reports_fault(show)
 def test_sigkill_of_the_api_process_costs_the_show_nothing(show):
     s = show()
     s.lit()
+    # the status the API serves may trail the processes' start under load: wait for both pids
+    assert wait_for(lambda: (s.status().get("api") or {}).get("pid") is not None
+                    and (s.status().get("supervisor") or {}).get("loop_pid") is not None, 30), s.out
     before = s.status()
     api_pid, loop_pid = before["api"]["pid"], before["supervisor"]["loop_pid"]
     t0 = time.monotonic()
