@@ -12,6 +12,8 @@ is checked again before present as always, and its pose is predicted to its own 
 its calls take turns (`OneCallAtATime`).
 
 One thread runs the frames; a watchdog thread blanks the projector if that thread stalls; a
+deadline thread makes the output dark the moment the newest tracking sample turns stale, whatever
+the frame thread is doing (issue 14: dark within `stale_after_ms`, not one frame's work later); a
 health thread reads device status (USB reads can block) so the loop never waits on them. The
 loop publishes immutable snapshots (status, latest frame); readers (the HTTP service) only swap
 references under a short lock, and setting changes are validated by the caller and queued for
@@ -235,7 +237,7 @@ class SessionLoop:
         self._samples = subscribe(maxlen=4096) if subscribe is not None else None
         self._go_dark("starting: dark until tracking and devices are ready")
         for name, target in (("session-loop", self._run), ("session-watchdog", self._watchdog),
-                             ("session-health", self._health)):
+                             ("session-deadline", self._stale_deadline), ("session-health", self._health)):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
             self._threads.append(t)
@@ -564,7 +566,11 @@ class SessionLoop:
             self.metrics.count("frames_withheld")  # rendered while dark (keeps causes observable)
             return False
         try:
-            t_present = self.parts.sink.present(image, t_target)
+            with self._output_lock:  # the deadline thread may have gone dark since: never light after it
+                if not self._output_on:
+                    self.metrics.count("frames_withheld")
+                    return False
+                t_present = self.parts.sink.present(image, t_target)
             self.safety.update("sink", False)
         except Exception as exc:
             return self._stage_failed("sink", "present_errors", f"present failed: {type(exc).__name__}: {exc}")
@@ -665,6 +671,33 @@ class SessionLoop:
                     self._go_dark("watchdog: loop stalled", from_watchdog=True)
             else:
                 self.safety.update("watchdog", False)
+
+    def _stale_deadline(self) -> None:
+        """Go dark at the newest sample's exposure + `stale_after_ms`, not at the frame thread's
+        next check (up to a frame's work later; one implausible burst went dark 1.7 ms past
+        `stale_after_ms` + one frame in a session-5 soak). Sleeps until the earliest body's
+        deadline (at most 20 ms, so new samples move it) and only reads `tracker.latest`; the
+        frame thread keeps owning the tracking cause and its clearing."""
+        bodies = sorted(set(self.parts.bindings.values()))
+        while not self._stop.is_set():
+            if not self._output_on or not bodies:
+                self._stop.wait(0.02)
+                continue
+            now = self.clock()
+            newest = {b: self.parts.tracker.latest(b) for b in bodies}
+            if any(s is None for s in newest.values()):
+                self._stop.wait(0.02)
+                continue
+            body, s = min(newest.items(), key=lambda kv: kv[1].t_exposure_ns)
+            due = s.t_exposure_ns + self.stale_ns
+            if now <= due:
+                self._stop.wait(min(due - now + 1, 20_000_000) / 1e9)
+                continue
+            reason = (f"rigid body {body}: newest sample is {(now - s.t_exposure_ns) / 1e6:.0f} ms old "
+                      f"(limit {self.stale_ns / 1e6:g} ms; deadline)")
+            self.metrics.count("stale_deadline_trips")
+            self.safety.update("tracking", True, reason, "blank")
+            self._go_dark(reason)
 
     def _health(self) -> None:
         projector = self.parts.projector

@@ -322,6 +322,34 @@ def test_a_frame_whose_samples_went_stale_while_it_was_made_is_never_shown(make_
     assert loop._frame_number == lit_before[0]
 
 
+@pytest.mark.parametrize("pipeline", ["true", "false"])
+def test_dark_at_the_stale_deadline_while_a_frame_is_still_being_made(make_loop, pipeline):
+    """Issue 14 (one soak fault went dark 1.7 ms past stale_after_ms + one frame): the output goes
+    dark when the newest sample turns stale, even while the frame thread is stuck in a render,
+    never before the deadline, and the frame that was being made is never lit afterwards."""
+    loop = make_loop(["safety.watchdog_s=60", f"render.pipeline={pipeline}"]).start()
+    renderer, tracker, sink = loop.parts.renderer, loop.parts.tracker, loop.parts.sink
+    assert wait_for(lambda: state(loop) == "running" and presented(loop) >= 3, 20)
+    renderer.block.clear()  # every render from now on waits (30 s) until the test releases it
+    tracker.streaming = False
+    time.sleep(0.01)  # let a sample being published land, so `newest` is final
+    newest = tracker.latest(1).t_exposure_ns
+
+    def black_at() -> int | None:
+        return next((f.presented_at_ns for f in list(sink.frames) if f.presented_at_ns > newest and not f.frame.any()), None)
+    assert wait_for(lambda: black_at() is not None, 10), loop.status()  # the frame thread is still inside render
+    assert black_at() >= newest + loop.stale_ns  # not early
+    assert "deadline" in loop.status()["reason"] and loop.metrics.counters["stale_deadline_trips"] >= 1
+    assert loop.parts.projector.dark
+    withheld = loop.metrics.counters["frames_withheld"]
+    renderer.block.set()
+    assert wait_for(lambda: loop.metrics.counters["frames_withheld"] > withheld, 10)
+    after = [f for f in list(sink.frames) if f.presented_at_ns >= black_at()]
+    assert not any(f.frame.any() for f in after)  # nothing lit while tracking is stale
+    tracker.streaming = True
+    assert wait_for(lambda: state(loop) == "running", 10), loop.status()
+
+
 def test_pipelined_frames_render_ahead_in_order_and_renderer_calls_never_overlap(make_loop):
     """render.pipeline (default): frame n+1 is rendered on its own thread while frame n is
     reconstructed; frames are presented in order, each exactly once, and the renderer (shared
