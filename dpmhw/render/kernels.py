@@ -38,6 +38,14 @@ M2 = np.uint64(0x94D049BB133111EB)
 GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 S30, S27, S31, S40 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(40)
 
+# float32 constants: a Python float literal beside a float32 value makes numba compute in float64
+# (wider, slower square roots and divisions, and conversions back and forth). The diffuse path of
+# `shade` stays in float32 with these; the GGX lobe computes in float64 and rounds its results.
+F0, F1 = np.float32(0.0), np.float32(1.0)
+INV_PI32, TWO_PI32 = np.float32(INV_PI), np.float32(2.0 * math.pi)
+OFFSET_REL32, TINY32 = np.float32(OFFSET_REL), np.float32(1e-20)
+LUM_R, LUM_G, LUM_B = np.float32(0.2126), np.float32(0.7152), np.float32(0.0722)
+
 
 @nb.njit(inline="always", **_jit)
 def _mix64(x):
@@ -80,16 +88,16 @@ def _dot(a0, a1, a2, b0, b1, b2):
 
 @nb.njit(inline="always", **_jit)
 def _lum(r, g, b):
-    return 0.2126 * r + 0.7152 * g + 0.0722 * b
+    return LUM_R * r + LUM_G * g + LUM_B * b
 
 
 @nb.njit(inline="always", **_jit)
 def _basis(n0, n1, n2):
     """Orthonormal tangents of a unit normal (Duff et al. 2017)."""
-    sign = 1.0 if n2 >= 0.0 else -1.0
-    a = -1.0 / (sign + n2)
+    sign = F1 if n2 >= 0.0 else -F1
+    a = -F1 / (sign + n2)
     b = n0 * n1 * a
-    return 1.0 + sign * n0 * n0 * a, sign * b, -sign * n0, b, sign + n1 * n1 * a, -n1
+    return F1 + sign * n0 * n0 * a, sign * b, -sign * n0, b, sign + n1 * n1 * a, -n1
 
 
 @nb.njit(inline="always", **_jit)
@@ -114,11 +122,11 @@ def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, ar, ag, ab, sr, sg, sb,
     """Diffuse and specular BSDF values (fd0..2, fs0..2) and the lobe-mixture pdf of wi."""
     cos_o = _dot(wo0, wo1, wo2, n0, n1, n2)
     cos_i = _dot(wi0, wi1, wi2, n0, n1, n2)
-    fd0 = ar * (1.0 - sr) * INV_PI
-    fd1 = ag * (1.0 - sg) * INV_PI
-    fd2 = ab * (1.0 - sb) * INV_PI
-    fs0 = fs1 = fs2 = 0.0
-    pdf = (1.0 - p_spec) * cos_i * INV_PI
+    fd0 = ar * (F1 - sr) * INV_PI32
+    fd1 = ag * (F1 - sg) * INV_PI32
+    fd2 = ab * (F1 - sb) * INV_PI32
+    fs0 = fs1 = fs2 = F0
+    pdf = (F1 - p_spec) * cos_i * INV_PI32
     if p_spec > 0.0:
         h0, h1, h2 = wo0 + wi0, wo1 + wi1, wo2 + wi2
         hl = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
@@ -129,8 +137,8 @@ def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, ar, ag, ab, sr, sg, sb,
                 d = _ggx_d(cos_h, a2)
                 g1o = _ggx_g1(cos_o, a2)
                 common = d * g1o * _ggx_g1(cos_i, a2) / (4.0 * cos_o * cos_i)
-                fs0, fs1, fs2 = sr * common, sg * common, sb * common
-                pdf += p_spec * g1o * d / (4.0 * cos_o)
+                fs0, fs1, fs2 = np.float32(sr * common), np.float32(sg * common), np.float32(sb * common)
+                pdf += np.float32(p_spec * g1o * d / (4.0 * cos_o))
     return fd0, fd1, fd2, fs0, fs1, fs2, pdf
 
 
@@ -219,7 +227,8 @@ def shade(
     environment light's pdf of that direction (prev_env), both for MIS. `split` False (no object
     has a specular lobe): every path is diffuse, so kd, film_spec and sh_c[:, 3:6] are neither
     read nor written."""
-    p_area = 1.0 - p_env
+    p_env = np.float32(p_env)  # 0, ½ or 1: exact
+    p_area = F1 - p_env
     has_bg = background[0] > 0.0 or background[1] > 0.0 or background[2] > 0.0
     last = depth >= max_bounces
     base_dim = depth * DIMS_PER_BOUNCE
@@ -232,17 +241,17 @@ def shade(
         pix = k if depth == 0 else pixel[k]
         d0, d1, d2 = rd[k, 0], rd[k, 1], rd[k, 2]
         ob = hit_obj[k]
-        kdr, kdg, kdb = 1.0, 1.0, 1.0
+        kdr, kdg, kdb = F1, F1, F1
         if depth == 0:
-            b0 = b1 = b2 = 1.0
+            b0 = b1 = b2 = F1
         else:
             b0, b1, b2 = beta[k, 0], beta[k, 1], beta[k, 2]
             if split:
                 kdr, kdg, kdb = kd[k, 0], kd[k, 1], kd[k, 2]
         tri_i = 0
-        u = v = 0.0
-        g0 = g1 = g2 = 0.0
-        le0 = le1 = le2 = 0.0  # radiance arriving along this ray from a light, MIS-weighted
+        u = v = F0
+        g0 = g1 = g2 = F0
+        le0 = le1 = le2 = F0  # radiance arriving along this ray from a light, MIS-weighted
         if ob < 0:  # escaped: the constant environment
             if has_bg:
                 if depth == 0:
@@ -250,9 +259,8 @@ def shade(
                     film_emit[pix, 1] += background[1]
                     film_emit[pix, 2] += background[2]
                 else:
-                    pl = prev_env[k]
-                    pb = prev_pdf[k]
-                    w = pb * pb / (pb * pb + pl * pl)
+                    r_lb = prev_env[k] / prev_pdf[k]
+                    w = F1 / (F1 + r_lb * r_lb)
                     le0, le1, le2 = background[0] * w, background[1] * w, background[2] * w
         else:
             tri_i = hit_prim[k]
@@ -266,9 +274,9 @@ def shade(
                         film_emit[pix, 2] += obj_emit[ob, 2]
                 else:
                     t = hit_t[k]
-                    pl = p_area * obj_pdfA[ob] * t * t / max(-_dot(g0, g1, g2, d0, d1, d2), 1e-12)
-                    pb = prev_pdf[k]
-                    w = pb * pb / (pb * pb + pl * pl)
+                    pl = p_area * obj_pdfA[ob] * t * t / max(-_dot(g0, g1, g2, d0, d1, d2), np.float32(1e-12))
+                    r_lb = pl / prev_pdf[k]
+                    w = F1 / (F1 + r_lb * r_lb)
                     le0, le1, le2 = obj_emit[ob, 0] * w, obj_emit[ob, 1] * w, obj_emit[ob, 2] * w
         if depth > 0 and (le0 > 0.0 or le1 > 0.0 or le2 > 0.0):
             c0, c1, c2 = b0 * le0, b1 * le1, b2 * le2
@@ -277,9 +285,9 @@ def shade(
                     film_diff[pix, 0] += c0 * kdr
                     film_diff[pix, 1] += c1 * kdg
                     film_diff[pix, 2] += c2 * kdb
-                    film_spec[pix, 0] += c0 * (1.0 - kdr)
-                    film_spec[pix, 1] += c1 * (1.0 - kdg)
-                    film_spec[pix, 2] += c2 * (1.0 - kdb)
+                    film_spec[pix, 0] += c0 * (F1 - kdr)
+                    film_spec[pix, 1] += c1 * (F1 - kdg)
+                    film_spec[pix, 2] += c2 * (F1 - kdb)
                 else:
                     film_diff[pix, 0] += c0
                     film_diff[pix, 1] += c1
@@ -310,31 +318,31 @@ def shade(
                     gb_alb[pix, c] = obj_alb[ob, c]
                     gb_spec[pix, c] = obj_spec[ob, c]
                 gb_rough[pix] = math.sqrt(alpha)
-        wd = _lum(obj_alb[ob, 0] * (1.0 - obj_spec[ob, 0]), obj_alb[ob, 1] * (1.0 - obj_spec[ob, 1]), obj_alb[ob, 2] * (1.0 - obj_spec[ob, 2]))
+        wd = _lum(obj_alb[ob, 0] * (F1 - obj_spec[ob, 0]), obj_alb[ob, 1] * (F1 - obj_spec[ob, 1]), obj_alb[ob, 2] * (F1 - obj_spec[ob, 2]))
         ws = _lum(obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2])
         if wd + ws <= 0.0:
             continue  # black surface: nothing is reflected
         p_spec = ws / (wd + ws)
-        eps = OFFSET_REL * max(_max_abs3(p0, p1, p2), _max_abs3(pm0, pm1, pm2)) + 1e-20
+        eps = OFFSET_REL32 * max(_max_abs3(p0, p1, p2), _max_abs3(pm0, pm1, pm2)) + TINY32
         o0, o1, o2 = p0 + g0 * eps, p1 + g1 * eps, p2 + g2 * eps
         continues = not last
         # ---- next-event estimation: one shadow ray, to the environment or an emissive triangle ----
         u_sel = rand(key, pix, base_dim)
         u1 = rand(key, pix, base_dim + 1)
         u2 = rand(key, pix, base_dim + 2)
-        li0 = li1 = li2 = 0.0
-        pdf_l = 0.0
-        tmax = 0.0
-        wi0 = wi1 = wi2 = 0.0
+        li0 = li1 = li2 = F0
+        pdf_l = F0
+        tmax = F0
+        wi0 = wi1 = wi2 = F0
         if u_sel < p_env:
             t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
             r = math.sqrt(u1)
-            phi = 2.0 * math.pi * u2
-            x, y, z = r * math.cos(np.float32(phi)), r * math.sin(np.float32(phi)), math.sqrt(max(0.0, 1.0 - u1))
+            phi = TWO_PI32 * u2
+            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(F0, F1 - u1))
             wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
-            pdf_l = p_env * z * INV_PI
+            pdf_l = p_env * z * INV_PI32
             li0, li1, li2 = background[0], background[1], background[2]
-            tmax = 3.0e38
+            tmax = np.float32(3.0e38)
         elif p_area > 0.0:
             ut = (u_sel - p_env) / p_area
             lo, hi = 0, light_cdf.shape[0] - 1
@@ -347,7 +355,7 @@ def shade(
             lt = light_prim[lo]
             lob = light_obj[lo]
             su = math.sqrt(u1)
-            bb1, bb2 = u2 * su, 1.0 - su
+            bb1, bb2 = u2 * su, F1 - su
             lm0 = tri[lt, 0] + bb1 * tri[lt, 3] + bb2 * tri[lt, 6]
             lm1 = tri[lt, 1] + bb1 * tri[lt, 4] + bb2 * tri[lt, 7]
             lm2 = tri[lt, 2] + bb1 * tri[lt, 5] + bb2 * tri[lt, 8]
@@ -355,7 +363,7 @@ def shade(
             q1 = obj_R[lob, 1, 0] * lm0 + obj_R[lob, 1, 1] * lm1 + obj_R[lob, 1, 2] * lm2 + obj_t[lob, 1] - o1
             q2 = obj_R[lob, 2, 0] * lm0 + obj_R[lob, 2, 1] * lm1 + obj_R[lob, 2, 2] * lm2 + obj_t[lob, 2] - o2
             dist = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
-            if dist > 1e-20:
+            if dist > TINY32:
                 wi0, wi1, wi2 = q0 / dist, q1 / dist, q2 / dist
                 ln0 = obj_R[lob, 0, 0] * tri[lt, 9] + obj_R[lob, 0, 1] * tri[lt, 10] + obj_R[lob, 0, 2] * tri[lt, 11]
                 ln1 = obj_R[lob, 1, 0] * tri[lt, 9] + obj_R[lob, 1, 1] * tri[lt, 10] + obj_R[lob, 1, 2] * tri[lt, 11]
@@ -364,13 +372,14 @@ def shade(
                 if cos_l > 0.0:
                     pdf_l = p_area * obj_pdfA[lob] * dist * dist / cos_l
                     li0, li1, li2 = obj_emit[lob, 0], obj_emit[lob, 1], obj_emit[lob, 2]
-                    tmax = dist * (1.0 - SHADOW_SHORTEN)
+                    tmax = dist * np.float32(1.0 - SHADOW_SHORTEN)
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if pdf_l > 0.0 and cos_i > 0.0 and _dot(wi0, wi1, wi2, g0, g1, g2) > 0.0:
             fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec)
-            w = 1.0
+            w = F1
             if continues or mis_last:
-                w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
+                r_bl = pdf_b / pdf_l
+                w = F1 / (F1 + r_bl * r_bl)
             scale = cos_i * w / pdf_l
             cd0, cd1, cd2 = fd0 * li0 * scale * b0, fd1 * li1 * scale * b1, fd2 * li2 * scale * b2
             cs0, cs1, cs2 = fs0 * li0 * scale * b0, fs1 * li1 * scale * b1, fs2 * li2 * scale * b2
@@ -408,33 +417,33 @@ def shade(
             vx, vy, vz = vx / vl, vy / vl, vz / vl
             lensq = vx * vx + vy * vy
             if lensq > 1e-14:
-                il = 1.0 / math.sqrt(lensq)
-                a0, a1, a2 = -vy * il, vx * il, 0.0
+                il = F1 / math.sqrt(lensq)
+                a0, a1, a2 = -vy * il, vx * il, F0
             else:
-                a0, a1, a2 = 1.0, 0.0, 0.0
+                a0, a1, a2 = F1, F0, F0
             e0, e1, e2 = vy * a2 - vz * a1, vz * a0 - vx * a2, vx * a1 - vy * a0
             r = math.sqrt(u1)
-            phi = 2.0 * math.pi * u2
-            q1 = r * math.cos(np.float32(phi))
-            q2 = r * math.sin(np.float32(phi))
-            sv = 0.5 * (1.0 + vz)
-            q2 = (1.0 - sv) * math.sqrt(max(0.0, 1.0 - q1 * q1)) + sv * q2
-            q3 = math.sqrt(max(0.0, 1.0 - q1 * q1 - q2 * q2))
+            phi = TWO_PI32 * u2
+            q1 = r * math.cos(phi)
+            q2 = r * math.sin(phi)
+            sv = np.float32(0.5) * (F1 + vz)
+            q2 = (F1 - sv) * math.sqrt(max(F0, F1 - q1 * q1)) + sv * q2
+            q3 = math.sqrt(max(F0, F1 - q1 * q1 - q2 * q2))
             hx = q1 * a0 + q2 * e0 + q3 * vx
             hy = q1 * a1 + q2 * e1 + q3 * vy
-            hz = max(1e-6, q3 * vz + q2 * e2)
+            hz = max(np.float32(1e-6), q3 * vz + q2 * e2)
             hx, hy = alpha * hx, alpha * hy
             hl = math.sqrt(hx * hx + hy * hy + hz * hz)
             hx, hy, hz = hx / hl, hy / hl, hz / hl
             h0 = hx * t0 + hy * c0 + hz * s0
             h1 = hx * t1 + hy * c1 + hz * s1
             h2 = hx * t2 + hy * c2 + hz * s2
-            dh = 2.0 * _dot(wo0, wo1, wo2, h0, h1, h2)
+            dh = np.float32(2.0) * _dot(wo0, wo1, wo2, h0, h1, h2)
             wi0, wi1, wi2 = dh * h0 - wo0, dh * h1 - wo1, dh * h2 - wo2
         else:
             r = math.sqrt(u1)
-            phi = 2.0 * math.pi * u2
-            x, y, z = r * math.cos(np.float32(phi)), r * math.sin(np.float32(phi)), math.sqrt(max(0.0, 1.0 - u1))
+            phi = TWO_PI32 * u2
+            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(F0, F1 - u1))
             wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if cos_i <= 0.0 or _dot(wi0, wi1, wi2, g0, g1, g2) <= 0.0:
@@ -444,13 +453,13 @@ def shade(
             continue
         f0, f1, f2 = fd0 + fs0, fd1 + fs1, fd2 + fs2
         if depth == 0 and split:  # split the path by the lobe weights at the first vertex
-            kdr = fd0 / f0 if f0 > 0.0 else 1.0
-            kdg = fd1 / f1 if f1 > 0.0 else 1.0
-            kdb = fd2 / f2 if f2 > 0.0 else 1.0
+            kdr = fd0 / f0 if f0 > 0.0 else F1
+            kdg = fd1 / f1 if f1 > 0.0 else F1
+            kdb = fd2 / f2 if f2 > 0.0 else F1
         scale = cos_i / pdf_b
         nb0, nb1, nb2 = b0 * f0 * scale, b1 * f1 * scale, b2 * f2 * scale
         if depth + 1 >= RR_START_DEPTH:
-            q = min(RR_MAX_SURVIVAL, max(nb0, max(nb1, nb2)))
+            q = min(np.float32(RR_MAX_SURVIVAL), max(nb0, max(nb1, nb2)))
             if rand(key, pix, base_dim + 6) >= q:
                 continue
             nb0, nb1, nb2 = nb0 / q, nb1 / q, nb2 / q
@@ -464,7 +473,7 @@ def shade(
         if split:
             kd[nc, 0], kd[nc, 1], kd[nc, 2] = kdr, kdg, kdb
         prev_pdf[nc] = pdf_b
-        prev_env[nc] = p_env * cos_i * INV_PI
+        prev_env[nc] = p_env * cos_i * INV_PI32
         nx_o[nc, 0], nx_o[nc, 1], nx_o[nc, 2] = o0, o1, o2
         nx_d[nc, 0], nx_d[nc, 1], nx_d[nc, 2] = wi0, wi1, wi2
         nc += 1
