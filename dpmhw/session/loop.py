@@ -26,6 +26,7 @@ frame to the sink and the projector idled (read back) — and the status says wh
 
 from __future__ import annotations
 
+import gc
 import logging
 import sys
 import threading
@@ -54,6 +55,8 @@ from dpmhw.transforms import Pose
 __all__ = ["FrameRecord", "LatestFrame", "ProjectorControl", "Renderer", "SessionLoop", "SessionParts", "SettingsError"]
 
 log = logging.getLogger(__name__)
+
+FREEZE_AFTER_FRAMES = 30  # frames presented before the long-lived objects are frozen (gc.freeze)
 
 
 class SettingsError(ValueError):
@@ -262,6 +265,7 @@ class SessionLoop:
             self._render_thread = None
         self._next = None
         self._go_dark(reason, force=True)
+        gc.unfreeze()  # this session's objects may be collected again once it is gone
         self.reconstruct.close()
         self.final_blank = self._last_blank
         if self._samples is not None:
@@ -579,6 +583,13 @@ class SessionLoop:
         stages["frame"] = (t5 - t_start) / 1e9
         self.safety.mark_started()
         self._frame_number += 1
+        if self._frame_number == FREEZE_AFTER_FRAMES:
+            # what exists once the loop is warm (scene, kernels, buffers, the service) lives as long as the
+            # session: move it out of the collector's reach, or a full collection walks ~160k objects every
+            # ~20 frames on the frame thread (73-78 CPU-ms, a late frame; issue 12's perf profile). Collected
+            # first so no garbage is pinned; `stop` unfreezes (a service may run many sessions in one process)
+            gc.collect()
+            gc.freeze()
         latency_s = (t_present + self.display_latency_ns - min(s.t_exposure_ns for s in samples.values())) / 1e9
         self.metrics.record_frame(stages, t_present, latency_s, horizon_ns / 1e9)
         with self._lock:
