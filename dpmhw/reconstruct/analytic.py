@@ -196,21 +196,67 @@ def _terms_at(p0, p1, p2, n0, n1, n2, e0, e1, e2, rough, poly, lum, specular):
     return e, sp
 
 
+@nb.njit(inline="always")
+def _eval(p, gid, pos, nrm, rough, viewer, spc, poly, lum, specular):
+    if gid[p] < 0:
+        return 0.0, 0.0
+    # the specular term only where there is a specular lobe (above the guides' floor)
+    return _terms_at(pos[p, 0], pos[p, 1], pos[p, 2], nrm[p, 0], nrm[p, 1], nrm[p, 2], viewer[0], viewer[1], viewer[2],
+                     rough[p], poly, lum, specular and max(spc[p, 0], max(spc[p, 1], spc[p, 2])) > SPECULAR_MIN)
+
+
+@nb.njit(inline="always")
+def _same_surface(gid, nrm, p, q):
+    """q may stand in for p: same object, normals within ~18° (cos > 0.95)."""
+    if gid[q] != gid[p]:
+        return False
+    c = nrm[p, 0] * nrm[q, 0] + nrm[p, 1] * nrm[q, 1] + nrm[p, 2] * nrm[q, 2]
+    lp = nrm[p, 0] * nrm[p, 0] + nrm[p, 1] * nrm[p, 1] + nrm[p, 2] * nrm[p, 2]
+    lq = nrm[q, 0] * nrm[q, 0] + nrm[q, 1] * nrm[q, 1] + nrm[q, 2] * nrm[q, 2]
+    return c > 0.0 and c * c > 0.9025 * lp * lq
+
+
 @nb.njit(parallel=True, cache=True, nogil=True)
-def _products_kernel(gid, pos, nrm, rough, viewer, alb, spc, poly, lum, floor_d, floor_s, specular, W,
-                     y0, y1, x0, x1, use_mask, mask, irr, spec_term, out_d, out_s):
-    """irr = E, spec_term = S, out_d = alb·(E + F_d), out_s = spc·(S + F_s) over the box (and the mask)."""
+def _products_kernel(gid, pos, nrm, rough, viewer, alb, spc, poly, lum, floor_d, floor_s, specular, W, H,
+                     y0, y1, x0, x1, use_mask, mask, lattice, irr, spec_term, out_d, out_s):
+    """irr = E, spec_term = S, out_d = alb·(E + F_d), out_s = spc·(S + F_s) over the box (and the mask).
+
+    lattice 2: the terms are evaluated at the pixels of even row and column only (pass 1); the
+    others take the mean of the 2 or 4 nearest of them when all show the same surface (same
+    object, normals within ~18°), else are evaluated too (pass 2). Lattice pixels outside the
+    box or the mask kept their attributes, so their stored terms are current."""
+    if lattice == 2:
+        for y in nb.prange(y0, y1):
+            if y % 2:
+                continue
+            for x in range(x0 + x0 % 2, x1, 2):
+                p = y * W + x
+                if use_mask and not mask[p]:
+                    continue
+                irr[p], spec_term[p] = _eval(p, gid, pos, nrm, rough, viewer, spc, poly, lum, specular)
     for y in nb.prange(y0, y1):
         for x in range(x0, x1):
             p = y * W + x
             if use_mask and not mask[p]:
                 continue
-            e = 0.0
-            sp = 0.0
-            if gid[p] >= 0:  # the specular term only where there is a specular lobe (above the guides' floor)
-                e, sp = _terms_at(pos[p, 0], pos[p, 1], pos[p, 2], nrm[p, 0], nrm[p, 1], nrm[p, 2],
-                                  viewer[0], viewer[1], viewer[2], rough[p], poly, lum,
-                                  specular and max(spc[p, 0], max(spc[p, 1], spc[p, 2])) > SPECULAR_MIN)
+            if lattice == 1 or gid[p] < 0:
+                e, sp = _eval(p, gid, pos, nrm, rough, viewer, spc, poly, lum, specular)
+            elif x % 2 == 0 and y % 2 == 0:
+                e, sp = irr[p], spec_term[p]
+            else:
+                xa, xb = (x, x) if x % 2 == 0 else (x - 1, x + 1)
+                ya, yb = (y, y) if y % 2 == 0 else (y - 1, y + 1)
+                ok = xb < W and yb < H
+                if ok:
+                    for q in (ya * W + xa, ya * W + xb, yb * W + xa, yb * W + xb):
+                        if not _same_surface(gid, nrm, p, q):
+                            ok = False
+                if ok:
+                    e = 0.25 * (irr[ya * W + xa] + irr[ya * W + xb] + irr[yb * W + xa] + irr[yb * W + xb])
+                    sp = 0.25 * (spec_term[ya * W + xa] + spec_term[ya * W + xb] + spec_term[yb * W + xa]
+                                 + spec_term[yb * W + xb])
+                else:
+                    e, sp = _eval(p, gid, pos, nrm, rough, viewer, spc, poly, lum, specular)
             irr[p] = e
             spec_term[p] = sp
             g = e + floor_d
@@ -285,7 +331,10 @@ class AnalyticDirect:
     albedo·(E + F_d) and `specular_products` spec_albedo·(S + F_s) ((n, 3) each) for a box (and a
     mask); the floors must be set first (`set_floors`)."""
 
-    def __init__(self, width: int, height: int, polygons: np.ndarray, luminance: np.ndarray, viewer):
+    def __init__(self, width: int, height: int, polygons: np.ndarray, luminance: np.ndarray, viewer, lattice: int = 1):
+        if lattice not in (1, 2):
+            raise ValueError(f"analytic lattice: expected 1 or 2, got {lattice!r}")
+        self.lattice = lattice  # 2: terms evaluated on every second row and column, interpolated on smooth surfaces
         self.width, self.height = int(width), int(height)
         n = self.width * self.height
         self.poly = np.ascontiguousarray(polygons, np.float64)
@@ -312,7 +361,7 @@ class AnalyticDirect:
         _products_kernel(np.ascontiguousarray(object_id, np.int32).reshape(-1), _flat3(position), _flat3(normal),
                          np.ascontiguousarray(roughness, np.float32).reshape(-1), self.viewer, _flat3(albedo),
                          _flat3(spec_albedo), self.poly, self.lum, self.floors[0], self.floors[1], True, self.width,
-                         y0, y1, x0, x1, use_mask, m, self.irradiance, self.specular, self.diffuse_products,
+                         self.height, y0, y1, x0, x1, use_mask, m, self.lattice, self.irradiance, self.specular, self.diffuse_products,
                          self.specular_products)
 
 

@@ -50,6 +50,10 @@ from dpmhw.reconstruct.upsample import upsample
 
 __all__ = ["ReconstructStage", "StageOutput"]
 
+# the native analytic terms on every second row and column, interpolated on smooth surfaces: a
+# quarter of the evaluations (measured in docs/temporal-reuse.md)
+NATIVE_LATTICE = 2
+
 
 @dataclass
 class StageOutput:
@@ -129,7 +133,8 @@ class ReconstructStage:
             scene = gbuffer.scene
             self._dynamic_lights = any(o.is_emissive and o.is_dynamic for o in scene.objects)
             poly, lum = emitter_polygons(gbuffer.geometry, scene.object_poses(0.0))
-            self.analytic = tuple(AnalyticDirect(w, h, poly, lum, self.viewer) for w, h in ((self.w, self.h), (self.W, self.H)))
+            self.analytic = (AnalyticDirect(self.w, self.h, poly, lum, self.viewer),
+                             AnalyticDirect(self.W, self.H, poly, lum, self.viewer, NATIVE_LATTICE))
 
     def close(self) -> None:
         if self._helper is not None:
@@ -229,8 +234,8 @@ class ReconstructStage:
                 self._native_roi = "none yet"  # every native pixel again (guides and products)
         if low.floors is None:
             low.set_floors(1.0, 1.0)
-            low.update(frame.object_id, frame.position, frame.normal, frame.roughness, self.low.albedo,
-                       self.low.spec_albedo, (0, self.h, 0, self.w))
+            low.update(frame.object_id, frame.position, frame.normal, frame.roughness, frame.albedo,
+                       frame.specular_albedo, (0, self.h, 0, self.w))  # this frame's (the guides are not updated yet)
             fd, fs = self._analytic_fractions
             floors = (floor_from(low.irradiance, frame.object_id, fd), floor_from(low.specular, frame.object_id, fs))
             low.set_floors(*floors)
