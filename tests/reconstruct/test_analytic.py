@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from dpmhw.reconstruct.analytic import (AnalyticDirect, _theta_over_sin, emitter_polygons, floor_from, polygon_rows,
+from dpmhw.reconstruct.analytic import (DEFAULT_FLOORS, AnalyticDirect, _theta_over_sin, emitter_polygons, floor_from, polygon_rows,
                                         terms_at_points)
 from dpmhw.reconstruct.guides import Guides
 from dpmhw.reconstruct.stage import ReconstructStage
@@ -262,7 +262,7 @@ def test_session_config_switch_and_floors():
     c = SessionConfig.model_validate({"render": {"analytic": False}})
     assert c.render.analytic is False
     d = SessionConfig.model_validate({})
-    assert d.render.analytic is True and d.render.analytic_floor == 0.15 and d.render.analytic_specular_floor == 1.0
+    assert d.render.analytic is True and (d.render.analytic_floor, d.render.analytic_specular_floor) == DEFAULT_FLOORS
     with pytest.raises(Exception, match="analytic_floor"):
         SessionConfig.model_validate({"render": {"analytic_floor": 0}})
 
