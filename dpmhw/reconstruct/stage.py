@@ -14,6 +14,9 @@ Two paths, chosen per frame from the live settings:
   filter runs on them (``off`` / ``normal`` / ``lobe``), then `upsample.upsample` re-modulates
   them with the native albedos inside the native G-buffer's lit box. The directly seen emission
   (radiance − diffuse − specular; exact at one sample through the pixel centre) needs no reuse.
+  With `analytic` (the session's default) the albedos are multiplied by analytic direct-lighting
+  terms plus a floor at both resolutions (`reconstruct.analytic`): the ratio is reused, filtered
+  and upsampled, the native terms put back the detail of the native normals.
 
 Why the history lives at the shading resolution: it costs (w·h) instead of (W·H) per frame
 (16× less at scale ¼; measured in docs/temporal-reuse.md), and the native G-buffer of a moving
@@ -89,10 +92,10 @@ class ReconstructStage:
         before the upsampling, traced and blended after it, before adaptive sampling;
         its time is the sub-stage "lod"
     analytic : the (diffuse, specular) floor fractions of the analytic-direct demodulation
-        (`reconstruct.analytic`; None: off, and the stage is exactly what it is without it): the diffuse light is
-        divided by albedo·(E + F_d) and the specular by spec_albedo·(S + F_s) at the shading
-        resolution, and re-multiplied by the native products. Needs the native G-buffer (its geometry gives the emitters); at equal sizes
-        it is off
+        (`reconstruct.analytic`; None: off, and the stage is exactly what it is without it): the
+        diffuse light is divided by albedo·(E + F_d) and the specular by spec_albedo·(S + F_s) at
+        the shading resolution, and re-multiplied by the native products. Needs the native
+        G-buffer (its geometry gives the emitters); at equal sizes it is off
     """
 
     def __init__(self, native_size, shading_size, *, background=(0.0, 0.0, 0.0), viewer=(0.0, 0.0, 0.0),
@@ -224,7 +227,7 @@ class ReconstructStage:
         return d, s, emitted, {"reuse": t2 - t1, "filter": self._now() - t2}
 
     def _analytic_setup(self, frame, poses) -> None:
-        """The floor F from the first frame's E; moving emitters: new triangles, everything recomputed."""
+        """The floors from the first frame's terms; moving emitters: new polygons, every native pixel again."""
         low, nat = self.analytic
         if self._dynamic_lights and poses is not None:
             poly, lum = emitter_polygons(self.gbuffer.geometry, poses)
