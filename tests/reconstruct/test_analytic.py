@@ -298,3 +298,12 @@ def test_lattice_two_interpolates_smooth_surfaces_and_evaluates_across_edges():
     assert np.array_equal(two.irradiance, before)
     with pytest.raises(ValueError, match="lattice"):
         AnalyticDirect(4, 4, poly, lum, VIEWER, 3)
+
+
+def test_bench_lod_methods_are_checked_and_plain_variants_turn_the_demodulation_off():
+    from dpmhw.benchmarks.lod import check_methods
+
+    assert check_methods(["none", "quarter", "quarter-plain", "all-plain"]) == ("none", "quarter", "quarter-plain", "all-plain")
+    for bad in (["quarter"], ["none", "none-plain"], ["none", "fast"], ["none", "quarter", "quarter"], []):
+        with pytest.raises(ValueError, match="methods"):
+            check_methods(bad)
