@@ -35,6 +35,9 @@ kernels as albedos, so the reuse, filter and upsampling kernels are unchanged.
   where the signal is ∝ (term + F) the ratio is flat.
 - Non-finite positions or normals and background pixels: both terms 0 (the ratio is then the
   signal / F, re-multiplied by F).
+- Cost: about 75 CPU-ns per pixel and quad light with both terms. `AnalyticDirect(lattice=2)`
+  (the stage's native terms) evaluates every second row and column and averages in between on
+  smooth surfaces: a quarter of the evaluations.
 """
 
 from __future__ import annotations
