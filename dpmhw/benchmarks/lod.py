@@ -52,6 +52,7 @@ from dpmhw.lod.visibility import VisibilitySettings, visibility_map
 from dpmhw.metrics import psnr, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.reconstruct.adaptive import AdaptiveSampler
+from dpmhw.reconstruct.analytic import DEFAULT_FLOORS
 from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
@@ -60,6 +61,7 @@ from dpmhw.sequence import scaled_scene, with_fps
 from dpmhw.transforms import Pose
 
 METHODS = ("none", "quarter", "moving", "shading-rate", "spp", "mesh-LOD", "all")
+PLAIN = "-plain"  # method suffix: the same without the analytic-direct demodulation (`reconstruct.analytic`)
 REFERENCE_SEED = 1_000_003
 FPS = 60.0
 
@@ -76,14 +78,31 @@ class LodBenchConfig:
     threads: int = 2
     visibility: VisibilitySettings = field(default_factory=VisibilitySettings)
     mesh: MeshLodSettings = field(default_factory=MeshLodSettings)
+    methods: tuple[str, ...] = METHODS  # "none" first; NAME-plain: NAME without the analytic demodulation
+    analytic_floors: tuple[float, float] | None = DEFAULT_FLOORS  # the stage's (diffuse, specular) floor fractions
+    moving_every: int | None = None  # lod.moving_every of the refining methods (None: the session default)
 
     @classmethod
     def quick(cls) -> "LodBenchConfig":
         return cls(scale=0.5, ref_spp=32)
 
 
+def check_methods(methods) -> tuple[str, ...]:
+    """Known names (each also with `PLAIN`), "none" first; a one-line error otherwise."""
+    methods = tuple(methods)
+    for m in methods:
+        if m.removesuffix(PLAIN) not in METHODS or m == "none" + PLAIN:
+            raise ValueError(f"methods: unknown method {m!r} (known: {', '.join(METHODS)}, each but none also with {PLAIN})")
+    if not methods or methods[0] != "none" or len(set(methods)) != len(methods):
+        raise ValueError(f"methods: expected distinct names starting with none, got {','.join(methods)!r}")
+    return methods
+
+
 def _refine_settings(method: str, cfg: LodBenchConfig) -> RefineSettings | None:
+    method = method.removesuffix(PLAIN)
     v = dict(rays=cfg.rays, viewer_distance_m=cfg.visibility.viewer_distance_m, alpha_v=cfg.visibility.alpha_v)
+    if cfg.moving_every is not None:
+        v["moving_every"] = cfg.moving_every
     return {"moving": RefineSettings(moving=True, **v),
             "shading-rate": RefineSettings(moving=False, visible=True, **v),
             "spp": RefineSettings(moving=False, visible=True, shading_rate=False, adaptive_spp=True, **v),
@@ -146,10 +165,12 @@ class _Run:
 
     def __init__(self, name: str, native: Scene, cfg: LodBenchConfig, levels, shared: dict, build: Callable):
         self.name, self.native, self.cfg = name, native, cfg
-        self.scale = 1.0 if name in ("none", "mesh-LOD") else 0.25
+        base = name.removesuffix(PLAIN)
+        self.analytic = None if name.endswith(PLAIN) else cfg.analytic_floors
+        self.scale = 1.0 if base in ("none", "mesh-LOD") else 0.25
         self.settings = _refine_settings(name, cfg)
         self.mesh = None
-        if name in ("mesh-LOD", "all"):
+        if base in ("mesh-LOD", "all"):
             shared[name] = p = build(native, self.scale)
             self.mesh = MeshLod(p.integrator, p.gbuffer, cfg.mesh, cfg.visibility, levels=levels, native_K=native.camera.K)
         self._bind(shared[name if self.mesh is not None else self.scale])
@@ -170,7 +191,7 @@ class _Run:
                                       background=n.render.background, viewer=n.viewer_position, gbuffer=p.gbuffer,
                                       clock=_time.process_time_ns,
                                       adaptive=AdaptiveSampler(p.integrator, p.gbuffer) if p.gbuffer is not None else None,
-                                      lod=self.refiner)
+                                      lod=self.refiner, analytic=self.analytic)
 
     def step(self, k: int, t: float, poses) -> dict:
         lod_cpu = 0.0
@@ -223,9 +244,10 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
         for s in (1.0, 0.25):
             shared[s] = build(native, s)
         refs = {k: cache.get(native, name, k / FPS, cfg.ref_spp, REFERENCE_SEED, integrator=shared[1.0].integrator) for k in eval_k}
-        runs = [_Run(m, native, cfg, levels, shared, build) for m in METHODS]
+        methods = check_methods(cfg.methods)
+        runs = [_Run(m, native, cfg, levels, shared, build) for m in methods]
         stats = {m: dict(ms=[], lod_ms=[], lod_rays=[], rays=[], tri=[], psnr=[], ssim=[], flip=[], obj=[], vis=[], vis_ref=[], vis_1spp=[], vis_1spp_raw=[])
-                 for m in METHODS}
+                 for m in methods}
         for i, k in enumerate(ks):
             t = k / FPS
             poses = native.object_poses(t)
@@ -256,7 +278,7 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                             image=img, vmap=r.refiner.vmap if r.refiner else None, decisions=r.refiner.decisions if r.refiner else None,
                             choice=r.choice)
                 progress(f"lod {name}: frames × methods", i * len(runs) + j + 1, len(ks) * len(runs))
-            mapped = [m for m in ("shading-rate", "spp", "all") if m in stats]
+            mapped = [m for m in stats if m.removesuffix(PLAIN) in ("shading-rate", "spp", "all")]
             if k in refs and mapped and shared[1.0].frame is not None:  # the maps a converged and a raw 1-spp native frame give
                 depth = shared[1.0].frame.depth
                 vs = runs[0].cfg.visibility
@@ -316,7 +338,7 @@ def write_figures(rows: list[dict], images: dict, out_dir: Path) -> list[str]:
     out_dir.mkdir(parents=True, exist_ok=True)
     files = []
     for name, im in images.items():
-        run = im.get("all")
+        run = im.get("all") or im.get("all" + PLAIN)
         if run is None or run["vmap"] is None or run["decisions"] is None:
             continue
         scene = im["scene"]
@@ -360,7 +382,8 @@ def plot_rows(rows: list[dict], out_dir: Path) -> str:
             for ax, key in zip(axes, ("psnr_db", "psnr_db_object", "flip")):
                 if r[key] is None:  # no object pixel in the reference
                     continue
-                ax.plot(r["frame_ms"], r[key], markers[r["method"]], color=f"C{i}", ms=8, label=f"{name} {r['method']}")
+                ax.plot(r["frame_ms"], r[key], markers[r["method"].removesuffix(PLAIN)], color=f"C{i}", ms=8,
+                        mfc="none" if r["method"].endswith(PLAIN) else f"C{i}", label=f"{name} {r['method']}")
                 ax.annotate(r["method"], (r["frame_ms"], r[key]), textcoords="offset points", xytext=(5, 4), fontsize=7)
     axes[0].set_ylabel("PSNR (dB) against the converged reference ↑")
     axes[1].set_ylabel("PSNR inside the mesh objects (dB) ↑")

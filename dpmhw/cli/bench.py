@@ -102,6 +102,9 @@ def bench_lod(
     viewer_distance: Annotated[float, typer.Option(help="Audience distance from the surface, metres.")] = 1.5,
     alpha_v: Annotated[float, typer.Option(help="α_v added to the visibility (1/contrast units).")] = 0.0,
     threads: Annotated[int, typer.Option(min=1)] = 2,
+    methods: Annotated[Optional[str], typer.Option(help="Comma-separated methods, none first; NAME-plain: NAME without the analytic demodulation [default: none,quarter,moving,shading-rate,spp,mesh-LOD,all].")] = None,
+    analytic_floors: Annotated[Optional[str], typer.Option(help="Diffuse,specular floor fractions of the analytic-direct demodulation [default: the session's render.analytic_floor, render.analytic_specular_floor].")] = None,
+    moving_every: Annotated[Optional[int], typer.Option(help="lod.moving_every of the refining methods: 1, 2 or 4 [default: the session's].")] = None,
 ) -> None:
     """Contrast-driven LOD through the loop's pipeline, speed against error: rows {scene, method,
     frame_ms, rays_per_frame, triangles, psnr_db, ssim, flip, psnr_db_object, ...} for none /
@@ -124,7 +127,23 @@ def bench_lod(
         raise typer.BadParameter(f"--eval-times: expected comma-separated seconds ≥ 0, got {eval_times!r}") from None
     if scenes is not None:
         changes["scenes"] = tuple(s.strip() for s in scenes.split(",") if s.strip())
-    for key, value in (("history_frames", history_frames), ("ref_spp", ref_spp), ("rays", rays)):
+    if methods is not None:
+        from dpmhw.benchmarks.lod import check_methods
+
+        try:
+            changes["methods"] = check_methods(m.strip() for m in methods.split(",") if m.strip())
+        except ValueError as e:
+            raise typer.BadParameter(f"--{e}") from None
+    if moving_every is not None and moving_every not in (1, 2, 4):
+        raise typer.BadParameter(f"--moving-every: expected 1, 2 or 4, got {moving_every}")
+    if analytic_floors is not None:
+        try:
+            changes["analytic_floors"] = tuple(float(v) for v in analytic_floors.split(","))
+            if len(changes["analytic_floors"]) != 2 or not all(0 < v < float("inf") for v in changes["analytic_floors"]):
+                raise ValueError
+        except ValueError:
+            raise typer.BadParameter(f"--analytic-floors: expected two numbers > 0 (diffuse,specular), got {analytic_floors!r}") from None
+    for key, value in (("history_frames", history_frames), ("ref_spp", ref_spp), ("rays", rays), ("moving_every", moving_every)):
         if value is not None:
             changes[key] = value
     cfg = dataclasses.replace(cfg, **changes)

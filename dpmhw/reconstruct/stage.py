@@ -14,6 +14,9 @@ Two paths, chosen per frame from the live settings:
   filter runs on them (``off`` / ``normal`` / ``lobe``), then `upsample.upsample` re-modulates
   them with the native albedos inside the native G-buffer's lit box. The directly seen emission
   (radiance − diffuse − specular; exact at one sample through the pixel centre) needs no reuse.
+  With `analytic` (the session's default) the albedos are multiplied by analytic direct-lighting
+  terms plus a floor at both resolutions (`reconstruct.analytic`): the ratio is reused, filtered
+  and upsampled, the native terms put back the detail of the native normals.
 
 Why the history lives at the shading resolution: it costs (w·h) instead of (W·H) per frame
 (16× less at scale ¼; measured in docs/temporal-reuse.md), and the native G-buffer of a moving
@@ -34,19 +37,25 @@ overlaps `reuse` + `filter`), so they no longer add up to the frame time.
 
 from __future__ import annotations
 
+import math
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from dpmhw.postprocess import encode_srgb8
+from dpmhw.reconstruct.analytic import DEFAULT_FLOORS, AnalyticDirect, emitter_polygons, floor_from
 from dpmhw.reconstruct.filter import cross_bilateral, mode_code
 from dpmhw.reconstruct.guides import Guides
 from dpmhw.reconstruct.reuse import ReuseSettings, TemporalReuse
 from dpmhw.reconstruct.upsample import upsample
 
 __all__ = ["ReconstructStage", "StageOutput"]
+
+# the native analytic terms on every second row and column, interpolated on smooth surfaces: a
+# quarter of the evaluations (measured in docs/temporal-reuse.md)
+NATIVE_LATTICE = 2
 
 
 @dataclass
@@ -82,11 +91,16 @@ class ReconstructStage:
         it): per-tile native paths where the previous output is visible (issue 13); planned
         before the upsampling, traced and blended after it, before adaptive sampling;
         its time is the sub-stage "lod"
+    analytic : the (diffuse, specular) floor fractions of the analytic-direct demodulation
+        (`reconstruct.analytic`; None: off, and the stage is exactly what it is without it): the
+        diffuse light is divided by albedo·(E + F_d) and the specular by spec_albedo·(S + F_s) at
+        the shading resolution, and re-multiplied by the native products. Needs the native
+        G-buffer (its geometry gives the emitters); at equal sizes it is off
     """
 
     def __init__(self, native_size, shading_size, *, background=(0.0, 0.0, 0.0), viewer=(0.0, 0.0, 0.0),
                  warmup: bool = False, gbuffer=None, gbuffer_mode: str = "edges", clock=time.monotonic_ns,
-                 adaptive=None, lod=None):
+                 adaptive=None, lod=None, analytic: tuple[float, float] | None = DEFAULT_FLOORS):
         self.W, self.H = (int(v) for v in native_size)
         self.w, self.h = (int(v) for v in shading_size)
         if (self.w, self.h) != (self.W, self.H) and gbuffer is None:
@@ -113,6 +127,17 @@ class ReconstructStage:
         self._gbuffer_updates = -1  # the native G-buffer's update count this stage's guides last followed
         self._exact: bool | None = None  # which path the last frame took
         self._helper: ThreadPoolExecutor | None = None  # runs the shading-resolution branch (see module doc)
+        self.analytic = None  # (low, native) `AnalyticDirect` products when on
+        if analytic is not None and gbuffer is not None:
+            fractions = tuple(float(f) for f in analytic)
+            if len(fractions) != 2 or not all(math.isfinite(f) and f > 0 for f in fractions):
+                raise ValueError(f"analytic: expected two finite floor fractions > 0 (diffuse, specular), got {analytic!r}")
+            self._analytic_fractions = fractions
+            scene = gbuffer.scene
+            self._dynamic_lights = any(o.is_emissive and o.is_dynamic for o in scene.objects)
+            poly, lum = emitter_polygons(gbuffer.geometry, scene.object_poses(0.0))
+            self.analytic = (AnalyticDirect(self.w, self.h, poly, lum, self.viewer),
+                             AnalyticDirect(self.W, self.H, poly, lum, self.viewer, NATIVE_LATTICE))
 
     def close(self) -> None:
         if self._helper is not None:
@@ -171,6 +196,9 @@ class ReconstructStage:
                 mask = g.changed if k == 0 and masked else None
                 self.native.update(g.id, g.position, g.normal, g.depth, g.albedo, g.spec_albedo, g.roughness,
                                    self.viewer, b, mask)
+                if self.analytic is not None:
+                    self.analytic[1].update(g.id, g.position, g.normal, g.roughness, self.native.albedo,
+                                            self.native.spec_albedo, b, mask)
         return box
 
     def _shading_branch(self, frame, filter: str, poses, camera):
@@ -183,13 +211,39 @@ class ReconstructStage:
         diffuse = np.asarray(frame.diffuse, np.float32).reshape(-1, 3)
         specular = np.asarray(frame.specular, np.float32).reshape(-1, 3)
         emitted = np.asarray(frame.radiance, np.float32).reshape(-1, 3) - diffuse - specular
-        d_in = (diffuse / low.albedo).reshape(self.h, self.w, 3)
-        s_in = (specular / low.spec_albedo).reshape(self.h, self.w, 3)
+        if self.analytic is not None:  # the ratios to the analytic terms (+ floors)
+            an = self.analytic[0]
+            an.update(frame.object_id, frame.position, frame.normal, frame.roughness, low.albedo, low.spec_albedo,
+                      (0, self.h, 0, self.w))
+            d_in = (diffuse / an.diffuse_products).reshape(self.h, self.w, 3)
+            s_in = (specular / an.specular_products).reshape(self.h, self.w, 3)
+        else:
+            d_in = (diffuse / low.albedo).reshape(self.h, self.w, 3)
+            s_in = (specular / low.spec_albedo).reshape(self.h, self.w, 3)
         d = self.reuse_d.update(d_in, frame.object_id, frame.model_position, poses, camera)
         s = self.reuse_s.update(s_in, frame.object_id, frame.model_position, poses, camera)
         t2 = self._now()
         d, s, _ = cross_bilateral(d, s, low, filter)
         return d, s, emitted, {"reuse": t2 - t1, "filter": self._now() - t2}
+
+    def _analytic_setup(self, frame, poses) -> None:
+        """The floors from the first frame's terms; moving emitters: new polygons, every native pixel again."""
+        low, nat = self.analytic
+        if self._dynamic_lights and poses is not None:
+            poly, lum = emitter_polygons(self.gbuffer.geometry, poses)
+            if poly.shape != low.poly.shape or not np.array_equal(poly, low.poly):
+                for a in (low, nat):
+                    a.poly, a.lum = poly, lum
+                self._native_roi = "none yet"  # every native pixel again (guides and products)
+        if low.floors is None:
+            low.set_floors(1.0, 1.0)
+            low.update(frame.object_id, frame.position, frame.normal, frame.roughness, frame.albedo,
+                       frame.specular_albedo, (0, self.h, 0, self.w))  # this frame's (the guides are not updated yet)
+            fd, fs = self._analytic_fractions
+            floors = (floor_from(low.irradiance, frame.object_id, fd), floor_from(low.specular, frame.object_id, fs))
+            low.set_floors(*floors)
+            nat.set_floors(*floors)
+            self._native_roi = "none yet"
 
     def _background_copy(self, exposure: float) -> np.ndarray:
         return self.base_frame(exposure).copy()
@@ -214,6 +268,8 @@ class ReconstructStage:
             st.update(gbuffer=0.0, reuse=t1 - t0, filter=0.0, upsample=0.0, post=self._now() - t1)
             return StageOutput(image.reshape(self.H, self.W, 3), st, (0, self.H, 0, self.W), 0)
 
+        if self.analytic is not None:
+            self._analytic_setup(frame, poses)
         # the shading-resolution branch on the helper thread while the native G-buffer updates here
         branch = None
         if self.gbuffer is not None:
@@ -238,7 +294,9 @@ class ReconstructStage:
             self.lod.plan(self._radiance, box)
             t_lod = self._now() - t3
             t3 = self._now()
-        upsample(self.low, d, s, emitted, self.native, filter, box, self.background, self._radiance, self._wsum, self._unresolved)
+        native = self.native if self.analytic is None else replace(
+            self.native, albedo=self.analytic[1].diffuse_products, spec_albedo=self.analytic[1].specular_products)
+        upsample(self.low, d, s, emitted, native, filter, box, self.background, self._radiance, self._wsum, self._unresolved)
         t4 = self._now()
         st["upsample"] = t4 - t3
 

@@ -67,6 +67,15 @@ class RenderSection(_Section):
                                       "weight sum is below this gets a native path too (0 = only unresolved pixels, "
                                       "the ones no shading sample supports; 0.05 samples the weak silhouette band as "
                                       "well: ≤ 0.1 dB for ~1.8 CPU-ms a frame on dpm-bunny, docs/temporal-reuse.md)")
+    analytic: bool = Field(True, description="demodulate the diffuse and specular light by analytic, noise-free "
+                           "direct-lighting terms of each G-buffer pixel before reuse, filter and upsampling, and "
+                           "re-modulate with the native ones (dpmhw.reconstruct.analytic; off: the stage before it, "
+                           "bit for bit). Only below shading_scale 1")
+    analytic_floor: float = Field(0.3, gt=0.0, le=100.0, description="analytic demodulation: the diffuse term's floor, "
+                                  "a fraction of its mean over the first frame's lit pixels (keeps the ratio stable "
+                                  "where the direct light is ≈ 0)")
+    analytic_specular_floor: float = Field(2.0, gt=0.0, le=100.0, description="analytic demodulation: the specular "
+                                           "term's floor, a fraction of its mean (larger: the term is an approximation)")
     pipeline: bool = Field(True, description="render frame n+1 on its own thread while frame n is reconstructed "
                                              "(throughput; the next frame's pose is predicted one frame further)")
     pixel_sampling: Literal["centre", "jitter"] = Field("centre", description="shading rays through pixel centres "
