@@ -52,7 +52,7 @@ from dpmhw.render.geometry import SceneGeometry
 
 # (diffuse, specular) floor fractions: × the term's mean over the first frame's lit pixels. Measured
 # (docs/temporal-reuse.md): the specular term is an approximation, so its floor is larger
-DEFAULT_FLOORS = (0.3, 2.0)
+DEFAULT_FLOORS = (1.0, 4.0)
 TWO_PI = 2.0 * math.pi
 SPECULAR_MIN = 2e-3  # specular albedo at or below this (the guides floor it at 1e-3): no specular term
 POLY_COLUMNS = 20  # corners (4 × 3), unit normal (3), corner count, centre (3), area
