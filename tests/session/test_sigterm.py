@@ -15,6 +15,8 @@ import pytest
 
 from dpmhw.tracking import wait_for
 
+WAIT_S = 30  # for what must happen eventually: generous, as only broken code waits this long
+
 
 def _start(api: bool):
     # api.priority=low: a SCHED_IDLE API process gets next to no CPU beside a CPU hog
@@ -65,7 +67,7 @@ def test_sigterm_shuts_down_dark(api):
     assert "projector dark (idle)" in out and "[stopped]" in out, out
     assert proc.returncode == 0, out
     if api:
-        assert wait_for(lambda: _port_closed(port), 10), "the API process outlived its session"
+        assert wait_for(lambda: _port_closed(port), WAIT_S), "the API process outlived its session"
 
 
 def test_killed_session_takes_its_api_process_along():
@@ -74,6 +76,6 @@ def test_killed_session_takes_its_api_process_along():
         assert not _port_closed(port)
         proc.kill()  # no shutdown code runs in the session process
         proc.wait(timeout=10)
-        assert wait_for(lambda: _port_closed(port), 15), "the API process was orphaned"
+        assert wait_for(lambda: _port_closed(port), WAIT_S), "the API process was orphaned"
     finally:
         _finish(proc, reader)

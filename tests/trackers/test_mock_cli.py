@@ -13,6 +13,8 @@ from drivers.natnet import NatNetClient
 
 from .conftest import free_udp_port
 
+WAIT_S = 30  # for what must happen eventually: generous, as only broken code waits this long
+
 _register()
 runner = CliRunner()
 
@@ -41,10 +43,10 @@ def test_natnet_command_serves_a_real_client():
     try:
         client = NatNetClient(command_port=port, connect_timeout_s=0.5, backoff_initial_s=0.05)
         with client:
-            assert wait_for(lambda: client.status().frames >= 20, 10), client.status()
+            assert wait_for(lambda: client.status().frames >= 20, WAIT_S), client.status()
             assert client.version == (4, 2)
             assert client.rigid_body_names() == {1: "circular_1", 2: "circular_2"}
-            assert wait_for(lambda: client.status().malformed >= 3, 10)  # the injected truncations
+            assert wait_for(lambda: client.status().malformed >= 3, WAIT_S)  # the injected truncations
     finally:
         thread.join(timeout=10)
     assert results and results[0].exit_code == 0, results and results[0].output
