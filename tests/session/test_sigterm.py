@@ -30,7 +30,7 @@ def _start(api: bool):
     reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
     reader.start()
     ready = "API on http://127.0.0.1:" if api else "session started"
-    if not wait_for(lambda: any(ready in line for line in lines), 60):
+    if not wait_for(lambda: any(ready in line for line in lines), 120):  # start-up on a loaded machine (as test_supervisor)
         proc.kill()
         pytest.fail("".join(lines))
     port = next((int(m.group(1)) for line in lines if (m := re.search(r"API on http://127\.0\.0\.1:(\d+)", line))), None)
@@ -60,7 +60,7 @@ def test_sigterm_shuts_down_dark(api):
         if api:
             assert not _port_closed(port)
         proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=30)
+        proc.wait(timeout=60)
     finally:
         _finish(proc, reader)
     out = "".join(lines)
