@@ -44,7 +44,7 @@ def test_invalid_tracking_blanks_then_resumes_after_holdoff(make_loop):
     assert "not tracked" in loop.status()["reason"]
     assert wait_for(lambda: loop.latest_frame() is not None and loop.latest_frame().blank, WAIT_S)
     assert not loop.latest_frame().image.any()  # the audience sees black
-    assert projector.dark and projector.calls[-1] == "blank"
+    assert wait_for(lambda: projector.dark and projector.calls[-1] == "blank", WAIT_S), projector.calls
     tracker.valid = True
     # (all at one poll: a starved loop may go stale again for a moment later, and rightly blank)
     assert wait_for(lambda: state(loop) == "running" and not loop.latest_frame().blank and projector.calls[-1] == "unblank"
@@ -153,7 +153,8 @@ def test_render_exception_is_a_fault_and_recovers(make_loop):
     loop.parts.renderer.fail = RuntimeError("embree exploded")
     assert wait_for(lambda: state(loop) == "fault", WAIT_S)
     assert "render failed: RuntimeError: embree exploded" in loop.status()["reason"]
-    assert loop.parts.projector.dark
+    # the cause is set, then the loop blanks: status may say fault a moment before the projector is dark
+    assert wait_for(lambda: loop.parts.projector.dark, WAIT_S)
     loop.parts.renderer.fail = None
     assert wait_for(lambda: state(loop) == "running", WAIT_S)
     assert loop.status()["counters"]["render_errors"] >= 1
@@ -178,7 +179,9 @@ def test_watchdog_blanks_a_stuck_loop_and_status_still_answers(make_loop):
     assert wait_for(lambda: state(loop) == "fault", WAIT_S)
     st = loop.status()
     assert "loop stalled" in st["reason"] and st["heartbeat_age_s"] >= 1.0
-    assert loop.parts.projector.dark and loop.parts.projector.calls[-1] == "blank"
+    # the watchdog sets its cause, then blanks: status may say fault a moment before the projector is dark
+    projector = loop.parts.projector
+    assert wait_for(lambda: projector.dark and projector.calls[-1] == "blank", WAIT_S), projector.calls
     renderer.block.set()
     assert wait_for(lambda: state(loop) == "running", WAIT_S), loop.status()
     assert loop.status()["counters"]["watchdog_trips"] == 1

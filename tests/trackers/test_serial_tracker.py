@@ -141,13 +141,18 @@ class CountingEmulator(PolhemusEmulator):
 
 
 class WedgedEmulator(CountingEmulator):
-    """A device that, once wedged, ignores every command but the Ctrl-Y reset."""
+    """A device that, once wedged, ignores every command but the Ctrl-Y reset (counted in `ignored`)."""
 
     wedged = False
+
+    def __init__(self, *args, **kw):
+        super().__init__(*args, **kw)
+        self.ignored: collections.Counter[bytes] = collections.Counter()
 
     def _handle(self, line: bytes) -> None:
         if self.wedged and line.strip(b" ")[:1] != b"\x19":
             self.received[line.strip(b" ")] += 1
+            self.ignored[line.strip(b" ")] += 1
             self.commands.append(line)
             return
         self.wedged = False
@@ -214,7 +219,7 @@ def test_unplugged_port_is_reported_lost():
     with tracker:
         assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, WAIT_S)
         emu.unplug()
-        assert wait_for(lambda: (s := tracker.status()).state == TrackerState.LOST and emu.port in s.reason, 30)
+        assert wait_for(lambda: (s := tracker.status()).state == TrackerState.LOST and emu.port in s.reason, WAIT_S)
         assert not os.path.exists(emu.port) or tracker.status().state == TrackerState.LOST
     assert tracker.status().state == TrackerState.STOPPED
 
@@ -251,7 +256,7 @@ def test_device_that_stops_reading_cannot_hang_the_receiver():
             seen += os.read(master, 64)
         fill_until_blocked(slave)  # ...while the queue towards the device fills up to the last byte
         # recorded as set: the reason lasts only the 50-ms backoff before the next attempt
-        assert wait_for(lambda: tracker.was(TrackerState.LOST, "Write timeout"), 30), tracker.states
+        assert wait_for(lambda: tracker.was(TrackerState.LOST, "Write timeout"), WAIT_S), tracker.states
         assert tracker.status().state in (TrackerState.LOST, TrackerState.CONNECTING)
         tracker.stop()
         assert not thread.is_alive()
@@ -266,7 +271,7 @@ def test_silent_port_fails_the_init_with_an_actionable_reason():
     try:
         tracker = StateLog(os.ttyname(slave), reset_wait_s=0.01, init_timeout_s=0.2, backoff_initial_s=0.05)
         with tracker:  # (LOST lasts only the backoff before the next init: recorded as set, not polled)
-            assert wait_for(lambda: tracker.was(TrackerState.LOST, "no who-am-I reply"), 30), tracker.states
+            assert wait_for(lambda: tracker.was(TrackerState.LOST, "no who-am-I reply"), WAIT_S), tracker.states
     finally:
         os.close(master)
         os.close(slave)
@@ -280,16 +285,16 @@ def test_device_that_left_continuous_mode_streams_again_without_a_reconnect():
     with CountingEmulator(world) as emu:
         tracker = PolhemusTracker(emu.port, reset_wait_s=0.02, stale_after_s=0.05, lost_after_s=30.0)
         with tracker:
-            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 30)
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, WAIT_S)
             for _ in range(3):
                 probes = emu.received[b"C"]
                 emu.pause_streaming()  # no record follows this call...
                 sent = emu.records_sent
                 # ...so the line goes quiet and the driver probes it with `C` (STALE lasts only until
                 # the probe lands, a few ms: too short a window to poll for)
-                assert wait_for(lambda: emu.received[b"C"] > probes, 30), tracker.status()
+                assert wait_for(lambda: emu.received[b"C"] > probes, WAIT_S), tracker.status()
                 # every record the tracker counts beyond those sent before the pause came after the probe
-                assert wait_for(lambda: tracker.status().frames + tracker.warmup_skipped > sent + 20, 30), tracker.status()
+                assert wait_for(lambda: tracker.status().frames + tracker.warmup_skipped > sent + 20, WAIT_S), tracker.status()
             assert tracker.status().reconnects == 0 and emu.received[b"\x19"] == 1
 
 
@@ -297,22 +302,24 @@ def test_device_that_left_continuous_mode_streams_again_without_a_reconnect():
 def test_silent_device_is_lost_then_reinitialised():
     world = World.demo("circular", epoch_s=time.monotonic())
     with WedgedEmulator(world) as emu:
+        # lost after 1 s: status() reads STALE from 0.05 s to 1 s of silence, a window a loaded
+        # machine's polling meets (at 0.3 s a test thread held off the CPU missed it)
         tracker = StateLog(
-            emu.port, reset_wait_s=0.02, stale_after_s=0.05, lost_after_s=0.3, backoff_initial_s=0.05, backoff_max_s=0.1
+            emu.port, reset_wait_s=0.02, stale_after_s=0.05, lost_after_s=1.0, backoff_initial_s=0.05, backoff_max_s=0.1
         )
         with tracker:
-            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 30)
-            probes = emu.received[b"C"]
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, WAIT_S)
             emu.wedged = True
             emu.pause_streaming()  # the device stops talking (and ignores `C`), the port stays
             sent, seen = emu.records_sent, len(tracker.states)
-            # stale: the driver probes the quiet line with `C`, which the wedged device ignores...
-            assert wait_for(lambda: emu.received[b"C"] > probes, 30), tracker.status()
+            # stale, and the driver probes the quiet line with `C`, which the wedged device ignores...
+            assert wait_for(lambda: tracker.status().state == TrackerState.STALE, WAIT_S), tracker.status()
+            assert wait_for(lambda: emu.ignored[b"C"] >= 1, WAIT_S), tracker.status()
             # ...then lost (recorded as set: it lasts only the 50-ms backoff before the reconnect)
-            assert wait_for(lambda: tracker.was(TrackerState.LOST, "no record for", since=seen), 30), tracker.states
+            assert wait_for(lambda: tracker.was(TrackerState.LOST, "no record for", since=seen), WAIT_S), tracker.states
             # the driver reopens the port and runs the init sequence again, which restarts the stream
-            assert wait_for(lambda: tracker.status().frames + tracker.warmup_skipped > sent + 20, 30), tracker.status()
-            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 30)
+            assert wait_for(lambda: tracker.status().frames + tracker.warmup_skipped > sent + 20, WAIT_S), tracker.status()
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, WAIT_S)
             assert tracker.status().reconnects >= 1
         assert emu.received[b"C"] >= 2 and emu.received[b"\x19"] >= 2
 
