@@ -114,9 +114,11 @@ def test_parser_never_raises_and_stays_bounded_on_arbitrary_bytes(chunks):
 # ---------------------------------------------------------------- driver ↔ emulator over a pty
 
 
-def check_against_truth(samples, world, emulator, time_tol_ns=15e6):
+def check_against_truth(samples, world, emulator, time_tol_ns=30e6):
     """`time_tol_ns`: the scheduler may hold the reader thread off the CPU for milliseconds on a
-    loaded machine, which moves one-way stamps; exact stamping is tested from given arrival times."""
+    loaded machine, which moves one-way stamps (18.9 ms was seen beside a CPU hog at load average
+    9-10; the NatNet loopback tests allow the same 30 ms); exact stamping is tested from given
+    arrival times in test_clock_stamping.py."""
     for s in samples:
         truth_ns = emulator.device_ms_to_host_ns(s.frame_number)  # frame number = device ms
         assert abs(s.t_exposure_ns - truth_ns) < time_tol_ns, s.t_exposure_ns - truth_ns
