@@ -136,22 +136,44 @@ def test_latest_is_newest_per_body_and_callbacks_fire():
         assert check_against_truth(got[:60], world, server) == 60
 
 
+def stall(server) -> int:
+    """Stall the server and return how many frames it sent: once a frame was skipped for the
+    stall, its one send loop is past it and nothing more goes out."""
+    skipped = server.frames_skipped
+    server.stall(60)
+    assert wait_for(lambda: server.frames_skipped > skipped, WAIT_S)
+    return server.frames_sent
+
+
+def last_sent(server) -> int:
+    """The newest frame number the server sent (numbers run on through skips and stalls)."""
+    n = server.frames_sent + server.frames_skipped
+    while n > 0 and server.mid_exposure_host_ns(n) is None:
+        n -= 1
+    return n
+
+
 @pytest.mark.parametrize("version", ["3.0", "4.1"])
 def test_injected_faults_are_counted_and_never_published(version):
+    # The counts are read once the client has read every datagram sent (not after a quiet spell
+    # alone: a receiver held off the CPU beside a CPU hog looked settled with datagrams queued).
     with natnet_pair(version, seed=7) as (world, server, client):
         assert wait_for(lambda: client.status().frames >= 10, WAIT_S)
-        server.stall(60)
+        sent0, newest = stall(server), last_sent(server)
+        assert wait_for(lambda: (s := client.latest(1)) is not None and s.frame_number >= newest, WAIT_S)
         frames0, malformed0 = settle(client)
-        sent0 = server.frames_sent
         assert malformed0 == 0
         with client.subscribe(maxlen=10_000) as sub:
             server.config.truncate_prob = server.config.corrupt_prob = 0.1
             server.resume()
             assert wait_for(lambda: sum(server.faults.values()) >= 30, WAIT_S)
-            server.stall(60)
+            sent1 = stall(server)
+            # every datagram is read as a frame or counted malformed
+            assert wait_for(lambda: (s := client.status()).frames + s.malformed - frames0 - malformed0 >= sent1 - sent0,
+                            WAIT_S), client.status()
             frames1, malformed1 = settle(client)
             samples = sub.drain()
-        sent = server.frames_sent - sent0
+        sent = sent1 - sent0
         assert server.faults["truncated"] > 0 and server.faults["corrupted"] > 0
         assert malformed1 - malformed0 == sum(server.faults.values())
         assert frames1 - frames0 == sent - sum(server.faults.values())
