@@ -25,8 +25,10 @@ def free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-def settle(tracker, quiet_s: float = 0.15, timeout_s: float = 5.0) -> tuple[int, int]:
-    """Wait until the tracker's (frames, malformed) counters stop moving (its stream is stalled)."""
+def settle(tracker, quiet_s: float = 0.15, timeout_s: float = 30.0) -> tuple[int, int]:
+    """Wait until the tracker's (frames, malformed) counters stop moving (its stream is stalled).
+    A quiet spell alone does not prove every byte was read (a receiver held off the CPU looks
+    settled): callers first wait for what the mock says it sent."""
     deadline = time.monotonic() + timeout_s
     last, since = None, time.monotonic()
     while time.monotonic() < deadline:
