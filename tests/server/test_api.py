@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from dpmhw.tracking import wait_for
 from server.app import build_app
 
-WAIT_S = 30  # for what must happen eventually: generous, as only broken code waits this long
+WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba); only broken code waits
 
 TOKEN = "test-token-123"  # the token tests/server/conftest.py gives the app
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

@@ -17,7 +17,7 @@ from dpmhw.tracking import wait_for
 from server.process import ApiProcess
 from server.shared_slot import SharedSlot, SlotTornError
 
-WAIT_S = 30  # for what must happen eventually: generous, as only broken code waits this long
+WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba); only broken code waits
 
 TOKEN = "process-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

@@ -11,7 +11,7 @@ import pytest
 from dpmhw.session.loop import SettingsError
 from dpmhw.tracking import TrackerState, wait_for
 
-WAIT_S = 30  # for what must happen eventually: generous, as only broken code waits this long
+WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba); only broken code waits
 
 
 def state(loop):

@@ -8,7 +8,7 @@ from dpmhw.session.recording import SessionRecorder
 from dpmhw.session.testing import fake_session
 from dpmhw.tracking import wait_for
 
-WAIT_S = 30  # for what must happen eventually: generous, as only broken code waits this long
+WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba); only broken code waits
 
 
 def rows(path):
