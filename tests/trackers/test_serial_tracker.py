@@ -171,7 +171,9 @@ def test_round_trip_with_garbage_between_records(units):
     with WedgedEmulator(world, garbage_prob=0.2, corrupt_prob=0.05, seed=1) as emu:
         tracker = PolhemusTracker(emu.port, units=units, reset_wait_s=0.05, device_latency_s=0.0035)
         assert isinstance(tracker, Tracker)
-        with tracker, tracker.subscribe(maxlen=10_000) as sub:
+        # subscribed before it starts: every sample it counts is then also in `sub` (subscribed
+        # after, a test thread held off the CPU for the init's 50 ms missed the first ones)
+        with tracker.subscribe(maxlen=10_000) as sub, tracker:
             assert wait_for(lambda: tracker.status().frames >= 200 and emu.records_corrupted >= 3, WAIT_S), tracker.status()
             emu.wedged = True  # the driver's `C` must not restart the stream while we count
             emu.pause_streaming()  # the device stops streaming; let the reader drain
