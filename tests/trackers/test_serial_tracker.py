@@ -198,7 +198,10 @@ def test_round_trip_with_garbage_between_records(units):
         # the usual interval is being learnt, and any the emulator skipped on an overloaded host)
         stations = len(emu.stations)
         missed = tracker.status().frames_missed
-        assert emu.records_corrupted - 6 * stations <= missed <= emu.records_corrupted + emu.records_skipped
+        # (a gap is counted in records of the mean interval learnt from whole-ms stamps, so a long
+        # run the emulator skipped beside a CPU hog may read a record over: 811 for 810 was seen;
+        # exact counts are asserted from given stamps in the fractional-period test below)
+        assert emu.records_corrupted - 6 * stations <= missed <= (emu.records_corrupted + emu.records_skipped) * 1.01 + 1
         assert tracker.garbage_bytes > 0
         assert {s.rigid_body_id for s in samples} == {1, 2}
         assert check_against_truth(samples, world, emu) == len(samples) == frames
