@@ -14,6 +14,8 @@ from drivers.dlpc900 import DLPC900, DisplayMode
 from dpmhw.tracking import wait_for
 from firmware_mocks.dlpc900_socket import EmulatorProcess, SocketBackend, socket_usb
 
+WAIT_S = 30  # for what must happen eventually: generous, as only broken code waits this long
+
 
 @pytest.fixture
 def emulator():
@@ -62,7 +64,7 @@ def test_a_killed_host_leaves_the_device_as_it_was_and_another_can_idle_it(emula
     os.kill(host.pid, signal.SIGKILL)
     host.join(10)
     # the device outlived its host, still lit; the kernel (here: the emulator) dropped the claim
-    assert wait_for(lambda: not emulator.inspect()[0]["claimed"], 10)
+    assert wait_for(lambda: not emulator.inspect()[0]["claimed"], WAIT_S)
     assert not emulator.inspect()[0]["dark"]
     with socket_usb(emulator.address, emulator.authkey):
         dlp = DLPC900.open("EMU0001", settle_s=0.0)

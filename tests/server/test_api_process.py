@@ -17,6 +17,8 @@ from dpmhw.tracking import wait_for
 from server.process import ApiProcess
 from server.shared_slot import SharedSlot, SlotTornError
 
+WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba); only broken code waits
+
 TOKEN = "process-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
@@ -31,7 +33,7 @@ def served():
     api = ApiProcess(port=0, token=TOKEN, publish_period_s=0.02, priority="low").start(loop)
     try:
         with httpx.Client(base_url=api.url, timeout=30.0) as client:
-            assert wait_for(lambda: client.get("/status").json()["state"] == "running", 20)
+            assert wait_for(lambda: client.get("/status").json()["state"] == "running", WAIT_S)
             yield loop, api, client
     finally:
         api.close()
@@ -63,7 +65,7 @@ def test_shared_slot_round_trip_and_limits():
 def test_status_frames_and_probes_come_from_the_session(served):
     loop, api, client = served
     first = client.get("/status").json()
-    assert wait_for(lambda: client.get("/status").json()["frame_number"] > first["frame_number"] + 5, 10)
+    assert wait_for(lambda: client.get("/status").json()["frame_number"] > first["frame_number"] + 5, WAIT_S)
     status = client.get("/status").json()
     assert status["render_size"] == [32, 24] and status["snapshot_age_s"] < 1.0
     assert status["devices"]["projector"]["error"] is None
@@ -86,7 +88,7 @@ def test_settings_change_reaches_the_loop_and_reads_back_at_once(served):
     assert loop.settings().alpha == 0.37  # accepted by the session before the reply was sent
     assert client.get("/settings").json()["alpha"] == 0.37  # read-your-writes, before the next publish
     n = loop.status()["frame_number"]
-    assert wait_for(lambda: any(rec.number > n and rec.settings.alpha == 0.37 for rec in list(loop.frame_log)), 10)
+    assert wait_for(lambda: any(rec.number > n and rec.settings.alpha == 0.37 for rec in list(loop.frame_log)), WAIT_S)
     r = client.patch("/settings", json={"alpha": 0}, headers=AUTH)
     assert r.status_code == 422 and loop.settings().alpha == 0.37
     r = client.patch("/settings", json={"spp": 1000}, headers=AUTH)
@@ -100,12 +102,12 @@ def test_blank_and_resume_go_through_the_session(served):
     r = client.post("/session/blank", headers=AUTH)
     assert r.status_code == 200 and r.json()["state"] == "blanked"
     assert loop.status()["state"] == "blanked"
-    assert wait_for(lambda: client.get("/frame.png").headers["x-frame-blank"] == "true", 5)
+    assert wait_for(lambda: client.get("/frame.png").headers["x-frame-blank"] == "true", WAIT_S)
     dark = cv2.imdecode(np.frombuffer(client.get("/frame.png").content, np.uint8), cv2.IMREAD_COLOR)
     assert dark.max() == 0
     r = client.post("/session/resume", headers=AUTH)
     assert r.status_code == 200 and r.json()["ok"] is True
-    assert wait_for(lambda: client.get("/status").json()["state"] == "running", 10)
+    assert wait_for(lambda: client.get("/status").json()["state"] == "running", WAIT_S)
     assert client.post("/session/reset-history", headers=AUTH).status_code == 200
 
 
@@ -113,12 +115,12 @@ def test_stuck_loop_thread_is_reported_by_the_api_process(served):
     loop, api, client = served
     loop.parts.renderer.block.clear()  # the frame thread hangs inside render()
     try:
-        assert wait_for(lambda: client.get("/status").json()["state"] == "fault", 10)
+        assert wait_for(lambda: client.get("/status").json()["state"] == "fault", WAIT_S)
         status = client.get("/status").json()
         assert "loop stalled" in status["reason"] and client.get("/readyz").status_code == 503
     finally:
         loop.parts.renderer.block.set()
-    assert wait_for(lambda: client.get("/status").json()["state"] == "running", 15)
+    assert wait_for(lambda: client.get("/status").json()["state"] == "running", WAIT_S)
 
 
 def test_silent_session_process_is_a_fault_and_commands_fail_fast():
@@ -130,7 +132,7 @@ def test_silent_session_process_is_a_fault_and_commands_fail_fast():
             api._stop.set()  # the session process stops publishing and answering (as if wedged)
             for t in api._threads:
                 t.join(5)
-            assert wait_for(lambda: client.get("/status").json()["state"] == "fault", 5)
+            assert wait_for(lambda: client.get("/status").json()["state"] == "fault", WAIT_S)
             status = client.get("/status").json()
             assert "has not published" in status["reason"] and status["snapshot_age_s"] >= 0.3
             assert client.get("/readyz").status_code == 503
@@ -199,3 +201,28 @@ def test_bind_host_is_a_trusted_host(monkeypatch):
     finally:
         loop.parts.renderer.block.set()
         loop.stop()
+
+
+@pytest.mark.xfail(strict=True, raises=SlotTornError,
+                   reason="server/process.py: a read of a slot whose writer was preempted mid-publish raises "
+                          "SlotTornError out of /status (HTTP 500) instead of serving the snapshot before it")
+def test_a_status_read_while_the_session_is_preempted_mid_publish_serves_the_last_snapshot():
+    """Found under load (issue 14, finding 10; a browser test got HTTP 500 from GET /status beside a
+    CPU hog at load average 15): the reader tries 100 times with a bare yield, so a session process
+    descheduled between the two sequence stores of one publish turns every status read into a 500.
+    Here the writer stops between them for good, as a preempted one does for a while."""
+    import json
+
+    from server.process import RemoteRuntime
+
+    status_slot, frame_slot = SharedSlot.create(4096), SharedSlot.create(64)
+    try:
+        status_slot.write(json.dumps({"status": {"state": "running", "frame_number": 7}}).encode())
+        runtime = RemoteRuntime(status_slot, frame_slot, None, stale_after_s=60.0)
+        assert runtime.status()["frame_number"] == 7
+        status_slot.write(json.dumps({"status": {"state": "running", "frame_number": 8}}).encode())
+        status_slot._header[0] += 1  # the next publish begun, its writer preempted before it ends
+        assert runtime.status()["frame_number"] in (7, 8)  # a snapshot, not an error
+    finally:
+        status_slot.close()
+        frame_slot.close()

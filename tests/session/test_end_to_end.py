@@ -19,6 +19,7 @@ from server.app import build_app
 TOKEN = "e2e-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 STALE_MS = 100
+WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba); only broken code waits
 
 
 @pytest.fixture
@@ -61,9 +62,14 @@ def test_mocked_session_end_to_end(session):
     device = rig.projector.model
 
     # frames arrive, rendered from tracked poses, and the projector is lit
-    assert wait_for(lambda: state(client) == "running" and loop.status()["frame_number"] >= 20, 60), client.get("/status").json()
-    st = client.get("/status").json()
-    assert st["devices"]["tracker"]["kind"] == "natnet" and st["devices"]["tracker"]["state"] == "streaming"
+    # (one snapshot: the tracker reads stale whenever a loaded machine holds its thread off 100 ms)
+    def streaming_and_lit():
+        nonlocal st
+        st = client.get("/status").json()
+        return st["state"] == "running" and st["frame_number"] >= 20 and st["devices"]["tracker"]["state"] == "streaming"
+    st = {}
+    assert wait_for(streaming_and_lit, 60), st
+    assert st["devices"]["tracker"]["kind"] == "natnet"
     assert st["devices"]["projector"]["display_mode"] == "VIDEO" and not device.dark
     assert len(loop.parts.sink.frames) > 0 and loop.parts.sink.frames[-1].frame.any()
     assert st["latency_ms"]["p50"] > 4.5  # at least the tracker's own latency
@@ -72,7 +78,7 @@ def test_mocked_session_end_to_end(session):
     def frames_with(alpha, count=25):
         r = client.patch("/settings", json={"alpha": alpha}, headers=AUTH)
         assert r.status_code == 200
-        assert wait_for(lambda: loop.frame_log[-1].settings.alpha == alpha, 10)
+        assert wait_for(lambda: loop.frame_log[-1].settings.alpha == alpha, WAIT_S)
         first = loop.frame_log[-1].number
         assert wait_for(lambda: loop.frame_log[-1].number >= first + count, 30)
         later = [r for r in loop.frame_log if r.number > first]
@@ -85,36 +91,37 @@ def test_mocked_session_end_to_end(session):
 
     # a tracking dropout (tracked flag off) blanks the output, and it resumes after
     rig.natnet.config.dropout_prob = 1.0
-    assert wait_for(lambda: state(client) == "blanked", 10)
+    assert wait_for(lambda: state(client) == "blanked", WAIT_S)
     assert "not tracked" in client.get("/status").json()["reason"]
-    assert wait_for(lambda: device.dark and loop.latest_frame().blank, 5)
+    assert wait_for(lambda: device.dark and loop.latest_frame().blank, WAIT_S)
     rig.natnet.config.dropout_prob = 0.0
-    assert wait_for(lambda: state(client) == "running" and lit_frame(loop), 10)
-    assert not device.dark
+    # (at one poll: a loaded machine's late samples may blank it again a moment later, rightly)
+    assert wait_for(lambda: state(client) == "running" and lit_frame(loop) and not device.dark, WAIT_S)
 
     # a stalled stream (no frames at all) blanks within the stale limit: no frame is ever made
     # from a sample older than the limit, and projection resumes after the stall
+    # (state and reason from one snapshot: the spell ends with the stall, a second later)
     rig.natnet.stall(1.0)
-    assert wait_for(lambda: state(client) == "blanked", 10)
-    assert "ms old" in client.get("/status").json()["reason"] and device.dark
-    assert wait_for(lambda: state(client) == "running" and lit_frame(loop), 15)
+    assert wait_for(lambda: (s := client.get("/status").json())["state"] == "blanked" and "ms old" in s["reason"]
+                    and device.dark, WAIT_S), client.get("/status").json()
+    assert wait_for(lambda: state(client) == "running" and lit_frame(loop), WAIT_S)
     assert max(r.sample_age_s for r in loop.frame_log) <= STALE_MS / 1e3
 
     # unplugging the projector is a fault, not a crash; replugging recovers
     rig.projector.unplug()
-    assert wait_for(lambda: state(client) == "fault", 10)
+    assert wait_for(lambda: state(client) == "fault", WAIT_S)
     assert "projector" in client.get("/status").json()["reason"]
-    assert wait_for(lambda: loop.latest_frame().blank, 5)
+    assert wait_for(lambda: loop.latest_frame().blank, WAIT_S)
     rig.projector.replug()
-    assert wait_for(lambda: state(client) == "running" and lit_frame(loop), 20), client.get("/status").json()
-    assert not device.dark
+    assert wait_for(lambda: state(client) == "running" and lit_frame(loop) and not device.dark, WAIT_S), \
+        client.get("/status").json()
 
     # killing the tracker stream is a fault, not a crash; the projector goes dark
     rig.natnet.stop()
-    assert wait_for(lambda: state(client) == "fault", 15), client.get("/status").json()
+    assert wait_for(lambda: state(client) == "fault", WAIT_S), client.get("/status").json()
     reason = client.get("/status").json()["reason"]
     assert "tracker link" in reason
-    assert wait_for(lambda: device.dark, 5) and loop.running
+    assert wait_for(lambda: device.dark, WAIT_S) and loop.running
 
     # shutdown leaves the device dark, verified by read-back
     assert loop.stop() == "idle" and device.dark
@@ -135,7 +142,7 @@ def test_serial_tracker_session_on_the_pty_mock():
         assert wait_for(lambda: loop.status()["state"] == "running" and lit_frame(loop), 30), loop.status()
         assert loop.status()["devices"]["tracker"]["kind"] != "natnet"
         (body,) = loop.parts.bindings.values()
-        assert wait_for(lambda: len(loop.frame_log) >= 10, 20)
+        assert wait_for(lambda: len(loop.frame_log) >= 10, WAIT_S)
         for r in list(loop.frame_log)[-10:]:
             # the pose a frame shows is the world's at the sample's exposure (unit and axis
             # conversions of the serial records are right to within the 0.01 cm record resolution)
@@ -143,9 +150,9 @@ def test_serial_tracker_session_on_the_pty_mock():
             assert np.abs(r.poses[body].t - t).max() < 2e-3
             assert np.abs(r.poses[body].R - R).max() < 2e-3
         rig.serial.unplug()
-        assert wait_for(lambda: loop.status()["state"] == "fault", 10), loop.status()
+        assert wait_for(lambda: loop.status()["state"] == "fault", WAIT_S), loop.status()
         assert "tracker link lost" in loop.status()["reason"]
-        assert wait_for(lambda: rig.projector.model.dark, 5) and loop.running
+        assert wait_for(lambda: rig.projector.model.dark, WAIT_S) and loop.running
     finally:
         loop.stop()
     assert rig.projector.model.dark

@@ -8,6 +8,8 @@ from dpmhw.session.recording import SessionRecorder
 from dpmhw.session.testing import fake_session
 from dpmhw.tracking import wait_for
 
+WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba); only broken code waits
+
 
 def rows(path):
     with open(path, newline="") as f:
@@ -20,9 +22,9 @@ def test_recording_writes_frames_poses_and_pngs_while_running(tmp_path):
     folder = loop.parts.recorder.folder
     loop.start()
     try:
-        assert wait_for(lambda: loop.status()["frame_number"] >= 20, 20)
+        assert wait_for(lambda: loop.status()["frame_number"] >= 20, WAIT_S)
         # flushed at least once a second while running: a crash now loses at most the last second
-        assert wait_for(lambda: len(rows(folder / "frames.csv")) >= 10, 5)
+        assert wait_for(lambda: len(rows(folder / "frames.csv")) >= 10, 5)  # a bound: 5 periods
     finally:
         loop.stop()
     frames = rows(folder / "frames.csv")

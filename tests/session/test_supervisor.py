@@ -48,9 +48,16 @@ class Show:
         self.proc = subprocess.Popen([sys.executable, "-c", "from dpmhw.cli import main; main()", *args], env=env,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []
-        self.reader = threading.Thread(target=lambda: self.lines.extend(self.proc.stdout), daemon=True)
+        self.reader = threading.Thread(target=self._read, daemon=True)
         self.reader.start()
         self.client: httpx.Client | None = None
+
+    def _read(self) -> None:
+        try:
+            for line in self.proc.stdout:
+                self.lines.append(line)
+        except ValueError:  # closed by stop(): a process that outlived the supervisor still held the pipe
+            self.lines.append("[test: stopped reading: the output pipe was still open]\n")
 
     @property
     def out(self) -> str:
@@ -105,7 +112,7 @@ class Show:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(10)
-        self.reader.join(10)
+        self.reader.join(60)  # EOF once every process holding the pipe is gone (slow beside a hog)
         self.proc.stdout.close()
         if self.client is not None:
             self.client.close()

@@ -62,3 +62,32 @@ def test_latency_is_exposure_to_arrival():
     # is invisible, what remains is Motive's own mid-exposure → transmit latency
     assert latencies.min() == pytest.approx(LATENCY, abs=2)
     assert client.system_latency_s == pytest.approx(LATENCY / 1e9)
+
+
+@pytest.mark.xfail(strict=True, reason="dpmhw/tracking.py: one-way readings that beat a minimum built "
+                   "from late ones are taken for a clock jump even when a round trip vouches for them")
+def test_late_readings_after_a_restart_are_not_a_second_clock_jump():
+    """Found under load (issue 14, finding 10): a restarted server is detected by a round trip,
+    which restarts the mapping (jump 1). If the first one-way readings after it are read late in a
+    burst (the receiver thread was held off the CPU), the one-way minimum starts 40 ms high; the
+    timely readings that follow beat it by more than the tolerance and agree, so the mapping
+    restarts again (jump 2), forgetting the round trip, although the device clock never moved
+    and the round trip agrees with the timely readings to a millisecond."""
+    from dpmhw.tracking import ClockMapping
+
+    s = 10**9
+    clock = ClockMapping(window_s=2.0)
+    old = 100 * s  # host = device + offset
+    for k in range(20):
+        clock.add_one_way(device_ns=k * 10 * MS, arrival_ns=k * 10 * MS + old + MS)
+    clock.add_round_trip(sent_ns=old + 200 * MS, device_ns=201 * MS, received_ns=old + 202 * MS)
+    new = old + 4900 * s  # the server restarted: its clock 4900 s behind
+    t = old + s
+    clock.add_round_trip(sent_ns=t, device_ns=t - new + MS, received_ns=t + 2 * MS)
+    assert clock.jumps == 1 and clock.offset_ns == new
+    for k in range(3):  # read late, in one burst
+        clock.add_one_way(device_ns=t - new + (5 + 3 * k) * MS, arrival_ns=t + 40 * MS)
+    for k in range(5):  # then on time
+        device = t - new + (50 + 3 * k) * MS
+        clock.add_one_way(device_ns=device, arrival_ns=device + new + MS)
+    assert clock.jumps == 1 and clock.offset_ns == new  # the round trip still rules

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import os
 import select
@@ -26,7 +27,9 @@ from drivers.serial_tracker import PolhemusTracker
 from firmware_mocks.serial_tracker import PolhemusEmulator
 from firmware_mocks.world import World
 
-from .conftest import settle
+from .conftest import settle, with_state_log
+
+WAIT_S = 30  # for what must happen eventually: generous, as only broken code waits this long
 
 
 def record_bytes(station=1, pos=(1.0, 2.0, 3.0), quat_wxyz=(1.0, 0.0, 0.0, 0.0), ms=1234, model=b"LY", cmd=b"C", error=0):
@@ -111,9 +114,11 @@ def test_parser_never_raises_and_stays_bounded_on_arbitrary_bytes(chunks):
 # ---------------------------------------------------------------- driver ↔ emulator over a pty
 
 
-def check_against_truth(samples, world, emulator, time_tol_ns=15e6):
+def check_against_truth(samples, world, emulator, time_tol_ns=30e6):
     """`time_tol_ns`: the scheduler may hold the reader thread off the CPU for milliseconds on a
-    loaded machine, which moves one-way stamps; exact stamping is tested from given arrival times."""
+    loaded machine, which moves one-way stamps (18.9 ms was seen beside a CPU hog at load average
+    9-10; the NatNet loopback tests allow the same 30 ms); exact stamping is tested from given
+    arrival times in test_clock_stamping.py."""
     for s in samples:
         truth_ns = emulator.device_ms_to_host_ns(s.frame_number)  # frame number = device ms
         assert abs(s.t_exposure_ns - truth_ns) < time_tol_ns, s.t_exposure_ns - truth_ns
@@ -124,17 +129,39 @@ def check_against_truth(samples, world, emulator, time_tol_ns=15e6):
     return len(samples)
 
 
-class WedgedEmulator(PolhemusEmulator):
-    """A device that, once wedged, ignores every command but the Ctrl-Y reset."""
+class CountingEmulator(PolhemusEmulator):
+    """Counts every command line it receives (`commands` keeps only the last 256): a test waits
+    for the driver's `C` probe itself instead of polling for a STALE state that ends when it lands."""
+
+    def __init__(self, *args, **kw):
+        super().__init__(*args, **kw)
+        self.received: collections.Counter[bytes] = collections.Counter()
+
+    def _handle(self, line: bytes) -> None:
+        self.received[line.strip(b" ")] += 1
+        super()._handle(line)
+
+
+class WedgedEmulator(CountingEmulator):
+    """A device that, once wedged, ignores every command but the Ctrl-Y reset (counted in `ignored`)."""
 
     wedged = False
 
+    def __init__(self, *args, **kw):
+        super().__init__(*args, **kw)
+        self.ignored: collections.Counter[bytes] = collections.Counter()
+
     def _handle(self, line: bytes) -> None:
         if self.wedged and line.strip(b" ")[:1] != b"\x19":
+            self.received[line.strip(b" ")] += 1
+            self.ignored[line.strip(b" ")] += 1
             self.commands.append(line)
             return
         self.wedged = False
         super()._handle(line)
+
+
+StateLog = with_state_log(PolhemusTracker)
 
 
 @pytest.mark.parametrize("units", ["cm", "inch"])
@@ -144,8 +171,10 @@ def test_round_trip_with_garbage_between_records(units):
     with WedgedEmulator(world, garbage_prob=0.2, corrupt_prob=0.05, seed=1) as emu:
         tracker = PolhemusTracker(emu.port, units=units, reset_wait_s=0.05, device_latency_s=0.0035)
         assert isinstance(tracker, Tracker)
-        with tracker, tracker.subscribe(maxlen=10_000) as sub:
-            assert wait_for(lambda: tracker.status().frames >= 200 and emu.records_corrupted >= 3, 20), tracker.status()
+        # subscribed before it starts: every sample it counts is then also in `sub` (subscribed
+        # after, a test thread held off the CPU for the init's 50 ms missed the first ones)
+        with tracker.subscribe(maxlen=10_000) as sub, tracker:
+            assert wait_for(lambda: tracker.status().frames >= 200 and emu.records_corrupted >= 3, WAIT_S), tracker.status()
             emu.wedged = True  # the driver's `C` must not restart the stream while we count
             emu.pause_streaming()  # the device stops streaming; let the reader drain
             # A record right behind a truncated one is decoded once a record's worth of bytes
@@ -154,7 +183,7 @@ def test_round_trip_with_garbage_between_records(units):
             # wait for what the emulator wrote, not only for 0.15 s of quiet (a receiver thread
             # starved beside a CPU hog looked settled with records still in the pty); a lost
             # record still fails below, 20 s later
-            wait_for(lambda: tracker.status().frames + tracker.warmup_skipped >= emu.records_sent, 20)
+            wait_for(lambda: tracker.status().frames + tracker.warmup_skipped >= emu.records_sent, WAIT_S)
             frames, malformed = settle(tracker)
             samples = sub.drain()
             sent = emu.records_sent  # before the tracker stops: its closing `P` makes one more each
@@ -169,7 +198,10 @@ def test_round_trip_with_garbage_between_records(units):
         # the usual interval is being learnt, and any the emulator skipped on an overloaded host)
         stations = len(emu.stations)
         missed = tracker.status().frames_missed
-        assert emu.records_corrupted - 6 * stations <= missed <= emu.records_corrupted + emu.records_skipped
+        # (a gap is counted in records of the mean interval learnt from whole-ms stamps, so a long
+        # run the emulator skipped beside a CPU hog may read a record over: 811 for 810 was seen;
+        # exact counts are asserted from given stamps in the fractional-period test below)
+        assert emu.records_corrupted - 6 * stations <= missed <= (emu.records_corrupted + emu.records_skipped) * 1.01 + 1
         assert tracker.garbage_bytes > 0
         assert {s.rigid_body_id for s in samples} == {1, 2}
         assert check_against_truth(samples, world, emu) == len(samples) == frames
@@ -180,7 +212,7 @@ def test_sensor_errors_arrive_as_invalid_samples():
     world = World.demo("static", epoch_s=time.monotonic())
     with PolhemusEmulator(world, model="PA", error_prob=0.5, seed=2) as emu:
         with PolhemusTracker(emu.port, reset_wait_s=0.05) as tracker, tracker.subscribe() as sub:
-            assert wait_for(lambda: tracker.status().frames >= 40, 10)
+            assert wait_for(lambda: tracker.status().frames >= 40, WAIT_S)
             samples = sub.drain()
     assert tracker.model == "Patriot"
     assert any(not s.valid for s in samples) and any(s.valid for s in samples)
@@ -192,9 +224,9 @@ def test_unplugged_port_is_reported_lost():
     emu = PolhemusEmulator(world).start()
     tracker = PolhemusTracker(emu.port, reset_wait_s=0.05, backoff_initial_s=0.05, backoff_max_s=0.1)
     with tracker:
-        assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 10)
+        assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, WAIT_S)
         emu.unplug()
-        assert wait_for(lambda: (s := tracker.status()).state == TrackerState.LOST and emu.port in s.reason, 5)
+        assert wait_for(lambda: (s := tracker.status()).state == TrackerState.LOST and emu.port in s.reason, WAIT_S)
         assert not os.path.exists(emu.port) or tracker.status().state == TrackerState.LOST
     assert tracker.status().state == TrackerState.STOPPED
 
@@ -221,7 +253,7 @@ def test_device_that_stops_reading_cannot_hang_the_receiver():
     try:
         tty.setraw(slave)
         os.set_blocking(slave, False)
-        tracker = PolhemusTracker(os.ttyname(slave), reset_wait_s=1.0, write_timeout_s=0.1, backoff_initial_s=0.05)
+        tracker = StateLog(os.ttyname(slave), reset_wait_s=1.0, write_timeout_s=0.1, backoff_initial_s=0.05)
         tracker.start()
         thread = tracker._thread
         seen = b""
@@ -230,7 +262,8 @@ def test_device_that_stops_reading_cannot_hang_the_receiver():
                 raise AssertionError("the tracker never sent its reset")
             seen += os.read(master, 64)
         fill_until_blocked(slave)  # ...while the queue towards the device fills up to the last byte
-        assert wait_for(lambda: "Write timeout" in tracker.status().reason, 5), tracker.status()
+        # recorded as set: the reason lasts only the 50-ms backoff before the next attempt
+        assert wait_for(lambda: tracker.was(TrackerState.LOST, "Write timeout"), WAIT_S), tracker.states
         assert tracker.status().state in (TrackerState.LOST, TrackerState.CONNECTING)
         tracker.stop()
         assert not thread.is_alive()
@@ -243,9 +276,9 @@ def test_device_that_stops_reading_cannot_hang_the_receiver():
 def test_silent_port_fails_the_init_with_an_actionable_reason():
     master, slave = os.openpty()
     try:
-        tracker = PolhemusTracker(os.ttyname(slave), reset_wait_s=0.01, init_timeout_s=0.2, backoff_initial_s=0.05)
-        with tracker:
-            assert wait_for(lambda: (s := tracker.status()).state == TrackerState.LOST and "no who-am-I reply" in s.reason, 5)
+        tracker = StateLog(os.ttyname(slave), reset_wait_s=0.01, init_timeout_s=0.2, backoff_initial_s=0.05)
+        with tracker:  # (LOST lasts only the backoff before the next init: recorded as set, not polled)
+            assert wait_for(lambda: tracker.was(TrackerState.LOST, "no who-am-I reply"), WAIT_S), tracker.states
     finally:
         os.close(master)
         os.close(slave)
@@ -256,37 +289,46 @@ def test_device_that_left_continuous_mode_streams_again_without_a_reconnect():
     `stale_after_s`, so a device that merely stopped streaming is back at once, not after the
     link timeout (30 s here: the old way could not pass) and a re-initialisation."""
     world = World.demo("circular", epoch_s=time.monotonic())
-    with PolhemusEmulator(world) as emu:
+    with CountingEmulator(world) as emu:
         tracker = PolhemusTracker(emu.port, reset_wait_s=0.02, stale_after_s=0.05, lost_after_s=30.0)
         with tracker:
-            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 10)
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, WAIT_S)
             for _ in range(3):
-                emu.pause_streaming()
-                assert wait_for(lambda: tracker.status().state == TrackerState.STALE, 10)
-                frames = tracker.status().frames
-                assert wait_for(lambda: tracker.status().frames > frames + 20, 10), tracker.status()
-            assert tracker.status().reconnects == 0 and list(emu.commands).count(b"\x19") == 1
+                probes = emu.received[b"C"]
+                emu.pause_streaming()  # no record follows this call...
+                sent = emu.records_sent
+                # ...so the line goes quiet and the driver probes it with `C` (STALE lasts only until
+                # the probe lands, a few ms: too short a window to poll for)
+                assert wait_for(lambda: emu.received[b"C"] > probes, WAIT_S), tracker.status()
+                # every record the tracker counts beyond those sent before the pause came after the probe
+                assert wait_for(lambda: tracker.status().frames + tracker.warmup_skipped > sent + 20, WAIT_S), tracker.status()
+            assert tracker.status().reconnects == 0 and emu.received[b"\x19"] == 1
 
 
 @pytest.mark.realtime
 def test_silent_device_is_lost_then_reinitialised():
     world = World.demo("circular", epoch_s=time.monotonic())
     with WedgedEmulator(world) as emu:
-        tracker = PolhemusTracker(
-            emu.port, reset_wait_s=0.02, stale_after_s=0.05, lost_after_s=0.3, backoff_initial_s=0.05, backoff_max_s=0.1
+        # lost after 1 s: status() reads STALE from 0.05 s to 1 s of silence, a window a loaded
+        # machine's polling meets (at 0.3 s a test thread held off the CPU missed it)
+        tracker = StateLog(
+            emu.port, reset_wait_s=0.02, stale_after_s=0.05, lost_after_s=1.0, backoff_initial_s=0.05, backoff_max_s=0.1
         )
         with tracker:
-            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 10)
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, WAIT_S)
             emu.wedged = True
             emu.pause_streaming()  # the device stops talking (and ignores `C`), the port stays
-            assert wait_for(lambda: tracker.status().state == TrackerState.STALE, 5)
-            assert wait_for(lambda: (s := tracker.status()).state == TrackerState.LOST and "no record for" in s.reason, 5)
-            frames = tracker.status().frames
+            sent, seen = emu.records_sent, len(tracker.states)
+            # stale, and the driver probes the quiet line with `C`, which the wedged device ignores...
+            assert wait_for(lambda: tracker.status().state == TrackerState.STALE, WAIT_S), tracker.status()
+            assert wait_for(lambda: emu.ignored[b"C"] >= 1, WAIT_S), tracker.status()
+            # ...then lost (recorded as set: it lasts only the 50-ms backoff before the reconnect)
+            assert wait_for(lambda: tracker.was(TrackerState.LOST, "no record for", since=seen), WAIT_S), tracker.states
             # the driver reopens the port and runs the init sequence again, which restarts the stream
-            assert wait_for(lambda: tracker.status().frames > frames + 20, 10), tracker.status()
-            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 5)
+            assert wait_for(lambda: tracker.status().frames + tracker.warmup_skipped > sent + 20, WAIT_S), tracker.status()
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, WAIT_S)
             assert tracker.status().reconnects >= 1
-        assert list(emu.commands).count(b"C") >= 2 and list(emu.commands).count(b"\x19") >= 2
+        assert emu.received[b"C"] >= 2 and emu.received[b"\x19"] >= 2
 
 
 @pytest.mark.realtime
@@ -299,16 +341,16 @@ def test_port_that_disappears_and_comes_back_is_reconnected(tmp_path):
     tracker = PolhemusTracker(str(link), reset_wait_s=0.02, lost_after_s=0.3, backoff_initial_s=0.05, backoff_max_s=0.2)
     try:
         with tracker:
-            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 10)
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, WAIT_S)
             first.unplug()
             assert wait_for(
-                lambda: (s := tracker.status()).state == TrackerState.LOST and "cannot open serial port" in s.reason, 5
+                lambda: (s := tracker.status()).state == TrackerState.LOST and "cannot open serial port" in s.reason, 30
             ), tracker.status()
             with PolhemusEmulator(world, model="PA") as second:
                 tmp = tmp_path / "new"
                 os.symlink(second.port, tmp)
                 os.replace(tmp, link)  # the device is back (here: at a new pty behind the same name)
-                assert wait_for(lambda: tracker.model == "Patriot" and tracker.status().state == TrackerState.STREAMING, 10)
+                assert wait_for(lambda: tracker.model == "Patriot" and tracker.status().state == TrackerState.STREAMING, WAIT_S)
                 assert tracker.status().reconnects >= 2
     finally:
         first.close()
@@ -366,10 +408,10 @@ def test_unplugged_port_is_reopened_as_soon_as_its_name_is_back_not_after_the_ba
         tracker = PolhemusTracker(emu.port, reset_wait_s=0.02, lost_after_s=0.3, backoff_initial_s=60.0,
                                   backoff_max_s=60.0)
         with tracker:
-            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, 10)
+            assert wait_for(lambda: tracker.status().state == TrackerState.STREAMING, WAIT_S)
             frames = tracker.status().frames
             emu.unplug()
-            assert wait_for(lambda: tracker.status().state == TrackerState.LOST, 10), tracker.status()
+            assert wait_for(lambda: tracker.status().state == TrackerState.LOST, WAIT_S), tracker.status()
             emu.replug()
             assert wait_for(lambda: tracker.status().frames > frames + 20, 30), tracker.status()
             assert tracker.status().state == TrackerState.STREAMING
