@@ -44,7 +44,7 @@ from dpmhw.session.loop import LatestFrame, SettingsError
 from dpmhw.session.supervisor import describe_exit
 from server.app import trusted_hosts_for
 from server.deps import Runtime, RuntimeUnavailable
-from server.shared_slot import SharedSlot
+from server.shared_slot import SharedSlot, SlotTornError
 
 __all__ = ["ApiProcess", "RemoteRuntime", "bind_api_socket", "lower_priority"]
 
@@ -315,11 +315,17 @@ class RemoteRuntime:
         seq = self.status_slot.sequence()
         with self._cache_lock:
             if self._payload is None or self._payload[0] != seq:
-                got = self.status_slot.read()
-                if got is None:
+                try:
+                    got = self.status_slot.read()
+                except SlotTornError:  # its writer stalled mid-publish: serve the snapshot before (it ages)
+                    if self._payload is None:
+                        raise RuntimeUnavailable("the session's first status is still being written") from None
+                    got = None
+                if got is None and self._payload is None:
                     raise RuntimeUnavailable("the session has not published a status yet")
-                seq, published, _, data = got
-                self._payload = (seq, published, json.loads(data))
+                if got is not None:
+                    seq, published, _, data = got
+                    self._payload = (seq, published, json.loads(data))
             _, published, payload = self._payload
         return payload, (time.monotonic_ns() - published) / 1e9
 
@@ -367,7 +373,10 @@ class RemoteRuntime:
         cached = self._frame
         if cached is not None and cached[0] == seq:
             return cached[1]
-        seq, _, (number, t_present, blank, h, w), data = self.frame_slot.read()
+        try:
+            seq, _, (number, t_present, blank, h, w), data = self.frame_slot.read()
+        except SlotTornError:  # its writer stalled mid-publish: the frame before, if any
+            return cached[1] if cached is not None else None
         frame = LatestFrame(number, t_present, np.frombuffer(data, np.uint8).reshape(h, w, 3), self.settings(),
                             bool(blank))
         self._frame = (seq, frame)  # one reference swap: readers see the old or the new pair

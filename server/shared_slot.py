@@ -71,22 +71,30 @@ class SharedSlot:
         """Changes with every completed write (0: nothing published yet)."""
         return int(self._header[0])
 
-    def read(self, retries: int = 100) -> tuple[int, int, tuple[int, ...], bytes] | None:
-        """(sequence, publish time ns, meta, payload) of the latest write; None before the first."""
+    def read(self, timeout_s: float = 0.05) -> tuple[int, int, tuple[int, ...], bytes] | None:
+        """(sequence, publish time ns, meta, payload) of the latest write; None before the first.
+
+        A write in progress is waited out for up to `timeout_s`: a few bare yields, then short
+        sleeps (a writer descheduled between its two sequence stores can be gone for milliseconds
+        on a loaded machine; 100 bare yields gave up and turned /status into a 500, issue 14)."""
         h = self._header
-        for _ in range(retries):
+        deadline = time.monotonic() + timeout_s
+        attempt = 0
+        while True:
             seq = int(h[0])
             if seq == 0:
                 return None
-            if seq % 2:
-                time.sleep(0)
-                continue
-            length, published = int(h[1]), int(h[2])
-            meta = tuple(int(x) for x in h[3:3 + META])
-            payload = self._data[:min(length, self.capacity)].tobytes()
-            if int(h[0]) == seq:
-                return seq, published, meta, payload
-        raise SlotTornError(f"shared slot {self.name}: still being written after {retries} attempts")
+            if seq % 2 == 0:
+                length, published = int(h[1]), int(h[2])
+                meta = tuple(int(x) for x in h[3:3 + META])
+                payload = self._data[:min(length, self.capacity)].tobytes()
+                if int(h[0]) == seq:
+                    return seq, published, meta, payload
+            if time.monotonic() >= deadline:
+                break
+            attempt += 1
+            time.sleep(0 if attempt < 20 else 0.0005)
+        raise SlotTornError(f"shared slot {self.name}: still being written after {timeout_s * 1e3:g} ms")
 
     def close(self) -> None:
         """Detach (the creator also removes the segment)."""
