@@ -200,6 +200,9 @@ class _SlidingMinimum:
     def best(self) -> int | None:
         return self._items[0][2] if self._items else None
 
+    def best_key(self) -> int | None:
+        return self._items[0][1] if self._items else None
+
     def __len__(self) -> int:
         return len(self._items)
 
@@ -224,10 +227,12 @@ class ClockMapping:
     stamped in the future) would drag the offset down by the error and stamp every later sample
     that far in the past for a whole window. So one-way evidence more than `jump_tolerance_s`
     below the current minimum is held back as an outlier (counted in `outliers`) unless
-    `confirm` such readings in a row agree with each other within the tolerance: then the device
-    clock really jumped, and the mapping restarts from them (forgetting the round trips too: they
-    describe the old clock, and being preferred they would stamp every sample wrongly for a
-    window). Evidence above the minimum cannot lower it and needs no check: one-way evidence
+    `confirm` such readings in a row agree with each other within the tolerance. Then, if a round
+    trip agrees with them (within half its duration + the tolerance), the minimum was only too
+    high (its first readings were read late, e.g. in a burst after a restart) and the one-way
+    window restarts from them; otherwise the device clock really jumped, and the mapping restarts
+    from them (forgetting the round trips too: they describe the old clock, and being preferred
+    they would stamp every sample wrongly for a window). Evidence above the minimum cannot lower it and needs no check: one-way evidence
     cannot tell a clock that went back from a backlog read late. A round trip can: it bounds the
     offset to within half its duration, so one that contradicts the current offset by more than
     `jump_back_s` beyond that proves the device clock changed (a server restarted without the
@@ -272,13 +277,19 @@ class ClockMapping:
                     self.outliers += 1
                     del self._suspects[:-self._confirm]
                     return False
-                # the device clock jumped: start over from the agreeing readings
+                # they agree: the one-way minimum was too high (its first readings were read late) or
+                # the device clock jumped. A round trip tells which: if it vouches for them, only the
+                # one-way window restarts; else the device clock jumped and everything starts over
+                rtt, rt_offset = self._round_trips.best_key(), self._round_trips.best()
+                vouched = rt_offset is not None and all(
+                    abs(o - rt_offset) <= rtt // 2 + self._tolerance_ns for _, o in run)
                 self._one_way = _SlidingMinimum(self._window_ns)
-                self._round_trips = _SlidingMinimum(self._window_ns)
+                if not vouched:
+                    self._round_trips = _SlidingMinimum(self._window_ns)
+                    self.jumps += 1
                 for t, o in run:
                     self._one_way.push(t, o, o)
                 self._suspects = []
-                self.jumps += 1
                 return True
             self._suspects = []
             self._one_way.push(arrival_ns, offset, offset)

@@ -346,7 +346,7 @@ def test_dark_at_the_stale_deadline_while_a_frame_is_still_being_made(make_loop,
     never before the deadline, and the frame that was being made is never lit afterwards."""
     loop = make_loop(["safety.watchdog_s=60", f"render.pipeline={pipeline}"]).start()
     renderer, tracker, sink = loop.parts.renderer, loop.parts.tracker, loop.parts.sink
-    assert wait_for(lambda: state(loop) == "running" and presented(loop) >= 3, 20)
+    assert wait_for(lambda: state(loop) == "running" and presented(loop) >= 3, WAIT_S)
     renderer.block.clear()  # every render from now on waits (30 s) until the test releases it
     tracker.streaming = False
     time.sleep(0.01)  # let a sample being published land, so `newest` is final
@@ -354,17 +354,17 @@ def test_dark_at_the_stale_deadline_while_a_frame_is_still_being_made(make_loop,
 
     def black_at() -> int | None:
         return next((f.presented_at_ns for f in list(sink.frames) if f.presented_at_ns > newest and not f.frame.any()), None)
-    assert wait_for(lambda: black_at() is not None, 10), loop.status()  # the frame thread is still inside render
+    assert wait_for(lambda: black_at() is not None, WAIT_S), loop.status()  # the frame thread is still inside render
     assert black_at() >= newest + loop.stale_ns  # not early
     assert "deadline" in loop.status()["reason"] and loop.metrics.counters["stale_deadline_trips"] >= 1
-    assert loop.parts.projector.dark
+    assert wait_for(lambda: loop.parts.projector.dark, WAIT_S)  # blanked right after the black frame
     withheld = loop.metrics.counters["frames_withheld"]
     renderer.block.set()
-    assert wait_for(lambda: loop.metrics.counters["frames_withheld"] > withheld, 10)
+    assert wait_for(lambda: loop.metrics.counters["frames_withheld"] > withheld, WAIT_S)
     after = [f for f in list(sink.frames) if f.presented_at_ns >= black_at()]
     assert not any(f.frame.any() for f in after)  # nothing lit while tracking is stale
     tracker.streaming = True
-    assert wait_for(lambda: state(loop) == "running", 10), loop.status()
+    assert wait_for(lambda: state(loop) == "running", WAIT_S), loop.status()
 
 
 def test_pipelined_frames_render_ahead_in_order_and_renderer_calls_never_overlap(make_loop):
@@ -437,7 +437,7 @@ def test_long_lived_objects_are_frozen_once_warm_and_unfrozen_at_stop(make_loop)
     from dpmhw.session.loop import FREEZE_AFTER_FRAMES
 
     loop = make_loop().start()
-    assert wait_for(lambda: presented(loop) > FREEZE_AFTER_FRAMES, 30), loop.status()
+    assert wait_for(lambda: presented(loop) > FREEZE_AFTER_FRAMES, WAIT_S), loop.status()
     assert gc.get_freeze_count() > 0
     loop.stop()
     assert gc.get_freeze_count() == 0

@@ -284,10 +284,9 @@ def test_restarted_server_is_rejoined_and_its_new_clock_learnt_without_a_reconne
             assert again.commands[12] >= 1  # an echo request (ECHO_REQUEST = 12) reached the new server
             assert check_against_truth([client.latest(1)], world, again) == 1
         st = client.status()
-        # at least the restart: a loaded machine may add a spurious second jump (one-way readings
-        # read late right after the restart, then timely ones; see the xfail in
-        # test_clock_stamping.py); restore `== 1` once that is fixed in dpmhw/tracking.py
-        assert st.reconnects == 0 and st.details["clock_jumps"] >= 1
+        # exactly the restart: one-way readings read late right after it, then timely ones, are not
+        # a second jump (test_clock_stamping.py::test_late_readings_after_a_restart_…)
+        assert st.reconnects == 0 and st.details["clock_jumps"] == 1
 
 
 def test_mock_server_restart_surface_is_what_the_driver_sees_of_a_restarted_motive():
