@@ -53,6 +53,7 @@ from dpmhw.reconstruct.upsample import upsample
 
 __all__ = ["ReconstructStage", "StageOutput"]
 
+
 @dataclass
 class StageOutput:
     image: np.ndarray  # (H, W, 3) uint8, native
