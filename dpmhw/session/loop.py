@@ -432,8 +432,7 @@ class SessionLoop:
             if not s.valid:
                 problems.append(f"rigid body {body}: not tracked in tracker frame {s.frame_number}")
             elif age > self.stale_ns:
-                problems.append(f"rigid body {body}: newest sample is {age / 1e6:.0f} ms old "
-                                f"(limit {self.stale_ns / 1e6:g} ms)")
+                problems.append(self._stale_reason(body, age))
                 if status.details.get("last_implausible_ns", 0) > s.t_arrival_ns:  # plausibility gate (issue 14)
                     problems[-1] += f"; newer samples dropped as implausible: {status.details['last_implausible']}"
             samples[body] = s
@@ -686,6 +685,10 @@ class SessionLoop:
             else:
                 self.safety.update("watchdog", False)
 
+    def _stale_reason(self, body: int, age_ns: int, suffix: str = "") -> str:
+        """The tracking cause's reason for a stale body (the frame thread's check and the deadline's)."""
+        return f"rigid body {body}: newest sample is {age_ns / 1e6:.0f} ms old (limit {self.stale_ns / 1e6:g} ms){suffix}"
+
     def _stale_deadline(self) -> None:
         """Go dark at the newest sample's exposure + `stale_after_ms`, not at the frame thread's
         next check (up to a frame's work later; one implausible burst went dark 1.7 ms past
@@ -707,8 +710,7 @@ class SessionLoop:
             if now <= due:
                 self._stop.wait(min(due - now + 1, 20_000_000) / 1e9)
                 continue
-            reason = (f"rigid body {body}: newest sample is {(now - s.t_exposure_ns) / 1e6:.0f} ms old "
-                      f"(limit {self.stale_ns / 1e6:g} ms; deadline)")
+            reason = self._stale_reason(body, now - s.t_exposure_ns, " (deadline)")
             self.metrics.count("stale_deadline_trips")
             self.safety.update("tracking", True, reason, "blank")
             self._go_dark(reason)
