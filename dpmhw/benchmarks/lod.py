@@ -230,6 +230,10 @@ class _Run:
                     triangles=self.mesh.triangles if self.mesh is not None else int(p.integrator.geometry.triangle_count))
 
 
+def _median_or_none(xs):
+    return float(np.median(xs)) if xs else None
+
+
 def _visible_tiles(radiance, depth, K, settings: VisibilitySettings) -> int:
     """Tiles at the ½-rate level or above (V > 20, `policy` default thresholds) in a frame's map."""
     return int((visibility_map(radiance, depth, K, settings).visibility > 20.0).sum())
@@ -253,7 +257,7 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
         refs = {k: cache.get(native, name, k / FPS, cfg.ref_spp, REFERENCE_SEED, integrator=shared[1.0].integrator) for k in eval_k}
         methods = check_methods(cfg.methods)
         runs = [_Run(m, native, cfg, levels, shared, build) for m in methods]
-        stats = {m: dict(ms=[], stages_ms=[], lod_ms=[], lod_rays=[], rays=[], tri=[], psnr=[], ssim=[], flip=[], obj=[], vis=[], vis_ref=[], vis_1spp=[], vis_1spp_raw=[])
+        stats = {m: dict(ms=[], stages_ms=[], full=[], half=[], multi=[], lod_ms=[], lod_rays=[], rays=[], tri=[], psnr=[], ssim=[], flip=[], obj=[], vis=[], vis_ref=[], vis_1spp=[], vis_1spp_raw=[])
                  for m in methods}
         for i, k in enumerate(ks):
             t = k / FPS
@@ -266,6 +270,11 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                 if i > 0:
                     st["ms"].append(row["ms"])
                     st["stages_ms"].append(row["stages_ms"])
+                    if r.refiner is not None and r.refiner.decisions is not None:  # what the map's uses decided
+                        d = r.refiner.decisions
+                        st["full"].append(int(((d.rate == 1) & (d.spp > 0)).sum()))
+                        st["half"].append(int(((d.rate == 2) & (d.spp > 0)).sum()))
+                        st["multi"].append(int((d.spp > 1).sum()))
                     st["lod_ms"].append(row["lod_ms"])
                     st["lod_rays"].append(row["lod_rays"])
                     st["rays"].append(row["rays"])
@@ -305,6 +314,8 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                 psnr_db=float(np.mean(st["psnr"])), ssim=float(np.mean(st["ssim"])), flip=float(np.mean(st["flip"])),
                 psnr_db_object=float(np.nanmean(st["obj"])) if np.isfinite(st["obj"]).any() else None,  # None: no object pixel
                 lod_ms=float(np.median(st["lod_ms"])),
+                tiles_full_rate=_median_or_none(st["full"]), tiles_half_rate=_median_or_none(st["half"]),
+                tiles_multi_spp=_median_or_none(st["multi"]),
                 frame_ms_stage_sum=float(np.median(st["stages_ms"])),  # the pre-session-7 frame_ms (overlapping sub-stage clocks summed)
                 shading_scale=r.scale, ray_budget=r.settings.rays if r.settings else None,
                 visible_tiles=float(np.mean(st["vis"])) if st["vis"] else None,
@@ -414,12 +425,19 @@ def _or_dash(x) -> str:
     return "–" if x is None else f"{x:.2f}"
 
 
+def _tiles(row: dict) -> str:
+    """Refined tiles per frame (medians): at full rate / at ½ rate / with more than 1 spp."""
+    if row.get("tiles_full_rate") is None:
+        return "–"
+    return f"{row['tiles_full_rate']:.0f}/{row['tiles_half_rate']:.0f}/{row['tiles_multi_spp']:.0f}"
+
+
 def format_table(result: dict) -> str:
     head = (f"{'scene':<15}{'method':<14}{'CPU ms':>9}{'×none':>7}{'lod ms':>8}{'lod rays':>10}{'triangles':>11}"
-            f"{'PSNR':>7}{'obj':>7}{'SSIM':>8}{'FLIP':>8}  levels")
+            f"{'PSNR':>7}{'obj':>7}{'SSIM':>8}{'FLIP':>8}{'tiles 1/½/spp>1':>17}  levels")
     lines = [head]
     for r in result["rows"]:
         lines.append(f"{r['scene']:<15}{r['method']:<14}{r['frame_ms']:>9.1f}{r['time_vs_none']:>7.2f}{r['lod_ms']:>8.1f}"
                      f"{r['lod_rays']:>10,}{r['triangles']:>11,}{r['psnr_db']:>7.2f}{_or_dash(r['psnr_db_object']):>7}"
-                     f"{r['ssim']:>8.4f}{r['flip']:>8.4f}  {r['mesh_levels']}")
+                     f"{r['ssim']:>8.4f}{r['flip']:>8.4f}{_tiles(r):>17}  {r['mesh_levels']}")
     return "\n".join(lines)
