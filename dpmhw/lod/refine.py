@@ -4,14 +4,19 @@ The loop shades a ¼-per-axis frame everywhere, reuses, filters and upsamples it
 size (`reconstruct.stage`). That base is the cheapest level; on top of it `TileRefiner` spends a
 per-frame ray budget on native-resolution paths where a viewer can see the difference:
 
-1. **Plan** (before the upsampling overwrites it): with `visible`, the visibility map of the
-   *previous output* (the reused, filtered, upsampled and refined native radiance, so most
-   1-spp noise is averaged away, and the map's noise floor takes the rest; `visibility.py`)
-   over the lit box, with the native G-buffer's depth. With `moving`, tiles a moving object
-   covers now are boosted to the highest level, and where only that puts them there, only the
-   moving objects' own pixels are traced (their shading changes under the eye, and the ¼ base
-   loses their detail: issue 11's inside-object PSNR). `TilePolicy` turns V into a level per
-   tile under the budget (¼-rate tiles are free: the base shades them).
+1. **Plan** (before the upsampling): with `visible`, the visibility map of the *previous
+   output* (the reused, filtered, upsampled and refined native radiance, so most 1-spp noise
+   is averaged away, and the map's noise floor takes the rest; `visibility.py`) over the lit
+   box, with the native G-buffer's depth. It is made at the end of the previous `refine`
+   (`output_map`; before the adaptive sampler's few pixels), so the mesh levels can use the same
+   map (`MeshLod.observe(visibility=…)`): one map per frame for all three uses. With `moving`,
+   tiles a moving object covers now are boosted (full rate, budget first; samples per pixel
+   still from the map's level there) and only the moving objects' own pixels are traced in
+   them (their shading changes under the eye, and the ¼ base loses their detail: issue 11's
+   inside-object PSNR). `TilePolicy` turns V into a level per tile under the budget (¼-rate
+   tiles are free: the base shades them), the most visible tiles first, the last frame's
+   grants counting `keep` more (the base shades every tile anyway, and a tile refined in
+   turns would lose its native history between them).
 2. **Refine** (after the upsampling): every lit pixel of a full-rate tile, and one pixel of
    each 2×2 block of a ½-rate tile (the block's phase cycles over four frames), gets `spp`
    native paths (`PathIntegrator.render_pixels`, one call per spp group, the native camera and
@@ -24,9 +29,8 @@ per-frame ray budget on native-resolution paths where a viewer can see the diffe
        not traced, history:   L = h                   (½ rate, between its turns)
        not traced, none:      L = L_up
 
-   With `moving_every` = 2 or 4, tiles refined only for a moving object trace each of its
-   pixels every 2 frames (an alternating checkerboard) or 4 (each 2×2 block in turn); an
-   untraced pixel there takes the mean of this frame's paths at its same-object 3×3
+   With `moving_every` = 2 or 4, boosted tiles trace each moving pixel every 2 frames (an
+   alternating checkerboard) or 4 (each 2×2 block in turn); an untraced pixel there takes the mean of this frame's paths at its same-object 3×3
    neighbours as its sample x (`_fill`; 1/every of the paths, and every pixel still gets
    fresh light each frame: holding L = h instead lagged the moving shading, docs/lod.md).
 
@@ -38,7 +42,8 @@ per-frame ray budget on native-resolution paths where a viewer can see the diffe
 
 Ray budget: `policy.allocate` grants samples while Σ spp · shaded pixels · rays_per_path ≤
 `rays` (rays_per_path = `rays_per_sample_bound`, the most rays a path can trace), and the
-pixels traced per tile are within `shaded_counts`, so the rays traced never exceed the budget.
+pixels traced per tile are within `shaded_counts` (boosted tiles: within one phase of the
+`moving_every` pattern), so the rays traced never exceed the budget.
 
 Everything per pixel is a numba kernel over the refined tiles only; per-tile bookkeeping is
 numpy over a (48 × 64)-tile grid.
