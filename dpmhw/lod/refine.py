@@ -30,9 +30,10 @@ per-frame ray budget on native-resolution paths where a viewer can see the diffe
        not traced, none:      L = L_up
 
    With `moving_every` = 2 or 4, boosted tiles trace each moving pixel every 2 frames (an
-   alternating checkerboard) or 4 (each 2×2 block in turn); an untraced pixel there takes the mean of this frame's paths at its same-object 3×3
-   neighbours as its sample x (`_fill`; 1/every of the paths, and every pixel still gets
-   fresh light each frame: holding L = h instead lagged the moving shading, docs/lod.md).
+   alternating checkerboard) or 4 (each 2×2 block in turn); an untraced pixel there takes the
+   mean of this frame's paths at its same-object 3×3 neighbours as its sample x (`_fill`;
+   1/every of the paths, and every pixel still gets fresh light each frame: holding L = h
+   instead lagged the moving shading, docs/lod.md).
 
    The output is (1 − `base_weight`)·L + `base_weight`·L_up: the base is filtered and L is
    not, so a share of it lowers the noise (0.3 measured best of 0 / 0.3 / 0.5, docs/lod.md).
