@@ -24,7 +24,9 @@ its own state; frames shared by methods (the same renderer, the same seed) are r
 Every refining method has the same per-frame budget of native rays (`rays`, worst case per
 path), never exceeded (asserted per frame). frame_ms is CPU time (`time.process_time`, all
 threads: the shared machine makes wall clock meaningless) of the render call(s) + the whole
-stage (G-buffer, reuse, filter, upsample, lod, adaptive, post); lod_ms the stage's "lod" part.
+stage (G-buffer, reuse, filter, upsample, lod, adaptive, post) measured as one window (the
+stage's ¼ branch runs on a helper thread beside the G-buffer, so summing its sub-stage clocks,
+`frame_ms_stage_sum`, counts that overlap twice); lod_ms the stage's "lod" part.
 Errors at the eval times against converged native references (`ReferenceCache`, shared with
 `bench quality`), on the 8-bit frames: PSNR, SSIM, mean FLIP (flip-evaluator, LDR) and PSNR
 inside the mesh objects (psnr_db_object, issue 11's mask). Rows also say how many tiles the
@@ -205,24 +207,31 @@ class _Run:
         p = self.pipe
         if p.frame is None:
             p.render(t, k, poses)
+        c0 = _time.process_time()  # one window: the stage's sub-stage clocks overlap (its ¼ branch runs beside the G-buffer)
         out = self.stage.apply(p.frame, mode="motion", alpha=self.cfg.alpha, filter="off" if self.scale == 1.0 else "lobe",
                                poses=poses, camera=p.integrator.camera)
+        stage_ms = (_time.process_time() - c0) * 1e3
         if self.mesh is not None:  # the output's visibility per object: the next frame's choice (as the loop does)
             c0 = _time.process_time()
             H, W = out.image.shape[:2]
             g = p.gbuffer
+            shared_map = self.refiner.output_map if self.refiner is not None else None  # "all": the refiner's map of this output
             self.mesh.observe(out.image, g.depth.reshape(H, W) if g is not None else p.frame.depth,
-                              g.id.reshape(H, W) if g is not None else p.frame.object_id)
+                              g.id.reshape(H, W) if g is not None else p.frame.object_id, visibility=shared_map)
             lod_cpu += (_time.process_time() - c0) * 1e3
         lod_rays = 0 if self.refiner is None else self.refiner.last_rays
         if self.refiner is not None and lod_rays > self.settings.rays:
             raise AssertionError(f"{self.name}: {lod_rays} native rays over the budget of {self.settings.rays}")
         extra = (self.stage.adaptive.last_rays if self.stage.adaptive is not None else 0) + \
             (p.gbuffer.rays_traced if p.gbuffer is not None else 0)
-        return dict(ms=p.cpu_ms + sum(out.stages_s.values()) * 1e3 + lod_cpu,
+        return dict(ms=p.cpu_ms + stage_ms + lod_cpu, stages_ms=p.cpu_ms + sum(out.stages_s.values()) * 1e3 + lod_cpu,
                     lod_ms=out.stages_s.get("lod", 0.0) * 1e3 + lod_cpu, lod_rays=int(lod_rays),
                     rays=int(p.rays + lod_rays + extra), image=out.image,
                     triangles=self.mesh.triangles if self.mesh is not None else int(p.integrator.geometry.triangle_count))
+
+
+def _median_or_none(xs):
+    return float(np.median(xs)) if xs else None
 
 
 def _visible_tiles(radiance, depth, K, settings: VisibilitySettings) -> int:
@@ -248,7 +257,7 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
         refs = {k: cache.get(native, name, k / FPS, cfg.ref_spp, REFERENCE_SEED, integrator=shared[1.0].integrator) for k in eval_k}
         methods = check_methods(cfg.methods)
         runs = [_Run(m, native, cfg, levels, shared, build) for m in methods]
-        stats = {m: dict(ms=[], lod_ms=[], lod_rays=[], rays=[], tri=[], psnr=[], ssim=[], flip=[], obj=[], vis=[], vis_ref=[], vis_1spp=[], vis_1spp_raw=[])
+        stats = {m: dict(ms=[], stages_ms=[], full=[], half=[], multi=[], lod_ms=[], lod_rays=[], rays=[], tri=[], psnr=[], ssim=[], flip=[], obj=[], vis=[], vis_ref=[], vis_1spp=[], vis_1spp_raw=[])
                  for m in methods}
         for i, k in enumerate(ks):
             t = k / FPS
@@ -260,6 +269,12 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                 st = stats[r.name]
                 if i > 0:
                     st["ms"].append(row["ms"])
+                    st["stages_ms"].append(row["stages_ms"])
+                    if r.refiner is not None and r.refiner.decisions is not None:  # what the map's uses decided
+                        d = r.refiner.decisions
+                        st["full"].append(int(((d.rate == 1) & (d.spp > 0)).sum()))
+                        st["half"].append(int(((d.rate == 2) & (d.spp > 0)).sum()))
+                        st["multi"].append(int((d.spp > 1).sum()))
                     st["lod_ms"].append(row["lod_ms"])
                     st["lod_rays"].append(row["lod_rays"])
                     st["rays"].append(row["rays"])
@@ -299,6 +314,9 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                 psnr_db=float(np.mean(st["psnr"])), ssim=float(np.mean(st["ssim"])), flip=float(np.mean(st["flip"])),
                 psnr_db_object=float(np.nanmean(st["obj"])) if np.isfinite(st["obj"]).any() else None,  # None: no object pixel
                 lod_ms=float(np.median(st["lod_ms"])),
+                tiles_full_rate=_median_or_none(st["full"]), tiles_half_rate=_median_or_none(st["half"]),
+                tiles_multi_spp=_median_or_none(st["multi"]),
+                frame_ms_stage_sum=float(np.median(st["stages_ms"])),  # the pre-session-7 frame_ms (overlapping sub-stage clocks summed)
                 shading_scale=r.scale, ray_budget=r.settings.rays if r.settings else None,
                 visible_tiles=float(np.mean(st["vis"])) if st["vis"] else None,
                 visible_tiles_reference=float(np.mean(st["vis_ref"])) if st["vis_ref"] else None,
@@ -407,12 +425,19 @@ def _or_dash(x) -> str:
     return "–" if x is None else f"{x:.2f}"
 
 
+def _tiles(row: dict) -> str:
+    """Refined tiles per frame (medians): at full rate / at ½ rate / with more than 1 spp."""
+    if row.get("tiles_full_rate") is None:
+        return "–"
+    return f"{row['tiles_full_rate']:.0f}/{row['tiles_half_rate']:.0f}/{row['tiles_multi_spp']:.0f}"
+
+
 def format_table(result: dict) -> str:
     head = (f"{'scene':<15}{'method':<14}{'CPU ms':>9}{'×none':>7}{'lod ms':>8}{'lod rays':>10}{'triangles':>11}"
-            f"{'PSNR':>7}{'obj':>7}{'SSIM':>8}{'FLIP':>8}  levels")
+            f"{'PSNR':>7}{'obj':>7}{'SSIM':>8}{'FLIP':>8}{'tiles 1/½/spp>1':>17}  levels")
     lines = [head]
     for r in result["rows"]:
         lines.append(f"{r['scene']:<15}{r['method']:<14}{r['frame_ms']:>9.1f}{r['time_vs_none']:>7.2f}{r['lod_ms']:>8.1f}"
                      f"{r['lod_rays']:>10,}{r['triangles']:>11,}{r['psnr_db']:>7.2f}{_or_dash(r['psnr_db_object']):>7}"
-                     f"{r['ssim']:>8.4f}{r['flip']:>8.4f}  {r['mesh_levels']}")
+                     f"{r['ssim']:>8.4f}{r['flip']:>8.4f}{_tiles(r):>17}  {r['mesh_levels']}")
     return "\n".join(lines)

@@ -30,7 +30,7 @@ import numba as nb
 import numpy as np
 
 from dpmhw.lod.mesh_lod import MeshLevels, MeshLodSelector, MeshLodSettings, object_visibility
-from dpmhw.lod.visibility import VisibilitySettings, visibility_map
+from dpmhw.lod.visibility import VisibilityMap, VisibilitySettings, visibility_map
 from dpmhw.transforms import Pose
 
 log = logging.getLogger(__name__)
@@ -126,14 +126,23 @@ class MeshLod:
             self.switches += 1
         return choice
 
-    def observe(self, image: np.ndarray, depth: np.ndarray, object_id: np.ndarray) -> np.ndarray:
+    def observe(self, image: np.ndarray, depth: np.ndarray, object_id: np.ndarray,
+                visibility: VisibilityMap | None = None) -> np.ndarray:
         """Per-object visibility from the output frame (uint8 sRGB (H, W, 3), or linear float) with
         the G-buffer depth and object ids of the same frame (native size); only the tiles the
-        objects cover are mapped. Returns (n_objects,) V; an object on no pixel (off screen,
+        objects cover are mapped. `visibility`: a map of this output already made (the tile
+        refiner's `output_map`, same tile grid): used instead of mapping the frame again (one map
+        for all three uses; it maps the linear radiance, before the sRGB encoding's clipping).
+        Returns (n_objects,) V; an object on no pixel (off screen,
         hidden, too small) gets +inf, the strict rule: a coarse level chosen while it was unseen
         would otherwise switch finer in plain view the frame after it appears."""
         ids = np.ascontiguousarray(object_id, np.int32)
-        y0, y1, x0, x1 = _objects_box(ids, self.has_levels)
+        roi = self.gbuffer.roi_box if self.gbuffer is not None and ids.shape == (self.gbuffer.height, self.gbuffer.width) else None
+        if roi is None:  # no moving-objects box of this frame: scan every pixel
+            roi = (0, ids.shape[0], 0, ids.shape[1])
+        # objects with levels move, so they lie inside the G-buffer's moving-objects box: scan only that
+        y0, y1, x0, x1 = _objects_box(ids[roi[0]:roi[1], roi[2]:roi[3]], self.has_levels)
+        y0, y1, x0, x1 = (y0, y1, x0, x1) if y0 < 0 else (y0 + roi[0], y1 + roi[0], x0 + roi[2], x1 + roi[2])
         n = len(self.levels)
         if y0 < 0:
             self.object_vis = np.full(n, np.inf)
@@ -141,10 +150,13 @@ class MeshLod:
         t = self.visibility.tile
         y0, x0 = y0 // t * t, x0 // t * t  # whole tiles of the frame's grid
         y1, x1 = min(-(-y1 // t) * t, ids.shape[0]), min(-(-x1 // t) * t, ids.shape[1])
-        crop = image[y0:y1, x0:x1]
-        radiance = SRGB8_TO_LINEAR[crop] if crop.dtype == np.uint8 else crop
-        vmap = visibility_map(radiance, depth[y0:y1, x0:x1], self.K, self.visibility)
-        v = object_visibility(vmap.visibility, t, ids[y0:y1, x0:x1], n)
+        if visibility is not None and visibility.tile == t and visibility.visibility.shape == (-(-ids.shape[0] // t), -(-ids.shape[1] // t)):
+            tiles = visibility.visibility[y0 // t : -(-y1 // t), x0 // t : -(-x1 // t)]
+        else:
+            crop = image[y0:y1, x0:x1]
+            radiance = SRGB8_TO_LINEAR[crop] if crop.dtype == np.uint8 else crop
+            tiles = visibility_map(radiance, depth[y0:y1, x0:x1], self.K, self.visibility).visibility
+        v = object_visibility(tiles, t, ids[y0:y1, x0:x1], n)
         self.object_vis = np.where(np.isneginf(v), np.inf, v)  # on no pixel: the strict rule (see the docstring)
         return self.object_vis
 

@@ -55,6 +55,8 @@ class PolicySettings:
     ray_budget: int | None = None  # rays per frame; None: unlimited
     rays_per_sample: int = 4  # rays_per_sample_bound(1, False)
     free_rate: int = 0  # tiles at this pitch cost no rays of the budget (4: a ¼ base frame shades them anyway)
+    keep: float | None = None  # None: longest-unshaded first (tiles take turns); a number: most visible first, and
+    # a tile granted last frame counts `keep` more (its native history continues instead of lapsing between turns)
 
     def __post_init__(self):
         t = tuple(check_number(f"thresholds[{i}]", x, -1e4, 1e4) for i, x in enumerate(self.thresholds))
@@ -67,6 +69,8 @@ class PolicySettings:
         object.__setattr__(self, "rays_per_sample", check_number("rays_per_sample", self.rays_per_sample, 1, 1e3, integer=True))
         if self.free_rate not in (0, 1, 2, 4):
             raise LodSettingsError(f"free_rate: expected 0 (none), 1, 2 or 4, got {self.free_rate!r}")
+        if self.keep is not None:
+            object.__setattr__(self, "keep", check_number("keep", self.keep, 0.0, 1e4))
         if self.ray_budget is not None:
             object.__setattr__(self, "ray_budget", check_number("ray_budget", self.ray_budget, 0, 1e15, integer=True))
 
@@ -174,7 +178,7 @@ class TilePolicy:
         show a surface); a tile's shaded pixels are at most that many."""
         s = self.settings
         tile = vmap.tile
-        v = dilate_max(np.asarray(vmap.visibility, np.float64), s.dilate)
+        v = seen = dilate_max(np.asarray(vmap.visibility, np.float64), s.dilate)
         if boost is not None:  # from the current frame's G-buffer: no lag to cover, not dilated
             v = np.where(boost, BOOST_V, v)
         pixels = tile_pixel_counts(self.height, self.width, tile)
@@ -196,10 +200,14 @@ class TilePolicy:
             shaded = np.minimum(shaded, traceable)
         if s.free_rate:
             shaded = np.where(rate == s.free_rate, 0, shaded)
+        if boost is not None:  # a boosted tile's samples per pixel still follow what the map saw there (≥ 1)
+            render_level = np.where(boost, np.maximum(self.levels(seen), 1), render_level)
         spp_level = render_level if s.adaptive_spp else np.minimum(render_level, 1)
-        # longest-unshaded first (V is bounded by 1e4, so age dominates): under a tight budget every
-        # wanted tile takes its turn instead of the most visible ones starving the rest
-        priority = age * 1e5 + v
+        if s.keep is None:  # longest-unshaded first (V is bounded by 1e4, so age dominates): under a tight
+            priority = age * 1e5 + v  # budget every wanted tile takes its turn instead of the most visible ones starving the rest
+        else:  # most visible first, the last frame's grants kept: with a base that shades every tile anyway a
+            priority = seen + s.keep * (age == 0)  # tile left out keeps the base, and one refined in turns would lose its
+            # history; boosted tiles too are ordered by what the map saw there
         if boost is not None:  # boosted tiles first: what they show changes now, whatever waited longest
             priority = np.where(boost, priority + BOOST_PRIORITY, priority)
         granted = allocate(spp_level, priority, shaded, s.ray_budget, s.rays_per_sample)

@@ -4,14 +4,19 @@ The loop shades a ¼-per-axis frame everywhere, reuses, filters and upsamples it
 size (`reconstruct.stage`). That base is the cheapest level; on top of it `TileRefiner` spends a
 per-frame ray budget on native-resolution paths where a viewer can see the difference:
 
-1. **Plan** (before the upsampling overwrites it): with `visible`, the visibility map of the
-   *previous output* (the reused, filtered, upsampled and refined native radiance, so most
-   1-spp noise is averaged away, and the map's noise floor takes the rest; `visibility.py`)
-   over the lit box, with the native G-buffer's depth. With `moving`, tiles a moving object
-   covers now are boosted to the highest level, and where only that puts them there, only the
-   moving objects' own pixels are traced (their shading changes under the eye, and the ¼ base
-   loses their detail: issue 11's inside-object PSNR). `TilePolicy` turns V into a level per
-   tile under the budget (¼-rate tiles are free: the base shades them).
+1. **Plan** (before the upsampling): with `visible`, the visibility map of the *previous
+   output* (the reused, filtered, upsampled and refined native radiance, so most 1-spp noise
+   is averaged away, and the map's noise floor takes the rest; `visibility.py`) over the lit
+   box, with the native G-buffer's depth. It is made at the end of the previous `refine`
+   (`output_map`; before the adaptive sampler's few pixels), so the mesh levels can use the same
+   map (`MeshLod.observe(visibility=…)`): one map per frame for all three uses. With `moving`,
+   tiles a moving object covers now are boosted (full rate, budget first; samples per pixel
+   still from the map's level there) and only the moving objects' own pixels are traced in
+   them (their shading changes under the eye, and the ¼ base loses their detail: issue 11's
+   inside-object PSNR). `TilePolicy` turns V into a level per tile under the budget (¼-rate
+   tiles are free: the base shades them), the most visible tiles first, the last frame's
+   grants counting `keep` more (the base shades every tile anyway, and a tile refined in
+   turns would lose its native history between them).
 2. **Refine** (after the upsampling): every lit pixel of a full-rate tile, and one pixel of
    each 2×2 block of a ½-rate tile (the block's phase cycles over four frames), gets `spp`
    native paths (`PathIntegrator.render_pixels`, one call per spp group, the native camera and
@@ -24,11 +29,11 @@ per-frame ray budget on native-resolution paths where a viewer can see the diffe
        not traced, history:   L = h                   (½ rate, between its turns)
        not traced, none:      L = L_up
 
-   With `moving_every` = 2 or 4, tiles refined only for a moving object trace each of its
-   pixels every 2 frames (an alternating checkerboard) or 4 (each 2×2 block in turn); an
-   untraced pixel there takes the mean of this frame's paths at its same-object 3×3
-   neighbours as its sample x (`_fill`; 1/every of the paths, and every pixel still gets
-   fresh light each frame: holding L = h instead lagged the moving shading, docs/lod.md).
+   With `moving_every` = 2 or 4, boosted tiles trace each moving pixel every 2 frames (an
+   alternating checkerboard) or 4 (each 2×2 block in turn); an untraced pixel there takes the
+   mean of this frame's paths at its same-object 3×3 neighbours as its sample x (`_fill`;
+   1/every of the paths, and every pixel still gets fresh light each frame: holding L = h
+   instead lagged the moving shading, docs/lod.md).
 
    The output is (1 − `base_weight`)·L + `base_weight`·L_up: the base is filtered and L is
    not, so a share of it lowers the noise (0.3 measured best of 0 / 0.3 / 0.5, docs/lod.md).
@@ -38,7 +43,8 @@ per-frame ray budget on native-resolution paths where a viewer can see the diffe
 
 Ray budget: `policy.allocate` grants samples while Σ spp · shaded pixels · rays_per_path ≤
 `rays` (rays_per_path = `rays_per_sample_bound`, the most rays a path can trace), and the
-pixels traced per tile are within `shaded_counts`, so the rays traced never exceed the budget.
+pixels traced per tile are within `shaded_counts` (boosted tiles: within one phase of the
+`moving_every` pattern), so the rays traced never exceed the budget.
 
 Everything per pixel is a numba kernel over the refined tiles only; per-tile bookkeeping is
 numpy over a (48 × 64)-tile grid.
@@ -51,7 +57,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from dpmhw.lod.policy import PolicySettings, TileDecisions, TilePolicy, dilate_max, rays_per_sample_bound
+from dpmhw.lod.policy import PolicySettings, TileDecisions, TilePolicy, rays_per_sample_bound, shaded_counts
 from dpmhw.lod.visibility import LodSettingsError, VisibilityMap, VisibilitySettings, check_number, visibility_map
 from dpmhw.reconstruct.reuse import reproject
 
@@ -69,7 +75,8 @@ class RefineSettings:
     alpha_v: float = 0.0
     thresholds: tuple[float, float, float] = (0.0, 20.0, 50.0)
     base_weight: float = 0.3  # share of the upsampled base in a refined pixel's output (its history stays native)
-    moving_every: int = 2  # a moving object's pixel (in a tile refined only for it) is traced every 1, 2 or 4 frames
+    moving_every: int = 2  # a moving object's pixel is traced every 1, 2 or 4 frames
+    keep: float = 20.0  # under a tight budget the most visible tiles first, last frame's grants counting this much more
 
     def __post_init__(self):
         object.__setattr__(self, "rays", check_number("rays", self.rays, 0, 1 << 40, integer=True))
@@ -261,7 +268,8 @@ class TileRefiner:
         self.rays_per_path = rays_per_sample_bound(renderer.max_bounces, renderer.mis_last)
         self.policy = TilePolicy(self.H, self.W, PolicySettings(
             thresholds=settings.thresholds, shading_rate=settings.shading_rate, adaptive_spp=settings.adaptive_spp,
-            ray_budget=settings.rays, rays_per_sample=self.rays_per_path, free_rate=4 if settings.shading_rate else 0))
+            ray_budget=settings.rays, rays_per_sample=self.rays_per_path, free_rate=4 if settings.shading_rate else 0,
+            keep=settings.keep))
         self._dynamic = np.array([o.is_dynamic for o in gbuffer.scene.objects] + [False], np.bool_)  # [-1]: background
         n = self.W * self.H
         self._h = [(np.zeros((n, 3), np.float32), np.full(n, -1, np.int32), np.full(n, -2, np.int64)) for _ in range(2)]
@@ -269,8 +277,14 @@ class TileRefiner:
         self._frame = 0
         self._prev_poses = None
         self._moving_only = np.zeros((-(-self.H // tile), -(-self.W // tile)), np.bool_)
+        # most pixels of a tile one frame of the `moving_every` pattern traces (`_select`): a checkerboard
+        # colour (every 2) or one pixel of each 2×2 block (every 4), edge tiles included
+        full = shaded_counts(np.ones_like(self._moving_only, np.uint8), self.H, self.W, tile)
+        self._phase_pixels = {1: full, 2: -(-full // 2),
+                              4: shaded_counts(np.full_like(self._moving_only, 2, np.uint8), self.H, self.W, tile)}[settings.moving_every]
         self.decisions: TileDecisions | None = None
-        self.vmap: VisibilityMap | None = None
+        self.vmap: VisibilityMap | None = None  # the map this frame's plan used
+        self.output_map: VisibilityMap | None = None  # the map of the last refined output (the next plan's)
         self.last_rays = 0  # rays traced in the last frame (≤ settings.rays)
         self.last_pixels = 0  # paths traced in the last frame (pixels × spp)
 
@@ -278,6 +292,7 @@ class TileRefiner:
         for _, _, f in self._h:
             f[:] = -2
         self._prev_poses = None
+        self.output_map = None
         self.policy.reset()
 
     def plan(self, previous: np.ndarray, box) -> TileDecisions:
@@ -285,16 +300,9 @@ class TileRefiner:
         radiance, valid inside the lit box) and the current native G-buffer."""
         g, t = self.gbuffer, self.visibility.tile
         TY, TX = -(-self.H // t), -(-self.W // t)
-        lo = self.visibility.bounds[0]
-        vis = np.full((TY, TX), lo, np.float32)
-        y0, y1, x0, x1 = box
-        if self.settings.visible and y1 > y0 and x1 > x0:
-            y0, x0 = (y0 // t) * t, (x0 // t) * t  # tile-aligned, so the box's tiles are the map's
-            rad = previous.reshape(self.H, self.W, 3)[y0:y1, x0:x1]
-            depth = g.depth.reshape(self.H, self.W)[y0:y1, x0:x1]
-            m = visibility_map(rad, depth, g.camera.K, self.visibility)
-            vis[y0 // t : y0 // t + m.visibility.shape[0], x0 // t : x0 // t + m.visibility.shape[1]] = m.visibility
-        self.vmap = VisibilityMap(vis, np.full_like(vis, np.nan), np.zeros_like(vis), t)
+        if self.output_map is None:  # no map of the last output (first frame, reset): map `previous` now
+            self.output_map = self._map(previous, box)
+        self.vmap, self.output_map = self.output_map, None
         boost = None
         roi = g.roi_box
         if self.settings.moving and roi is not None and roi[1] > roi[0] and roi[3] > roi[2]:
@@ -305,22 +313,47 @@ class TileRefiner:
         lit = np.zeros((TY, TX), np.int64)
         if box[1] > box[0] and box[3] > box[2]:
             _lit_per_tile(g.id, self.W, *(int(v) for v in box), t, lit)
-        self.decisions = self.policy.decide(self.vmap, boost, lit)  # background pixels cost no budget
-        # tiles refined only because a moving object covers them: trace only its pixels
-        wanted = self.policy.levels(dilate_max(self.vmap.visibility, self.policy.settings.dilate))
-        self._moving_only = boost & (wanted < 2) if boost is not None else np.zeros((TY, TX), np.bool_)
+        # tiles a moving object covers: trace only its pixels, each every `moving_every` frames (so a
+        # tile there costs at most one phase of that pattern; background pixels cost no budget at all)
+        self._moving_only = boost if boost is not None else np.zeros((TY, TX), np.bool_)
+        if boost is not None and self.settings.moving_every > 1:
+            lit = np.where(boost, np.minimum(lit, self._phase_pixels), lit)
+        self.decisions = self.policy.decide(self.vmap, boost, lit)
         return self.decisions
+
+    def _map(self, radiance: np.ndarray, box) -> VisibilityMap:
+        """The visibility map of `radiance` ((W*H, 3) linear, valid inside `box`) with the current
+        G-buffer's depth; tiles outside the box (nothing lit) and every tile without `visible` at
+        the lowest V. Only V is kept (frequency NaN, contrast 0 in the returned map)."""
+        g, t = self.gbuffer, self.visibility.tile
+        vis = np.full((-(-self.H // t), -(-self.W // t)), self.visibility.bounds[0], np.float32)
+        y0, y1, x0, x1 = box
+        if self.settings.visible and y1 > y0 and x1 > x0:
+            y0, x0 = (y0 // t) * t, (x0 // t) * t  # tile-aligned, so the box's tiles are the map's
+            rad = radiance.reshape(self.H, self.W, 3)[y0:y1, x0:x1]
+            depth = g.depth.reshape(self.H, self.W)[y0:y1, x0:x1]
+            m = visibility_map(rad, depth, g.camera.K, self.visibility)
+            vis[y0 // t : y0 // t + m.visibility.shape[0], x0 // t : x0 // t + m.visibility.shape[1]] = m.visibility
+        return VisibilityMap(vis, np.full_like(vis, np.nan), np.zeros_like(vis), t)
 
     def refine(self, radiance, wsum, unresolved, box, poses, seed: int, alpha: float = 1.0) -> int:
         """Trace and blend the planned tiles into `radiance` (W*H, 3) in place (after the
-        upsampling); returns the rays traced."""
+        upsampling); returns the rays traced. With `visible`, then maps the result (this
+        frame's output but for the adaptive sampler's few pixels) into `output_map`: the next
+        plan's map, and the mesh levels' (`MeshLod.observe(visibility=…)`): one map, three uses."""
+        self._refine(radiance, wsum, unresolved, box, poses, seed, alpha)
+        if self.settings.visible:
+            self.output_map = self._map(radiance, box)
+        return self.last_rays
+
+    def _refine(self, radiance, wsum, unresolved, box, poses, seed: int, alpha: float) -> None:
         g, dec = self.gbuffer, self.decisions
         self._frame += 1
         self.last_rays = self.last_pixels = 0
         read, write = self._h[self._frame % 2], self._h[(self._frame + 1) % 2]
         if dec is None or box[1] <= box[0] or box[3] <= box[2]:
             self._prev_poses = list(poses)
-            return 0
+            return
         pixels, spp = _select(dec.rate, dec.spp, self._moving_only, g.id, self._dynamic, self.W, *(int(v) for v in box), dec.tile,
                               self._frame % 4, self._frame, self.settings.moving_every)
         n = len(pixels)
@@ -350,7 +383,6 @@ class TileRefiner:
         _merge(pixels, spp, samples, hist, valid, np.float32(alpha), np.float32(self.settings.base_weight), radiance, wsum, unresolved, g.id,
                write[0], write[1], write[2], self._frame)
         self._prev_poses = list(poses)
-        return self.last_rays
 
 
 def _model_position(world: np.ndarray, ids: np.ndarray, poses) -> np.ndarray:

@@ -237,3 +237,19 @@ def test_no_flicker_at_a_switch_depth_in_the_pipeline(bunny):
         for f in 1 + 0.05 * rng.uniform(-1, 1, 40):
             seen.append(int(lod.choose(poses, Pose(cam.R, cam.t + cam.R[:, 2] * (1.0 - z1 * f)))[0]))
         assert sum(a != b for a, b in zip(seen, seen[1:])) <= 1 and lod.switches <= 1
+
+
+def test_observe_takes_a_map_of_the_output_instead_of_mapping_it_again(bunny):
+    """The tile refiner's map of the same output (one map, three uses) gives the same per-object
+    V as the mesh's own map of the linear frame; a different map gives its own values."""
+    from dpmhw.lod.visibility import visibility_map
+
+    scene, levels = bunny
+    with PathIntegrator(scene, threads=2) as r:
+        lod = MeshLod(r, None, levels=levels)
+        frame = r.render(time=T, seed=0, poses=scene.object_poses(T))
+        own = lod.observe(frame.radiance, frame.depth, frame.object_id).copy()
+        full = visibility_map(frame.radiance, frame.depth, scene.camera.K, lod.visibility)
+        assert np.array_equal(lod.observe(None, frame.depth, frame.object_id, visibility=full), own)
+        full.visibility[:] = -7.0
+        assert lod.observe(None, frame.depth, frame.object_id, visibility=full)[0] == -7.0

@@ -155,3 +155,30 @@ def test_boosted_tiles_win_the_budget_over_tiles_that_waited_longer():
         d = pol.decide(vmap([[60.0, 60.0]]))
     d = pol.decide(vmap([[60.0, 60.0]]), np.array([[True, False]]))
     assert d.spp.tolist() == [[1, 0]]
+
+
+def test_keep_refines_the_most_visible_tiles_and_keeps_them_under_a_tight_budget():
+    """With a base that shades every tile (the refiner's case) the budget goes to the most
+    visible tiles, and a tile granted last frame keeps its grant unless another beats it by
+    more than `keep` (its native history continues instead of lapsing between turns)."""
+    top = np.arange(16).reshape(4, 4) % 2 == 0
+    pol = TilePolicy(64, 64, PolicySettings(shading_rate=False, adaptive_spp=False, ray_budget=8 * 256 * 4,
+                                            rays_per_sample=4, dilate=0, keep=20.0))
+    for frame in range(3):
+        assert ((pol.decide(vmap(np.where(top, 60.0, 40.0))).spp > 0) == top).all()  # every frame the same tiles
+    # the granted ones fall below the others, but by less than keep: they keep it
+    assert ((pol.decide(vmap(np.where(top, 25.0, 40.0))).spp > 0) == top).all()
+    # by more: the others take over, and then keep it themselves
+    assert ((pol.decide(vmap(np.where(top, 15.0, 40.0))).spp > 0) == ~top).all()
+    assert ((pol.decide(vmap(np.where(top, 45.0, 40.0))).spp > 0) == ~top).all()
+
+
+def test_boosted_tiles_are_ordered_and_sampled_by_what_the_map_saw():
+    v = np.array([[30.0, 80.0, -50.0, 60.0]])
+    boost = np.ones((1, 4), bool)
+    one_tile = 256 * 4
+    d = TilePolicy(16, 64, PolicySettings(dilate=0, adaptive_spp=False, ray_budget=2 * one_tile, keep=20.0)).decide(vmap(v), boost)
+    assert d.spp.tolist() == [[0, 1, 0, 1]]  # the two most visible of four boosted tiles
+    d = TilePolicy(16, 64, PolicySettings(dilate=0, keep=20.0)).decide(vmap(v), boost)
+    assert d.rate.tolist() == [[1, 1, 1, 1]]  # boosted: full rate
+    assert d.spp.tolist() == [[2, 4, 1, 4]]  # samples from the map's level there, at least 1

@@ -80,10 +80,12 @@ def test_moving_objects_get_native_paths_within_the_budget_and_the_rest_is_untou
     assert np.isfinite(outs["lod"][-1].image).all()
 
 
+@pytest.mark.parametrize("every", [1, 2, 4])
 @pytest.mark.parametrize("budget", [0, 500, 5_000, 40_000])
-def test_the_ray_budget_is_never_exceeded(rig, budget):
+def test_the_ray_budget_is_never_exceeded(rig, budget, every):
     native, r, g = rig
-    ref = TileRefiner(r, g, RefineSettings(rays=max(budget, 1), visible=True, adaptive_spp=True, alpha_v=50.0))
+    ref = TileRefiner(r, g, RefineSettings(rays=max(budget, 1), visible=True, adaptive_spp=True, alpha_v=50.0,
+                                           moving_every=every))
     st = _stage(native, r, g, ref)
     for k in range(5):
         t = 0.2 + k / 60
@@ -92,6 +94,8 @@ def test_the_ray_budget_is_never_exceeded(rig, budget):
                  camera=r.camera)
         assert ref.last_rays <= max(budget, 1)
         assert ref.decisions.ray_bound <= max(budget, 1)
+        # paths traced within the planned bound (moving tiles: one phase of the every-N pattern)
+        assert ref.last_pixels <= (ref.decisions.spp.astype(np.int64) * ref.decisions.shaded_pixels).sum()
 
 
 def test_visible_tiles_are_refined_from_the_previous_output(rig):
