@@ -130,9 +130,12 @@ class PathIntegrator:
         R, T = self.geometry.poses(poses)
         self.counts = RayCounts()
         npix = self.width * self.height
-        film = {k: np.zeros((npix, 3), f32) for k in ("emit", "diff", "spec")}
+        # allocated empty: each segment clears its own rows in its thread (kernels.clear_rows)
+        film = {k: np.empty((npix, 3), f32) for k in ("emit", "diff", "spec")}
         gbuf = _GBuffer(npix)
-        nonfinite = np.zeros(npix, np.int32)
+        nonfinite = np.empty(npix, np.int32)
+        # at 1 spp with the compiled path, the segments also write the radiance sum
+        radiance = np.empty((npix, 3), f32) if spp == 1 and self._fused_native() else None
         o, d = self._camera_rays(camera)
         jitter = self.pixel_sampling == "jitter"
         if jitter:  # every pass traces its own camera rays in full, into the work buffers
@@ -151,7 +154,7 @@ class PathIntegrator:
                 break
             self._trace_pass(kernels.pass_key(seed, p), o, d, static_hits if moving and p == 0 else None, primary,
                              R, T, camera, film, gbuf, nonfinite, p == 0, kernels.jitter_key(seed, p) if jitter else None,
-                             trace_static=trace_static and p == 0)
+                             trace_static=trace_static and p == 0, clear=p == 0, radiance=radiance)
             if trace_static and p == 0:  # the cache is valid only once a pass has filled all of it
                 self._static_primary_key = self._pending_key
             if jitter:
@@ -163,7 +166,7 @@ class PathIntegrator:
         # x / 1 == x exactly: at 1 spp hand over the film arrays (fresh each frame) without copies
         emit, diff, spec = (film[k].reshape(H, W, 3) / f32(done) if done > 1 else film[k].reshape(H, W, 3) for k in ("emit", "diff", "spec"))
         return Frame(
-            radiance=emit + diff + spec, diffuse=diff, specular=spec,
+            radiance=radiance.reshape(H, W, 3) if radiance is not None else emit + diff + spec, diffuse=diff, specular=spec,
             object_id=gbuf.id.reshape(H, W), model_position=gbuf.model.reshape(H, W, 3),
             position=gbuf.pos.reshape(H, W, 3), normal=gbuf.normal.reshape(H, W, 3),
             depth=gbuf.depth.reshape(H, W), albedo=gbuf.alb.reshape(H, W, 3),
@@ -273,13 +276,16 @@ class PathIntegrator:
         return self._static_primary_hits, True
 
     def _trace_pass(self, key, camera_o, primary_dirs, static_hits: Hits | None, primary: Hits, R, T, camera, film, gbuf,
-                    nonfinite, write_gbuffer, jitter_key=None, work: "_Work | None" = None, trace_static: bool = False):
+                    nonfinite, write_gbuffer, jitter_key=None, work: "_Work | None" = None, trace_static: bool = False,
+                    clear: bool = False, radiance: np.ndarray | None = None):
         """One sample per pixel. The image is cut into row ranges (segments); each is traced to the
         end of its paths by one thread (shade → shadow rays → continuation rays → shade …), so a
         segment's rays and hits are still in cache when the next stage reads them, and the
         threads never wait for each other between stages. Segments write disjoint pixels.
         `trace_static` (fused path only): the camera rays' static hits (`static_hits`, or `primary`
-        when nothing moves) are still to be traced, by each segment for its own rows."""
+        when nothing moves) are still to be traced, by each segment for its own rows. `clear`:
+        each segment first sets its rows of the film and G-buffer to their starting values.
+        `radiance` (fused path only): each segment writes its rows of emit + diff + spec there."""
         w = work if work is not None else self._work_buffers(len(primary.t))
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
@@ -304,27 +310,37 @@ class PathIntegrator:
             depth_limit = self.max_bounces + (1 if self.mis_last else 0)
             jitter = (jitter_key is not None, np.uint64(jitter_key or 0), corners, cam_R, self.width, w.cam_d)
 
-            def run(segment):
-                first, count = segment
-                traced = kernels.trace_segment(accel.acc, accel.acc_moving, accel.acc_static, self.packets, self.split, depth_limit,
-                                               self.max_bounces, self.mis_last, key, first, count, primary_dirs, prim,
-                                               static_hits is not None, static, camera_o, scn, films, gb, work, jitter)
+            counter = np.zeros(1, np.int64)  # the next segment, taken by the threads as they get free
+            no_radiance = np.empty((0, 3), f32)
+
+            def run(_):
+                traced = kernels.trace_segments(counter, w.starts, w.full_counts, clear, no_radiance if radiance is None else radiance,
+                                                accel.acc, accel.acc_moving, accel.acc_static, self.packets, self.split, depth_limit,
+                                                self.max_bounces, self.mis_last, key, primary_dirs, prim,
+                                                static_hits is not None, static, camera_o, scn, films, gb, work, jitter)
                 if traced[0] < 0:
                     raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
                 return traced
+
+            jobs = range(self.threads)  # one call per thread; the kernel hands out the segments
         else:
-            if trace_static:
-                raise ValueError("trace_static needs the fused path")
+            if trace_static or radiance is not None:
+                raise ValueError("trace_static and radiance need the fused path")
+            films = (film["emit"], film["diff"], film["spec"], nonfinite)
+            gb = (gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer)
+
             def run(segment):
                 first, count = segment
+                if clear:
+                    kernels.clear_rows(films, gb, first, first + count)
                 if jitter_key is not None:
                     kernels.jittered_directions(corners, cam_R, self.width, jitter_key, first, first + count, primary_dirs)
                     accel.intersect_range(camera_o, primary_dirs, first, first + count, R, T, primary, packets=self.packets[0])
                 return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
                                            film, gbuf, nonfinite, write_gbuffer, w)
 
-        segments = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
-        results = list(self._pool.map(run, segments)) if self._pool is not None else [run(s) for s in segments]
+            jobs = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
+        results = list(self._pool.map(run, jobs)) if self._pool is not None else [run(j) for j in jobs]
         self.counts.occluded += sum(r[0] for r in results)
         self.counts.intersect += sum(r[1] for r in results)
 
@@ -431,15 +447,14 @@ def _segments(n: int, min_segments: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _GBuffer:
+    """A frame's G-buffer arrays, allocated empty: the render segments set their rows' no-hit
+    values (kernels.clear_rows) before shading them."""
+
     def __init__(self, npix: int):
-        self.id = np.full(npix, -1, np.int32)
-        self.model = np.zeros((npix, 3), f32)
-        self.pos = np.zeros((npix, 3), f32)
-        self.normal = np.zeros((npix, 3), f32)
-        self.depth = np.full(npix, np.inf, f32)
-        self.alb = np.zeros((npix, 3), f32)
-        self.spec = np.zeros((npix, 3), f32)
-        self.rough = np.zeros(npix, f32)
+        self.id = np.empty(npix, np.int32)
+        self.model, self.pos, self.normal, self.alb, self.spec = (np.empty((npix, 3), f32) for _ in range(5))
+        self.depth = np.empty(npix, f32)
+        self.rough = np.empty(npix, f32)
 
 
 _NO_GBUFFER = _GBuffer(0)  # render_pixels writes no G-buffer: the kernels take empty arrays of the right types
