@@ -4,7 +4,8 @@ Per pass (1 sample per pixel): primary hits, then per bounce: `shade` (emission 
 NEE shadow ray, BSDF sampling, Russian roulette, compaction of the shadow rays and surviving
 paths) → occlusion query for the shadow rays → closest-hit query. The wavefront runs per image
 segment, one thread taking a segment through all its bounces; with Embree's C API the whole
-chain of a segment is one compiled call (`kernels.trace_segment`, queries from inside).
+chain of a segment is compiled code (`kernels.trace_segment`, queries from inside), and each render
+thread makes one call per pass that takes segments until none is left (`kernels.trace_segments`).
 Pixel sampling: "centre" traces the pixel centres (static hits cached per camera pose, reused by
 every pass); "jitter" traces a random point of each pixel on every pass (deterministic from
 seed, pass and pixel), so the passes converge to the pixel integral under a box filter.
@@ -93,7 +94,7 @@ class PathIntegrator:
         self._work: list[_Work] = []  # most recently used first
         # (continuation, shadow) rays as 16-wide packets of consecutive paths, or single rays
         self.packets = PACKETS
-        # one compiled call per segment (with the C API); False: Python between the stages (the
+        # one compiled call per thread and pass (with the C API); False: Python between the stages (the
         # embreex fallback, and the benchmark's per-stage timing)
         self.fused = True
 
@@ -254,7 +255,7 @@ class PathIntegrator:
         return self._rays
 
     def _fused_native(self) -> bool:
-        """One compiled call per segment, Embree queried from inside (the C API is loaded)."""
+        """Compiled calls that take whole segments, Embree queried from inside (the C API is loaded)."""
         return self.fused and isinstance(self.geometry.accel, RtcAccel)
 
     def _static_primary(self, camera: PinholeCamera, o, d, defer: bool = False) -> tuple[Hits, bool]:
@@ -294,7 +295,7 @@ class PathIntegrator:
         cam_R = camera.pose.R.astype(f32)
         if jitter_key is not None:  # camera rays through random points of the pixels, into the work buffer
             primary_dirs = w.cam_d
-        if self._fused_native():  # queries from inside the kernel: one native call per segment
+        if self._fused_native():  # queries from inside the kernel: one native call per thread
             g = self.geometry
             scn = (g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area, g.light_prim, g.light_obj,
                    g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd)
