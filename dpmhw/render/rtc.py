@@ -43,8 +43,9 @@ RTC_SCENE_FLAG_ROBUST = 1 << 2
 # frame and 31 of 285 with the camera moving (9-11 %). On 3.0M continuation and 4.0M shadow rays
 # of four real frames, dropping it changed the primitive of 7 hits (neighbouring triangles across
 # an edge), let none escape and unblocked no shadow ray; the furnace, closed-box and grazing tests
-# hold. Rays aimed exactly at a closed box's edges from inside still escape without it (906 of
-# 60,000 in session 5), which is why sessions 4-6 kept it. No accel of this build is both
+# hold. Rays aimed exactly at a closed box's edges from inside still escape without it (832 of
+# 60,000: tests/render/test_rtc.py::test_no_leak_out_of_a_closed_box), which is why sessions
+# 4-6 kept it. No accel of this build is both
 # watertight and faster: "tri_accel=bvh8.triangle4v" (and every robust variant) is the Pluecker
 # test with robust traversal, as slow as the flag (session 6); the speed-up is the Moeller test's.
 ROBUST = False
