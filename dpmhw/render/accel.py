@@ -18,6 +18,7 @@ import numba as nb
 import numpy as np
 from embreex import mesh_construction, rtcore_scene
 
+from dpmhw.render import rtc
 from dpmhw.scene_file import ObjectSpec
 
 MIN_RAYS_PER_THREAD = 16384
@@ -79,8 +80,8 @@ def _static_hit_ids(prim_id, geom_id, tfar, static_objects, tri_offsets, t, obj,
             t[i], obj[i], prim[i] = np.inf, -1, -1
 
 
-def _embree_scene(vertices_list, faces_list) -> rtcore_scene.EmbreeScene:
-    scene = rtcore_scene.EmbreeScene(robust=True)
+def _embree_scene(vertices_list, faces_list, robust: bool | None = None) -> rtcore_scene.EmbreeScene:
+    scene = rtcore_scene.EmbreeScene(robust=rtc.ROBUST if robust is None else robust)
     for vertices, faces in zip(vertices_list, faces_list):
         mesh_construction.TriangleMesh(scene, np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.int32))
     return scene
@@ -89,7 +90,7 @@ def _embree_scene(vertices_list, faces_list) -> rtcore_scene.EmbreeScene:
 class EmbreeAccel:
     """Closest-hit and occlusion queries over a list of objects whose poses change per frame."""
 
-    def __init__(self, objects: list[ObjectSpec], tri_offsets: np.ndarray, threads: int = 2):
+    def __init__(self, objects: list[ObjectSpec], tri_offsets: np.ndarray, threads: int = 2, robust: bool | None = None):
         self.threads = max(1, int(threads))
         self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="embree") if self.threads > 1 else None
         self.tri_offsets = tri_offsets
@@ -98,7 +99,7 @@ class EmbreeAccel:
         self.static_scene = None
         if static:
             self.static_scene = _embree_scene(
-                [objects[i].pose.apply(objects[i].mesh.vertices) for i in static], [objects[i].mesh.faces for i in static]
+                [objects[i].pose.apply(objects[i].mesh.vertices) for i in static], [objects[i].mesh.faces for i in static], robust
             )
         self.dynamic_objects: list[int] = [i for i, o in enumerate(objects) if o.is_dynamic]
         by_mesh: dict[int, rtcore_scene.EmbreeScene] = {}
@@ -107,7 +108,7 @@ class EmbreeAccel:
         for i in self.dynamic_objects:
             mesh = objects[i].mesh
             if id(mesh) not in by_mesh:  # instances of one mesh share one BVH
-                by_mesh[id(mesh)] = _embree_scene([mesh.vertices], [mesh.faces])
+                by_mesh[id(mesh)] = _embree_scene([mesh.vertices], [mesh.faces], robust)
             self.dynamic_scenes.append(by_mesh[id(mesh)])
             lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
             centre = (lo + hi) / 2

@@ -155,7 +155,7 @@ class SceneGeometry:
         centre = (v.min(axis=0) + v.max(axis=0)) / 2
         radius = np.linalg.norm(v - centre, axis=1).max() * (1 + 1e-4) + 1e-9
         if hasattr(self.accel, "acc"):
-            scene = rtc.RtcScene([np.asarray(v, np.float32)], [mesh.faces], robust=rtc.ROBUST)
+            scene = rtc.RtcScene([np.asarray(v, np.float32)], [mesh.faces])
             self._level_scenes.append(scene)
             return scene.handle, np.array([*centre.astype(f32), f32(radius)], f32)
         return _embree_scene([v], [mesh.faces]), (centre.astype(f32), f32(radius))

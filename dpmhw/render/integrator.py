@@ -4,7 +4,8 @@ Per pass (1 sample per pixel): primary hits, then per bounce: `shade` (emission 
 NEE shadow ray, BSDF sampling, Russian roulette, compaction of the shadow rays and surviving
 paths) → occlusion query for the shadow rays → closest-hit query. The wavefront runs per image
 segment, one thread taking a segment through all its bounces; with Embree's C API the whole
-chain of a segment is one compiled call (`kernels.trace_segment`, queries from inside).
+chain of a segment is compiled code (`kernels.trace_segment`, queries from inside), and each render
+thread makes one call per pass that takes segments until none is left (`kernels.trace_segments`).
 Pixel sampling: "centre" traces the pixel centres (static hits cached per camera pose, reused by
 every pass); "jitter" traces a random point of each pixel on every pass (deterministic from
 seed, pass and pixel), so the passes converge to the pixel integral under a box filter.
@@ -93,7 +94,7 @@ class PathIntegrator:
         self._work: list[_Work] = []  # most recently used first
         # (continuation, shadow) rays as 16-wide packets of consecutive paths, or single rays
         self.packets = PACKETS
-        # one compiled call per segment (with the C API); False: Python between the stages (the
+        # one compiled call per thread and pass (with the C API); False: Python between the stages (the
         # embreex fallback, and the benchmark's per-stage timing)
         self.fused = True
 
@@ -130,9 +131,12 @@ class PathIntegrator:
         R, T = self.geometry.poses(poses)
         self.counts = RayCounts()
         npix = self.width * self.height
-        film = {k: np.zeros((npix, 3), f32) for k in ("emit", "diff", "spec")}
+        # allocated empty: each segment clears its own rows in its thread (kernels.clear_rows)
+        film = {k: np.empty((npix, 3), f32) for k in ("emit", "diff", "spec")}
         gbuf = _GBuffer(npix)
-        nonfinite = np.zeros(npix, np.int32)
+        nonfinite = np.empty(npix, np.int32)
+        # at 1 spp with the compiled path, the segments also write the radiance sum
+        radiance = np.empty((npix, 3), f32) if spp == 1 and self._fused_native() else None
         o, d = self._camera_rays(camera)
         jitter = self.pixel_sampling == "jitter"
         if jitter:  # every pass traces its own camera rays in full, into the work buffers
@@ -151,7 +155,7 @@ class PathIntegrator:
                 break
             self._trace_pass(kernels.pass_key(seed, p), o, d, static_hits if moving and p == 0 else None, primary,
                              R, T, camera, film, gbuf, nonfinite, p == 0, kernels.jitter_key(seed, p) if jitter else None,
-                             trace_static=trace_static and p == 0)
+                             trace_static=trace_static and p == 0, clear=p == 0, radiance=radiance)
             if trace_static and p == 0:  # the cache is valid only once a pass has filled all of it
                 self._static_primary_key = self._pending_key
             if jitter:
@@ -163,7 +167,7 @@ class PathIntegrator:
         # x / 1 == x exactly: at 1 spp hand over the film arrays (fresh each frame) without copies
         emit, diff, spec = (film[k].reshape(H, W, 3) / f32(done) if done > 1 else film[k].reshape(H, W, 3) for k in ("emit", "diff", "spec"))
         return Frame(
-            radiance=emit + diff + spec, diffuse=diff, specular=spec,
+            radiance=radiance.reshape(H, W, 3) if radiance is not None else emit + diff + spec, diffuse=diff, specular=spec,
             object_id=gbuf.id.reshape(H, W), model_position=gbuf.model.reshape(H, W, 3),
             position=gbuf.pos.reshape(H, W, 3), normal=gbuf.normal.reshape(H, W, 3),
             depth=gbuf.depth.reshape(H, W), albedo=gbuf.alb.reshape(H, W, 3),
@@ -251,7 +255,7 @@ class PathIntegrator:
         return self._rays
 
     def _fused_native(self) -> bool:
-        """One compiled call per segment, Embree queried from inside (the C API is loaded)."""
+        """Compiled calls that take whole segments, Embree queried from inside (the C API is loaded)."""
         return self.fused and isinstance(self.geometry.accel, RtcAccel)
 
     def _static_primary(self, camera: PinholeCamera, o, d, defer: bool = False) -> tuple[Hits, bool]:
@@ -273,13 +277,16 @@ class PathIntegrator:
         return self._static_primary_hits, True
 
     def _trace_pass(self, key, camera_o, primary_dirs, static_hits: Hits | None, primary: Hits, R, T, camera, film, gbuf,
-                    nonfinite, write_gbuffer, jitter_key=None, work: "_Work | None" = None, trace_static: bool = False):
+                    nonfinite, write_gbuffer, jitter_key=None, work: "_Work | None" = None, trace_static: bool = False,
+                    clear: bool = False, radiance: np.ndarray | None = None):
         """One sample per pixel. The image is cut into row ranges (segments); each is traced to the
         end of its paths by one thread (shade → shadow rays → continuation rays → shade …), so a
         segment's rays and hits are still in cache when the next stage reads them, and the
         threads never wait for each other between stages. Segments write disjoint pixels.
         `trace_static` (fused path only): the camera rays' static hits (`static_hits`, or `primary`
-        when nothing moves) are still to be traced, by each segment for its own rows."""
+        when nothing moves) are still to be traced, by each segment for its own rows. `clear`:
+        each segment first sets its rows of the film and G-buffer to their starting values.
+        `radiance` (fused path only): each segment writes its rows of emit + diff + spec there."""
         w = work if work is not None else self._work_buffers(len(primary.t))
         cam_fwd = camera.pose.R[:, 2].astype(f32)
         viewer = self.scene.viewer_position.astype(f32)
@@ -288,7 +295,7 @@ class PathIntegrator:
         cam_R = camera.pose.R.astype(f32)
         if jitter_key is not None:  # camera rays through random points of the pixels, into the work buffer
             primary_dirs = w.cam_d
-        if self._fused_native():  # queries from inside the kernel: one native call per segment
+        if self._fused_native():  # queries from inside the kernel: one native call per thread
             g = self.geometry
             scn = (g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area, g.light_prim, g.light_obj,
                    g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd)
@@ -304,27 +311,37 @@ class PathIntegrator:
             depth_limit = self.max_bounces + (1 if self.mis_last else 0)
             jitter = (jitter_key is not None, np.uint64(jitter_key or 0), corners, cam_R, self.width, w.cam_d)
 
-            def run(segment):
-                first, count = segment
-                traced = kernels.trace_segment(accel.acc, accel.acc_moving, accel.acc_static, self.packets, self.split, depth_limit,
-                                               self.max_bounces, self.mis_last, key, first, count, primary_dirs, prim,
-                                               static_hits is not None, static, camera_o, scn, films, gb, work, jitter)
+            counter = np.zeros(1, np.int64)  # the next segment, taken by the threads as they get free
+            no_radiance = np.empty((0, 3), f32)
+
+            def run(_):
+                traced = kernels.trace_segments(counter, w.starts, w.full_counts, clear, no_radiance if radiance is None else radiance,
+                                                accel.acc, accel.acc_moving, accel.acc_static, self.packets, self.split, depth_limit,
+                                                self.max_bounces, self.mis_last, key, primary_dirs, prim,
+                                                static_hits is not None, static, camera_o, scn, films, gb, work, jitter)
                 if traced[0] < 0:
                     raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
                 return traced
+
+            jobs = range(self.threads)  # one call per thread; the kernel hands out the segments
         else:
-            if trace_static:
-                raise ValueError("trace_static needs the fused path")
+            if trace_static or radiance is not None:
+                raise ValueError("trace_static and radiance need the fused path")
+            films = (film["emit"], film["diff"], film["spec"], nonfinite)
+            gb = (gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer)
+
             def run(segment):
                 first, count = segment
+                if clear:
+                    kernels.clear_rows(films, gb, first, first + count)
                 if jitter_key is not None:
                     kernels.jittered_directions(corners, cam_R, self.width, jitter_key, first, first + count, primary_dirs)
                     accel.intersect_range(camera_o, primary_dirs, first, first + count, R, T, primary, packets=self.packets[0])
                 return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
                                            film, gbuf, nonfinite, write_gbuffer, w)
 
-        segments = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
-        results = list(self._pool.map(run, segments)) if self._pool is not None else [run(s) for s in segments]
+            jobs = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
+        results = list(self._pool.map(run, jobs)) if self._pool is not None else [run(j) for j in jobs]
         self.counts.occluded += sum(r[0] for r in results)
         self.counts.intersect += sum(r[1] for r in results)
 
@@ -431,15 +448,14 @@ def _segments(n: int, min_segments: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _GBuffer:
+    """A frame's G-buffer arrays, allocated empty: the render segments set their rows' no-hit
+    values (kernels.clear_rows) before shading them."""
+
     def __init__(self, npix: int):
-        self.id = np.full(npix, -1, np.int32)
-        self.model = np.zeros((npix, 3), f32)
-        self.pos = np.zeros((npix, 3), f32)
-        self.normal = np.zeros((npix, 3), f32)
-        self.depth = np.full(npix, np.inf, f32)
-        self.alb = np.zeros((npix, 3), f32)
-        self.spec = np.zeros((npix, 3), f32)
-        self.rough = np.zeros(npix, f32)
+        self.id = np.empty(npix, np.int32)
+        self.model, self.pos, self.normal, self.alb, self.spec = (np.empty((npix, 3), f32) for _ in range(5))
+        self.depth = np.empty(npix, f32)
+        self.rough = np.empty(npix, f32)
 
 
 _NO_GBUFFER = _GBuffer(0)  # render_pixels writes no G-buffer: the kernels take empty arrays of the right types

@@ -16,6 +16,8 @@ import math
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
+from numba import types
 from numba.core.extending import intrinsic
 
 from dpmhw.render import traversal
@@ -536,6 +538,73 @@ def jittered_directions(corners, R, width, key, first, end, out):
         d2 = R[2, 0] * cx + R[2, 1] * cy + R[2, 2]
         inv = 1.0 / np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         out[pix, 0], out[pix, 1], out[pix, 2] = d0 * inv, d1 * inv, d2 * inv
+
+
+@intrinsic
+def _take_next(typingctx, counter):
+    """counter[0] += 1, atomically; returns the value before (a shared int64 work counter)."""
+    if not (isinstance(counter, types.Array) and counter.dtype == types.int64 and counter.ndim == 1):
+        return None
+
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        return builder.atomic_rmw("add", ary.data, ir.Constant(ir.IntType(64), 1), "monotonic")
+
+    return types.int64(counter), codegen
+
+
+@nb.njit(nogil=True, cache=True)
+def clear_rows(film, gb, first, end):
+    """The starting values of rows [first, end) of a frame's film (zeros) and G-buffer (no hit:
+    id −1, depth inf, the rest zeros; skipped when the G-buffer is empty). Each image segment
+    clears its own rows in its own thread, so the frame's arrays are allocated empty on the
+    main thread (no serial 88 MB fill there at 1024×768) and are in cache when that segment shades."""
+    film_emit, film_diff, film_spec, nonfinite = film
+    gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer = gb
+    for i in range(first, end):
+        for c in range(3):
+            film_emit[i, c] = film_diff[i, c] = film_spec[i, c] = 0.0
+        nonfinite[i] = 0
+    if gb_id.shape[0] > 0:
+        for i in range(first, end):
+            gb_id[i] = -1
+            gb_depth[i] = np.inf
+            gb_rough[i] = 0.0
+            for c in range(3):
+                gb_model[i, c] = gb_pos[i, c] = gb_normal[i, c] = gb_alb[i, c] = gb_spec[i, c] = 0.0
+
+
+@nb.njit(nogil=True, cache=True, error_model="numpy")
+def trace_segments(counter, starts, counts, clear, radiance, acc, acc_moving, acc_static, packets, split, depth_limit, max_bounces,
+                   mis_last, key, primary_dirs, primary, complete_primary, static, camera_o, scn, film, gb, work, jitter):
+    """trace_segment over the image segments (first rows `starts`, row counts `counts`) that
+    this thread takes from the shared `counter` (counter[0] = next segment, atomically), so each
+    render thread makes one call per pass instead of one per segment (each call unboxes some
+    60 arrays under the GIL). `clear`: each segment first sets its film and G-buffer rows to
+    their starting values (clear_rows). `radiance` (n, 3) or empty: each segment then writes its
+    rows of emit + diff + spec (a 1-spp frame's radiance, the same float32 sums as numpy's).
+    Returns the (shadow rays, continuation rays) traced, or (−1, −1) if a path outlived 4096 bounces."""
+    film_emit, film_diff, film_spec = film[0], film[1], film[2]
+    traced_shadow = traced_next = 0
+    while True:
+        s = _take_next(counter)
+        if s >= starts.shape[0]:
+            return traced_shadow, traced_next
+        first, count = starts[s], counts[s]
+        if count <= 0:
+            continue
+        if clear:
+            clear_rows(film, gb, first, first + count)
+        n_shadow, n_next = trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_bounces, mis_last, key, first, count,
+                                         primary_dirs, primary, complete_primary, static, camera_o, scn, film, gb, work, jitter)
+        if n_shadow < 0:
+            return -1, -1
+        traced_shadow += n_shadow
+        traced_next += n_next
+        if radiance.shape[0] > 0:
+            for i in range(first, first + count):
+                for c in range(3):
+                    radiance[i, c] = film_emit[i, c] + film_diff[i, c] + film_spec[i, c]
 
 
 # Without fast-math: LLVM inlines the ray queries here, and a fast-math caller would let it fuse

@@ -38,16 +38,17 @@ RTC_GEOMETRY_TYPE_TRIANGLE = 0
 RTC_BUFFER_TYPE_INDEX, RTC_BUFFER_TYPE_VERTEX = 0, 1
 RTC_FORMAT_UINT3, RTC_FORMAT_FLOAT3 = 0x5003, 0x9003
 RTC_SCENE_FLAG_ROBUST = 1 << 2
-# The robust flag (watertight traversal and intersection) stays on, by measurement: without it
-# queries ran 18-20 % faster, and the furnace, closed-box and grazing render tests still passed,
-# but 5302 of 60,000 rays aimed from inside a closed box at its edges and corners escaped (906
-# as 16-wide packets in session 5; dropping it also changed the last bits of 65 % of
-# paper-static's pixels and the odd pixel's hit, for 8-13 % less frame CPU time)
-# (tests/render/test_rtc.py::test_no_leak_through_edges_and_corners); with it, none.
-# Session 6: the device option "tri_accel=bvh8.triangle4v" (Embree's watertight Pluecker test)
-# without the flag leaked none of them either and kept the oracle tests' hits, but was no faster
-# than the flag; the non-robust speed-up comes from the very test (Moeller) that leaks.
-ROBUST = True
+# The robust flag (watertight traversal and Pluecker intersection) is off, by measurement
+# (session 7, paper-static, 2 threads, alternated): it cost 21 CPU-ms of a 232 CPU-ms fixed
+# frame and 31 of 285 with the camera moving (9-11 %). On 3.0M continuation and 4.0M shadow rays
+# of four real frames, dropping it changed the primitive of 7 hits (neighbouring triangles across
+# an edge), let none escape and unblocked no shadow ray; the furnace, closed-box and grazing tests
+# hold. Rays aimed exactly at a closed box's edges from inside still escape without it (832 of
+# 60,000: tests/render/test_rtc.py::test_no_leak_out_of_a_closed_box), which is why sessions
+# 4-6 kept it. No accel of this build is both
+# watertight and faster: "tri_accel=bvh8.triangle4v" (and every robust variant) is the Pluecker
+# test with robust traversal, as slow as the flag (session 6); the speed-up is the Moeller test's.
+ROBUST = False
 
 _lib: ctypes.CDLL | None = None
 _device = None
@@ -120,13 +121,13 @@ class RtcScene:
     """One Embree scene of triangle meshes (one geometry per mesh, geomID = list position),
     built through ctypes. `handle` is the RTCScene pointer for the kernels (0 once closed)."""
 
-    def __init__(self, vertices_list, faces_list, robust: bool = ROBUST):
+    def __init__(self, vertices_list, faces_list, robust: bool | None = None):
         if not load():
             raise RuntimeError(f"Embree C API unavailable: {_missing_reason}")
         lib = _lib
         self._buffers = []  # shared with Embree: must outlive the scene
         scene = lib.rtcNewScene(_device)
-        if robust:
+        if ROBUST if robust is None else robust:
             lib.rtcSetSceneFlags(scene, RTC_SCENE_FLAG_ROBUST)
         for vertices, faces in zip(vertices_list, faces_list):
             v = np.zeros((len(vertices), 4), np.float32)  # 16-byte stride (Embree reads 16 bytes per vertex)

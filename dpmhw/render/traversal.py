@@ -261,7 +261,7 @@ class RtcAccel:
     `accel.EmbreeAccel` (so the benchmark and tests can put one beside the other), plus `acc`:
     the tables the compiled kernels query directly."""
 
-    def __init__(self, objects, tri_offsets: np.ndarray, threads: int = 2, robust: bool = rtc.ROBUST):
+    def __init__(self, objects, tri_offsets: np.ndarray, threads: int = 2, robust: bool | None = None):
         from concurrent.futures import ThreadPoolExecutor
 
         self.threads = max(1, int(threads))

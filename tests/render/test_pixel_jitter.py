@@ -5,8 +5,11 @@ import pytest
 
 from dpmhw.render.integrator import PathIntegrator
 
-# An emitter covering world x ≥ 0 seen head-on; the camera (image y along world x here) maps
-# x = 0 onto the centre line of pixel row 3 (cy = 3), so that row is exactly half covered.
+# An emitter covering world x ≥ 0 seen head-on (turned to face the camera); the camera (image x
+# along world x) maps x = 0 onto the centre line of pixel column 3 (cx = 3), so that column is
+# exactly half covered. (Until session 7 the quad lay in the camera's plane and the camera sat on
+# its edge: every ray hit it at t = 0 or missed, which only the robust flag's inclusive edge test
+# resolved this way.)
 EDGE = """
 [render]
 width = 8
@@ -16,8 +19,8 @@ max_bounces = 0
 [camera]
 fx = 8.0
 fy = 8.0
-cx = 3.5
-cy = 3.0
+cx = 3.0
+cy = 2.5
 position = [0.0, 0.0, 1.0]
 look_at = [0.0, 0.0, 0.0]
 
@@ -26,6 +29,7 @@ name = "emitter"
 shape = "quad"
 size = [4.0, 4.0]
 position = [2.0, 0.0, 0.0]
+rotation = [90.0, 0.0, 0.0]
 albedo = 0.0
 emission = [1.0, 1.0, 1.0]
 """
@@ -39,15 +43,15 @@ def _render(scene, mode, spp, seed=0, threads=2):
 def test_half_covered_pixel_converges_to_the_covered_fraction(make_scene):
     scene = make_scene(EDGE)
     centre = _render(scene, "centre", 4).radiance[..., 0]
-    # centre sampling aliases: every pixel is 0 or 1, the half-covered row included
+    # centre sampling aliases: every pixel is 0 or 1, the half-covered column included
     assert set(np.unique(centre)) <= {0.0, 1.0}
-    np.testing.assert_array_equal(centre[:3], 0.0)
-    np.testing.assert_array_equal(centre[4:], 1.0)
+    np.testing.assert_array_equal(centre[:, :3], 0.0)
+    np.testing.assert_array_equal(centre[:, 4:], 1.0)
     jitter = _render(scene, "jitter", 1024).radiance[..., 0]
-    # the edge row converges to 1/2 (binomial noise at 1024 spp: σ ≈ 0.016), the rest stay 0 or 1
-    np.testing.assert_allclose(jitter[3], 0.5, atol=0.06)
-    np.testing.assert_array_equal(jitter[:3], 0.0)
-    np.testing.assert_array_equal(jitter[4:], 1.0)
+    # the edge column converges to 1/2 (binomial noise at 1024 spp: σ ≈ 0.016), the rest stay 0 or 1
+    np.testing.assert_allclose(jitter[:, 3], 0.5, atol=0.06)
+    np.testing.assert_array_equal(jitter[:, :3], 0.0)
+    np.testing.assert_array_equal(jitter[:, 4:], 1.0)
 
 
 def test_jitter_is_deterministic_at_any_thread_count_and_differs_by_seed(make_scene):
