@@ -116,8 +116,19 @@ def _filter_kernel(mode, radius, spatial, W, H, gid, z, nrm, axis, sharp, dif, s
 
 
 def finite_rgb(a) -> np.ndarray:
-    """Contiguous (n, 3) float32 with NaN/Inf replaced by 0."""
-    return np.nan_to_num(np.ascontiguousarray(a, np.float32).reshape(-1, 3), nan=0.0, posinf=0.0, neginf=0.0)
+    """Contiguous (n, 3) float32 copy with NaN/Inf replaced by 0 (one compiled pass: numpy's
+    `nan_to_num` took ~0.2 ms per shading-resolution array, five of them a frame, serial)."""
+    src = np.ascontiguousarray(a, np.float32).reshape(-1, 3)
+    out = np.empty_like(src)
+    _finite_copy(src.reshape(-1), out.reshape(-1))
+    return out
+
+
+@nb.njit(cache=True, nogil=True)  # no fastmath: it would assume the NaNs away
+def _finite_copy(src, out):
+    for i in range(src.shape[0]):
+        v = src[i]
+        out[i] = v if math.isfinite(v) else np.float32(0.0)
 
 
 def spatial_kernel(radius: int = RADIUS, sigma: float = SPATIAL_SIGMA) -> np.ndarray:

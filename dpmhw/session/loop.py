@@ -556,8 +556,10 @@ class SessionLoop:
             t3 = self.clock()
             g = self.parts.gbuffer
             H, W = image.shape[:2]
+            refiner = self.reconstruct.lod  # its map of this output, when tiles are refined: one map for both uses
             self.mesh_lod.observe(image, g.depth.reshape(H, W) if g is not None else frame.depth,
-                                  g.id.reshape(H, W) if g is not None else frame.object_id)
+                                  g.id.reshape(H, W) if g is not None else frame.object_id,
+                                  visibility=refiner.output_map if refiner is not None else None)
             stages["mesh_lod"] += (self.clock() - t3) / 1e9
         t4 = self.clock()
         # the newest sample may have gone stale while this frame was made: never light it then

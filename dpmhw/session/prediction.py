@@ -25,10 +25,9 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from dpmhw.tracking import PoseSample
-from dpmhw.transforms import Pose
+from dpmhw.transforms import Pose, matrix_to_rotvec, rotvec_to_matrix
 
 __all__ = ["BodyMotion", "PosePredictor", "extrapolate"]
 
@@ -48,7 +47,7 @@ def extrapolate(motion: BodyMotion, t_target_ns: int) -> Pose:
     """Pose at `t_target_ns` under constant angular velocity and constant linear acceleration
     (zero acceleration: constant velocity)."""
     dt = (t_target_ns - motion.t_ns) * 1e-9
-    R = Rotation.from_rotvec(motion.angular_velocity * dt).as_matrix() @ motion.pose.R
+    R = rotvec_to_matrix(motion.angular_velocity * dt) @ motion.pose.R
     return Pose(R, motion.pose.t + motion.velocity * dt + 0.5 * motion.acceleration * dt * dt)
 
 
@@ -60,7 +59,7 @@ def estimate_motion(samples: list[PoseSample], model: str = "velocity") -> BodyM
         return BodyMotion(pose, newest.t_exposure_ns, np.zeros(3), np.zeros(3))
     oldest = samples[0]
     span = (newest.t_exposure_ns - oldest.t_exposure_ns) * 1e-9
-    turn = Rotation.from_matrix(newest.rotation @ oldest.rotation.T).as_rotvec()
+    turn = matrix_to_rotvec(newest.rotation @ oldest.rotation.T)
     t = np.array([s.t_exposure_ns - newest.t_exposure_ns for s in samples], dtype=np.float64) * 1e-9
     p = np.stack([s.translation for s in samples])
     if model == "acceleration" and len(samples) >= 3:

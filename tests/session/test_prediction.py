@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from dpmhw.session.prediction import PosePredictor
@@ -113,3 +115,22 @@ def test_acceleration_model_is_exact_on_constant_acceleration_and_beats_velocity
 def test_unknown_model_is_refused():
     with pytest.raises(ValueError, match="prediction model"):
         PosePredictor(model="psychic")
+
+
+@settings(deadline=None, max_examples=300)
+@given(st.lists(st.floats(-1, 1), min_size=3, max_size=3), st.sampled_from([1e-12, 1e-7, 1e-3, 0.5, 2.0, np.pi - 1e-6, np.pi]))
+def test_rotation_vector_maps_match_scipy_from_zero_to_pi(axis, angle):
+    from dpmhw.transforms import matrix_to_rotvec, rotvec_to_matrix
+
+    axis = np.asarray(axis)
+    assume(np.linalg.norm(axis) > 1e-3)
+    w = axis / np.linalg.norm(axis) * angle
+    R = rotvec_to_matrix(w)
+    np.testing.assert_allclose(R, Rotation.from_rotvec(w).as_matrix(), atol=1e-12)
+    back = matrix_to_rotvec(R)
+    want = Rotation.from_matrix(R).as_rotvec()
+    if angle < np.pi - 1e-3:
+        np.testing.assert_allclose(back, want, atol=1e-9)
+    else:  # at π, w and −w are the same rotation
+        assert min(np.abs(back - want).max(), np.abs(back + want).max()) < 1e-6
+    np.testing.assert_allclose(rotvec_to_matrix(back), R, atol=1e-9)
