@@ -219,7 +219,7 @@ def _same_surface(gid, nrm, p, q):
     return c > 0.0 and c * c > 0.9025 * lp * lq
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
+@nb.njit(parallel=True, cache=True, nogil=True, fastmath=FASTMATH)
 def _products_kernel(gid, pos, nrm, rough, viewer, alb, spc, poly, lum, floor_d, floor_s, specular, W, H,
                      y0, y1, x0, x1, use_mask, mask, lattice, irr, spec_term, out_d, out_s):
     """irr = E, spec_term = S, out_d = alb·(E + F_d), out_s = spc·(S + F_s) over the box (and the mask).
