@@ -571,7 +571,10 @@ class NativeGBuffer:
             for ab in bounds:
                 run(ab)
         else:
-            list(self._pool.map(run, bounds))
+            others = [self._pool.submit(run, ab) for ab in bounds[1:]]
+            run(bounds[0])  # this thread takes a share instead of waiting idle
+            for f in others:
+                f.result()
         if not isinstance(accel, RtcAccel):
             for name in ("t", "obj", "prim", "u", "v"):
                 getattr(h, name)[index] = getattr(c, name)
