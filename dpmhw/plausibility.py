@@ -66,9 +66,7 @@ class PlausibilityGate:
 
     def __init__(self, limits: PlausibilityLimits | None = None):
         self.limits = limits or PlausibilityLimits()
-        self._lo = np.asarray(self.limits.workspace_min, float)
-        self._hi = np.asarray(self.limits.workspace_max, float)
-        self._lo_hi = (tuple(self._lo.tolist()), tuple(self._hi.tolist()))
+        self._box = (tuple(float(v) for v in self.limits.workspace_min), tuple(float(v) for v in self.limits.workspace_max))
         self._accepted: dict[int, tuple[np.ndarray, int]] = {}  # body -> (position, t_exposure_ns)
         self._lock = threading.Lock()
         self.dropped: Counter[str] = Counter()
@@ -100,7 +98,7 @@ class PlausibilityGate:
             return None
         p = sample.translation
         x, y, z = np.asarray(p, np.float64).tolist()  # plain floats: this runs per body, hundreds of times a second
-        (x0, y0, z0), (x1, y1, z1) = self._lo_hi
+        (x0, y0, z0), (x1, y1, z1) = self._box
         if not (x0 <= x <= x1 and y0 <= y <= y1 and z0 <= z <= z1):  # False for NaN
             return "workspace", (f"position {np.round(p, 3).tolist()} m is outside the workspace "
                                  f"{list(lim.workspace_min)}…{list(lim.workspace_max)} m")
