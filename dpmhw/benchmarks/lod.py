@@ -82,7 +82,6 @@ class LodBenchConfig:
     mesh: MeshLodSettings = field(default_factory=MeshLodSettings)
     methods: tuple[str, ...] = METHODS  # "none" first; NAME-plain: NAME without the analytic demodulation
     analytic_floors: tuple[float, float] | None = DEFAULT_FLOORS  # the stage's (diffuse, specular) floor fractions
-    analytic_lattice: int = 1  # the stage's native analytic-term lattice (1: every pixel, 2: every second row/column)
     moving_every: int | None = None  # lod.moving_every of the refining methods (None: the session default)
 
     @classmethod
@@ -194,8 +193,7 @@ class _Run:
                                       background=n.render.background, viewer=n.viewer_position, gbuffer=p.gbuffer,
                                       clock=_time.process_time_ns,
                                       adaptive=AdaptiveSampler(p.integrator, p.gbuffer) if p.gbuffer is not None else None,
-                                      lod=self.refiner, analytic=self.analytic,
-                                      analytic_lattice=self.cfg.analytic_lattice)
+                                      lod=self.refiner, analytic=self.analytic)
 
     def step(self, k: int, t: float, poses) -> dict:
         lod_cpu = 0.0

@@ -104,7 +104,6 @@ def bench_lod(
     threads: Annotated[int, typer.Option(min=1)] = 2,
     methods: Annotated[Optional[str], typer.Option(help="Comma-separated methods, none first; NAME-plain: NAME without the analytic demodulation [default: none,quarter,moving,shading-rate,spp,mesh-LOD,all].")] = None,
     analytic_floors: Annotated[Optional[str], typer.Option(help="Diffuse,specular floor fractions of the analytic-direct demodulation [default: the session's render.analytic_floor, render.analytic_specular_floor].")] = None,
-    analytic_lattice: Annotated[int, typer.Option(min=1, max=2, help="Native analytic terms at every pixel (1) or every second row and column (2), as render.analytic_lattice.")] = 1,
     moving_every: Annotated[Optional[int], typer.Option(help="lod.moving_every of the refining methods: 1, 2 or 4 [default: the session's].")] = None,
 ) -> None:
     """Contrast-driven LOD through the loop's pipeline, speed against error: rows {scene, method,
@@ -117,7 +116,7 @@ def bench_lod(
 
     cfg = LodBenchConfig.quick() if quick else LodBenchConfig()
     try:
-        changes = dict(threads=threads, analytic_lattice=analytic_lattice, visibility=VisibilitySettings(viewer_distance_m=viewer_distance, alpha_v=alpha_v))
+        changes = dict(threads=threads, visibility=VisibilitySettings(viewer_distance_m=viewer_distance, alpha_v=alpha_v))
         if eval_times is not None:
             changes["eval_times"] = tuple(float(v) for v in eval_times.split(",") if v.strip())
             if not changes["eval_times"] or min(changes["eval_times"]) < 0:

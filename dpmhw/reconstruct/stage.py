@@ -92,15 +92,11 @@ class ReconstructStage:
         diffuse light is divided by albedo·(E + F_d) and the specular by spec_albedo·(S + F_s) at
         the shading resolution, and re-multiplied by the native products. Needs the native
         G-buffer (its geometry gives the emitters); at equal sizes it is off
-    analytic_lattice : 1, the native terms at every pixel; 2, on every second row and column,
-        interpolated on smooth surfaces (a quarter of the evaluations, about 0.2 dB less inside
-        the moving objects: docs/lod.md)
     """
 
     def __init__(self, native_size, shading_size, *, background=(0.0, 0.0, 0.0), viewer=(0.0, 0.0, 0.0),
                  warmup: bool = False, gbuffer=None, gbuffer_mode: str = "edges", clock=time.monotonic_ns,
-                 adaptive=None, lod=None, analytic: tuple[float, float] | None = DEFAULT_FLOORS,
-                 analytic_lattice: int = 1):
+                 adaptive=None, lod=None, analytic: tuple[float, float] | None = DEFAULT_FLOORS):
         self.W, self.H = (int(v) for v in native_size)
         self.w, self.h = (int(v) for v in shading_size)
         if (self.w, self.h) != (self.W, self.H) and gbuffer is None:
@@ -137,7 +133,7 @@ class ReconstructStage:
             self._dynamic_lights = any(o.is_emissive and o.is_dynamic for o in scene.objects)
             poly, lum = emitter_polygons(gbuffer.geometry, scene.object_poses(0.0))
             self.analytic = (AnalyticDirect(self.w, self.h, poly, lum, self.viewer),
-                             AnalyticDirect(self.W, self.H, poly, lum, self.viewer, analytic_lattice))
+                             AnalyticDirect(self.W, self.H, poly, lum, self.viewer))
 
     def close(self) -> None:
         if self._helper is not None:

@@ -76,10 +76,6 @@ class RenderSection(_Section):
                                   "where the direct light is ≈ 0)")
     analytic_specular_floor: float = Field(4.0, gt=0.0, le=100.0, description="analytic demodulation: the specular "
                                            "term's floor, a fraction of its mean (larger: the term is an approximation)")
-    analytic_lattice: int = Field(1, ge=1, le=2, strict=True, description="analytic demodulation: the native terms at "
-                                  "every pixel (1), or on every second row and column, interpolated on smooth "
-                                  "surfaces (2: a quarter of the evaluations, ≈ 2 CPU-ms a frame less on dpm-bunny, "
-                                  "−0.2 dB inside the objects; docs/lod.md)")
     pipeline: bool = Field(True, description="render frame n+1 on its own thread while frame n is reconstructed "
                                              "(throughput; the next frame's pose is predicted one frame further)")
     pixel_sampling: Literal["centre", "jitter"] = Field("centre", description="shading rays through pixel centres "

@@ -200,8 +200,7 @@ class SessionLoop:
                                             if parts.gbuffer is not None and config.render.adaptive_rays > 0 else None,
                                             lod=tile_refiner(self._renderer, parts.gbuffer, config.lod),  # issue 13
                                             analytic=(config.render.analytic_floor, config.render.analytic_specular_floor)
-                                            if config.render.analytic else None,
-                                            analytic_lattice=config.render.analytic_lattice)
+                                            if config.render.analytic else None)
         self.mesh_lod = mesh_lod(parts.renderer, parts.gbuffer, config.lod)  # issue 13: mesh levels (None: off)
         self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
         # render frame n+1 beside frame n's reconstruction; not with mesh LOD, whose level switch must hold for

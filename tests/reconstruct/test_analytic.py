@@ -64,6 +64,63 @@ def test_closed_form_irradiance_matches_a_numerical_integral(p, n, case):
     assert e[0] == pytest.approx(ref, rel=2e-3), case
 
 
+def test_random_points_clipped_or_not_match_the_numerical_integral():
+    """The vectorised kernel selects between the clipped and unclipped cases per point: random
+    points and normals, many of them with the light partly below their horizon."""
+    poly, lum = _light()
+    rng = np.random.default_rng(7)
+    pts = rng.uniform([-0.6, 0.0, -0.6], [0.6, 0.8, 0.6], (40, 3))
+    nrm = rng.normal(size=(40, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    e, _ = terms_at_points(pts, nrm, VIEWER, np.full(40, 0.5), poly, lum)
+    heights = np.einsum("pkc,pc->pk", CORNERS[None] - pts[:, None], nrm)
+    clipped = ((heights < 0).any(1) & (heights >= 0).any(1)).sum()
+    assert clipped >= 10  # the hard case is exercised
+    ref = np.array([_quadrature(p, n, m=400) for p, n in zip(pts, nrm)])
+    assert np.allclose(e, ref, rtol=5e-3, atol=2e-4)
+
+
+def test_a_triangle_emitter_and_a_quad_split_in_two_give_the_same_terms():
+    quad, lum = _light()
+    t1, l1 = polygon_rows(CORNERS[[0, 1, 2]], (1.0, 1.0, 1.0))
+    t2, l2 = polygon_rows(CORNERS[[0, 2, 3]], (1.0, 1.0, 1.0))
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-0.6, 0.0, -0.6], [0.6, 0.8, 0.6], (300, 3))
+    nrm = rng.normal(size=(300, 3))
+    e_q, _ = terms_at_points(pts, nrm, VIEWER, np.full(300, 0.5), quad, lum)
+    e_t, _ = terms_at_points(pts, nrm, VIEWER, np.full(300, 0.5), np.stack([t1, t2]), np.array([l1, l2]))
+    assert np.allclose(e_q, e_t, rtol=1e-5, atol=1e-6)  # the shared diagonal cancels (up to rounding)
+
+
+def test_masked_updates_over_many_blocks_equal_a_full_evaluation():
+    """More points than one parallel block, an odd box and a mask: the masked pixels get exactly
+    the full evaluation's values, the others keep theirs."""
+    poly, lum = _light((3.0, 3.0, 3.0))
+    W, H = 97, 61  # 5917 pixels: three blocks
+    g, pos, nrm = _plane_guides(W, H)
+    nrm = nrm.copy()
+    nrm[::3] = np.float32([0.6, 0.0, 0.8])  # rows with the light half below the horizon
+    gid = g.id.reshape(H, W).copy()
+    gid[:, 80:] = -1  # background
+    spec = np.full((W * H, 3), 0.3, np.float32)
+    rough = np.full(W * H, 0.4, np.float32)
+    full = AnalyticDirect(W, H, poly, lum, VIEWER)
+    part = AnalyticDirect(W, H, poly, lum, VIEWER)
+    for a in (full, part):
+        a.set_floors(0.1, 0.1)
+    full.update(gid, pos, nrm, rough, g.albedo, spec, (0, H, 0, W))
+    mask = np.random.default_rng(0).random(W * H) < 0.5
+    part.update(gid, pos, nrm, rough, g.albedo, spec, (3, 58, 5, 90), mask)
+    inside = np.zeros((H, W), bool)
+    inside[3:58, 5:90] = True
+    sel = inside.reshape(-1) & mask
+    for name in ("irradiance", "specular", "diffuse_products", "specular_products"):
+        a, b = getattr(full, name), getattr(part, name)
+        assert np.array_equal(a[sel], b[sel]), name
+    assert (part.irradiance[~sel] == 0).all() and (part.diffuse_products[~sel] == 1).all()
+    assert (full.irradiance.reshape(H, W)[:, :80] > 0).mean() > 0.5 and (full.irradiance.reshape(H, W)[:, 80:] == 0).all()
+
+
 def test_theta_over_sin_fit_is_within_1e3_relative_everywhere():
     x = np.linspace(-0.999, 0.9999, 20001)
     exact = np.arccos(x) / np.sqrt(1 - x * x)
@@ -265,39 +322,6 @@ def test_session_config_switch_and_floors():
     assert d.render.analytic is True and (d.render.analytic_floor, d.render.analytic_specular_floor) == DEFAULT_FLOORS
     with pytest.raises(Exception, match="analytic_floor"):
         SessionConfig.model_validate({"render": {"analytic_floor": 0}})
-
-
-def test_lattice_two_interpolates_smooth_surfaces_and_evaluates_across_edges():
-    poly, lum = _light((3.0, 3.0, 3.0))
-    W, H = 33, 25
-    g, pos, nrm = _plane_guides(W, H)
-    gid = g.id.reshape(H, W).copy()
-    gid[:, 20:] = 1  # a second object: pixels next to the id edge are evaluated, not interpolated
-    nrm = nrm.copy()
-    nrm[10:, :] = np.float32([0.0, 0.8, 0.6])  # a crease: same object, normals 37° apart
-    rough = np.full(W * H, 0.4, np.float32)
-    spec = np.full((W * H, 3), 0.3, np.float32)
-    one = AnalyticDirect(W, H, poly, lum, VIEWER, 1)
-    two = AnalyticDirect(W, H, poly, lum, VIEWER, 2)
-    for a in (one, two):
-        a.set_floors(0.1, 0.1)
-        a.update(gid, pos, nrm, rough, g.albedo, spec, (0, H, 0, W))
-    assert np.array_equal(one.irradiance.reshape(H, W)[::2, ::2], two.irradiance.reshape(H, W)[::2, ::2])
-    assert np.allclose(two.irradiance, one.irradiance, rtol=5e-3)  # E is smooth at a pixel's scale
-    # the highlight is not linear at a pixel's scale: within 10 % of its peak
-    assert np.abs(two.specular - one.specular).max() <= 0.1 * one.specular.max()
-    edge = np.zeros((H, W), bool)
-    edge[:, 19] = True  # between a lattice column of each object
-    edge[9, :] = True  # between a lattice row of each side of the crease
-    assert np.array_equal(two.irradiance.reshape(H, W)[edge], one.irradiance.reshape(H, W)[edge])
-    # a masked update with the lattice keeps the others' values, and a box with odd corners works
-    before = two.irradiance.copy()
-    mask = np.zeros(W * H, bool)
-    mask[5 * W + 7] = True
-    two.update(gid, pos, nrm, rough, g.albedo, spec, (3, 8, 5, 12), mask)
-    assert np.array_equal(two.irradiance, before)
-    with pytest.raises(ValueError, match="lattice"):
-        AnalyticDirect(4, 4, poly, lum, VIEWER, 3)
 
 
 def test_bench_lod_methods_are_checked_and_plain_variants_turn_the_demodulation_off():
