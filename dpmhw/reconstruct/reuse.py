@@ -384,8 +384,24 @@ class TemporalReuse:
         """(H, W) float32 frames since the last reset (bilinear-blended in motion mode)."""
         return self._n.reshape(self.height, self.width).copy()
 
+    def reprojection(self, object_id, model_position, camera) -> tuple[np.ndarray, np.ndarray] | None:
+        """Motion mode: where each pixel's surface point was in this history's previous frame
+        (`reproject`), or None before a first frame. Histories updated in lockstep (the stage's
+        diffuse and specular ones) share it: `update(..., reprojected=…)`."""
+        if self._prev_poses is None:
+            return None
+        return reproject(np.asarray(object_id), model_position, self._prev_poses, self._prev_camera, camera)
+
+    def follows_same_frames(self, other: "TemporalReuse") -> bool:
+        """Whether this history's previous frame is `other`'s (same poses and camera)."""
+        a, b = self._prev_poses, other._prev_poses
+        if a is None or b is None:
+            return a is b
+        return (self._prev_camera is other._prev_camera and len(a) == len(b)
+                and all(np.array_equal(p.R, q.R) and np.array_equal(p.t, q.t) for p, q in zip(a, b)))
+
     def update(self, radiance: np.ndarray, object_id: np.ndarray | None = None, model_position: np.ndarray | None = None,
-               poses=None, camera=None) -> np.ndarray:
+               poses=None, camera=None, reprojected: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Blend one frame into the history and return the output.
 
         Parameters
@@ -395,6 +411,8 @@ class TemporalReuse:
         model_position : (H, W, 3) float, model-space hit points (motion mode)
         poses : list of Pose, model→world per object id, of *this* frame (motion mode)
         camera : PinholeCamera of this frame (motion mode)
+        reprojected : motion mode, `reprojection(...)` of this frame, computed once for several
+            histories whose previous frame is the same (see `follows_same_frames`)
         """
         H, W = self.height, self.width
         rad = np.asarray(radiance)
@@ -422,8 +440,10 @@ class TemporalReuse:
             if self._prev_poses is None:  # no previous frame: everything resets
                 prev_xy = np.zeros((H * W, 2))
                 prev_ok = np.zeros(H * W, bool)
+            elif reprojected is not None:
+                prev_xy, prev_ok = reprojected
             else:
-                prev_xy, prev_ok = reproject(np.asarray(object_id), model_position, self._prev_poses, self._prev_camera, camera)
+                prev_xy, prev_ok = self.reprojection(object_id, model_position, camera)
             new_hi, new_lo, new_n = self._spare
             kind = np.empty(H * W, np.int8)
             bad = _motion_kernel[H * W >= PARALLEL_MIN_PIXELS](cur, ids, prev_xy, prev_ok, W, H, self._hi, self._lo, self._n, self._id, s.alpha, s.warmup,

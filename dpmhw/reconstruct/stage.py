@@ -216,8 +216,11 @@ class ReconstructStage:
         else:
             d_in = (diffuse / low.albedo).reshape(self.h, self.w, 3)
             s_in = (specular / low.spec_albedo).reshape(self.h, self.w, 3)
-        d = self.reuse_d.update(d_in, frame.object_id, frame.model_position, poses, camera)
-        s = self.reuse_s.update(s_in, frame.object_id, frame.model_position, poses, camera)
+        # both histories move in lockstep: one reprojection serves both
+        shared = self.reuse_d.settings.mode == "motion" and self.reuse_s.follows_same_frames(self.reuse_d)
+        rp = self.reuse_d.reprojection(frame.object_id, frame.model_position, camera) if shared else None
+        d = self.reuse_d.update(d_in, frame.object_id, frame.model_position, poses, camera, rp)
+        s = self.reuse_s.update(s_in, frame.object_id, frame.model_position, poses, camera, rp)
         t2 = self._now()
         d, s, _ = cross_bilateral(d, s, low, filter)
         return d, s, emitted, {"reuse": t2 - t1, "filter": self._now() - t2}

@@ -182,3 +182,24 @@ def test_motion_mode_input_errors_name_what_is_missing(static_view):
     bad_ids[0, 0] = 3  # an id with no pose
     with pytest.raises(ReuseError, match="only 1 previous poses"):
         reproject(bad_ids, mpos, poses, cam, cam)
+
+
+def test_two_histories_sharing_one_reprojection_equal_two_computing_their_own():
+    """The stage's diffuse and specular histories move in lockstep and reuse one reprojection."""
+    cam = make_camera(24, 18, f=30.0, cx=12.0, cy=9.0)
+    rng = np.random.default_rng(2)
+    pair, alone = (TemporalReuse(24, 18, 0.2, "motion"), TemporalReuse(24, 18, 0.2, "motion")), TemporalReuse(24, 18, 0.2, "motion")
+    assert pair[1].follows_same_frames(pair[0])
+    for k in range(4):
+        pose = Pose(rotation_about_axis([0, 1, 0], 0.05 * k), np.array([0.01 * k, 0.0, 0.0]))
+        ids, mpos = plane_gbuffer(cam, depth=2.0, pose=pose)
+        rad = rng.random((18, 24, 3)).astype(np.float32)
+        rp = pair[0].reprojection(ids, mpos, cam)
+        assert (rp is None) == (k == 0)
+        assert pair[1].follows_same_frames(pair[0])
+        outs = [r.update(rad, ids, mpos, [pose], cam, rp) for r in pair]
+        ref = alone.update(rad, ids, mpos, [pose], cam)
+        assert np.array_equal(outs[0], ref) and np.array_equal(outs[1], ref)
+    other = TemporalReuse(24, 18, 0.2, "motion")
+    other.update(rad, ids, mpos, [Pose(np.eye(3), np.zeros(3))], cam)
+    assert not other.follows_same_frames(pair[0])
