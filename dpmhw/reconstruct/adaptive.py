@@ -113,18 +113,21 @@ class AdaptiveSampler:
     def reset(self) -> None:
         self._h_frame[:] = -2
 
-    def refine(self, radiance, wsum, unresolved, box, poses, seed: int, alpha: float = 1.0) -> np.ndarray:
+    def refine(self, radiance, wsum, unresolved, box, poses, seed: int, alpha: float = 1.0, object_id=None) -> np.ndarray:
         """Sample the chosen pixels and blend them into `radiance` (W*H, 3) in place; returns
-        them. `alpha`: the temporal reuse's weight of the new sample (1: no history)."""
+        them. `alpha`: the temporal reuse's weight of the new sample (1: no history).
+        `object_id`: the frame's native ids (default the G-buffer's; the stage passes its native
+        guides' ids, which stay this frame's while the G-buffer moves on to the next one)."""
         g = self.gbuffer
+        gid = g.id if object_id is None else object_id
         self._frame += 1
-        pixels = select(g.id, wsum, unresolved, g.width, box, self.max_pixels, self.threshold)
+        pixels = select(gid, wsum, unresolved, g.width, box, self.max_pixels, self.threshold)
         self.last_pixels, self.last_rays = len(pixels), 0
         if len(pixels) == 0:
             return pixels
         samples = self.renderer.render_pixels(g.camera, pixels, poses, seed, static_hits=g.static_hits)
         c = self.renderer.counts
         self.last_rays = c.primary + c.intersect + c.occluded
-        _merge(pixels, samples, wsum, unresolved, np.float32(self.threshold), radiance, g.id, np.float32(alpha),
+        _merge(pixels, samples, wsum, unresolved, np.float32(self.threshold), radiance, gid, np.float32(alpha),
                self._h_rad, self._h_id, self._h_frame, self._frame)
         return pixels

@@ -33,13 +33,19 @@ to date (every kernel of both releases the GIL; the helper runs its kernels on o
 native G-buffer's work is mostly serial steps and small parallel ones that leave the second core
 idle; the branch fills it. The sub-stage timings are each branch's own wall time (`gbuffer`
 overlaps `reuse` + `filter`), so they no longer add up to the frame time.
+
+Early G-buffer (`apply(next_frame=…)`, the loop's pipelining): once this frame's native guides
+and analytic products are derived, nothing of this frame reads the G-buffer again, so it is
+brought to the next frame on a thread of its own, as soon as that frame's render is done,
+beside this frame's upsampling, adaptive sampling and encoding. The next `apply` then finds it
+done: the loop thread's serial path loses the G-buffer update, its largest step.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -52,6 +58,12 @@ from dpmhw.reconstruct.reuse import ReuseSettings, TemporalReuse
 from dpmhw.reconstruct.upsample import upsample
 
 __all__ = ["ReconstructStage", "StageOutput"]
+
+
+@dataclass
+class _Ahead:
+    frame: Future  # the next frame's render
+    update: Future  # the G-buffer update for it: (lit box, seconds)
 
 
 @dataclass
@@ -123,6 +135,8 @@ class ReconstructStage:
         self._gbuffer_updates = -1  # the native G-buffer's update count this stage's guides last followed
         self._exact: bool | None = None  # which path the last frame took
         self._helper: ThreadPoolExecutor | None = None  # runs the shading-resolution branch (see module doc)
+        self._ahead_thread: ThreadPoolExecutor | None = None  # brings the native G-buffer to the next frame early
+        self._ahead: _Ahead | None = None  # that update, while it runs or until the frame it was for arrives
         self.analytic = None  # (low, native) `AnalyticDirect` products when on
         if analytic is not None and gbuffer is not None:
             fractions = tuple(float(f) for f in analytic)
@@ -136,9 +150,11 @@ class ReconstructStage:
                              AnalyticDirect(self.W, self.H, poly, lum, self.viewer))
 
     def close(self) -> None:
-        if self._helper is not None:
-            self._helper.shutdown(wait=True)
-            self._helper = None
+        self._drop_ahead()
+        for pool in (self._helper, self._ahead_thread):
+            if pool is not None:
+                pool.shutdown(wait=True)
+        self._helper = self._ahead_thread = None
 
     def _now(self) -> float:
         return self.clock() / 1e9
@@ -166,14 +182,18 @@ class ReconstructStage:
             self._base = (exposure, encode_srgb8(bg, self.W, exposure))
         return self._base[1]
 
-    def _update_native(self, poses, frame) -> tuple[int, int, int, int]:
-        """Native G-buffer (moving objects' region re-traced) and this stage's native guides;
-        returns the lit box."""
+    def _update_gbuffer(self, poses, frame) -> tuple[tuple[int, int, int, int], float]:
+        """The native G-buffer brought to `poses` (moving objects' region re-traced): (lit box, seconds)."""
+        t0 = self._now()
+        box = self.gbuffer.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
+        return box, self._now() - t0
+
+    def _update_native(self, box) -> None:
+        """This stage's native guides (and analytic products) from the G-buffer's last update."""
         from dpmhw.render.gbuffer import box_minus  # loaded already (the G-buffer's module); kept out of
         # this module's imports so that importers of the stage (the API process) skip numba/Embree
 
         g = self.gbuffer
-        box = g.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
         # this stage's native guides: everything once, then the current region and the rest of its last
         if self._native_roi == "none yet":
             dirty = [(0, self.H, 0, self.W)]
@@ -195,7 +215,42 @@ class ReconstructStage:
                 if self.analytic is not None:
                     self.analytic[1].update(g.id, g.position, g.normal, g.roughness, self.native.albedo,
                                             self.native.spec_albedo, b, mask)
-        return box
+
+    # ---- the next frame's G-buffer, early (pipelining) ---------------------------------------------
+    def _start_ahead(self, next_frame) -> None:
+        """Bring the G-buffer to the next frame on its own thread as soon as that frame's render is
+        done, while this frame is upsampled, sampled and encoded. Safe because from here on this
+        frame reads only what `_update_native` derived from the G-buffer (the native guides and
+        analytic products; adaptive sampling takes the guides' ids), never the G-buffer itself."""
+        poses, frame_future = next_frame
+        if self._ahead_thread is None:
+            self._ahead_thread = ThreadPoolExecutor(1, thread_name_prefix="gbuffer-ahead")
+
+        def run():
+            return self._update_gbuffer(poses, frame_future.result())
+
+        self._ahead = _Ahead(frame_future, self._ahead_thread.submit(run))
+
+    def _take_ahead(self, frame):
+        """(box, seconds) of the early update if it was for `frame`; else None, once any early
+        update has finished (it must not run beside this frame's own)."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is None:
+            return None
+        try:
+            for_this = ahead.frame.done() and ahead.frame.exception() is None and ahead.frame.result() is frame
+        except CancelledError:
+            for_this = False
+        if for_this:
+            return ahead.update.result()  # its own failure is this frame's
+        try:
+            ahead.update.result()
+        except Exception:
+            pass  # for a frame that was dropped: its fault, if any, shows again with the frame's own update
+        return None
+
+    def _drop_ahead(self) -> None:
+        self._take_ahead(None)
 
     def _shading_branch(self, frame, filter: str, poses, camera):
         """Shading-resolution guides, demodulation, reuse and filter (reads nothing native);
@@ -248,8 +303,13 @@ class ReconstructStage:
         return self.base_frame(exposure).copy()
 
     def apply(self, frame, *, mode: str, alpha: float, filter: str = "lobe", split_screen: bool = False,
-              exposure: float = 1.0, poses=None, camera=None) -> StageOutput:
-        """Reconstruct one native frame from a shading-resolution renderer `Frame`."""
+              exposure: float = 1.0, poses=None, camera=None, next_frame=None) -> StageOutput:
+        """Reconstruct one native frame from a shading-resolution renderer `Frame`.
+
+        next_frame : (poses, future of its `Frame`) of the frame that will follow, when the caller
+            already renders it (the loop's pipelining): the native G-buffer is then brought to it
+            beside this frame's upsampling, and the next call finds it done. Only without tile
+            refinement, which reads the G-buffer after the upsampling."""
         code = mode_code(filter)
         if frame.shape != (self.h, self.w):
             raise ValueError(f"frame: expected the shading size {self.w}×{self.h}, got {frame.shape[1]}×{frame.shape[0]}")
@@ -277,8 +337,13 @@ class ReconstructStage:
             branch = self._helper.submit(self._shading_branch, frame, filter, poses, camera)
             image = self._helper.submit(self._background_copy, exposure)  # the frame to draw into, after the branch
             try:
-                box = self._update_native(poses, frame)
-                st["gbuffer"] = self._now() - t0
+                early = self._take_ahead(frame)
+                box, st["gbuffer"] = early if early is not None else self._update_gbuffer(poses, frame)
+                t_native = self._now()
+                self._update_native(box)
+                st["gbuffer"] += self._now() - t_native
+                if next_frame is not None and self.lod is None:
+                    self._start_ahead(next_frame)
             finally:
                 d, s, emitted, st_low = branch.result()  # never leave the branch running into the next frame
         else:
@@ -309,7 +374,7 @@ class ReconstructStage:
         st["adaptive"] = 0.0
         if self.adaptive is not None:
             self.adaptive.refine(self._radiance, self._wsum, self._unresolved, box, poses if poses is not None else [],
-                                 frame.seed, 1.0 if mode == "off" else alpha)
+                                 frame.seed, 1.0 if mode == "off" else alpha, self.native.id)
             t5 = self._now()
             st["adaptive"] = t5 - t4
             t4 = t5

@@ -541,9 +541,11 @@ class SessionLoop:
         if self.pipeline:
             self._prefetch()
         try:
+            nxt = self._next  # started ahead: the stage brings the native G-buffer to it early
             out = self.reconstruct.apply(frame, mode=settings.reuse_mode, alpha=settings.alpha, filter=settings.filter,
                                          split_screen=settings.split_screen, exposure=self.config.render.exposure,
-                                         poses=poses, camera=getattr(self.parts.renderer, "camera", None))
+                                         poses=poses, camera=getattr(self.parts.renderer, "camera", None),
+                                         next_frame=(nxt.poses, nxt.frame) if nxt is not None else None)
         except NonFiniteFrameError as exc:
             return self._stage_failed("render", None, f"post-processing refused the frame: {exc}")
         except Exception as exc:

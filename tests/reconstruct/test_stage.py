@@ -315,3 +315,47 @@ def test_two_stages_sharing_a_moving_native_gbuffer_each_keep_guides_equal_to_fr
             stage.close()
         g.close()
         r.close()
+
+
+def test_the_next_frames_gbuffer_brought_ahead_gives_the_same_frames():
+    """With `next_frame` the native G-buffer moves to the next frame on its own thread while this
+    frame is upsampled and adaptively sampled: the frames equal those of a stage without it, bit
+    for bit, also when a frame announced ahead never comes (a dropped prefetch)."""
+    from concurrent.futures import Future
+
+    from dpmhw.reconstruct.adaptive import AdaptiveSampler
+
+    def done(value):
+        f = Future()
+        f.set_result(value)
+        return f
+
+    native = scale_to(load_scene("dpm-bunny"), 256, 192)
+    r = PathIntegrator(shading_scene(native, 0.25), threads=2)
+    gs = [NativeGBuffer(native, r.geometry, 256, 192, threads=2) for _ in range(2)]
+    stages = [ReconstructStage((256, 192), (64, 48), background=native.render.background, viewer=native.viewer_position,
+                               gbuffer=g, adaptive=AdaptiveSampler(r, g, 4096, threshold=0.05)) for g in gs]
+    try:
+        times = [i / 10 for i in range(7)]
+        poses = [native.object_poses(t) for t in times]
+        frames = [r.render(time=t, seed=i, poses=p) for i, (t, p) in enumerate(zip(times, poses))]
+        dropped = r.render(time=0.35, seed=99, poses=native.object_poses(0.35))  # announced, never applied
+        for i, frame in enumerate(frames):
+            if i == 3:
+                nxt = (native.object_poses(0.35), done(dropped))
+            else:
+                nxt = (poses[i + 1], done(frames[i + 1])) if i + 1 < len(frames) else None
+            a = stages[0].apply(frame, mode="motion", alpha=0.2, filter="lobe", poses=poses[i], camera=r.camera,
+                                next_frame=nxt)
+            b = stages[1].apply(frame, mode="motion", alpha=0.2, filter="lobe", poses=poses[i], camera=r.camera)
+            assert np.array_equal(a.image, b.image) and a.lit_box == b.lit_box and a.image.sum() > 0
+            assert stages[1]._ahead is None and (stages[0]._ahead is not None) == (nxt is not None)
+        assert stages[0].adaptive.last_pixels > 0  # the sampler ran on the guides' ids
+        stages[0].close()
+        assert stages[0]._ahead is None and stages[0]._ahead_thread is None
+    finally:
+        for s in stages:
+            s.close()
+        for g in gs:
+            g.close()
+        r.close()
