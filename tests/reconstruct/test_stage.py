@@ -359,3 +359,42 @@ def test_the_next_frames_gbuffer_brought_ahead_gives_the_same_frames():
         for g in gs:
             g.close()
         r.close()
+
+
+def test_a_failure_of_the_early_gbuffer_update_is_the_next_frames_and_the_stage_recovers():
+    from concurrent.futures import Future
+
+    def done(value):
+        f = Future()
+        f.set_result(value)
+        return f
+
+    native = scale_to(load_scene("dpm-bunny"), 128, 96)
+    r = PathIntegrator(shading_scene(native, 0.25), threads=1)
+    g = NativeGBuffer(native, r.geometry, 128, 96, threads=1)
+    stage = ReconstructStage((128, 96), (32, 24), background=native.render.background, viewer=native.viewer_position,
+                             gbuffer=g)
+    try:
+        poses = [native.object_poses(i / 10) for i in range(4)]
+        frames = [r.render(time=i / 10, seed=i, poses=p) for i, p in enumerate(poses)]
+        real = g.update
+        calls = []
+
+        def flaky(*a, **k):
+            calls.append(1)
+            if len(calls) == 2:  # the early update for frame 1
+                raise RuntimeError("trace failed")
+            return real(*a, **k)
+
+        g.update = flaky
+        kw = dict(mode="motion", alpha=0.2, filter="lobe", camera=r.camera)
+        stage.apply(frames[0], poses=poses[0], next_frame=(poses[1], done(frames[1])), **kw)
+        with pytest.raises(RuntimeError, match="trace failed"):
+            stage.apply(frames[1], poses=poses[1], next_frame=(poses[2], done(frames[2])), **kw)
+        assert stage._ahead is None  # nothing left running for a frame that failed
+        out = stage.apply(frames[2], poses=poses[2], **kw)  # its own update: the stage goes on
+        assert out.image.sum() > 0
+    finally:
+        stage.close()
+        g.close()
+        r.close()
