@@ -96,10 +96,13 @@ def _edge(a0, a1, a2, b0, b1, b2, n0, n1, n2):
 
 
 @nb.njit(inline="always", **EVAL)
-def _clipped_edge(a0, a1, a2, u0, u1, u2, ha, b0, b1, b2, w0, w1, w2, hb, n0, n1, n2):
-    """One polygon edge a → b (relative to p; u, w their unit directions, ha, hb their heights
-    above p's tangent plane) clipped to n's hemisphere: (its θ·(n·ĝ), the horizon point, whether
-    the edge leaves the hemisphere there, whether it enters)."""
+def _clipped_edge(acc, a0, a1, a2, u0, u1, u2, ha, b0, b1, b2, w0, w1, w2, hb, n0, n1, n2):
+    """The running sum `acc` = (Σ θ·(n·ĝ), exit point (3), entry point (3), has exit, has entry)
+    with the polygon edge a → b added (relative to p; u, w their unit directions, ha, hb their
+    heights above p's tangent plane), clipped to n's hemisphere: the part below the horizon is
+    cut off at the horizon point, where the edge leaves or enters the hemisphere (a convex
+    polygon has at most one of each)."""
+    s, ex0, ex1, ex2, en0, en1, en2, has_exit, has_entry = acc
     ina = ha >= 0.0
     inb = hb >= 0.0
     f = ha / (ha - hb)  # only used where the signs differ (ha ≠ hb)
@@ -107,7 +110,12 @@ def _clipped_edge(a0, a1, a2, u0, u1, u2, ha, b0, b1, b2, w0, w1, w2, hb, n0, n1
     s0, s1, s2 = (u0, u1, u2) if ina else (x0, x1, x2)
     t0, t1, t2 = (w0, w1, w2) if inb else (x0, x1, x2)
     e = _edge(s0, s1, s2, t0, t1, t2, n0, n1, n2)
-    return (e if (ina or inb) else 0.0), x0, x1, x2, ina and not inb, inb and not ina
+    leaves = ina and not inb
+    enters = inb and not ina
+    ex0, ex1, ex2 = (x0, x1, x2) if leaves else (ex0, ex1, ex2)
+    en0, en1, en2 = (x0, x1, x2) if enters else (en0, en1, en2)
+    return (s + (e if (ina or inb) else 0.0), ex0, ex1, ex2, en0, en1, en2, has_exit or leaves,
+            has_entry or enters)
 
 
 @nb.njit(inline="always", **EVAL)
@@ -136,31 +144,12 @@ def _irradiance_span(soa, i0, i1, poly, t, lum):
         ub0, ub1, ub2 = _unit(b0, b1, b2)
         ud0, ud1, ud2 = _unit(d0, d1, d2)
         ue0, ue1, ue2 = _unit(e0, e1, e2)
-        s = 0.0
-        ex0 = ex1 = ex2 = en0 = en1 = en2 = 0.0
-        has_exit = False
-        has_entry = False
-        # the four edges: each may hold the exit or the entry point of the horizon (at most one of each)
-        v, x0, x1, x2, out_, in_ = _clipped_edge(a0, a1, a2, ua0, ua1, ua2, ha, b0, b1, b2, ub0, ub1, ub2, hb, n0, n1, n2)
-        s += v
-        ex0, ex1, ex2 = (x0, x1, x2) if out_ else (ex0, ex1, ex2)
-        en0, en1, en2 = (x0, x1, x2) if in_ else (en0, en1, en2)
-        has_exit, has_entry = has_exit or out_, has_entry or in_
-        v, x0, x1, x2, out_, in_ = _clipped_edge(b0, b1, b2, ub0, ub1, ub2, hb, d0, d1, d2, ud0, ud1, ud2, hd, n0, n1, n2)
-        s += v
-        ex0, ex1, ex2 = (x0, x1, x2) if out_ else (ex0, ex1, ex2)
-        en0, en1, en2 = (x0, x1, x2) if in_ else (en0, en1, en2)
-        has_exit, has_entry = has_exit or out_, has_entry or in_
-        v, x0, x1, x2, out_, in_ = _clipped_edge(d0, d1, d2, ud0, ud1, ud2, hd, e0, e1, e2, ue0, ue1, ue2, he, n0, n1, n2)
-        s += v
-        ex0, ex1, ex2 = (x0, x1, x2) if out_ else (ex0, ex1, ex2)
-        en0, en1, en2 = (x0, x1, x2) if in_ else (en0, en1, en2)
-        has_exit, has_entry = has_exit or out_, has_entry or in_
-        v, x0, x1, x2, out_, in_ = _clipped_edge(e0, e1, e2, ue0, ue1, ue2, he, a0, a1, a2, ua0, ua1, ua2, ha, n0, n1, n2)
-        s += v
-        ex0, ex1, ex2 = (x0, x1, x2) if out_ else (ex0, ex1, ex2)
-        en0, en1, en2 = (x0, x1, x2) if in_ else (en0, en1, en2)
-        has_exit, has_entry = has_exit or out_, has_entry or in_
+        acc = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, False)
+        acc = _clipped_edge(acc, a0, a1, a2, ua0, ua1, ua2, ha, b0, b1, b2, ub0, ub1, ub2, hb, n0, n1, n2)
+        acc = _clipped_edge(acc, b0, b1, b2, ub0, ub1, ub2, hb, d0, d1, d2, ud0, ud1, ud2, hd, n0, n1, n2)
+        acc = _clipped_edge(acc, d0, d1, d2, ud0, ud1, ud2, hd, e0, e1, e2, ue0, ue1, ue2, he, n0, n1, n2)
+        acc = _clipped_edge(acc, e0, e1, e2, ue0, ue1, ue2, he, a0, a1, a2, ua0, ua1, ua2, ha, n0, n1, n2)
+        s, ex0, ex1, ex2, en0, en1, en2, has_exit, has_entry = acc
         closing = _edge(ex0, ex1, ex2, en0, en1, en2, n0, n1, n2)  # the clipped polygon's edge along the horizon
         s += closing if (has_exit and has_entry) else 0.0
         front = -(a0 * m0 + a1 * m1 + a2 * m2) > 0.0  # not behind the emitter, nor in its plane
