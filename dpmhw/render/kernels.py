@@ -231,7 +231,7 @@ def shade(
     beta, kd, prev_pdf, prev_env,
     tri,
     obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
-    light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
+    light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
     film_emit, film_diff, film_spec, nonfinite,
     gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
     sh_o, sh_d, sh_tmax, sh_c, sh_pix,
@@ -245,6 +245,8 @@ def shade(
     `tri` : (F, 24) float32 rows of v0, e1 = v1 − v0, e2 = v2 − v0, unit geometric normal and the
     three corner shading normals, all in model space: one hit touches two cache lines. Column 21:
     the triangle's GGX α where its object has a roughness map, else 0 (then obj_alpha applies).
+    `light_world` : (L, 12) rows of the emissive triangles in world space (v0, e1, e2, normal:
+    SceneGeometry.light_rows), so light sampling transforms nothing per vertex.
     Writes the film at each path's pixel, and, packed from row `first`: the shadow rays (sh_o,
     sh_d, sh_tmax, sh_pix, with their diffuse and specular contributions in sh_c[:, 0:3] and
     sh_c[:, 3:6], added if unoccluded) and the surviving paths (pixel, beta, kd, prev_pdf, prev_env
@@ -388,24 +390,17 @@ def shade(
                     lo = mid + 1
                 else:
                     hi = mid
-            lt = light_prim[lo]
             lob = light_obj[lo]
             su = math.sqrt(u1)
             bb1, bb2 = u2 * su, F1 - su
-            lm0 = tri[lt, 0] + bb1 * tri[lt, 3] + bb2 * tri[lt, 6]
-            lm1 = tri[lt, 1] + bb1 * tri[lt, 4] + bb2 * tri[lt, 7]
-            lm2 = tri[lt, 2] + bb1 * tri[lt, 5] + bb2 * tri[lt, 8]
-            q0 = obj_R[lob, 0, 0] * lm0 + obj_R[lob, 0, 1] * lm1 + obj_R[lob, 0, 2] * lm2 + obj_t[lob, 0] - o0
-            q1 = obj_R[lob, 1, 0] * lm0 + obj_R[lob, 1, 1] * lm1 + obj_R[lob, 1, 2] * lm2 + obj_t[lob, 1] - o1
-            q2 = obj_R[lob, 2, 0] * lm0 + obj_R[lob, 2, 1] * lm1 + obj_R[lob, 2, 2] * lm2 + obj_t[lob, 2] - o2
+            q0 = light_world[lo, 0] + bb1 * light_world[lo, 3] + bb2 * light_world[lo, 6] - o0
+            q1 = light_world[lo, 1] + bb1 * light_world[lo, 4] + bb2 * light_world[lo, 7] - o1
+            q2 = light_world[lo, 2] + bb1 * light_world[lo, 5] + bb2 * light_world[lo, 8] - o2
             dist2 = q0 * q0 + q1 * q1 + q2 * q2
             dist = math.sqrt(dist2)
             if dist > TINY32:
                 wi0, wi1, wi2 = q0 / dist, q1 / dist, q2 / dist
-                ln0 = obj_R[lob, 0, 0] * tri[lt, 9] + obj_R[lob, 0, 1] * tri[lt, 10] + obj_R[lob, 0, 2] * tri[lt, 11]
-                ln1 = obj_R[lob, 1, 0] * tri[lt, 9] + obj_R[lob, 1, 1] * tri[lt, 10] + obj_R[lob, 1, 2] * tri[lt, 11]
-                ln2 = obj_R[lob, 2, 0] * tri[lt, 9] + obj_R[lob, 2, 1] * tri[lt, 10] + obj_R[lob, 2, 2] * tri[lt, 11]
-                cos_l = -_dot(ln0, ln1, ln2, wi0, wi1, wi2)
+                cos_l = -_dot(light_world[lo, 9], light_world[lo, 10], light_world[lo, 11], wi0, wi1, wi2)
                 pa = p_area * obj_pdfA[lob] * dist2  # pdf = pa / cos_l; one division, off the sqrt's path
                 if cos_l > 0.0 and pa > 0.0:
                     inv_pl = cos_l / pa
@@ -666,7 +661,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     image width, cam_d): when on, the camera rays are generated through a random point of each
     pixel into cam_d (which `primary_dirs` must then be) and traced here in full. Returns (shadow rays,
     continuation rays), or (−1, −1) if a path outlived 4096 bounces."""
-    tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd = scn
+    tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd = scn
     film_emit, film_diff, film_spec, nonfinite = film
     gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer = gb
     (pixel, beta, kd, prev_pdf, prev_env, sh_o, sh_d, sh_tmax, sh_c, sh_pix, blocked,
@@ -694,7 +689,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
             n_shadow, n_next = shade(
                 0, max_bounces, mis_last, key, first, count, pixel, primary_dirs, p_t, p_obj, p_prim, p_u, p_v,
                 beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
-                light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
+                light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
                 film_emit, film_diff, film_spec, nonfinite,
                 gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
                 sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d, split)
@@ -702,7 +697,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
             n_shadow, n_next = shade(
                 depth, max_bounces, mis_last, key, first, count, pixel, rd, h_t, h_obj, h_prim, h_u, h_v,
                 beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
-                light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
+                light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
                 film_emit, film_diff, film_spec, nonfinite,
                 gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, False,
                 sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d, split)

@@ -55,3 +55,38 @@ def test_first_pass_writes_every_gbuffer_row_over_stale_memory(make_scene, rende
         assert np.array_equal(getattr(clean, name), getattr(stale, name)), name
     miss = stale.object_id < 0
     assert np.all(np.isinf(stale.depth[miss])) and not stale.normal[miss].any() and not stale.albedo[miss].any()
+
+
+def test_light_rows_are_the_emitters_in_world_space_at_their_pose(make_scene):
+    """SceneGeometry.light_rows: the emissive triangles the kernel samples, at the frame's poses
+    (a moving, turning emitter included), as the poses place the model-space meshes."""
+    from dpmhw.render.geometry import SceneGeometry
+
+    scene = make_scene(lit_room("""
+[[objects]]
+name = "lamp"
+shape = "quad"
+size = [0.2, 0.1]
+position = [0.2, 0.4, 0.1]
+rotation = [30.0, 10.0, 0.0]
+albedo = 0.0
+emission = [3.0, 2.0, 1.0]
+motion = { rotate_axis = [0.3, 1.0, 0.0], rotate_deg_per_s = 90.0, oscillate_direction = [1.0, 0.0, 0.0], oscillate_amplitude = 0.1, oscillate_period_s = 2.0 }
+""", width=16, height=12, f=13.0, cx=8.0, cy=6.0, max_bounces=1))
+    geometry = SceneGeometry(scene, threads=1)
+    try:
+        for t in (0.0, 0.37):
+            poses = scene.object_poses(t)
+            rows = geometry.light_rows(*geometry.poses(poses))
+            assert rows.shape == (len(geometry.light_prim), 12) and rows.dtype == np.float32
+            assert set(geometry.light_obj) == {1, 2}
+            for row, prim, k in zip(rows, geometry.light_prim, geometry.light_obj):
+                pose, mesh = poses[k], scene.objects[k].mesh
+                corners = pose.apply(mesh.triangles[prim - geometry.tri_offsets[k]])
+                normal = np.cross(corners[1] - corners[0], corners[2] - corners[0])
+                np.testing.assert_allclose(row[0:3], corners[0], atol=1e-5)
+                np.testing.assert_allclose(row[3:6], corners[1] - corners[0], atol=1e-5)
+                np.testing.assert_allclose(row[6:9], corners[2] - corners[0], atol=1e-5)
+                np.testing.assert_allclose(row[9:12], normal / np.linalg.norm(normal), atol=1e-5)
+    finally:
+        geometry.close()
