@@ -6,14 +6,7 @@ from scene_texts import lit_room
 
 from dpmhw.render import kernels
 
-ROOM = lit_room("""
-[[objects]]
-name = "ball"
-shape = "sphere"
-radius = 0.2
-position = [0.1, 0.2, 0.0]
-albedo = [0.5, 0.5, 0.5]
-""", width=32, height=24, f=26.0, cx=16.0, cy=12.0, max_bounces=2)
+from .test_integrator import ROOM
 
 
 @nb.njit
@@ -39,7 +32,7 @@ def test_first_pass_writes_every_gbuffer_row_over_stale_memory(make_scene, rende
     stale values in the freshly allocated arrays must not survive."""
     import dpmhw.render.integrator as integrator
 
-    scene = make_scene(ROOM)
+    scene = make_scene(ROOM.format(extra=""))
     clean = render(scene, spp=2, seed=5)
     assert (clean.object_id < 0).any() and (clean.object_id >= 0).any()
 
