@@ -30,7 +30,7 @@ def test_inline_cos_sin_is_within_float32_rounding_of_libm():
 def test_first_pass_writes_every_gbuffer_row_over_stale_memory(make_scene, render, monkeypatch):
     """clear_rows leaves the G-buffer to the first shading pass (a miss writes its no-hit values):
     stale values in the freshly allocated arrays must not survive."""
-    import dpmhw.render.integrator as integrator
+    from dpmhw.render import integrator
 
     scene = make_scene(ROOM.format(extra=""))
     clean = render(scene, spp=2, seed=5)
