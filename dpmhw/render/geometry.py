@@ -102,6 +102,18 @@ class SceneGeometry:
         self.background = background.astype(f32)
         self.accel = make_accel(objects, self.tri_offsets, threads)
 
+    def light_rows(self, R: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """The emissive triangles in world space for poses R, T (from `poses`): (L, 12) float32
+        rows of v0, e1, e2 and the unit geometric normal, in `light_cdf` order. The shading
+        kernel samples lights from these, instead of transforming a model-space row per vertex."""
+        rows = self.tri[self.light_prim]
+        Rl, Tl = R[self.light_obj], T[self.light_obj]
+        out = np.empty((len(rows), 12), f32)
+        for c in range(4):  # v0 is a point (rotated and moved), e1, e2 and n directions (rotated)
+            out[:, 3 * c:3 * c + 3] = np.einsum("lij,lj->li", Rl, rows[:, 3 * c:3 * c + 3])
+        out[:, 0:3] += Tl
+        return out
+
     def poses(self, poses: list[Pose]) -> tuple[np.ndarray, np.ndarray]:
         """Per-object model→world rotation (O, 3, 3) and translation (O, 3), float32."""
         R = np.array([p.R for p in poses], f32)

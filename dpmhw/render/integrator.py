@@ -293,11 +293,12 @@ class PathIntegrator:
         accel = self.geometry.accel
         corners = camera.pixel_corners() if jitter_key is not None else _NO_CORNERS  # centre sampling reads none
         cam_R = camera.pose.R.astype(f32)
+        light_world = self.geometry.light_rows(R, T)
         if jitter_key is not None:  # camera rays through random points of the pixels, into the work buffer
             primary_dirs = w.cam_d
         if self._fused_native():  # queries from inside the kernel: one native call per thread
             g = self.geometry
-            scn = (g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area, g.light_prim, g.light_obj,
+            scn = (g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area, light_world, g.light_obj,
                    g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd)
             films = (film["emit"], film["diff"], film["spec"], nonfinite)
             gb = (gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer)
@@ -337,15 +338,15 @@ class PathIntegrator:
                 if jitter_key is not None:
                     kernels.jittered_directions(corners, cam_R, self.width, jitter_key, first, first + count, primary_dirs)
                     accel.intersect_range(camera_o, primary_dirs, first, first + count, R, T, primary, packets=self.packets[0])
-                return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
-                                           film, gbuf, nonfinite, write_gbuffer, w)
+                return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, light_world, cam_fwd,
+                                           viewer, film, gbuf, nonfinite, write_gbuffer, w)
 
             jobs = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
         results = list(self._pool.map(run, jobs)) if self._pool is not None else [run(j) for j in jobs]
         self.counts.occluded += sum(r[0] for r in results)
         self.counts.intersect += sum(r[1] for r in results)
 
-    def _trace_segment(self, first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, cam_fwd, viewer,
+    def _trace_segment(self, first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, light_world, cam_fwd, viewer,
                        film, gbuf, nonfinite, write_gbuffer, w: "_Work") -> tuple[int, int]:
         """All bounces of the paths through pixels [first, first + count); their rows in the
         work buffers are the same range. `static_hits`: the camera rays' cached hits on static
@@ -369,7 +370,7 @@ class PathIntegrator:
                 hits.t, hits.obj, hits.prim, hits.u, hits.v, w.beta, w.kd, w.prev_pdf, w.prev_env,
                 g.tri,
                 R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
-                g.light_prim, g.light_obj, g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd,
+                light_world, g.light_obj, g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd,
                 film["emit"], film["diff"], film["spec"], nonfinite,
                 gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer,
                 w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, nx_o, nx_d, self.split,

@@ -44,8 +44,9 @@ S30, S27, S31, S40 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(40)
 # (wider, slower square roots and divisions, and conversions back and forth). The diffuse path of
 # `shade` stays in float32 with these; the GGX lobe computes in float64 and rounds its results.
 F0, F1 = np.float32(0.0), np.float32(1.0)
-INV_PI32, TWO_PI32 = np.float32(INV_PI), np.float32(2.0 * math.pi)
+INV_PI32 = np.float32(INV_PI)
 OFFSET_REL32, TINY32 = np.float32(OFFSET_REL), np.float32(1e-20)
+TINY_LEN32, MIN_COS32 = np.float32(1e-12), np.float32(1e-6)
 LUM_R, LUM_G, LUM_B = np.float32(0.2126), np.float32(0.7152), np.float32(0.0722)
 
 
@@ -81,6 +82,31 @@ def pass_key(seed: int, pass_index: int) -> np.uint64:
         return x ^ (x >> 31)
 
     return np.uint64(mix((mix(seed & mask) + pass_index * 0x9E3779B97F4A7C15) & mask))
+
+
+HALF_PI32 = np.float32(0.5 * math.pi)
+_S3, _S5, _S7, _S9 = (np.float32(c) for c in (-1 / 6, 1 / 120, -1 / 5040, 1 / 362880))
+_C2, _C4, _C6, _C8 = (np.float32(c) for c in (-1 / 2, 1 / 24, -1 / 720, 1 / 40320))
+
+
+@nb.njit(inline="always", **_jit)
+def _cos_sin_turn(u):
+    """cos(2πu), sin(2πu) for u in [0, 1], float32, within a few ulp of libm's. Branch-free and
+    inline: libm's sincosf is a call in the middle of the shading loop, which makes LLVM spill
+    the loop's live registers around it. Quadrant q = round(4u), then Taylor series of degree 9
+    (sin) and 8 (cos) on |x| ≤ π/4, whose truncation errors (≤ 2e-9, 3e-8) are below float32's ulp."""
+    q4 = u * np.float32(4.0)
+    q = np.floor(q4 + np.float32(0.5))
+    x = (q4 - q) * HALF_PI32
+    x2 = x * x
+    sn = x * (F1 + x2 * (_S3 + x2 * (_S5 + x2 * (_S7 + x2 * _S9))))
+    cs = F1 + x2 * (_C2 + x2 * (_C4 + x2 * (_C6 + x2 * _C8)))
+    quad = np.int32(q) & 3
+    c = sn if quad & 1 else cs  # quadrants 1 and 3 swap cos and sin
+    s = cs if quad & 1 else sn
+    c = -c if quad == 1 or quad == 2 else c
+    s = -s if quad >= 2 else s
+    return c, s
 
 
 @nb.njit(inline="always", **_jit)
@@ -158,7 +184,7 @@ def hit_point(tri, R, T, ob, i, u, v):
     """The point at barycentrics (u, v) of triangle i of object ob, in model space and in world
     space, and its interpolated shading normal in world space (not normalised). Straight-line
     code: inlined into a loop, it adds no reference counting (see traversal)."""
-    w0 = 1.0 - u - v
+    w0 = F1 - u - v  # F1, not 1.0: a float64 literal here made the whole shading frame float64
     pm0 = tri[i, 0] + u * tri[i, 3] + v * tri[i, 6]
     pm1 = tri[i, 1] + u * tri[i, 4] + v * tri[i, 7]
     pm2 = tri[i, 2] + u * tri[i, 5] + v * tri[i, 8]
@@ -181,7 +207,7 @@ def face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2, v0, v1, v2, use
     surface), and face both normals towards wo (two-sided shading; s falls back to g where it
     is not in wo's hemisphere). Scalars only. Returns g, s, wo and whether the ray hit the front."""
     sl = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-    if sl > 1e-12:
+    if sl > TINY_LEN32:
         s0, s1, s2 = s0 / sl, s1 / sl, s2 / sl
     else:
         s0, s1, s2 = g0, g1, g2
@@ -189,12 +215,12 @@ def face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2, v0, v1, v2, use
     if use_viewer:
         e0, e1, e2 = v0 - p0, v1 - p1, v2 - p2
         el = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-        if el > 1e-12:
+        if el > TINY_LEN32:
             wo0, wo1, wo2 = e0 / el, e1 / el, e2 / el
     front = _dot(g0, g1, g2, wo0, wo1, wo2) > 0.0
     if not front:
         g0, g1, g2, s0, s1, s2 = -g0, -g1, -g2, -s0, -s1, -s2
-    if _dot(s0, s1, s2, wo0, wo1, wo2) <= 1e-6:
+    if _dot(s0, s1, s2, wo0, wo1, wo2) <= MIN_COS32:
         s0, s1, s2 = g0, g1, g2
     return g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, front
 
@@ -205,7 +231,7 @@ def shade(
     beta, kd, prev_pdf, prev_env,
     tri,
     obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
-    light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
+    light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
     film_emit, film_diff, film_spec, nonfinite,
     gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
     sh_o, sh_d, sh_tmax, sh_c, sh_pix,
@@ -219,6 +245,8 @@ def shade(
     `tri` : (F, 24) float32 rows of v0, e1 = v1 − v0, e2 = v2 − v0, unit geometric normal and the
     three corner shading normals, all in model space: one hit touches two cache lines. Column 21:
     the triangle's GGX α where its object has a roughness map, else 0 (then obj_alpha applies).
+    `light_world` : (L, 12) rows of the emissive triangles in world space (v0, e1, e2, normal:
+    SceneGeometry.light_rows), so light sampling transforms nothing per vertex.
     Writes the film at each path's pixel, and, packed from row `first`: the shadow rays (sh_o,
     sh_d, sh_tmax, sh_pix, with their diffuse and specular contributions in sh_c[:, 0:3] and
     sh_c[:, 3:6], added if unoccluded) and the surviving paths (pixel, beta, kd, prev_pdf, prev_env
@@ -255,6 +283,12 @@ def shade(
         g0 = g1 = g2 = F0
         le0 = le1 = le2 = F0  # radiance arriving along this ray from a light, MIS-weighted
         if ob < 0:  # escaped: the constant environment
+            if depth == 0 and write_gbuffer:  # no hit (clear_rows leaves the G-buffer to this pass)
+                gb_id[pix] = -1
+                gb_depth[pix] = np.inf
+                gb_rough[pix] = F0
+                for c in range(3):
+                    gb_model[pix, c] = gb_pos[pix, c] = gb_normal[pix, c] = gb_alb[pix, c] = gb_spec[pix, c] = F0
             if has_bg:
                 if depth == 0:
                     film_emit[pix, 0] += background[0]
@@ -333,16 +367,18 @@ def shade(
         u1 = rand(key, pix, base_dim + 1)
         u2 = rand(key, pix, base_dim + 2)
         li0 = li1 = li2 = F0
-        pdf_l = F0
+        inv_pl = F0  # 1 / the light sample's solid-angle pdf (0: no sample)
         tmax = F0
         wi0 = wi1 = wi2 = F0
         if u_sel < p_env:
             t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
             r = math.sqrt(u1)
-            phi = TWO_PI32 * u2
-            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(F0, F1 - u1))
+            cphi, sphi = _cos_sin_turn(u2)
+            x, y, z = r * cphi, r * sphi, math.sqrt(max(F0, F1 - u1))
             wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
             pdf_l = p_env * z * INV_PI32
+            if pdf_l > 0.0:
+                inv_pl = F1 / pdf_l
             li0, li1, li2 = background[0], background[1], background[2]
             tmax = np.float32(3.0e38)
         elif p_area > 0.0:
@@ -354,35 +390,30 @@ def shade(
                     lo = mid + 1
                 else:
                     hi = mid
-            lt = light_prim[lo]
             lob = light_obj[lo]
             su = math.sqrt(u1)
             bb1, bb2 = u2 * su, F1 - su
-            lm0 = tri[lt, 0] + bb1 * tri[lt, 3] + bb2 * tri[lt, 6]
-            lm1 = tri[lt, 1] + bb1 * tri[lt, 4] + bb2 * tri[lt, 7]
-            lm2 = tri[lt, 2] + bb1 * tri[lt, 5] + bb2 * tri[lt, 8]
-            q0 = obj_R[lob, 0, 0] * lm0 + obj_R[lob, 0, 1] * lm1 + obj_R[lob, 0, 2] * lm2 + obj_t[lob, 0] - o0
-            q1 = obj_R[lob, 1, 0] * lm0 + obj_R[lob, 1, 1] * lm1 + obj_R[lob, 1, 2] * lm2 + obj_t[lob, 1] - o1
-            q2 = obj_R[lob, 2, 0] * lm0 + obj_R[lob, 2, 1] * lm1 + obj_R[lob, 2, 2] * lm2 + obj_t[lob, 2] - o2
-            dist = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
+            q0 = light_world[lo, 0] + bb1 * light_world[lo, 3] + bb2 * light_world[lo, 6] - o0
+            q1 = light_world[lo, 1] + bb1 * light_world[lo, 4] + bb2 * light_world[lo, 7] - o1
+            q2 = light_world[lo, 2] + bb1 * light_world[lo, 5] + bb2 * light_world[lo, 8] - o2
+            dist2 = q0 * q0 + q1 * q1 + q2 * q2
+            dist = math.sqrt(dist2)
             if dist > TINY32:
                 wi0, wi1, wi2 = q0 / dist, q1 / dist, q2 / dist
-                ln0 = obj_R[lob, 0, 0] * tri[lt, 9] + obj_R[lob, 0, 1] * tri[lt, 10] + obj_R[lob, 0, 2] * tri[lt, 11]
-                ln1 = obj_R[lob, 1, 0] * tri[lt, 9] + obj_R[lob, 1, 1] * tri[lt, 10] + obj_R[lob, 1, 2] * tri[lt, 11]
-                ln2 = obj_R[lob, 2, 0] * tri[lt, 9] + obj_R[lob, 2, 1] * tri[lt, 10] + obj_R[lob, 2, 2] * tri[lt, 11]
-                cos_l = -_dot(ln0, ln1, ln2, wi0, wi1, wi2)
-                if cos_l > 0.0:
-                    pdf_l = p_area * obj_pdfA[lob] * dist * dist / cos_l
+                cos_l = -_dot(light_world[lo, 9], light_world[lo, 10], light_world[lo, 11], wi0, wi1, wi2)
+                pa = p_area * obj_pdfA[lob] * dist2  # pdf = pa / cos_l; one division, off the sqrt's path
+                if cos_l > 0.0 and pa > 0.0:
+                    inv_pl = cos_l / pa
                     li0, li1, li2 = obj_emit[lob, 0], obj_emit[lob, 1], obj_emit[lob, 2]
                     tmax = dist * np.float32(1.0 - SHADOW_SHORTEN)
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
-        if pdf_l > 0.0 and cos_i > 0.0 and _dot(wi0, wi1, wi2, g0, g1, g2) > 0.0:
+        if inv_pl > 0.0 and cos_i > 0.0 and _dot(wi0, wi1, wi2, g0, g1, g2) > 0.0:
             fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec)
             w = F1
             if continues or mis_last:
-                r_bl = pdf_b / pdf_l
+                r_bl = pdf_b * inv_pl
                 w = F1 / (F1 + r_bl * r_bl)
-            scale = cos_i * w / pdf_l
+            scale = cos_i * w * inv_pl
             cd0, cd1, cd2 = fd0 * li0 * scale * b0, fd1 * li1 * scale * b1, fd2 * li2 * scale * b2
             cs0, cs1, cs2 = fs0 * li0 * scale * b0, fs1 * li1 * scale * b1, fs2 * li2 * scale * b2
             if depth > 0 and split:  # deeper vertices inherit the first vertex's diffuse/specular split
@@ -425,9 +456,9 @@ def shade(
                 a0, a1, a2 = F1, F0, F0
             e0, e1, e2 = vy * a2 - vz * a1, vz * a0 - vx * a2, vx * a1 - vy * a0
             r = math.sqrt(u1)
-            phi = TWO_PI32 * u2
-            q1 = r * math.cos(phi)
-            q2 = r * math.sin(phi)
+            cphi, sphi = _cos_sin_turn(u2)
+            q1 = r * cphi
+            q2 = r * sphi
             sv = np.float32(0.5) * (F1 + vz)
             q2 = (F1 - sv) * math.sqrt(max(F0, F1 - q1 * q1)) + sv * q2
             q3 = math.sqrt(max(F0, F1 - q1 * q1 - q2 * q2))
@@ -444,8 +475,8 @@ def shade(
             wi0, wi1, wi2 = dh * h0 - wo0, dh * h1 - wo1, dh * h2 - wo2
         else:
             r = math.sqrt(u1)
-            phi = TWO_PI32 * u2
-            x, y, z = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(F0, F1 - u1))
+            cphi, sphi = _cos_sin_turn(u2)
+            x, y, z = r * cphi, r * sphi, math.sqrt(max(F0, F1 - u1))
             wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if cos_i <= 0.0 or _dot(wi0, wi1, wi2, g0, g1, g2) <= 0.0:
@@ -558,14 +589,16 @@ def clear_rows(film, gb, first, end):
     """The starting values of rows [first, end) of a frame's film (zeros) and G-buffer (no hit:
     id −1, depth inf, the rest zeros; skipped when the G-buffer is empty). Each image segment
     clears its own rows in its own thread, so the frame's arrays are allocated empty on the
-    main thread (no serial 88 MB fill there at 1024×768) and are in cache when that segment shades."""
+    main thread (no serial 88 MB fill there at 1024×768) and are in cache when that segment shades.
+    When the G-buffer is written (`write_gbuffer`), shading's first vertex writes every one of its
+    rows, a miss's no-hit values included, so only the film is cleared here."""
     film_emit, film_diff, film_spec, nonfinite = film
     gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer = gb
     for i in range(first, end):
         for c in range(3):
             film_emit[i, c] = film_diff[i, c] = film_spec[i, c] = 0.0
         nonfinite[i] = 0
-    if gb_id.shape[0] > 0:
+    if gb_id.shape[0] > 0 and not write_gbuffer:
         for i in range(first, end):
             gb_id[i] = -1
             gb_depth[i] = np.inf
@@ -628,7 +661,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     image width, cam_d): when on, the camera rays are generated through a random point of each
     pixel into cam_d (which `primary_dirs` must then be) and traced here in full. Returns (shadow rays,
     continuation rays), or (−1, −1) if a path outlived 4096 bounces."""
-    tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd = scn
+    tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd = scn
     film_emit, film_diff, film_spec, nonfinite = film
     gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer = gb
     (pixel, beta, kd, prev_pdf, prev_env, sh_o, sh_d, sh_tmax, sh_c, sh_pix, blocked,
@@ -656,7 +689,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
             n_shadow, n_next = shade(
                 0, max_bounces, mis_last, key, first, count, pixel, primary_dirs, p_t, p_obj, p_prim, p_u, p_v,
                 beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
-                light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
+                light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
                 film_emit, film_diff, film_spec, nonfinite,
                 gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
                 sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d, split)
@@ -664,7 +697,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
             n_shadow, n_next = shade(
                 depth, max_bounces, mis_last, key, first, count, pixel, rd, h_t, h_obj, h_prim, h_u, h_v,
                 beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
-                light_prim, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
+                light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
                 film_emit, film_diff, film_spec, nonfinite,
                 gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, False,
                 sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d, split)

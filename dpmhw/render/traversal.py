@@ -64,12 +64,21 @@ def _into_model(o0, o1, o2, d0, d1, d2, R, T, k):
 @nb.njit(inline="always", nogil=True, cache=True)
 def _load(f, iv, W, j, o0, o1, o2, d0, d1, d2, tfar):
     """Write ray j of a W-wide packet (W = 1: an RTCRayHit, whose layout is the 1-wide packet's:
-    field k of lane j at word W * k + j), with the hit reset."""
-    f[j], f[W + j], f[2 * W + j], f[3 * W + j] = o0, o1, o2, 0.0
-    f[4 * W + j], f[5 * W + j], f[6 * W + j], f[7 * W + j] = d0, d1, d2, 0.0
+    field k of lane j at word W * k + j), with the hit reset: only what a query reads and may
+    have changed (the constant fields are set once per query call by _constant_fields)."""
+    f[j], f[W + j], f[2 * W + j] = o0, o1, o2
+    f[4 * W + j], f[5 * W + j], f[6 * W + j] = d0, d1, d2
     f[rtc.R_TFAR * W + j] = tfar
-    iv[rtc.R_MASK * W + j], iv[rtc.R_ID * W + j], iv[rtc.R_FLAGS * W + j] = rtc.INVALID, 0, 0
-    iv[rtc.H_GEOM * W + j], iv[rtc.H_INST * W + j], iv[rtc.H_PRIM * W + j] = rtc.INVALID, rtc.INVALID, rtc.INVALID
+    iv[rtc.H_GEOM * W + j], iv[rtc.H_INST * W + j] = rtc.INVALID, rtc.INVALID
+
+
+@nb.njit(inline="always", nogil=True, cache=True)
+def _constant_fields(f, iv, W):
+    """The fields of every lane of a W-wide packet that no query changes: tnear 0, time 0, all
+    mask bits, id 0, flags 0 (a query writes only tfar and the hit)."""
+    for j in range(W):
+        f[rtc.R_TNEAR * W + j], f[rtc.R_TIME * W + j] = 0.0, 0.0
+        iv[rtc.R_MASK * W + j], iv[rtc.R_ID * W + j], iv[rtc.R_FLAGS * W + j] = rtc.INVALID, 0, 0
 
 
 @nb.njit(inline="always", nogil=True, cache=True)
@@ -121,15 +130,13 @@ def _closest_rows(acc, R, T, f, iv, valid, o, d, order, first, end, t, obj, prim
     scene0 = scenes[0]
     direct = order.shape[0] == 0
     W = 16 if packets else 1
+    _constant_fields(f, iv, W)
     fp, vp = f.ctypes.data, valid.ctypes.data
     rows = np.empty(16, np.int64)
     for a in range(first, end, W):
         n = min(W, end - a)
         for i in range(n):
-            r = a + i if direct else order[a + i]
-            rows[i] = r
-            if not resume:
-                t[r], obj[r], prim[r], u[r], v[r] = np.inf, -1, -1, 0.0, 0.0
+            rows[i] = a + i if direct else order[a + i]
         for i in range(16):
             valid[i] = -1 if i < n else 0
         if scene0 != 0:
@@ -139,11 +146,17 @@ def _closest_rows(acc, R, T, f, iv, valid, o, d, order, first, end, t, obj, prim
             _intersect(packets, vp, scene0, fp)
             for i in range(n):
                 g = iv[rtc.H_GEOM * W + i]
+                r = rows[i]
                 if g != rtc.INVALID:
-                    r = rows[i]
                     k = static_objects[g]
                     t[r], obj[r], prim[r] = f[rtc.R_TFAR * W + i], k, tri_offsets[k] + iv[rtc.H_PRIM * W + i]
                     u[r], v[r] = f[rtc.H_U * W + i], f[rtc.H_V * W + i]
+                elif not resume:
+                    t[r], obj[r], prim[r], u[r], v[r] = np.inf, -1, -1, 0.0, 0.0
+        elif not resume:
+            for i in range(n):
+                r = rows[i]
+                t[r], obj[r], prim[r], u[r], v[r] = np.inf, -1, -1, 0.0, 0.0
         for j in range(dyn_obj.shape[0]):
             k = dyn_obj[j]
             c0, c1, c2, rad = _centre(R, T, k, dyn_sphere, j)
@@ -223,6 +236,7 @@ def occluded_range(acc, R, T, o, d, tmax, first, end, blocked, packets):
     scene0 = scenes[0]
     W = 16 if packets else 1
     f, iv, valid = scratch16()
+    _constant_fields(f, iv, W)
     fp, vp = f.ctypes.data, valid.ctypes.data
     for a in range(first, end, W):
         n = min(W, end - a)
