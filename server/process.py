@@ -297,8 +297,12 @@ class RemoteRuntime:
     """The `Runtime` the API process serves: reads from the shared slots, commands over the pipe."""
 
     def __init__(self, status_slot: SharedSlot, frame_slot: SharedSlot, conn, *, stale_after_s: float = 1.0,
-                 command_timeout_s: float = 2.0):
+                 command_timeout_s: float = 2.0, session_alive=None):
         self.status_slot = status_slot
+        # whether the session process still exists, asked per request (None: assumed so). Its last
+        # snapshot stays fresh for stale_after_s after it dies; without this, a crashed session
+        # would read as ready until then, and longer while this process is slow to exit
+        self.session_alive = session_alive
         self.frame_slot = frame_slot
         self.stale_after_s = stale_after_s
         self.command_timeout_s = command_timeout_s
@@ -329,11 +333,17 @@ class RemoteRuntime:
             _, published, payload = self._payload
         return payload, (time.monotonic_ns() - published) / 1e9
 
+    def _gone(self) -> bool:
+        return self.session_alive is not None and not self.session_alive()
+
     def status(self) -> dict:
         payload, silent_s = self._read()
         last = payload["status"]
         out = dict(last, snapshot_age_s=round(silent_s, 3))
-        if silent_s > self.stale_after_s and last.get("state") != "stopped":
+        if self._gone() and last.get("state") != "stopped":
+            out.update(state="fault", output_on=False,
+                       reason=f"the session process is gone; last state {last.get('state')}: {last.get('reason', '')}")
+        elif silent_s > self.stale_after_s and last.get("state") != "stopped":
             out.update(state="fault", output_on=False,
                        reason=f"the session process has not published for {silent_s:.1f} s (stuck or gone); "
                               f"last state {last.get('state')}: {last.get('reason', '')}")
@@ -341,7 +351,7 @@ class RemoteRuntime:
 
     def ready(self) -> bool:
         payload, silent_s = self._read()
-        return bool(payload["ready"]) and silent_s <= self.stale_after_s
+        return bool(payload["ready"]) and silent_s <= self.stale_after_s and not self._gone()
 
     def settings(self) -> LiveSettings:
         payload, _ = self._read()
@@ -414,13 +424,13 @@ def _serve_child(sock: socket.socket, conn, status_name: str, frame_name: str, t
     from server.app import build_app
 
     lower_priority(priority)
+    parent = multiprocessing.parent_process()
     runtime = RemoteRuntime(SharedSlot.attach(status_name), SharedSlot.attach(frame_name), conn,
-                            stale_after_s=stale_after_s)
+                            stale_after_s=stale_after_s, session_alive=parent.is_alive if parent is not None else None)
     server = uvicorn.Server(uvicorn.Config(build_app(runtime=runtime, token=token, trusted_hosts=trusted_hosts), log_level="warning",
                                            lifespan="on", timeout_graceful_shutdown=2))
 
     def watch_parent() -> None:
-        parent = multiprocessing.parent_process()
         if parent is not None:
             parent.join()  # returns when the session process dies: then so do we
             server.should_exit = True

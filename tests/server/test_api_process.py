@@ -232,3 +232,26 @@ def test_a_status_read_while_the_session_is_preempted_mid_publish_serves_the_las
     finally:
         status_slot.close()
         frame_slot.close()
+
+
+def test_a_session_process_that_is_gone_is_a_fault_at_once_not_after_the_stale_time():
+    """Found under load: right after a crash the API process still held a fresh snapshot saying
+    ready, and /readyz answered 200 until it went stale or the process exited. It now asks whether
+    the session process exists on every request."""
+    import json
+
+    from server.process import RemoteRuntime
+
+    status_slot, frame_slot = SharedSlot.create(4096), SharedSlot.create(64)
+    try:
+        status_slot.write(json.dumps({"status": {"state": "running", "reason": ""}, "ready": True}).encode())
+        alive = [True]
+        runtime = RemoteRuntime(status_slot, frame_slot, None, stale_after_s=60.0, session_alive=lambda: alive[0])
+        assert runtime.ready() and runtime.status()["state"] == "running"
+        alive[0] = False
+        assert not runtime.ready()
+        st = runtime.status()
+        assert st["state"] == "fault" and st["output_on"] is False and "session process is gone" in st["reason"]
+    finally:
+        status_slot.close()
+        frame_slot.close()
