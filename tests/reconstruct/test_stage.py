@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from concurrent.futures import Future
+
 import numpy as np
 import pytest
 
@@ -317,18 +319,17 @@ def test_two_stages_sharing_a_moving_native_gbuffer_each_keep_guides_equal_to_fr
         r.close()
 
 
+def _done(value) -> Future:
+    f = Future()
+    f.set_result(value)
+    return f
+
+
 def test_the_next_frames_gbuffer_brought_ahead_gives_the_same_frames():
     """With `next_frame` the native G-buffer moves to the next frame on its own thread while this
     frame is upsampled and adaptively sampled: the frames equal those of a stage without it, bit
     for bit, also when a frame announced ahead never comes (a dropped prefetch)."""
-    from concurrent.futures import Future
-
     from dpmhw.reconstruct.adaptive import AdaptiveSampler
-
-    def done(value):
-        f = Future()
-        f.set_result(value)
-        return f
 
     native = scale_to(load_scene("dpm-bunny"), 256, 192)
     r = PathIntegrator(shading_scene(native, 0.25), threads=2)
@@ -342,9 +343,9 @@ def test_the_next_frames_gbuffer_brought_ahead_gives_the_same_frames():
         dropped = r.render(time=0.35, seed=99, poses=native.object_poses(0.35))  # announced, never applied
         for i, frame in enumerate(frames):
             if i == 3:
-                nxt = (native.object_poses(0.35), done(dropped))
+                nxt = (native.object_poses(0.35), _done(dropped))
             else:
-                nxt = (poses[i + 1], done(frames[i + 1])) if i + 1 < len(frames) else None
+                nxt = (poses[i + 1], _done(frames[i + 1])) if i + 1 < len(frames) else None
             a = stages[0].apply(frame, mode="motion", alpha=0.2, filter="lobe", poses=poses[i], camera=r.camera,
                                 next_frame=nxt)
             b = stages[1].apply(frame, mode="motion", alpha=0.2, filter="lobe", poses=poses[i], camera=r.camera)
@@ -362,13 +363,6 @@ def test_the_next_frames_gbuffer_brought_ahead_gives_the_same_frames():
 
 
 def test_a_failure_of_the_early_gbuffer_update_is_the_next_frames_and_the_stage_recovers():
-    from concurrent.futures import Future
-
-    def done(value):
-        f = Future()
-        f.set_result(value)
-        return f
-
     native = scale_to(load_scene("dpm-bunny"), 128, 96)
     r = PathIntegrator(shading_scene(native, 0.25), threads=1)
     g = NativeGBuffer(native, r.geometry, 128, 96, threads=1)
@@ -388,9 +382,9 @@ def test_a_failure_of_the_early_gbuffer_update_is_the_next_frames_and_the_stage_
 
         g.update = flaky
         kw = dict(mode="motion", alpha=0.2, filter="lobe", camera=r.camera)
-        stage.apply(frames[0], poses=poses[0], next_frame=(poses[1], done(frames[1])), **kw)
+        stage.apply(frames[0], poses=poses[0], next_frame=(poses[1], _done(frames[1])), **kw)
         with pytest.raises(RuntimeError, match="trace failed"):
-            stage.apply(frames[1], poses=poses[1], next_frame=(poses[2], done(frames[2])), **kw)
+            stage.apply(frames[1], poses=poses[1], next_frame=(poses[2], _done(frames[2])), **kw)
         assert stage._ahead is None  # nothing left running for a frame that failed
         out = stage.apply(frames[2], poses=poses[2], **kw)  # its own update: the stage goes on
         assert out.image.sum() > 0
