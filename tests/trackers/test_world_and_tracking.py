@@ -10,7 +10,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from dpmhw.tracking import ClockMapping, LatestPoses, PoseSample, Tracker, quaternions_xyzw_to_matrices
+from dpmhw.tracking import (
+    ClockMapping,
+    LatestPoses,
+    PoseSample,
+    Tracker,
+    quaternion_xyzw_to_rotation,
+    quaternions_xyzw_to_matrices,
+)
 from drivers.natnet import NatNetClient
 from firmware_mocks.world import (
     TRAJECTORY_NAMES,
@@ -182,6 +189,23 @@ def test_pose_samples_are_read_only_and_shape_checked():
     with pytest.raises(ValueError, match="translation"):
         PoseSample(1, np.eye(3), np.zeros(4), 0, 0, True)
     np.testing.assert_allclose(s.as_matrix(), np.eye(4))
+
+
+def test_pose_sample_from_floats_equals_the_generic_constructor():
+    rot = quaternion_xyzw_to_rotation(0.1, -0.7, 0.3, 0.6)
+    fast = PoseSample.from_floats(3, rot, (0.5, 1.0, -2.0), 100, 200, True, 0.25, 7)
+    slow = PoseSample(3, np.array(rot).reshape(3, 3), np.array([0.5, 1.0, -2.0]), 100, 200, True, 0.25, 7)
+    for name in ("rigid_body_id", "t_exposure_ns", "t_arrival_ns", "valid", "mean_marker_error", "frame_number"):
+        assert getattr(fast, name) == getattr(slow, name)
+    for name in ("rotation", "translation"):
+        a, b = getattr(fast, name), getattr(slow, name)
+        assert a.dtype == b.dtype == np.float64 and a.shape == b.shape and np.array_equal(a, b)
+        with pytest.raises(ValueError):
+            a[0] = 2.0  # read-only, like the generic constructor's
+    with pytest.raises(ValueError, match="translation"):
+        PoseSample.from_floats(1, rot, (0.0, 0.0), 0, 0, True)
+    with pytest.raises(ValueError):
+        PoseSample.from_floats(1, rot[:8], (0.0, 0.0, 0.0), 0, 0, True)
 
 
 def test_core_and_mocks_do_not_import_drivers():
