@@ -236,6 +236,49 @@ def test_mock_matrix_to_quaternion_matches_scipy_with_w_non_negative(q):
     np.testing.assert_allclose(Rotation.from_quat(got).as_matrix(), rot.as_matrix(), atol=1e-12)
 
 
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from(TRAJECTORY_NAMES), speed=st.floats(0.1, 10.0), epoch=st.floats(-1e4, 1e4),
+       times=st.lists(st.floats(-1e5, 1e5), min_size=1, max_size=20))
+def test_one_instant_poses_in_plain_floats_equal_the_vectorised_ones(name, speed, epoch, times):
+    world = World.demo(name, epoch_s=epoch, count=2, speed=speed)  # body 2 is shifted
+    for body in (1, 2):
+        rot, pos = world.pose(body, np.array(times))
+        for i, t in enumerate(times):
+            r, p = world.pose_floats(body, t)
+            assert r == tuple(rot[i].ravel().tolist()) and p == tuple(pos[i].tolist())  # bit for bit
+
+
+@settings(max_examples=40, deadline=None)
+@given(name=st.sampled_from(TRAJECTORY_NAMES), t=st.floats(0, 100), noise=st.sampled_from([0.0, 0.002]),
+       offset=st.tuples(*[st.floats(-0.1, 0.1)] * 3))
+def test_mock_frame_content_matches_the_array_formulation(name, t, noise, offset):
+    """The mock's per-marker plain floats against the formulation they replaced: markers
+    `obj.markers @ rot.T + pos`, residuals the rows' norms, the quaternion of the true rotation."""
+    from firmware_mocks.natnet_server import NatNetServer, NatNetServerConfig
+
+    world = World.demo(name, count=2)
+    server = NatNetServer(world, NatNetServerConfig(command_port=0, unicast=True, marker_noise_m=noise, seed=1))
+    try:
+        server.pose_offset_m = np.array(offset)
+        content = server.build_frame(7, 123, t * 1e9)
+    finally:
+        server.stop()
+    sets = dict(content.marker_sets)
+    for (rb_id, pos, quat, err, params), obj in zip(content.rigid_bodies, world.objects.values()):
+        rot, true_pos = world.pose(obj.rigid_body_id, t)
+        assert rb_id == obj.rigid_body_id and params == 1
+        np.testing.assert_array_equal(pos, true_pos + np.array(offset))
+        np.testing.assert_allclose(Rotation.from_quat(quat).as_matrix(), rot, atol=1e-12)
+        ideal = obj.markers @ rot.T + (true_pos + np.array(offset))
+        markers = np.array(sets[obj.name])
+        residuals = np.linalg.norm(markers - ideal, axis=1)
+        assert markers.shape == ideal.shape
+        np.testing.assert_allclose(markers, ideal, atol=1e-12 + 10 * noise)
+        assert err == pytest.approx(residuals.mean(), abs=1e-15)
+        assert (err == 0.0) == (noise == 0.0)
+    assert len(sets["all"]) == sum(len(o.markers) for o in world.objects.values())
+
+
 def test_receiver_rotation_of_a_huge_or_tiny_quaternion_is_unusable():
     rot, usable = quaternions_xyzw_to_matrices(np.array([[1e200, 0, 0, 0], [1e-7, 0, 0, 0], [np.nan, 0, 0, 1], [0, 0, 0, 2.0]]))
     assert usable.tolist() == [False, False, False, True]
