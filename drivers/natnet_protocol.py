@@ -305,17 +305,25 @@ class _Reader:
     def records(self, dtype: np.dtype, n: int, field_name: str) -> np.ndarray:
         return np.frombuffer(self.buf, dtype=dtype, count=n, offset=self.skip(dtype.itemsize * n, field_name))
 
-    def begin(self, field_name: str) -> tuple[int, int] | None:
-        """NatNet 4.1+: read a section's byte count; (start, size) to hand to `finish`."""
+    def section(self, count_field: str, min_item_bytes: int, size_field: str) -> tuple[int, tuple[int, int] | None]:
+        """A section's item count (as `count`) and, from NatNet 4.1, its byte count:
+        (count, (start, size) to hand to `finish`, or None before 4.1)."""
+        pos, left = self.pos, self.end - self.pos
+        if self.sized and left >= 8:  # both words at once when both are valid (the checks below, inline)
+            n, size = _TWO_I32.unpack_from(self.buf, pos)
+            if 0 <= n and n * min_item_bytes <= left - 4 and 0 <= size <= left - 8:
+                self.pos = pos + 8
+                return n, (pos + 8, size)
+        n = self.count(count_field, min_item_bytes)
         if not self.sized:
-            return None
-        size = self.i32(field_name)
+            return n, None
+        size = self.i32(size_field)
         if size < 0 or size > self.end - self.pos:
-            raise self.fail(field_name, f"{size} does not fit in the {self.end - self.pos} bytes left")
-        return self.pos, size
+            raise self.fail(size_field, f"{size} does not fit in the {self.end - self.pos} bytes left")
+        return n, (self.pos, size)
 
     def finish(self, field_name: str, section: tuple[int, int] | None) -> None:
-        """The records parsed since `begin` must fill the declared byte count exactly."""
+        """The records parsed since `section` must fill the declared byte count exactly."""
         if section is not None and self.pos - section[0] != section[1]:
             raise self.fail(field_name, f"declares {section[1]} bytes but its records occupy {self.pos - section[0]}")
 
@@ -330,6 +338,9 @@ _F32 = np.dtype("<f4")
 _SUFFIX_3 = struct.Struct("<IIdQQQ")
 _PRECISION = struct.Struct("<II")
 _I16 = struct.Struct("<h")
+# what follows the sections: timestamps, [precision timestamp 4.1+], params, end-of-data tag
+_SUFFIX_30 = struct.Struct("<IIdQQQhi")
+_SUFFIX_41 = struct.Struct("<IIdQQQIIhi")
 _SERVER_INFO_TAIL = struct.Struct("<QHB4s")
 _VEC3 = np.dtype(("<f4", (3,)))
 
@@ -428,9 +439,8 @@ def _rigid_bodies(r: _Reader, n: int, field_name: str, keep: bool) -> RigidBodie
 
 def _channels(r: _Reader, what: str, keep: bool) -> dict[int, list[np.ndarray]]:
     items: dict[int, list[np.ndarray]] = {}
-    n = r.count(f"{what} count", 8)
     size_field = f"{what} byte count"
-    section = r.begin(size_field)
+    n, section = r.section(f"{what} count", 8, size_field)
     for _ in range(n):
         item_id = r.i32(f"{what} id")
         n_ch = r.count(f"{what} {item_id} channel count", 4)
@@ -457,8 +467,7 @@ def _parse_frame(payload: bytes | memoryview, version: tuple[int, int], keep: bo
     buf = r.buf
     frame_number = r.i32("frame number")
 
-    n = r.count("marker set count", 5)
-    section = r.begin("marker sets byte count")
+    n, section = r.section("marker set count", 5, "marker sets byte count")
     marker_sets: dict[str, np.ndarray] = {}
     for i in range(n):
         name = r.string(f"marker set {i} name")
@@ -468,19 +477,16 @@ def _parse_frame(payload: bytes | memoryview, version: tuple[int, int], keep: bo
             marker_sets[name] = np.frombuffer(buf, _VEC3, k, start).copy()
     r.finish("marker sets byte count", section)
 
-    n = r.count("unlabeled marker count", 12)
-    section = r.begin("unlabeled markers byte count")
+    n, section = r.section("unlabeled marker count", 12, "unlabeled markers byte count")
     start = r.skip(12 * n, "unlabeled marker positions")
     unlabeled = np.frombuffer(buf, _VEC3, n, start).copy() if keep else None
     r.finish("unlabeled markers byte count", section)
 
-    n = r.count("rigid body count", _RIGID_BODY.size)
-    section = r.begin("rigid bodies byte count")
+    n, section = r.section("rigid body count", _RIGID_BODY.size, "rigid bodies byte count")
     bodies = _rigid_bodies(r, n, "rigid bodies", keep)
     r.finish("rigid bodies byte count", section)
 
-    n = r.count("skeleton count", 8)
-    section = r.begin("skeletons byte count")
+    n, section = r.section("skeleton count", 8, "skeletons byte count")
     skeletons: dict[int, RigidBodies] = {}
     for _ in range(n):
         sk_id = r.i32("skeleton id")
@@ -492,8 +498,7 @@ def _parse_frame(payload: bytes | memoryview, version: tuple[int, int], keep: bo
 
     assets: list[Asset] = []
     if sized:
-        n = r.count("asset count", 12)
-        section = r.begin("assets byte count")
+        n, section = r.section("asset count", 12, "assets byte count")
         for _ in range(n):
             asset_id = r.i32("asset id")
             k = r.count(f"asset {asset_id} rigid body count", _RIGID_BODY.size)
@@ -504,18 +509,23 @@ def _parse_frame(payload: bytes | memoryview, version: tuple[int, int], keep: bo
                 assets.append(Asset(asset_id, rbs, mks))
         r.finish("assets byte count", section)
 
-    n = r.count("labeled marker count", LABELED_MARKER_DTYPE.itemsize)
-    section = r.begin("labeled markers byte count")
+    n, section = r.section("labeled marker count", LABELED_MARKER_DTYPE.itemsize, "labeled markers byte count")
     labeled = _labeled(r, n, "labeled markers", keep)
     r.finish("labeled markers byte count", section)
 
     force_plates = _channels(r, "force plate", keep)
     devices = _channels(r, "device", keep)
 
-    timecode, subframe, timestamp, mid, received, transmit = r.unpack(_SUFFIX_3, "frame suffix timestamps")
-    precision = r.unpack(_PRECISION, "precision timestamp") if sized else None
-    (params,) = r.unpack(_I16, "frame params")
-    eod = r.i32("end-of-data tag")
+    suffix = _SUFFIX_41 if sized else _SUFFIX_30
+    if r.end - r.pos >= suffix.size:  # all of it at once; else field by field, to name the short one
+        timecode, subframe, timestamp, mid, received, transmit, *precision, params, eod = suffix.unpack_from(buf, r.pos)
+        precision = tuple(precision) if sized else None
+        r.pos += suffix.size
+    else:
+        timecode, subframe, timestamp, mid, received, transmit = r.unpack(_SUFFIX_3, "frame suffix timestamps")
+        precision = r.unpack(_PRECISION, "precision timestamp") if sized else None
+        (params,) = r.unpack(_I16, "frame params")
+        eod = r.i32("end-of-data tag")
     if eod != 0:
         r.pos -= 4
         raise r.fail("end-of-data tag", f"is {eod}, expected 0 (wrong NatNet version or corrupt frame?)")

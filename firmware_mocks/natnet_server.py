@@ -41,6 +41,15 @@ UNRECOGNIZED_REQUEST = 100
 
 _SUPPORTED = {(3, 0), (3, 1), (4, 0), (4, 1), (4, 2)}
 
+_HEADER = struct.Struct("<HH")
+_I32 = struct.Struct("<i")
+_TWO_I32 = struct.Struct("<ii")
+_RIGID_BODY = struct.Struct("<i3f4ffh")
+_MARKER = struct.Struct("<i3ffhf")
+_SUFFIX = struct.Struct("<IIdQQQ")
+_PRECISION = struct.Struct("<II")
+_TAIL = struct.Struct("<hi")  # frame params, end-of-data tag
+
 
 def _version_tuple(version: str | tuple) -> tuple[int, int]:
     if isinstance(version, str):
@@ -53,8 +62,8 @@ def _version_tuple(version: str | tuple) -> tuple[int, int]:
     return v
 
 
-def _message(msg_id: int, payload: bytes) -> bytes:
-    return struct.pack("<HH", msg_id, len(payload)) + payload
+def _message(msg_id: int, payload: bytes | bytearray) -> bytes:
+    return _HEADER.pack(msg_id, len(payload)) + payload
 
 
 def _cstr(text: str) -> bytes:
@@ -89,15 +98,6 @@ class FrameContent:
     params: int = 0
 
 
-_I32 = struct.Struct("<i")
-_TWO_I32 = struct.Struct("<ii")
-_RIGID_BODY = struct.Struct("<i3f4ffh")
-_MARKER = struct.Struct("<i3ffhf")
-_SUFFIX = struct.Struct("<IIdQQQ")
-_PRECISION = struct.Struct("<II")
-_TAIL = struct.Struct("<hi")  # frame params, end-of-data tag
-
-
 def _rigid_body_record(rb: tuple) -> bytes:
     rb_id, (x, y, z), (qx, qy, qz, qw), err, params = rb
     return _RIGID_BODY.pack(rb_id, x, y, z, qx, qy, qz, qw, err, params)
@@ -118,55 +118,64 @@ def _points(points) -> tuple[int, bytes]:
     return len(flat) // 3, struct.pack(f"<{len(flat)}f", *flat)
 
 
-def _section(count: int, body: bytes, sized: bool) -> bytes:
-    """count, [byte count if 4.1+], records."""
-    return _TWO_I32.pack(count, len(body)) + body if sized else _I32.pack(count) + body
+def _section(out: bytearray, count: int, body: bytes | bytearray, sized: bool) -> None:
+    """Append count, [byte count if 4.1+], records."""
+    out += _TWO_I32.pack(count, len(body)) if sized else _I32.pack(count)
+    out += body
+
+
+def _rigid_body_records(rbs: list[tuple]) -> bytes:
+    return b"".join([_rigid_body_record(rb) for rb in rbs])
 
 
 def _channel_items(items: list[tuple[int, list[np.ndarray]]]) -> bytes:
     out = bytearray()
     for item_id, channels in items:
-        out += struct.pack("<ii", item_id, len(channels))
+        out += _TWO_I32.pack(item_id, len(channels))
         for values in channels:
             v = np.asarray(values, "<f4").reshape(-1)
-            out += struct.pack("<i", len(v)) + v.tobytes()
+            out += _I32.pack(len(v)) + v.tobytes()
     return bytes(out)
 
 
 def encode_frame(content: FrameContent, version: str | tuple) -> bytes:
     """A complete frame-of-data datagram (header included) for NatNet `version`."""
-    v = _version_tuple(version)
+    v = version if version in _SUPPORTED else _version_tuple(version)
     sized = v >= (4, 1)
     c = content
     out = bytearray(_I32.pack(c.frame_number))
-    body = b"".join(_cstr(name) + _I32.pack(k) + records for name, (k, records) in
-                    ((name, _points(m)) for name, m in c.marker_sets))
-    out += _section(len(c.marker_sets), body, sized)
-    out += _section(*_points(c.unlabeled_markers), sized)
-    out += _section(len(c.rigid_bodies), b"".join(map(_rigid_body_record, c.rigid_bodies)), sized)
-    body = b"".join(
-        struct.pack("<ii", sk_id, len(rbs)) + b"".join(map(_rigid_body_record, rbs)) for sk_id, rbs in c.skeletons
-    )
-    out += _section(len(c.skeletons), body, sized)
+    body = bytearray()
+    for name, m in c.marker_sets:
+        k, records = _points(m)
+        body += _cstr(name)
+        body += _I32.pack(k)
+        body += records
+    _section(out, len(c.marker_sets), body, sized)
+    _section(out, *_points(c.unlabeled_markers), sized)
+    _section(out, len(c.rigid_bodies), _rigid_body_records(c.rigid_bodies), sized)
+    body = bytearray()
+    for sk_id, rbs in c.skeletons:
+        body += _TWO_I32.pack(sk_id, len(rbs))
+        body += _rigid_body_records(rbs)
+    _section(out, len(c.skeletons), body, sized)
     if sized:
-        body = b"".join(
-            struct.pack("<ii", a_id, len(rbs))
-            + b"".join(map(_rigid_body_record, rbs))
-            + struct.pack("<i", len(mks))
-            + b"".join(map(_marker_record, mks))
-            for a_id, rbs, mks in c.assets
-        )
-        out += _section(len(c.assets), body, sized)
-    out += _section(len(c.labeled_markers), b"".join(map(_marker_record, c.labeled_markers)), sized)
-    out += _section(len(c.force_plates), _channel_items(c.force_plates), sized)
-    out += _section(len(c.devices), _channel_items(c.devices), sized)
+        body = bytearray()
+        for a_id, rbs, mks in c.assets:
+            body += _TWO_I32.pack(a_id, len(rbs))
+            body += _rigid_body_records(rbs)
+            body += _I32.pack(len(mks))
+            body += b"".join([_marker_record(m) for m in mks])
+        _section(out, len(c.assets), body, sized)
+    _section(out, len(c.labeled_markers), b"".join([_marker_record(m) for m in c.labeled_markers]), sized)
+    _section(out, len(c.force_plates), _channel_items(c.force_plates), sized)
+    _section(out, len(c.devices), _channel_items(c.devices), sized)
     out += _SUFFIX.pack(
         c.timecode, c.timecode_subframe, c.timestamp_s, c.stamp_mid_exposure, c.stamp_data_received, c.stamp_transmit
     )
     if sized:
         out += _PRECISION.pack(*c.precision_timestamp)
     out += _TAIL.pack(c.params, 0)
-    return _message(FRAME_OF_DATA, bytes(out))
+    return _message(FRAME_OF_DATA, out)
 
 
 def encode_model_definitions(world: World, version: str | tuple) -> bytes:
@@ -383,7 +392,7 @@ class NatNetServer:
                 pending = (k + 1, mid_host, self._encode_pending(k + 1, mid, mid_host))
             now = time.monotonic_ns()
             wait_s = min(0.02, max(0.0, (next_send - now) / 1e9))
-            if select.select([self._cmd], [], [], wait_s)[0]:
+            if select.select([self._cmd], [], [], wait_s)[0]:  # µs timeouts (poll and epoll round to ms)
                 self._serve_commands()
             if time.monotonic_ns() < next_send:
                 continue
@@ -544,6 +553,11 @@ class NatNetServer:
 
     def _inject_fault(self, datagram: bytes) -> bytes:
         cfg = self.config
+        if not (cfg.truncate_prob > 0 or cfg.corrupt_prob > 0 or cfg.dropout_prob > 0 or cfg.marker_noise_m > 0
+                or cfg.jitter_ms > 0):
+            # nothing random is configured, so no draw can tell whether this roll was taken: skip it
+            # (a numpy draw per frame costs as much as encoding the frame's bodies)
+            return datagram
         roll = self._rng.random()
         if roll < cfg.truncate_prob:
             self.faults["truncated"] += 1
