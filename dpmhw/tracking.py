@@ -368,14 +368,15 @@ class SampleSubscription:
         if maxlen < 1:
             raise ValueError(f"subscription maxlen must be >= 1, got {maxlen}")
         self._items: deque[PoseSample] = deque(maxlen=maxlen)
-        self._cond = threading.Condition(threading.Lock())
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
         self._waiting = 0  # consumers blocked in `get`: `put` notifies only when there are some
         self._closed = False
         self._on_close = on_close
         self.dropped = 0
 
     def put(self, sample: PoseSample) -> None:
-        with self._cond:
+        with self._lock:  # the condition's own lock, without its Python-level `__enter__`
             if self._closed:
                 return
             if len(self._items) == self._items.maxlen:
@@ -396,7 +397,7 @@ class SampleSubscription:
             return self._items.popleft() if self._items else None
 
     def drain(self) -> list[PoseSample]:
-        with self._cond:
+        with self._lock:
             items = list(self._items)
             self._items.clear()
             return items

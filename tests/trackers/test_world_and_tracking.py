@@ -178,6 +178,19 @@ def test_subscription_iterator_ends_when_closed():
     assert not t.is_alive() and [s.frame_number for s in got] == [1]
 
 
+def test_a_consumer_blocked_in_get_is_woken_by_put():
+    board = LatestPoses()
+    sub = board.subscribe()
+    got = []
+    t = threading.Thread(target=lambda: got.append(sub.get(timeout=60)))
+    t.start()
+    while not sub._waiting and t.is_alive():  # until it waits
+        threading.Event().wait(0.001)
+    board.publish([_sample(1, 3)])
+    t.join(timeout=30)  # woken by the put, not by its 60 s timeout
+    assert not t.is_alive() and [s.frame_number for s in got] == [3]
+
+
 def test_natnet_client_satisfies_the_tracker_protocol():
     assert isinstance(NatNetClient(), Tracker)
 
@@ -263,6 +276,7 @@ def test_mock_frame_content_matches_the_array_formulation(name, t, noise, offset
         content = server.build_frame(7, 123, t * 1e9)
     finally:
         server.stop()
+    t = t * 1e9 / 1e9  # the instant the frame describes, as the server computes it
     sets = dict(content.marker_sets)
     for (rb_id, pos, quat, err, params), obj in zip(content.rigid_bodies, world.objects.values()):
         rot, true_pos = world.pose(obj.rigid_body_id, t)
