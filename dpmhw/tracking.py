@@ -90,7 +90,7 @@ class PoseSample:
         """A sample from plain numbers: `rotation` 9 floats (row-major), `translation` 3 floats.
 
         What a driver's receiver thread builds for every body of every frame: one read-only array
-        each, without the generic constructor's conversions and copies (~a third of its cost)."""
+        each, without the generic constructor's conversions, copies and per-field checks."""
         rot = np.array(rotation, dtype=np.float64)
         rot.shape = (3, 3)  # in place (raises unless 9 values)
         pos = np.array(translation, dtype=np.float64)

@@ -206,13 +206,13 @@ class NatNetClient(ReceiverTracker):
                 f"positive and before the transmit stamp {transmit}"
             )
         bodies = self._check_bodies(frame)  # validates before anything is counted
-        self.clock.add_one_way(transmit * 1_000_000_000 // clock_hz, arrival_ns)
+        self.clock.add_one_way(self._ticks_to_ns(transmit), arrival_ns)
         if frame.models_changed:
             self._want_models = True
         if not self._accept_frame_number(frame.frame_number):
             return []
         self.system_latency_s = (transmit - mid) / clock_hz  # Motive's mid-exposure → transmit
-        mid_host = self.clock.to_host_ns(mid * 1_000_000_000 // clock_hz)
+        mid_host = self.clock.to_host_ns(self._ticks_to_ns(mid))
         samples = [
             PoseSample.from_floats(rb_id, rotation, position, mid_host, arrival_ns, valid, error, frame.frame_number)
             for rb_id, rotation, position, valid, error in bodies

@@ -164,11 +164,10 @@ def _mutations():
     return st.tuples(edits, st.integers(0, 400), st.sampled_from(["overwrite", "truncate", "insert"]))
 
 
-@FUZZ
-@given(mutation=_mutations(), which=st.sampled_from(["mocapframe_packet_v3.bin", "mocapframe_packet_occluded_v3.bin"]))
-def test_mutated_real_frames_decode_or_raise_the_decode_error(mutation, which):
+def _mutated(datagram: bytes, mutation) -> bytes:
+    """The payload of a captured datagram with one of `_mutations()` applied."""
     edits, cut, kind = mutation
-    _, payload = split_message(captured(which))
+    _, payload = split_message(datagram)
     buf = bytearray(payload)
     if kind == "truncate":
         buf = buf[: cut % len(buf)]
@@ -177,8 +176,14 @@ def test_mutated_real_frames_decode_or_raise_the_decode_error(mutation, which):
             buf.insert(pos % (len(buf) + 1), value)
         elif buf:
             buf[pos % len(buf)] = value
+    return bytes(buf)
+
+
+@FUZZ
+@given(mutation=_mutations(), which=st.sampled_from(["mocapframe_packet_v3.bin", "mocapframe_packet_occluded_v3.bin"]))
+def test_mutated_real_frames_decode_or_raise_the_decode_error(mutation, which):
     try:
-        decode_frame(bytes(buf), (3, 0))
+        decode_frame(_mutated(captured(which), mutation), (3, 0))
     except NatNetDecodeError:
         pass
 
@@ -223,17 +228,7 @@ def test_poses_decode_agrees_with_the_full_decode_on_arbitrary_bytes(data, versi
 @given(mutation=_mutations(), which=st.sampled_from(["mocapframe_packet_v3.bin", "mocapframe_packet_occluded_v3.bin"]),
        version=VERSIONS)
 def test_poses_decode_agrees_with_the_full_decode_on_mutated_real_frames(mutation, which, version):
-    edits, cut, kind = mutation
-    _, payload = split_message(captured(which))
-    buf = bytearray(payload)
-    if kind == "truncate":
-        buf = buf[: cut % len(buf)]
-    for pos, value in edits:
-        if kind == "insert":
-            buf.insert(pos % (len(buf) + 1), value)
-        elif buf:
-            buf[pos % len(buf)] = value
-    _assert_poses_decode_agrees(bytes(buf), version)
+    _assert_poses_decode_agrees(_mutated(captured(which), mutation), version)
 
 
 def test_poses_decode_of_every_truncation_of_a_real_frame_agrees():
