@@ -66,8 +66,8 @@ class PlausibilityGate:
 
     def __init__(self, limits: PlausibilityLimits | None = None):
         self.limits = limits or PlausibilityLimits()
-        self._box = (tuple(float(v) for v in self.limits.workspace_min), tuple(float(v) for v in self.limits.workspace_max))
-        self._accepted: dict[int, tuple[np.ndarray, int]] = {}  # body -> (position, t_exposure_ns)
+        self._box = tuple(float(v) for v in (*self.limits.workspace_min, *self.limits.workspace_max))  # x0 y0 z0 x1 y1 z1
+        self._accepted: dict[int, tuple[float, float, float, int]] = {}  # body -> (x, y, z, t_exposure_ns)
         self._lock = threading.Lock()
         self.dropped: Counter[str] = Counter()
         self.last_reason = ""
@@ -75,11 +75,9 @@ class PlausibilityGate:
 
     def admit(self, sample) -> str | None:
         """Check one `dpmhw.tracking.PoseSample`; a dropped sample never becomes the reference."""
-        reason = self._check(sample)
         with self._lock:
+            reason = self._check(sample)
             if reason is None:
-                if sample.valid:
-                    self._accepted[sample.rigid_body_id] = (sample.translation, sample.t_exposure_ns)
                 return None
             kind, text = reason
             self.dropped[kind] += 1
@@ -88,6 +86,8 @@ class PlausibilityGate:
             return self.last_reason
 
     def _check(self, sample) -> tuple[str, str] | None:
+        """(kind, why) for a sample to drop; None to accept it, after making it the body's reference
+        when it carries a pose. Called with the lock held."""
         lim = self.limits
         ahead_s = (sample.t_exposure_ns - sample.t_arrival_ns) / 1e9
         if ahead_s > lim.max_future_s:
@@ -98,20 +98,20 @@ class PlausibilityGate:
             return None
         p = sample.translation
         x, y, z = np.asarray(p, np.float64).tolist()  # plain floats: this runs per body, hundreds of times a second
-        (x0, y0, z0), (x1, y1, z1) = self._box
+        x0, y0, z0, x1, y1, z1 = self._box
         if not (x0 <= x <= x1 and y0 <= y <= y1 and z0 <= z <= z1):  # False for NaN
             return "workspace", (f"position {np.round(p, 3).tolist()} m is outside the workspace "
                                  f"{list(lim.workspace_min)}…{list(lim.workspace_max)} m")
-        with self._lock:
-            last = self._accepted.get(sample.rigid_body_id)
+        last = self._accepted.get(sample.rigid_body_id)
         if last is not None:
-            dt_s = abs(sample.t_exposure_ns - last[1]) / 1e9
-            lx, ly, lz = last[0].tolist()
+            lx, ly, lz, lt = last
+            dt_s = abs(sample.t_exposure_ns - lt) / 1e9
             distance = math.sqrt((x - lx) ** 2 + (y - ly) ** 2 + (z - lz) ** 2)
             allowed = lim.max_speed_m_s * dt_s + lim.position_noise_m
             if distance > allowed:
                 return "speed", (f"moved {distance:.3g} m in {dt_s * 1e3:.1f} ms since the last accepted sample "
                                  f"(at most {lim.max_speed_m_s:g} m/s)")
+        self._accepted[sample.rigid_body_id] = (x, y, z, sample.t_exposure_ns)
         return None
 
     def counts(self) -> dict:

@@ -35,6 +35,7 @@ __all__ = [
     "TrackerError",
     "TrackerState",
     "TrackerStatus",
+    "quaternion_xyzw_to_rotation",
     "quaternions_xyzw_to_matrices",
 ]
 
@@ -82,6 +83,32 @@ class PoseSample:
                 raise ValueError(f"PoseSample.{name}: expected shape {shape}, got {arr.shape}")
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
+
+    @classmethod
+    def from_floats(cls, rigid_body_id: int, rotation, translation, t_exposure_ns: int, t_arrival_ns: int,
+                    valid: bool, mean_marker_error: float = 0.0, frame_number: int = -1) -> "PoseSample":
+        """A sample from plain numbers: `rotation` 9 floats (row-major), `translation` 3 floats.
+
+        What a driver's receiver thread builds for every body of every frame: one read-only array
+        each, without the generic constructor's conversions, copies and per-field checks."""
+        rot = np.array(rotation, dtype=np.float64)
+        rot.shape = (3, 3)  # in place (raises unless 9 values)
+        pos = np.array(translation, dtype=np.float64)
+        if pos.shape != (3,):
+            raise ValueError(f"PoseSample.translation: expected shape (3,), got {pos.shape}")
+        rot.setflags(write=False)
+        pos.setflags(write=False)
+        sample = object.__new__(cls)
+        set_field = object.__setattr__
+        set_field(sample, "rigid_body_id", rigid_body_id)
+        set_field(sample, "rotation", rot)
+        set_field(sample, "translation", pos)
+        set_field(sample, "t_exposure_ns", t_exposure_ns)
+        set_field(sample, "t_arrival_ns", t_arrival_ns)
+        set_field(sample, "valid", valid)
+        set_field(sample, "mean_marker_error", mean_marker_error)
+        set_field(sample, "frame_number", frame_number)
+        return sample
 
     @property
     def latency_ns(self) -> int:
@@ -151,6 +178,27 @@ class Tracker(Protocol):
         """A bounded stream of every sample from now on, for recording."""
 
 
+_NAN_ROTATION = (math.nan,) * 9
+
+
+def quaternion_xyzw_to_rotation(x: float, y: float, z: float, w: float) -> tuple[float, ...]:
+    """Rotation matrix, row-major as 9 floats, of one (x, y, z, w) quaternion (not necessarily
+    normalised); all NaN where the quaternion is zero, huge or not finite.
+
+    Plain floats: a tracker frame carries a handful of bodies and arrives hundreds of times a
+    second on the receiver thread, where numpy's per-call cost on 4-element arrays dominated."""
+    n2 = x * x + y * y + z * z + w * w  # inf for huge or non-finite entries, nan for nan
+    if not (1e-12 < n2 < math.inf):
+        return _NAN_ROTATION
+    s = 2.0 / n2  # normalises and doubles in one factor
+    xx, yy, zz = s * x * x, s * y * y, s * z * z
+    xy, xz, yz = s * x * y, s * x * z, s * y * z
+    wx, wy, wz = s * w * x, s * w * y, s * w * z
+    return (1.0 - (yy + zz), xy - wz, xz + wy,
+            xy + wz, 1.0 - (xx + zz), yz - wx,
+            xz - wy, yz + wx, 1.0 - (xx + yy))
+
+
 def quaternions_xyzw_to_matrices(quaternions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation matrices from (x, y, z, w) quaternions, as NatNet sends them.
 
@@ -162,30 +210,10 @@ def quaternions_xyzw_to_matrices(quaternions: np.ndarray) -> tuple[np.ndarray, n
     -------
     rotations : (n, 3, 3) float64; NaN where the quaternion is zero or not finite
     usable : (n,) bool, False where the rotations are NaN
-
-    Per body in plain floats: a frame carries a handful of bodies and arrives hundreds of times
-    a second on the receiver thread, where two dozen numpy calls on (n, 4) arrays cost ~60 µs
-    of the ~190 µs per datagram (measured live at 360 Hz; this takes ~5).
     """
     q = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)
-    rows = []
-    for x, y, z, w in q.tolist():
-        n2 = x * x + y * y + z * z + w * w  # inf for huge or non-finite entries, nan for nan
-        if not (1e-12 < n2 < math.inf):
-            rows.append(_NAN_ROTATION)
-            continue
-        s = 2.0 / n2  # normalises and doubles in one factor
-        xx, yy, zz = s * x * x, s * y * y, s * z * z
-        xy, xz, yz = s * x * y, s * x * z, s * y * z
-        wx, wy, wz = s * w * x, s * w * y, s * w * z
-        rows.append((1.0 - (yy + zz), xy - wz, xz + wy,
-                     xy + wz, 1.0 - (xx + zz), yz - wx,
-                     xz - wy, yz + wx, 1.0 - (xx + yy)))
-    rotations = np.array(rows, dtype=np.float64).reshape(-1, 3, 3)
+    rotations = np.array([quaternion_xyzw_to_rotation(*row) for row in q.tolist()], dtype=np.float64).reshape(-1, 3, 3)
     return rotations, ~np.isnan(rotations[:, 0, 0])
-
-
-_NAN_ROTATION = (math.nan,) * 9
 
 
 class _SlidingMinimum:
@@ -340,29 +368,36 @@ class SampleSubscription:
         if maxlen < 1:
             raise ValueError(f"subscription maxlen must be >= 1, got {maxlen}")
         self._items: deque[PoseSample] = deque(maxlen=maxlen)
-        self._cond = threading.Condition()
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self._waiting = 0  # consumers blocked in `get`: `put` notifies only when there are some
         self._closed = False
         self._on_close = on_close
         self.dropped = 0
 
     def put(self, sample: PoseSample) -> None:
-        with self._cond:
+        with self._lock:  # the condition's own lock, without its Python-level `__enter__`
             if self._closed:
                 return
             if len(self._items) == self._items.maxlen:
                 self.dropped += 1
             self._items.append(sample)
-            self._cond.notify()
+            if self._waiting:
+                self._cond.notify()
 
     def get(self, timeout: float | None = None) -> PoseSample | None:
         """Next sample, or None after `timeout` seconds / once closed and drained."""
         with self._cond:
             if not self._items and not self._closed:
-                self._cond.wait(timeout)
+                self._waiting += 1
+                try:
+                    self._cond.wait(timeout)
+                finally:
+                    self._waiting -= 1
             return self._items.popleft() if self._items else None
 
     def drain(self) -> list[PoseSample]:
-        with self._cond:
+        with self._lock:
             items = list(self._items)
             self._items.clear()
             return items
@@ -402,20 +437,22 @@ class LatestPoses:
         self.gate = gate
         self._lock = threading.Lock()
         self._latest: dict[int, PoseSample] = {}
-        self._callbacks: list[Callable[[PoseSample], None]] = []
-        self._subscriptions: list[SampleSubscription] = []
+        # replaced, never changed in place, so `publish` reads them without copying
+        self._callbacks: tuple[Callable[[PoseSample], None], ...] = ()
+        self._subscriptions: tuple[SampleSubscription, ...] = ()
         self.callback_errors = 0
         self.last_callback_error: str = ""
 
     def publish(self, samples: list[PoseSample]) -> list[PoseSample]:
         """Hand `samples` to every consumer; returns those the gate let through."""
-        if self.gate is not None:
-            samples = [s for s in samples if self.gate.admit(s) is None]
+        gate = self.gate
+        if gate is not None:
+            samples = [s for s in samples if gate.admit(s) is None]
+        latest = self._latest
         with self._lock:
             for s in samples:
-                self._latest[s.rigid_body_id] = s
-            callbacks = list(self._callbacks)
-            subscriptions = list(self._subscriptions)
+                latest[s.rigid_body_id] = s
+        callbacks, subscriptions = self._callbacks, self._subscriptions
         for s in samples:
             for sub in subscriptions:
                 sub.put(s)
@@ -437,27 +474,26 @@ class LatestPoses:
 
     def add_callback(self, callback: Callable[[PoseSample], None]) -> None:
         with self._lock:
-            self._callbacks.append(callback)
+            self._callbacks = (*self._callbacks, callback)
 
     def remove_callback(self, callback: Callable[[PoseSample], None]) -> None:
         with self._lock:
-            self._callbacks.remove(callback)
+            callbacks = list(self._callbacks)
+            callbacks.remove(callback)
+            self._callbacks = tuple(callbacks)
 
     def subscribe(self, maxlen: int = 4096) -> SampleSubscription:
         sub = SampleSubscription(maxlen, on_close=self._unsubscribe)
         with self._lock:
-            self._subscriptions.append(sub)
+            self._subscriptions = (*self._subscriptions, sub)
         return sub
 
     def _unsubscribe(self, sub: SampleSubscription) -> None:
         with self._lock:
-            if sub in self._subscriptions:
-                self._subscriptions.remove(sub)
+            self._subscriptions = tuple(s for s in self._subscriptions if s is not sub)
 
     def close_subscriptions(self) -> None:
-        with self._lock:
-            subs = list(self._subscriptions)
-        for sub in subs:
+        for sub in self._subscriptions:
             sub.close()
 
 

@@ -29,18 +29,16 @@ import socket
 import time
 from collections import Counter, deque
 
-import numpy as np
-
 from dpmhw.plausibility import PlausibilityLimits
-from dpmhw.tracking import ClockMapping, PoseSample, TrackerError, TrackerState, quaternions_xyzw_to_matrices
+from dpmhw.tracking import ClockMapping, PoseSample, TrackerError, TrackerState, quaternion_xyzw_to_rotation
 from drivers.natnet_protocol import (
+    FramePoses,
     MessageId,
     ModelDefinitions,
-    MocapFrame,
     NatNetDecodeError,
     ServerInfo,
     decode_echo_response,
-    decode_frame,
+    decode_frame_poses,
     decode_model_definitions,
     decode_server_info,
     encode_connect,
@@ -56,7 +54,6 @@ __all__ = ["NatNetClient"]
 log = logging.getLogger(__name__)
 
 _MAX_DATAGRAM = 65536
-_DRAIN_LIMIT = 256  # datagrams handled per wake-up before checking timers
 _FRAME_ID = MessageId.FRAME_OF_DATA.to_bytes(2, "little")  # a datagram's first two bytes
 _FOREIGN_SENDERS_KEPT = 64  # distinct foreign addresses counted one by one (the rest as "other")
 
@@ -122,6 +119,8 @@ class NatNetClient(ReceiverTracker):
         self._cmd: socket.socket | None = None
         self._data: socket.socket | None = None
         self._echoes_sent: deque[int] = deque(maxlen=64)
+        self._rx_buffer = bytearray(_MAX_DATAGRAM)  # receiver thread only
+        self._rx_view = memoryview(self._rx_buffer)
         self._want_models = False
 
     # -- names ---------------------------------------------------------------------------------
@@ -196,55 +195,52 @@ class NatNetClient(ReceiverTracker):
             log.warning("natnet: the server's clock changed (restarted?); clock mapping and frame numbers start over")
 
     def _handle_frame(self, payload, arrival_ns: int) -> list[PoseSample]:
-        if self.version is None or self.clock_hz is None:
+        clock_hz = self.clock_hz
+        if self.version is None or clock_hz is None:
             raise NatNetDecodeError("frame arrived before the server info (version and clock unknown)")
-        frame = decode_frame(payload, self.version)
-        if not 0 < frame.stamp_mid_exposure <= frame.stamp_transmit:
+        frame = decode_frame_poses(payload, self.version)
+        mid, transmit = frame.stamp_mid_exposure, frame.stamp_transmit
+        if not 0 < mid <= transmit:
             raise NatNetDecodeError(
-                f"frame {frame.frame_number}: camera mid-exposure stamp {frame.stamp_mid_exposure} is not "
-                f"positive and before the transmit stamp {frame.stamp_transmit}"
+                f"frame {frame.frame_number}: camera mid-exposure stamp {mid} is not "
+                f"positive and before the transmit stamp {transmit}"
             )
         bodies = self._check_bodies(frame)  # validates before anything is counted
-        self.clock.add_one_way(self._ticks_to_ns(frame.stamp_transmit), arrival_ns)
+        self.clock.add_one_way(self._ticks_to_ns(transmit), arrival_ns)
         if frame.models_changed:
             self._want_models = True
         if not self._accept_frame_number(frame.frame_number):
             return []
-        self.system_latency_s = frame.system_latency_s(self.clock_hz)
-        mid_host = self.clock.to_host_ns(self._ticks_to_ns(frame.stamp_mid_exposure))
-        rb = frame.rigid_bodies
-        positions, rotations, valid = bodies
+        self.system_latency_s = (transmit - mid) / clock_hz  # Motive's mid-exposure → transmit
+        mid_host = self.clock.to_host_ns(self._ticks_to_ns(mid))
         samples = [
-            PoseSample(
-                int(rb.ids[i]), rotations[i], positions[i], mid_host, arrival_ns, bool(valid[i]),
-                float(rb.mean_errors[i]), frame.frame_number,
-            )
-            for i in range(len(rb))
+            PoseSample.from_floats(rb_id, rotation, position, mid_host, arrival_ns, valid, error, frame.frame_number)
+            for rb_id, rotation, position, valid, error in bodies
         ]
         return self._publish_frame(samples, arrival_ns)
 
     @staticmethod
-    def _check_bodies(frame: MocapFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(positions (n, 3), rotations (n, 3, 3), valid (n,)) of the frame's rigid bodies.
+    def _check_bodies(frame: FramePoses) -> list[tuple[int, tuple, tuple, bool, float]]:
+        """(id, rotation (9 floats, row-major), position (3 floats), valid, mean error) per rigid body.
 
         A body flagged tracked must carry a finite position and a unit quaternion; otherwise the
         frame is malformed (a pose we cannot trust is worse than none). Per body in plain floats
-        (a frame holds a handful; numpy's per-call cost dominated at 360 frames a second), which
-        also widens signalling NaNs from the wire without floating-point warnings.
+        (a frame holds a handful; numpy's per-call cost dominated at 360 frames a second); the
+        wire's float32 signalling NaNs widen to quiet ones without floating-point warnings.
         """
-        rb = frame.rigid_bodies
-        positions = rb.positions.tolist()
-        for i, (tracked, p, q) in enumerate(zip(rb.tracked.tolist(), positions, rb.quaternions.tolist())):
-            if not tracked:
-                continue
-            norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-            if not (math.isfinite(p[0] + p[1] + p[2]) and abs(norm - 1.0) < 1e-3):
-                raise NatNetDecodeError(
-                    f"frame {frame.frame_number}: rigid body {int(rb.ids[i])} is flagged tracked but its pose is not "
-                    f"valid (position {p}, quaternion norm {norm:.4g})"
-                )
-        rotations, usable = quaternions_xyzw_to_matrices(rb.quaternions)
-        return np.array(positions, np.float64).reshape(-1, 3), rotations, rb.tracked & usable
+        bodies = []
+        for rb_id, x, y, z, qx, qy, qz, qw, error, params in frame.rigid_bodies:
+            tracked = params & 1
+            if tracked:
+                norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+                if not (math.isfinite(x + y + z) and abs(norm - 1.0) < 1e-3):
+                    raise NatNetDecodeError(
+                        f"frame {frame.frame_number}: rigid body {rb_id} is flagged tracked but its pose is not "
+                        f"valid (position {[x, y, z]}, quaternion norm {norm:.4g})"
+                    )
+            # valid = tracked: a tracked body's quaternion passed the unit check, so its rotation is usable
+            bodies.append((rb_id, quaternion_xyzw_to_rotation(qx, qy, qz, qw), (x, y, z), bool(tracked), error))
+        return bodies
 
     # -- the session ---------------------------------------------------------------------------
 
@@ -280,7 +276,8 @@ class NatNetClient(ReceiverTracker):
 
     def _recv(self, sock: socket.socket, flags: int = 0) -> bytes | None:
         """One datagram from the server, or None for one from anyone else."""
-        data, sender = sock.recvfrom(_MAX_DATAGRAM, flags)
+        size, sender = sock.recvfrom_into(self._rx_buffer, _MAX_DATAGRAM, flags)  # no 64 KiB allocation per call
+        data = self._rx_view[:size].tobytes()
         return data if self._from_server(sender, data, sock is self._cmd) else None
 
     def _send(self, datagram: bytes) -> None:
@@ -385,21 +382,29 @@ class NatNetClient(ReceiverTracker):
         mode = f"multicast {self.multicast_group or info.multicast_group}" if use_multicast else "unicast"
         self._set_state(TrackerState.CONNECTED, f"{info.app_name} NatNet {self.version[0]}.{self.version[1]}, {mode}")
         self._send(encode_message(MessageId.REQUEST_MODEL_DEF))
-        sockets = [s for s in (self._cmd, self._data) if s is not None]
-        connected_ns = last_keepalive = last_echo = last_probe = time.monotonic_ns()
+        # One datagram per readiness, then the timers: a poll on registered sockets costs less than
+        # draining each socket until a failed read raises (datagrams come one at a time at 360 Hz).
+        sockets = {s.fileno(): s for s in (self._cmd, self._data) if s is not None}
+        poller = select.poll()
+        for fd in sockets:
+            poller.register(fd, select.POLLIN)
+        stale_ns, lost_ns = self.stale_after_s * 1e9, self.lost_after_s * 1e9
+        probe_ns = max(self.stale_after_s, 0.02) * 1e9
+        keepalive_ns, echo_ns = self.keepalive_interval_s * 1e9, self.echo_interval_s * 1e9
+        stop, monotonic_ns, dont_wait = self._stop, time.monotonic_ns, socket.MSG_DONTWAIT
+        connected_ns = last_keepalive = last_echo = last_probe = monotonic_ns()
         frames_at_start = self.frames
-        while not self._stop.is_set():
-            for sock in select.select(sockets, [], [], 0.02)[0]:
-                for _ in range(_DRAIN_LIMIT):
-                    try:
-                        data = self._recv(sock, socket.MSG_DONTWAIT)
-                    except (BlockingIOError, InterruptedError):
-                        break
-                    if data is not None:
-                        self.process_datagram(data, time.monotonic_ns())
-            now = time.monotonic_ns()
+        while not stop.is_set():
+            for fd, _ in poller.poll(20):
+                try:
+                    data = self._recv(sockets[fd], dont_wait)
+                except (BlockingIOError, InterruptedError):
+                    continue
+                if data is not None:
+                    self.process_datagram(data, monotonic_ns())
+            now = monotonic_ns()
             since = self._last_arrival_ns if self.frames > frames_at_start else connected_ns
-            if now - since > self.stale_after_s * 1e9 and now - last_probe > max(self.stale_after_s, 0.02) * 1e9:
+            if now - since > stale_ns and now - last_probe > probe_ns:
                 # Frames are missing: Motive may have restarted. Every `stale_after_s`, connect
                 # again (unicast: a restarted Motive has forgotten its clients; a CONNECT registers
                 # one, and its server-info reply is harmless) and send an echo (its round trip
@@ -409,12 +414,13 @@ class NatNetClient(ReceiverTracker):
                     self._send(encode_connect((*(self.forced_version or self.version or (4, 1)), 0, 0)))
                     last_keepalive = now
                 last_probe = last_echo = self._send_echo()
-            elif not use_multicast and now - last_keepalive > self.keepalive_interval_s * 1e9:
+            elif not use_multicast and now - last_keepalive > keepalive_ns:
                 self._send(encode_message(MessageId.KEEP_ALIVE))
                 last_keepalive = now
-            if now - last_echo > self.echo_interval_s * 1e9:  # keeps following clock drift
+            if now - last_echo > echo_ns:  # keeps following clock drift
                 last_echo = self._send_echo()
             if self._want_models:
                 self._want_models = False
                 self._send(encode_message(MessageId.REQUEST_MODEL_DEF))
-            self._check_alive(since, "frame of data")
+            if now - since > lost_ns:
+                self._check_alive(since, "frame of data")

@@ -16,6 +16,7 @@ from __future__ import annotations
 import enum
 import struct
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -23,6 +24,7 @@ from dpmhw.tracking import TrackerDecodeError
 
 __all__ = [
     "SUPPORTED_VERSIONS",
+    "FramePoses",
     "MessageId",
     "MocapFrame",
     "ModelDefinitions",
@@ -32,6 +34,7 @@ __all__ = [
     "ServerInfo",
     "decode_echo_response",
     "decode_frame",
+    "decode_frame_poses",
     "decode_model_definitions",
     "decode_server_info",
     "encode_connect",
@@ -238,7 +241,7 @@ class _Reader:
     __slots__ = ("buf", "pos", "end", "what", "sized")
 
     def __init__(self, buf: bytes | memoryview, what: str, sized: bool = False):
-        self.buf = bytes(buf)
+        self.buf = buf if type(buf) is bytes else bytes(buf)
         self.pos = 0
         self.end = len(self.buf)
         self.what = what
@@ -258,7 +261,19 @@ class _Reader:
         return values
 
     def i32(self, field_name: str) -> int:
-        return self.unpack(_I32, field_name)[0]
+        pos = self.pos
+        if pos + 4 > self.end:
+            raise self.fail(field_name, f"needs 4 bytes, only {self.end - pos} left (truncated?)")
+        self.pos = pos + 4
+        return _I32.unpack_from(self.buf, pos)[0]
+
+    def skip(self, nbytes: int, field_name: str) -> int:
+        """Step over `nbytes` (bounds-checked); returns where they start."""
+        pos = self.pos
+        if nbytes < 0 or pos + nbytes > self.end:
+            raise self.fail(field_name, f"needs {nbytes} bytes, only {self.end - pos} left (truncated?)")
+        self.pos = pos + nbytes
+        return pos
 
     def string(self, field_name: str, limit: int | None = None) -> str:
         stop = self.end if limit is None else min(self.end, self.pos + limit)
@@ -274,31 +289,58 @@ class _Reader:
 
     def count(self, field_name: str, min_item_bytes: int) -> int:
         """A non-negative i32 count whose items (≥ `min_item_bytes` each) fit in what is left."""
-        n = self.i32(field_name)
+        pos = self.pos
+        if pos + 4 > self.end:
+            raise self.fail(field_name, f"needs 4 bytes, only {self.end - pos} left (truncated?)")
+        self.pos = pos + 4
+        (n,) = _I32.unpack_from(self.buf, pos)
         if n < 0:
             raise self.fail(field_name, f"count {n} is negative")
-        if min_item_bytes > 0 and n * min_item_bytes > self.end - self.pos:
+        if n * min_item_bytes > self.end - self.pos:
             raise self.fail(
                 field_name, f"count {n} needs at least {n * min_item_bytes} bytes, only {self.end - self.pos} left"
             )
         return n
 
     def records(self, dtype: np.dtype, n: int, field_name: str) -> np.ndarray:
-        nbytes = dtype.itemsize * n
-        self.need(nbytes, field_name)
-        arr = np.frombuffer(self.buf, dtype=dtype, count=n, offset=self.pos)
-        self.pos += nbytes
-        return arr
+        return np.frombuffer(self.buf, dtype=dtype, count=n, offset=self.skip(dtype.itemsize * n, field_name))
+
+    def section(self, count_field: str, min_item_bytes: int, size_field: str) -> tuple[int, tuple[int, int] | None]:
+        """A section's item count (as `count`) and, from NatNet 4.1, its byte count:
+        (count, (start, size) to hand to `finish`, or None before 4.1)."""
+        pos, left = self.pos, self.end - self.pos
+        if self.sized and left >= 8:  # both words at once when both are valid (the checks below, inline)
+            n, size = _TWO_I32.unpack_from(self.buf, pos)
+            if 0 <= n and n * min_item_bytes <= left - 4 and 0 <= size <= left - 8:
+                self.pos = pos + 8
+                return n, (pos + 8, size)
+        n = self.count(count_field, min_item_bytes)
+        if not self.sized:
+            return n, None
+        size = self.i32(size_field)
+        if size < 0 or size > self.end - self.pos:
+            raise self.fail(size_field, f"{size} does not fit in the {self.end - self.pos} bytes left")
+        return n, (self.pos, size)
+
+    def finish(self, field_name: str, section: tuple[int, int] | None) -> None:
+        """The records parsed since `section` must fill the declared byte count exactly."""
+        if section is not None and self.pos - section[0] != section[1]:
+            raise self.fail(field_name, f"declares {section[1]} bytes but its records occupy {self.pos - section[0]}")
 
     def floats(self, n: int, field_name: str) -> np.ndarray:
         return self.records(_F32, n, field_name).astype(np.float32)
 
 
 _I32 = struct.Struct("<i")
+_RIGID_BODY = struct.Struct("<i3f4ffh")  # one RIGID_BODY_DTYPE record, as plain values
+assert _RIGID_BODY.size == RIGID_BODY_DTYPE.itemsize
 _F32 = np.dtype("<f4")
 _SUFFIX_3 = struct.Struct("<IIdQQQ")
 _PRECISION = struct.Struct("<II")
 _I16 = struct.Struct("<h")
+# what follows the sections: timestamps, [precision timestamp 4.1+], params, end-of-data tag
+_SUFFIX_30 = struct.Struct("<IIdQQQhi")
+_SUFFIX_41 = struct.Struct("<IIdQQQIIhi")
 _SERVER_INFO_TAIL = struct.Struct("<QHB4s")
 _VEC3 = np.dtype(("<f4", (3,)))
 
@@ -363,125 +405,146 @@ def decode_server_info(payload: bytes | memoryview) -> ServerInfo:
 # ----------------------------------------------------------------------------- frame of data
 
 
-class _Section:
-    """Context for a 4.1+ section: checks the declared byte count against what was parsed."""
+class FramePoses(NamedTuple):
+    """What a tracker client needs of a frame of data (`decode_frame_poses`): the rigid bodies as
+    plain tuples `(id, x, y, z, qx, qy, qz, qw, mean_error, params)` in wire order, and the stamps."""
 
-    def __init__(self, r: _Reader, sized: bool, name: str):
-        self.r, self.sized, self.name = r, sized, name
+    frame_number: int
+    rigid_bodies: list[tuple]
+    stamp_mid_exposure: int  # server clock ticks
+    stamp_transmit: int
+    params: int
 
-    def begin(self) -> None:
-        if self.sized:
-            size = self.r.i32(f"{self.name} byte count")
-            if size < 0 or size > self.r.end - self.r.pos:
-                raise self.r.fail(f"{self.name} byte count", f"{size} does not fit in the {self.r.end - self.r.pos} bytes left")
-            self.size, self.start = size, self.r.pos
-
-    def end(self) -> None:
-        if self.sized and self.r.pos - self.start != self.size:
-            raise self.r.fail(
-                f"{self.name} byte count", f"declares {self.size} bytes but its records occupy {self.r.pos - self.start}"
-            )
+    @property
+    def models_changed(self) -> bool:
+        return bool(self.params & 2)
 
 
-def _labeled(arr: np.ndarray) -> LabeledMarkers:
+def _labeled(r: _Reader, n: int, field_name: str, keep: bool) -> LabeledMarkers | None:
+    start = r.skip(LABELED_MARKER_DTYPE.itemsize * n, field_name)
+    if not keep:
+        return None
+    arr = np.frombuffer(r.buf, LABELED_MARKER_DTYPE, n, start)
     return LabeledMarkers(
         arr["id"].copy(), arr["position"].copy(), arr["size"].copy(), arr["params"].copy(), arr["residual"].copy()
     )
 
 
-def _channels(r: _Reader, what: str) -> dict[int, list[np.ndarray]]:
+def _rigid_bodies(r: _Reader, n: int, field_name: str, keep: bool) -> RigidBodies | list[tuple] | None:
+    start = r.skip(_RIGID_BODY.size * n, field_name)
+    if keep:
+        return RigidBodies.from_records(np.frombuffer(r.buf, RIGID_BODY_DTYPE, n, start))
+    return [_RIGID_BODY.unpack_from(r.buf, start + _RIGID_BODY.size * i) for i in range(n)]
+
+
+def _channels(r: _Reader, what: str, keep: bool) -> dict[int, list[np.ndarray]]:
     items: dict[int, list[np.ndarray]] = {}
-    n = r.count(f"{what} count", 8)
-    sec = _Section(r, r.sized, what)
-    sec.begin()
+    size_field = f"{what} byte count"
+    n, section = r.section(f"{what} count", 8, size_field)
     for _ in range(n):
         item_id = r.i32(f"{what} id")
         n_ch = r.count(f"{what} {item_id} channel count", 4)
         channels = []
         for _ in range(n_ch):
             n_frames = r.count(f"{what} {item_id} channel frame count", 4)
-            channels.append(r.floats(n_frames, f"{what} {item_id} channel values"))
+            start = r.skip(4 * n_frames, f"{what} {item_id} channel values")
+            if keep:
+                channels.append(np.frombuffer(r.buf, _F32, n_frames, start).astype(np.float32))
         items[item_id] = channels
-    sec.end()
+    r.finish(size_field, section)
     return items
 
 
-def decode_frame(payload: bytes | memoryview, version: tuple[int, int]) -> MocapFrame:
-    """Decode a frame-of-data payload (header already removed) for NatNet `version`."""
+def _parse_frame(payload: bytes | memoryview, version: tuple[int, int], keep: bool) -> tuple:
+    """Walk and validate a whole frame-of-data payload; the fields of `MocapFrame` in order.
+
+    keep=False checks every section as strictly but builds no arrays: markers, skeletons and
+    assets are stepped over and the top-level rigid bodies come back as tuples (what the
+    receiver thread needs, hundreds of times a second)."""
     major, minor = version
     sized = (major, minor) >= (4, 1)
     r = _Reader(payload, f"NatNet {major}.{minor} frame", sized)
+    buf = r.buf
     frame_number = r.i32("frame number")
 
-    n = r.count("marker set count", 5)
-    sec = _Section(r, sized, "marker sets")
-    sec.begin()
+    n, section = r.section("marker set count", 5, "marker sets byte count")
     marker_sets: dict[str, np.ndarray] = {}
     for i in range(n):
         name = r.string(f"marker set {i} name")
         k = r.count(f"marker set {name!r} marker count", 12)
-        marker_sets[name] = r.records(_VEC3, k, f"marker set {name!r} positions").copy()
-    sec.end()
+        start = r.skip(12 * k, f"marker set {name!r} positions")
+        if keep:
+            marker_sets[name] = np.frombuffer(buf, _VEC3, k, start).copy()
+    r.finish("marker sets byte count", section)
 
-    n = r.count("unlabeled marker count", 12)
-    sec = _Section(r, sized, "unlabeled markers")
-    sec.begin()
-    unlabeled = r.records(_VEC3, n, "unlabeled marker positions").copy()
-    sec.end()
+    n, section = r.section("unlabeled marker count", 12, "unlabeled markers byte count")
+    start = r.skip(12 * n, "unlabeled marker positions")
+    unlabeled = np.frombuffer(buf, _VEC3, n, start).copy() if keep else None
+    r.finish("unlabeled markers byte count", section)
 
-    n = r.count("rigid body count", RIGID_BODY_DTYPE.itemsize)
-    sec = _Section(r, sized, "rigid bodies")
-    sec.begin()
-    bodies = RigidBodies.from_records(r.records(RIGID_BODY_DTYPE, n, "rigid bodies"))
-    sec.end()
+    n, section = r.section("rigid body count", _RIGID_BODY.size, "rigid bodies byte count")
+    bodies = _rigid_bodies(r, n, "rigid bodies", keep)
+    r.finish("rigid bodies byte count", section)
 
-    n = r.count("skeleton count", 8)
-    sec = _Section(r, sized, "skeletons")
-    sec.begin()
+    n, section = r.section("skeleton count", 8, "skeletons byte count")
     skeletons: dict[int, RigidBodies] = {}
     for _ in range(n):
         sk_id = r.i32("skeleton id")
-        k = r.count(f"skeleton {sk_id} rigid body count", RIGID_BODY_DTYPE.itemsize)
-        skeletons[sk_id] = RigidBodies.from_records(r.records(RIGID_BODY_DTYPE, k, f"skeleton {sk_id} rigid bodies"))
-    sec.end()
+        k = r.count(f"skeleton {sk_id} rigid body count", _RIGID_BODY.size)
+        rbs = _rigid_bodies(r, k, f"skeleton {sk_id} rigid bodies", keep)
+        if keep:
+            skeletons[sk_id] = rbs
+    r.finish("skeletons byte count", section)
 
     assets: list[Asset] = []
     if sized:
-        n = r.count("asset count", 12)
-        sec = _Section(r, sized, "assets")
-        sec.begin()
+        n, section = r.section("asset count", 12, "assets byte count")
         for _ in range(n):
             asset_id = r.i32("asset id")
-            k = r.count(f"asset {asset_id} rigid body count", RIGID_BODY_DTYPE.itemsize)
-            rbs = RigidBodies.from_records(r.records(RIGID_BODY_DTYPE, k, f"asset {asset_id} rigid bodies"))
+            k = r.count(f"asset {asset_id} rigid body count", _RIGID_BODY.size)
+            rbs = _rigid_bodies(r, k, f"asset {asset_id} rigid bodies", keep)
             k = r.count(f"asset {asset_id} marker count", LABELED_MARKER_DTYPE.itemsize)
-            mks = _labeled(r.records(LABELED_MARKER_DTYPE, k, f"asset {asset_id} markers"))
-            assets.append(Asset(asset_id, rbs, mks))
-        sec.end()
+            mks = _labeled(r, k, f"asset {asset_id} markers", keep)
+            if keep:
+                assets.append(Asset(asset_id, rbs, mks))
+        r.finish("assets byte count", section)
 
-    n = r.count("labeled marker count", LABELED_MARKER_DTYPE.itemsize)
-    sec = _Section(r, sized, "labeled markers")
-    sec.begin()
-    labeled = _labeled(r.records(LABELED_MARKER_DTYPE, n, "labeled markers"))
-    sec.end()
+    n, section = r.section("labeled marker count", LABELED_MARKER_DTYPE.itemsize, "labeled markers byte count")
+    labeled = _labeled(r, n, "labeled markers", keep)
+    r.finish("labeled markers byte count", section)
 
-    force_plates = _channels(r, "force plate")
-    devices = _channels(r, "device")
+    force_plates = _channels(r, "force plate", keep)
+    devices = _channels(r, "device", keep)
 
-    timecode, subframe, timestamp, mid, received, transmit = r.unpack(_SUFFIX_3, "frame suffix timestamps")
-    precision = r.unpack(_PRECISION, "precision timestamp") if sized else None
-    (params,) = r.unpack(_I16, "frame params")
-    eod = r.i32("end-of-data tag")
+    suffix = _SUFFIX_41 if sized else _SUFFIX_30
+    if r.end - r.pos >= suffix.size:  # all of it at once; else field by field, to name the short one
+        timecode, subframe, timestamp, mid, received, transmit, *precision, params, eod = suffix.unpack_from(buf, r.pos)
+        precision = tuple(precision) if sized else None
+        r.pos += suffix.size
+    else:
+        timecode, subframe, timestamp, mid, received, transmit = r.unpack(_SUFFIX_3, "frame suffix timestamps")
+        precision = r.unpack(_PRECISION, "precision timestamp") if sized else None
+        (params,) = r.unpack(_I16, "frame params")
+        eod = r.i32("end-of-data tag")
     if eod != 0:
         r.pos -= 4
         raise r.fail("end-of-data tag", f"is {eod}, expected 0 (wrong NatNet version or corrupt frame?)")
     if r.pos != r.end:
         raise r.fail("end of frame", f"{r.end - r.pos} unparsed bytes follow the end-of-data tag (wrong NatNet version?)")
+    return (frame_number, marker_sets, unlabeled, bodies, skeletons, tuple(assets), labeled, force_plates, devices,
+            timecode, subframe, timestamp, mid, received, transmit, precision, params)
 
-    return MocapFrame(
-        frame_number, marker_sets, unlabeled, bodies, skeletons, tuple(assets), labeled, force_plates, devices,
-        timecode, subframe, timestamp, mid, received, transmit, precision, params,
-    )
+
+def decode_frame(payload: bytes | memoryview, version: tuple[int, int]) -> MocapFrame:
+    """Decode a frame-of-data payload (header already removed) for NatNet `version`."""
+    return MocapFrame(*_parse_frame(payload, version, True))
+
+
+def decode_frame_poses(payload: bytes | memoryview, version: tuple[int, int]) -> FramePoses:
+    """The rigid bodies and stamps of a frame-of-data payload, validated exactly as `decode_frame`
+    validates it (same errors), without building the marker arrays a tracker client ignores."""
+    f = _parse_frame(payload, version, False)
+    return FramePoses(f[0], f[3], f[12], f[14], f[16])
 
 
 # ----------------------------------------------------------------------------- model definitions

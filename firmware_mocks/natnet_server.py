@@ -41,6 +41,15 @@ UNRECOGNIZED_REQUEST = 100
 
 _SUPPORTED = {(3, 0), (3, 1), (4, 0), (4, 1), (4, 2)}
 
+_HEADER = struct.Struct("<HH")
+_I32 = struct.Struct("<i")
+_TWO_I32 = struct.Struct("<ii")
+_RIGID_BODY = struct.Struct("<i3f4ffh")
+_MARKER = struct.Struct("<i3ffhf")
+_SUFFIX = struct.Struct("<IIdQQQ")
+_PRECISION = struct.Struct("<II")
+_TAIL = struct.Struct("<hi")  # frame params, end-of-data tag
+
 
 def _version_tuple(version: str | tuple) -> tuple[int, int]:
     if isinstance(version, str):
@@ -53,8 +62,8 @@ def _version_tuple(version: str | tuple) -> tuple[int, int]:
     return v
 
 
-def _message(msg_id: int, payload: bytes) -> bytes:
-    return struct.pack("<HH", msg_id, len(payload)) + payload
+def _message(msg_id: int, payload: bytes | bytearray) -> bytes:
+    return _HEADER.pack(msg_id, len(payload)) + payload
 
 
 def _cstr(text: str) -> bytes:
@@ -90,66 +99,83 @@ class FrameContent:
 
 
 def _rigid_body_record(rb: tuple) -> bytes:
-    rb_id, pos, quat, err, params = rb
-    return struct.pack("<i3f4ffh", rb_id, *pos, *quat, err, params)
+    rb_id, (x, y, z), (qx, qy, qz, qw), err, params = rb
+    return _RIGID_BODY.pack(rb_id, x, y, z, qx, qy, qz, qw, err, params)
 
 
 def _marker_record(m: tuple) -> bytes:
-    m_id, pos, size, params, residual = m
-    return struct.pack("<i3ffhf", m_id, *pos, size, params, residual)
+    m_id, (x, y, z), size, params, residual = m
+    return _MARKER.pack(m_id, x, y, z, size, params, residual)
 
 
-def _section(count: int, body: bytes, sized: bool) -> bytes:
-    """count, [byte count if 4.1+], records."""
-    return struct.pack("<i", count) + (struct.pack("<i", len(body)) if sized else b"") + body
+def _points(points) -> tuple[int, bytes]:
+    """(count, float32 x y z records) of points given as a (k, 3) array or a sequence of 3-tuples
+    (what `NatNetServer.build_frame` makes: packing floats beats building an array per frame)."""
+    if isinstance(points, np.ndarray):
+        arr = np.asarray(points, "<f4").reshape(-1, 3)
+        return len(arr), arr.tobytes()
+    flat = [v for p in points for v in p]
+    return len(flat) // 3, struct.pack(f"<{len(flat)}f", *flat)
+
+
+def _section(out: bytearray, count: int, body: bytes | bytearray, sized: bool) -> None:
+    """Append count, [byte count if 4.1+], records."""
+    out += _TWO_I32.pack(count, len(body)) if sized else _I32.pack(count)
+    out += body
+
+
+def _rigid_body_records(rbs: list[tuple]) -> bytes:
+    return b"".join([_rigid_body_record(rb) for rb in rbs])
 
 
 def _channel_items(items: list[tuple[int, list[np.ndarray]]]) -> bytes:
     out = bytearray()
     for item_id, channels in items:
-        out += struct.pack("<ii", item_id, len(channels))
+        out += _TWO_I32.pack(item_id, len(channels))
         for values in channels:
             v = np.asarray(values, "<f4").reshape(-1)
-            out += struct.pack("<i", len(v)) + v.tobytes()
+            out += _I32.pack(len(v)) + v.tobytes()
     return bytes(out)
 
 
 def encode_frame(content: FrameContent, version: str | tuple) -> bytes:
     """A complete frame-of-data datagram (header included) for NatNet `version`."""
-    v = _version_tuple(version)
+    v = version if version in _SUPPORTED else _version_tuple(version)
     sized = v >= (4, 1)
     c = content
-    out = bytearray(struct.pack("<i", c.frame_number))
-    body = b"".join(
-        _cstr(name) + struct.pack("<i", len(m)) + np.asarray(m, "<f4").reshape(-1, 3).tobytes() for name, m in c.marker_sets
-    )
-    out += _section(len(c.marker_sets), body, sized)
-    unl = np.asarray(c.unlabeled_markers, "<f4").reshape(-1, 3)
-    out += _section(len(unl), unl.tobytes(), sized)
-    out += _section(len(c.rigid_bodies), b"".join(map(_rigid_body_record, c.rigid_bodies)), sized)
-    body = b"".join(
-        struct.pack("<ii", sk_id, len(rbs)) + b"".join(map(_rigid_body_record, rbs)) for sk_id, rbs in c.skeletons
-    )
-    out += _section(len(c.skeletons), body, sized)
+    out = bytearray(_I32.pack(c.frame_number))
+    body = bytearray()
+    for name, m in c.marker_sets:
+        k, records = _points(m)
+        body += _cstr(name)
+        body += _I32.pack(k)
+        body += records
+    _section(out, len(c.marker_sets), body, sized)
+    _section(out, *_points(c.unlabeled_markers), sized)
+    _section(out, len(c.rigid_bodies), _rigid_body_records(c.rigid_bodies), sized)
+    body = bytearray()
+    for sk_id, rbs in c.skeletons:
+        body += _TWO_I32.pack(sk_id, len(rbs))
+        body += _rigid_body_records(rbs)
+    _section(out, len(c.skeletons), body, sized)
     if sized:
-        body = b"".join(
-            struct.pack("<ii", a_id, len(rbs))
-            + b"".join(map(_rigid_body_record, rbs))
-            + struct.pack("<i", len(mks))
-            + b"".join(map(_marker_record, mks))
-            for a_id, rbs, mks in c.assets
-        )
-        out += _section(len(c.assets), body, sized)
-    out += _section(len(c.labeled_markers), b"".join(map(_marker_record, c.labeled_markers)), sized)
-    out += _section(len(c.force_plates), _channel_items(c.force_plates), sized)
-    out += _section(len(c.devices), _channel_items(c.devices), sized)
-    out += struct.pack(
-        "<IIdQQQ", c.timecode, c.timecode_subframe, c.timestamp_s, c.stamp_mid_exposure, c.stamp_data_received, c.stamp_transmit
+        body = bytearray()
+        for a_id, rbs, mks in c.assets:
+            body += _TWO_I32.pack(a_id, len(rbs))
+            body += _rigid_body_records(rbs)
+            body += _I32.pack(len(mks))
+            body += b"".join([_marker_record(m) for m in mks])
+        _section(out, len(c.assets), body, sized)
+    _section(out, len(c.labeled_markers), b"".join([_marker_record(m) for m in c.labeled_markers]), sized)
+    _section(out, len(c.force_plates), _channel_items(c.force_plates), sized)
+    _section(out, len(c.devices), _channel_items(c.devices), sized)
+    out += _SUFFIX.pack(
+        c.timecode, c.timecode_subframe, c.timestamp_s, c.stamp_mid_exposure, c.stamp_data_received, c.stamp_transmit
     )
     if sized:
-        out += struct.pack("<II", *c.precision_timestamp)
-    out += struct.pack("<hi", c.params, 0)  # frame params, end-of-data tag
-    return _message(FRAME_OF_DATA, bytes(out))
+        out += _PRECISION.pack(*c.precision_timestamp)
+    out += _TAIL.pack(c.params, 0)
+    return _message(FRAME_OF_DATA, out)
 
 
 def encode_model_definitions(world: World, version: str | tuple) -> bytes:
@@ -366,7 +392,7 @@ class NatNetServer:
                 pending = (k + 1, mid_host, self._encode_pending(k + 1, mid, mid_host))
             now = time.monotonic_ns()
             wait_s = min(0.02, max(0.0, (next_send - now) / 1e9))
-            if select.select([self._cmd], [], [], wait_s)[0]:
+            if select.select([self._cmd], [], [], wait_s)[0]:  # µs timeouts (poll and epoll round to ms)
                 self._serve_commands()
             if time.monotonic_ns() < next_send:
                 continue
@@ -442,38 +468,50 @@ class NatNetServer:
     # -- frames --------------------------------------------------------------------------------
 
     def build_frame(self, frame_number: int, mid_ticks: int, mid_host_ns: float) -> FrameContent:
-        """The frame describing the world at `mid_host_ns` (transmit stamp filled at send time)."""
+        """The frame describing the world at `mid_host_ns` (transmit stamp filled at send time).
+
+        In plain floats per body and marker: this runs 360 times a second on the streaming thread,
+        where numpy's per-call cost on 3-vectors and 4×3 marker sets was most of the frame's cost."""
         cfg = self.config
+        rng = self._rng
         t = mid_host_ns / 1e9
         rbs, labeled, marker_sets, all_markers = [], [], [], []
         with self._lock:
             objects = list(self.world.objects.values())
             params, self._models_changed = (2 if self._models_changed else 0), False
-        offset = self.pose_offset_m
+        ox, oy, oz = np.asarray(self.pose_offset_m, np.float64).tolist()
         for obj in objects:
-            rot, pos = self.world.pose(obj.rigid_body_id, t)
-            pos = pos + offset
-            ideal = obj.markers @ rot.T + pos
-            noise = self._rng.normal(0.0, cfg.marker_noise_m, ideal.shape) if cfg.marker_noise_m > 0 else 0.0
-            markers = ideal + noise
-            residuals = np.linalg.norm(markers - ideal, axis=1)
-            tracked = not (cfg.dropout_prob > 0 and self._rng.random() < cfg.dropout_prob)
+            (r00, r01, r02, r10, r11, r12, r20, r21, r22), (px, py, pz) = self.world.pose_floats(obj.rigid_body_id, t)
+            px, py, pz = px + ox, py + oy, pz + oz
+            # markers @ rot.T + pos, marker by marker
+            ideal = [(r00 * mx + r01 * my + r02 * mz + px, r10 * mx + r11 * my + r12 * mz + py,
+                      r20 * mx + r21 * my + r22 * mz + pz) for mx, my, mz in obj.markers.tolist()]
+            if cfg.marker_noise_m > 0:
+                noise = rng.normal(0.0, cfg.marker_noise_m, (len(ideal), 3)).tolist()
+                markers = [(ix + nx, iy + ny, iz + nz) for (ix, iy, iz), (nx, ny, nz) in zip(ideal, noise)]
+                residuals = [math.sqrt((mx - ix) ** 2 + (my - iy) ** 2 + (mz - iz) ** 2)
+                             for (mx, my, mz), (ix, iy, iz) in zip(markers, ideal)]
+            else:
+                markers, residuals = ideal, [0.0] * len(ideal)
+            tracked = not (cfg.dropout_prob > 0 and rng.random() < cfg.dropout_prob)
             if tracked:
-                quat = _matrix_to_quat_xyzw(rot)
-                rbs.append((obj.rigid_body_id, tuple(pos), tuple(quat), float(residuals.mean()), 1))
+                quat = _quat_xyzw_of(r00, r01, r02, r10, r11, r12, r20, r21, r22)
+                mean_residual = sum(residuals) / len(residuals) if residuals else math.nan
+                rbs.append((obj.rigid_body_id, (px, py, pz), quat, mean_residual, 1))
                 for i, (m, res) in enumerate(zip(markers, residuals)):
-                    labeled.append(((obj.rigid_body_id << 16) | (i + 1), tuple(m), 0.014, 0, float(res)))
+                    labeled.append(((obj.rigid_body_id << 16) | (i + 1), m, 0.014, 0, res))
             else:  # Motive reports an untracked body with the tracked bit clear and no pose
                 rbs.append((obj.rigid_body_id, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), 0.0, 0))
-                markers = np.zeros((0, 3))
+                markers = []
             marker_sets.append((obj.name, markers))
-            all_markers.append(markers)
-        marker_sets.append(("all", np.concatenate(all_markers) if all_markers else np.zeros((0, 3))))
+            all_markers += markers
+        marker_sets.append(("all", all_markers))
         latency_rx = int((cfg.latency_ms - cfg.software_latency_ms) * 1e-3 * cfg.clock_hz)
         host_s = mid_host_ns / 1e9
         return FrameContent(
             frame_number=frame_number,
             marker_sets=marker_sets,
+            unlabeled_markers=(),
             rigid_bodies=rbs,
             labeled_markers=labeled,
             timestamp_s=frame_number / cfg.rate_hz,
@@ -515,6 +553,11 @@ class NatNetServer:
 
     def _inject_fault(self, datagram: bytes) -> bytes:
         cfg = self.config
+        if not (cfg.truncate_prob > 0 or cfg.corrupt_prob > 0 or cfg.dropout_prob > 0 or cfg.marker_noise_m > 0
+                or cfg.jitter_ms > 0):
+            # nothing random is configured, so no draw can tell whether this roll was taken: skip it
+            # (a numpy draw per frame costs as much as encoding the frame's bodies)
+            return datagram
         roll = self._rng.random()
         if roll < cfg.truncate_prob:
             self.faults["truncated"] += 1
@@ -539,12 +582,17 @@ class NatNetServer:
 
 
 def _matrix_to_quat_xyzw(r: np.ndarray) -> tuple[float, float, float, float]:
-    """Unit quaternion (x, y, z, w) of a rotation matrix, w >= 0 (Motive's convention).
+    """Unit quaternion (x, y, z, w) of a (3, 3) rotation matrix, w >= 0 (Motive's convention)."""
+    return _quat_xyzw_of(*np.asarray(r, np.float64).ravel().tolist())
+
+
+def _quat_xyzw_of(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float,
+                  m20: float, m21: float, m22: float) -> tuple[float, float, float, float]:
+    """`_matrix_to_quat_xyzw` of a matrix given row by row as 9 floats.
 
     Shepperd's method in plain floats (branch on the largest of w², x², y², z², so the square
     root is never of a small number): it runs for every body of every frame, 360 times a second
     on the streaming thread, where scipy's `Rotation` took ~100 µs of the ~250 µs a frame cost."""
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(r, np.float64).tolist()
     trace = m00 + m11 + m22
     if trace >= max(m00, m11, m22):
         s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))
@@ -558,6 +606,8 @@ def _matrix_to_quat_xyzw(r: np.ndarray) -> tuple[float, float, float, float]:
     else:
         s = 2.0 * math.sqrt(max(1.0 - m00 - m11 + m22, 0.0))
         q = ((m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s)
-    norm = math.sqrt(sum(c * c for c in q))
-    sign = -1.0 if q[3] < 0 else 1.0
-    return tuple(sign * c / norm for c in q)
+    x, y, z, w = q
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if w < 0:
+        norm = -norm
+    return x / norm, y / norm, z / norm, w / norm

@@ -12,6 +12,7 @@ Every trajectory is vectorised over time: `pose(t)` takes a scalar or an (n,) ar
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,6 +52,22 @@ def _about_y(angle: np.ndarray) -> np.ndarray:
     return rot
 
 
+def _about_y_floats(angle: float) -> tuple[float, ...]:
+    """`_about_y` of one angle, row-major as 9 floats (the same values: libm's sin and cos)."""
+    c, s = math.cos(angle), math.sin(angle)
+    return (c, 0.0, s, 0.0, 1.0, 0.0, -s, 0.0, c)
+
+
+_IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
+def _unit(v: ArrayLike) -> tuple[float, float, float]:
+    """v / |v| in plain floats (shared by the batch and the one-instant poses, so they agree exactly)."""
+    x, y, z = map(float, v)
+    norm = math.sqrt(x * x + y * y + z * z)
+    return x / norm, y / norm, z / norm
+
+
 def _squeeze(rot: np.ndarray, pos: np.ndarray, scalar: bool) -> tuple[np.ndarray, np.ndarray]:
     return (rot[0], pos[0]) if scalar else (rot, pos)
 
@@ -66,6 +83,13 @@ class Trajectory:
     def _pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
+    def pose_floats(self, t: float) -> tuple[tuple[float, ...], tuple[float, float, float]]:
+        """The pose at one instant in plain floats: rotation row-major (9 values), translation (3),
+        equal to `pose(t)`. The NatNet mock asks 360 times a second, where numpy's per-call cost on
+        3-vectors dominated; subclasses compute it in closed form, this default goes through `_pose`."""
+        rot, pos = self._pose(np.array([float(t)]))
+        return tuple(rot[0].ravel().tolist()), tuple(pos[0].tolist())
+
 
 @dataclass
 class Static(Trajectory):
@@ -78,6 +102,9 @@ class Static(Trajectory):
             np.asarray(self.translation, float), (n, 1)
         )
 
+    def pose_floats(self, t):
+        return tuple(np.asarray(self.rotation, float).ravel().tolist()), tuple(float(v) for v in self.translation)
+
 
 @dataclass
 class Linear(Trajectory):
@@ -89,6 +116,10 @@ class Linear(Trajectory):
     def _pose(self, t):
         pos = np.asarray(self.start, float) + t[:, None] * np.asarray(self.velocity, float)
         return np.tile(np.eye(3), (len(t), 1, 1)), pos
+
+    def pose_floats(self, t):
+        (sx, sy, sz), (vx, vy, vz) = self.start, self.velocity
+        return _IDENTITY, (float(sx) + t * float(vx), float(sy) + t * float(vy), float(sz) + t * float(vz))
 
 
 @dataclass
@@ -107,6 +138,13 @@ class Circular(Trajectory):
         )
         return _about_y(angle), pos
 
+    def pose_floats(self, t):
+        angle = 2 * math.pi * t / self.period_s
+        cx, cy, cz = self.center
+        r = self.radius
+        return _about_y_floats(angle), (float(cx) + r * math.cos(angle), float(cy) + r * 0.0,
+                                        float(cz) + r * -math.sin(angle))
+
 
 @dataclass
 class RotateWhileOscillating(Trajectory):
@@ -120,11 +158,17 @@ class RotateWhileOscillating(Trajectory):
     spin_rad_s: float = np.pi / 2
 
     def _pose(self, t):
-        d = np.asarray(self.direction, float)
-        d = d / np.linalg.norm(d)
+        d = np.array(_unit(self.direction))
         offset = self.amplitude_m * np.sin(2 * np.pi * self.oscillation_hz * t)
         pos = np.asarray(self.center, float) + offset[:, None] * d
         return _about_y(self.spin_rad_s * t), pos
+
+    def pose_floats(self, t):
+        dx, dy, dz = _unit(self.direction)
+        offset = self.amplitude_m * math.sin(2 * math.pi * self.oscillation_hz * t)
+        cx, cy, cz = self.center
+        return _about_y_floats(self.spin_rad_s * t), (float(cx) + offset * dx, float(cy) + offset * dy,
+                                                      float(cz) + offset * dz)
 
 
 class RecordedPath(Trajectory):
@@ -241,6 +285,10 @@ class World:
         """True (rotation, translation) of one body at time(s) `t_s`."""
         return self.objects[rigid_body_id].trajectory.pose(np.asarray(t_s, np.float64) - self.epoch_s)
 
+    def pose_floats(self, rigid_body_id: int, t_s: float) -> tuple[tuple[float, ...], tuple[float, float, float]]:
+        """`pose` at one instant in plain floats: rotation row-major (9 values), translation (3)."""
+        return self.objects[rigid_body_id].trajectory.pose_floats(float(t_s) - self.epoch_s)
+
     def markers(self, rigid_body_id: int, t_s: float) -> np.ndarray:
         """(k, 3) world positions of a body's markers at time `t_s`."""
         rot, pos = self.pose(rigid_body_id, t_s)
@@ -255,6 +303,11 @@ class _Shifted(Trajectory):
         rot, pos = self.inner._pose(t)
         return rot, pos + self.shift
 
+    def pose_floats(self, t):
+        rot, (x, y, z) = self.inner.pose_floats(t)
+        sx, sy, sz = self.shift.tolist()
+        return rot, (x + sx, y + sy, z + sz)
+
 
 class _TimeScaled(Trajectory):
     def __init__(self, inner: Trajectory, speed: float):
@@ -262,3 +315,6 @@ class _TimeScaled(Trajectory):
 
     def _pose(self, t):
         return self.inner._pose(t * self.speed)
+
+    def pose_floats(self, t):
+        return self.inner.pose_floats(t * self.speed)

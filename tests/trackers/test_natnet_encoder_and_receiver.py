@@ -22,6 +22,7 @@ from firmware_mocks.natnet_server import FrameContent, encode_frame, encode_mode
 from firmware_mocks.world import World
 
 from .conftest import captured
+from .test_natnet_protocol import _assert_poses_decode_agrees
 
 def _rb_tuples(rb):
     return [
@@ -109,6 +110,21 @@ def test_mock_encoder_and_driver_decoder_agree(content, version):
     assert frame.stamp_mid_exposure == content.stamp_mid_exposure
     assert frame.params == content.params
     assert (frame.precision_timestamp is not None) == (version >= (4, 1))
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(content=frames, version=st.sampled_from(SUPPORTED_VERSIONS),
+       edits=st.lists(st.tuples(st.integers(0, 2000), st.integers(0, 255)), max_size=3))
+def test_poses_decode_agrees_with_the_full_decode_on_every_version(content, version, edits):
+    """The receiver's poses-only decode against the full one, on encoded frames of every layout
+    (sized sections, skeletons, assets, channels), intact or with a few bytes changed."""
+    if version < (4, 1):
+        content.assets = []
+    _, payload = split_message(encode_frame(content, version))
+    buf = bytearray(payload)
+    for pos, value in edits:
+        buf[pos % len(buf)] = value
+    _assert_poses_decode_agrees(bytes(buf), version)
 
 
 @pytest.mark.parametrize("version", SUPPORTED_VERSIONS)
@@ -201,6 +217,43 @@ def test_receiver_never_raises_counts_every_malformed_datagram_and_publishes_non
             assert all(abs(np.linalg.det(s.rotation) - 1) < 1e-6 for s in samples if s.valid)
         if not well_formed:
             assert samples == []
+
+
+unit_or_not = st.one_of(
+    st.tuples(finite, finite, finite, finite),
+    st.tuples(finite, finite, finite, finite).filter(lambda q: np.linalg.norm(q) > 1e-3).map(
+        lambda q: tuple(np.float32(np.array(q) / np.linalg.norm(q)).tolist())),
+    st.just((0.0, 0.0, 0.0, 0.0)),
+)
+body = st.tuples(st.integers(-(2**31), 2**31 - 1), vec3, unit_or_not, finite, st.integers(-(2**15), 2**15 - 1))
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(bodies=st.lists(body, max_size=4, unique_by=lambda b: b[0]))
+def test_receiver_samples_equal_the_array_formulation(bodies):
+    """The receiver's per-body plain-float path against the formulation it replaced: the full
+    decode's arrays, `quaternions_xyzw_to_matrices` and `valid = tracked & usable`, value for value;
+    a tracked body with a non-unit quaternion makes the frame malformed."""
+    from dpmhw.tracking import quaternions_xyzw_to_matrices
+
+    client = primed_client()
+    content = FrameContent(frame_number=5, rigid_bodies=bodies, stamp_mid_exposure=10**9, stamp_transmit=10**9 + 20_000)
+    datagram = encode_frame(content, "3.0")
+    samples = client.process_datagram(datagram, 10**12)
+    rb = decode_frame(split_message(datagram)[1], (3, 0)).rigid_bodies
+    q = rb.quaternions.astype(np.float64)
+    bad = rb.tracked & ((np.abs(np.linalg.norm(q, axis=1) - 1) >= 1e-3) | ~np.isfinite(rb.positions).all(axis=1))
+    if bad.any():
+        assert samples == [] and client.status().malformed == 1
+        assert f"rigid body {rb.ids[bad.argmax()]} is flagged tracked" in client.last_decode_error
+        return
+    rotations, usable = quaternions_xyzw_to_matrices(rb.quaternions)
+    assert [s.rigid_body_id for s in samples] == rb.ids.tolist()
+    for i, s in enumerate(samples):
+        np.testing.assert_array_equal(s.rotation, rotations[i])
+        np.testing.assert_array_equal(s.translation, rb.positions[i].astype(np.float64))
+        assert s.valid == bool(rb.tracked[i] & usable[i])
+        assert s.mean_marker_error == float(rb.mean_errors[i]) and s.frame_number == 5
 
 
 def test_frame_gaps_and_reordering_are_detected():

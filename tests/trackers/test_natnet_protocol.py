@@ -13,6 +13,7 @@ from drivers.natnet_protocol import (
     NatNetDecodeError,
     decode_echo_response,
     decode_frame,
+    decode_frame_poses,
     decode_model_definitions,
     decode_server_info,
     encode_connect,
@@ -163,11 +164,10 @@ def _mutations():
     return st.tuples(edits, st.integers(0, 400), st.sampled_from(["overwrite", "truncate", "insert"]))
 
 
-@FUZZ
-@given(mutation=_mutations(), which=st.sampled_from(["mocapframe_packet_v3.bin", "mocapframe_packet_occluded_v3.bin"]))
-def test_mutated_real_frames_decode_or_raise_the_decode_error(mutation, which):
+def _mutated(datagram: bytes, mutation) -> bytes:
+    """The payload of a captured datagram with one of `_mutations()` applied."""
     edits, cut, kind = mutation
-    _, payload = split_message(captured(which))
+    _, payload = split_message(datagram)
     buf = bytearray(payload)
     if kind == "truncate":
         buf = buf[: cut % len(buf)]
@@ -176,7 +176,63 @@ def test_mutated_real_frames_decode_or_raise_the_decode_error(mutation, which):
             buf.insert(pos % (len(buf) + 1), value)
         elif buf:
             buf[pos % len(buf)] = value
+    return bytes(buf)
+
+
+@FUZZ
+@given(mutation=_mutations(), which=st.sampled_from(["mocapframe_packet_v3.bin", "mocapframe_packet_occluded_v3.bin"]))
+def test_mutated_real_frames_decode_or_raise_the_decode_error(mutation, which):
     try:
-        decode_frame(bytes(buf), (3, 0))
+        decode_frame(_mutated(captured(which), mutation), (3, 0))
     except NatNetDecodeError:
         pass
+
+
+# ---------------------------------------------------------------- the receiver's poses-only decode
+
+
+def _frame_outcome(decode, data, version):
+    try:
+        return "ok", decode(data, version)
+    except NatNetDecodeError as exc:
+        return "error", str(exc)
+
+
+def _assert_poses_decode_agrees(data: bytes, version) -> None:
+    """`decode_frame_poses` accepts exactly what `decode_frame` accepts, with the same error text,
+    and returns the same bodies (as plain floats) and stamps."""
+    full_kind, full = _frame_outcome(decode_frame, data, version)
+    poses_kind, poses = _frame_outcome(decode_frame_poses, data, version)
+    assert poses_kind == full_kind
+    if full_kind == "error":
+        assert poses == full
+        return
+    rb = full.rigid_bodies
+    want = [(int(i), *map(float, p), *map(float, q), float(e), int(f))
+            for i, p, q, e, f in zip(rb.ids, rb.positions, rb.quaternions, rb.mean_errors, rb.params)]
+    # compare the bit patterns: NaN payloads included, NaN != NaN aside
+    assert [tuple(np.float64(v).tobytes() for v in b) for b in poses.rigid_bodies] == \
+        [tuple(np.float64(v).tobytes() for v in b) for b in want]
+    assert (poses.frame_number, poses.stamp_mid_exposure, poses.stamp_transmit, poses.params) == (
+        full.frame_number, full.stamp_mid_exposure, full.stamp_transmit, full.params)
+    assert poses.models_changed == full.models_changed
+
+
+@FUZZ
+@given(data=st.binary(max_size=2048), version=VERSIONS)
+def test_poses_decode_agrees_with_the_full_decode_on_arbitrary_bytes(data, version):
+    _assert_poses_decode_agrees(data, version)
+
+
+@FUZZ
+@given(mutation=_mutations(), which=st.sampled_from(["mocapframe_packet_v3.bin", "mocapframe_packet_occluded_v3.bin"]),
+       version=VERSIONS)
+def test_poses_decode_agrees_with_the_full_decode_on_mutated_real_frames(mutation, which, version):
+    _assert_poses_decode_agrees(_mutated(captured(which), mutation), version)
+
+
+def test_poses_decode_of_every_truncation_of_a_real_frame_agrees():
+    _, payload = split_message(captured("mocapframe_packet_v3.bin"))
+    payload = bytes(payload)
+    for n in range(len(payload) + 1):
+        _assert_poses_decode_agrees(payload[:n], (3, 0))

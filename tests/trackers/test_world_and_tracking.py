@@ -10,7 +10,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from dpmhw.tracking import ClockMapping, LatestPoses, PoseSample, Tracker, quaternions_xyzw_to_matrices
+from dpmhw.tracking import (
+    ClockMapping,
+    LatestPoses,
+    PoseSample,
+    Tracker,
+    quaternion_xyzw_to_rotation,
+    quaternions_xyzw_to_matrices,
+)
 from drivers.natnet import NatNetClient
 from firmware_mocks.world import (
     TRAJECTORY_NAMES,
@@ -171,6 +178,19 @@ def test_subscription_iterator_ends_when_closed():
     assert not t.is_alive() and [s.frame_number for s in got] == [1]
 
 
+def test_a_consumer_blocked_in_get_is_woken_by_put():
+    board = LatestPoses()
+    sub = board.subscribe()
+    got = []
+    t = threading.Thread(target=lambda: got.append(sub.get(timeout=60)))
+    t.start()
+    while not sub._waiting and t.is_alive():  # until it waits
+        threading.Event().wait(0.001)
+    board.publish([_sample(1, 3)])
+    t.join(timeout=30)  # woken by the put, not by its 60 s timeout
+    assert not t.is_alive() and [s.frame_number for s in got] == [3]
+
+
 def test_natnet_client_satisfies_the_tracker_protocol():
     assert isinstance(NatNetClient(), Tracker)
 
@@ -182,6 +202,23 @@ def test_pose_samples_are_read_only_and_shape_checked():
     with pytest.raises(ValueError, match="translation"):
         PoseSample(1, np.eye(3), np.zeros(4), 0, 0, True)
     np.testing.assert_allclose(s.as_matrix(), np.eye(4))
+
+
+def test_pose_sample_from_floats_equals_the_generic_constructor():
+    rot = quaternion_xyzw_to_rotation(0.1, -0.7, 0.3, 0.6)
+    fast = PoseSample.from_floats(3, rot, (0.5, 1.0, -2.0), 100, 200, True, 0.25, 7)
+    slow = PoseSample(3, np.array(rot).reshape(3, 3), np.array([0.5, 1.0, -2.0]), 100, 200, True, 0.25, 7)
+    for name in ("rigid_body_id", "t_exposure_ns", "t_arrival_ns", "valid", "mean_marker_error", "frame_number"):
+        assert getattr(fast, name) == getattr(slow, name)
+    for name in ("rotation", "translation"):
+        a, b = getattr(fast, name), getattr(slow, name)
+        assert a.dtype == b.dtype == np.float64 and a.shape == b.shape and np.array_equal(a, b)
+        with pytest.raises(ValueError):
+            a[0] = 2.0  # read-only, like the generic constructor's
+    with pytest.raises(ValueError, match="translation"):
+        PoseSample.from_floats(1, rot, (0.0, 0.0), 0, 0, True)
+    with pytest.raises(ValueError):
+        PoseSample.from_floats(1, rot[:8], (0.0, 0.0, 0.0), 0, 0, True)
 
 
 def test_core_and_mocks_do_not_import_drivers():
@@ -210,6 +247,50 @@ def test_mock_matrix_to_quaternion_matches_scipy_with_w_non_negative(q):
     if abs(want[3]) > 1e-9:  # w = 0: q and -q are the same rotation and both have w = 0
         np.testing.assert_allclose(got, want, atol=1e-12)
     np.testing.assert_allclose(Rotation.from_quat(got).as_matrix(), rot.as_matrix(), atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from(TRAJECTORY_NAMES), speed=st.floats(0.1, 10.0), epoch=st.floats(-1e4, 1e4),
+       times=st.lists(st.floats(-1e5, 1e5), min_size=1, max_size=20))
+def test_one_instant_poses_in_plain_floats_equal_the_vectorised_ones(name, speed, epoch, times):
+    world = World.demo(name, epoch_s=epoch, count=2, speed=speed)  # body 2 is shifted
+    for body in (1, 2):
+        rot, pos = world.pose(body, np.array(times))
+        for i, t in enumerate(times):
+            r, p = world.pose_floats(body, t)
+            assert r == tuple(rot[i].ravel().tolist()) and p == tuple(pos[i].tolist())  # bit for bit
+
+
+@settings(max_examples=40, deadline=None)
+@given(name=st.sampled_from(TRAJECTORY_NAMES), t=st.floats(0, 100), noise=st.sampled_from([0.0, 0.002]),
+       offset=st.tuples(*[st.floats(-0.1, 0.1)] * 3))
+def test_mock_frame_content_matches_the_array_formulation(name, t, noise, offset):
+    """The mock's per-marker plain floats against the formulation they replaced: markers
+    `obj.markers @ rot.T + pos`, residuals the rows' norms, the quaternion of the true rotation."""
+    from firmware_mocks.natnet_server import NatNetServer, NatNetServerConfig
+
+    world = World.demo(name, count=2)
+    server = NatNetServer(world, NatNetServerConfig(command_port=0, unicast=True, marker_noise_m=noise, seed=1))
+    try:
+        server.pose_offset_m = np.array(offset)
+        content = server.build_frame(7, 123, t * 1e9)
+    finally:
+        server.stop()
+    t = t * 1e9 / 1e9  # the instant the frame describes, as the server computes it
+    sets = dict(content.marker_sets)
+    for (rb_id, pos, quat, err, params), obj in zip(content.rigid_bodies, world.objects.values()):
+        rot, true_pos = world.pose(obj.rigid_body_id, t)
+        assert rb_id == obj.rigid_body_id and params == 1
+        np.testing.assert_array_equal(pos, true_pos + np.array(offset))
+        np.testing.assert_allclose(Rotation.from_quat(quat).as_matrix(), rot, atol=1e-12)
+        ideal = obj.markers @ rot.T + (true_pos + np.array(offset))
+        markers = np.array(sets[obj.name])
+        residuals = np.linalg.norm(markers - ideal, axis=1)
+        assert markers.shape == ideal.shape
+        np.testing.assert_allclose(markers, ideal, atol=1e-12 + 10 * noise)
+        assert err == pytest.approx(residuals.mean(), abs=1e-15)
+        assert (err == 0.0) == (noise == 0.0)
+    assert len(sets["all"]) == sum(len(o.markers) for o in world.objects.values())
 
 
 def test_receiver_rotation_of_a_huge_or_tiny_quaternion_is_unusable():
