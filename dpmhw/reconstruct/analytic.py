@@ -35,7 +35,8 @@ kernels as albedos, so the reuse, filter and upsampling kernels are unchanged.
   where the signal is ∝ (term + F) the ratio is flat.
 - Non-finite positions or normals and background pixels: both terms 0 (the ratio is then the
   signal / F, re-multiplied by F).
-- Cost: about 15 CPU-ns per pixel and quad light with both terms, vectorised (below).
+- Cost: about 15 CPU-ns per pixel and quad light for both terms, vectorised (below); about 21 with
+  the per-pixel set-up (unit normal, lobe) and the scatter into the products.
 """
 
 from __future__ import annotations
