@@ -56,7 +56,7 @@ __all__ = ["FrameRecord", "LatestFrame", "ProjectorControl", "Renderer", "Sessio
 
 log = logging.getLogger(__name__)
 
-FREEZE_AFTER_FRAMES = 30  # frames presented before the long-lived objects are frozen (gc.freeze)
+FREEZE_AFTER_FRAMES = 30  # frames presented before what they made is frozen too (gc.freeze; see _freeze_long_lived)
 
 
 class SettingsError(ValueError):
@@ -241,6 +241,7 @@ class SessionLoop:
         subscribe = getattr(self.parts.tracker, "subscribe", None)
         self._samples = subscribe(maxlen=4096) if subscribe is not None else None
         self._go_dark("starting: dark until tracking and devices are ready")
+        self._freeze_long_lived()  # the full collection's cost is paid here, while dark
         for name, target in (("session-loop", self._run), ("session-watchdog", self._watchdog),
                              ("session-deadline", self._stale_deadline), ("session-health", self._health)):
             t = threading.Thread(target=target, name=name, daemon=True)
@@ -589,12 +590,7 @@ class SessionLoop:
         self.safety.mark_started()
         self._frame_number += 1
         if self._frame_number == FREEZE_AFTER_FRAMES:
-            # what exists once the loop is warm (scene, kernels, buffers, the service) lives as long as the
-            # session: move it out of the collector's reach, or a full collection walks ~160k objects every
-            # ~20 frames on the frame thread (73-78 CPU-ms, a late frame; issue 12's perf profile). Collected
-            # first so no garbage is pinned; `stop` unfreezes (a service may run many sessions in one process)
-            gc.collect()
-            gc.freeze()
+            self._freeze_long_lived()  # what the first frames made (cheap: the rest is frozen since start)
         latency_s = (t_present + self.display_latency_ns - min(s.t_exposure_ns for s in samples.values())) / 1e9
         self.metrics.record_frame(stages, t_present, latency_s, horizon_ns / 1e9)
         with self._lock:
@@ -610,6 +606,18 @@ class SessionLoop:
         if self.parts.recorder is not None:
             self.parts.recorder.frame(record, image)
         return True
+
+    @staticmethod
+    def _freeze_long_lived() -> None:
+        """What exists once the session is built and warm (scene, kernels, buffers, the service) lives
+        as long as the session: move it out of the collector's reach, or a full collection walks
+        ~160k objects every ~20 frames on the frame thread (73-78 CPU-ms, a late frame; issue 12's
+        perf profile). Collected first so no garbage is pinned; `stop` unfreezes (a service may run
+        many sessions in one process). Once at start, while dark (that first collection took ~75 ms:
+        done after frame 30 only, it made a late frame, a stale tracker sample and a dark spell
+        right after going live), and again after `FREEZE_AFTER_FRAMES` for what the first frames made."""
+        gc.collect()
+        gc.freeze()
 
     # ---- output on / off -------------------------------------------------------------------
     def _stage_failed(self, cause: str, counter: str | None, reason: str) -> bool:
