@@ -319,12 +319,11 @@ def emitter_polygons(geometry: SceneGeometry, poses) -> tuple[np.ndarray, np.nda
 
 
 class _Gathered:
-    """The pixels to evaluate, gathered: row counts, indices and `rows` float64 rows per pixel,
-    kept between frames and grown to the largest count seen (at most the pixel count). A fresh
+    """The pixels to evaluate, gathered: their indices and `rows` float64 rows per pixel, kept
+    between frames and grown to the largest count seen (at most the pixel count). A fresh
     multi-megabyte allocation per frame would cost page faults every frame."""
 
     def __init__(self, rows: int):
-        self.counts = np.zeros(0, np.int64)
         self.idx = np.zeros(0, np.int64)
         self.rows = np.zeros((rows, 0))
 
@@ -355,9 +354,7 @@ def _row_starts(scratch: _Gathered, gid: np.ndarray, W: int, box, mask: np.ndarr
     y0, y1, x0, x1 = box
     use_mask = mask is not None
     m = np.ascontiguousarray(mask, np.bool_).reshape(-1) if use_mask else _NO_MASK
-    if len(scratch.counts) < y1 - y0:
-        scratch.counts = np.zeros(y1 - y0, np.int64)
-    counts = scratch.counts[: y1 - y0]
+    counts = np.empty(y1 - y0, np.int64)
     _row_counts(gid, W, y0, y1, x0, x1, use_mask, m, counts)
     start = np.zeros(y1 - y0, np.int64)
     np.cumsum(counts[:-1], out=start[1:])
