@@ -9,9 +9,10 @@ Embree C API one compiled call per render thread runs shading and every ray quer
 segments that thread takes. Inside that
 call nothing can be timed per stage, so the split is measured on the same frames rendered
 staged (Python between the stages, the same kernels and queries, the same image): time inside
-the ray queries (`inside_embree_ms_median`) and in the shading kernel
-(`shade_kernel_ms_median`), each as thread CPU-seconds / threads, and the shading kernel's
-CPU-ns per path vertex (`shade_ns_per_vertex`); `main_thread_cpu_ms_median` is the calling
+the ray queries (`inside_embree_ms_median`) and in the shading kernels (`shade_kernel_ms_median`:
+kernels.first_surface, sample_first and shade; with the camera fixed the first vertices' surfaces
+are kept, so first_surface runs in the first frame only), each as thread CPU-seconds / threads,
+and the shading kernels' CPU-ns per path vertex (`shade_ns_per_vertex`); `main_thread_cpu_ms_median` is the calling
 thread's CPU time per fixed frame, the part no render thread can share. Raw throughput replays
 this scene's own ray batches of one frame
 (camera, continuation and shadow rays, each query type alone) on the same thread count, in
@@ -35,6 +36,7 @@ from dpmhw.scene_file import load_scene
 from dpmhw.transforms import Pose, rotation_about_axis
 
 QUERIES = ("intersect_range", "occluded_range", "intersect_static")
+SHADING = ("first_surface", "sample_first", "shade")  # the shading kernels: the first vertex's two, then the others
 PAN_DEG = 1.0  # the "camera moved" frames pan by up to this angle, a different one each frame
 
 
@@ -125,12 +127,14 @@ def _staged_split(integrator: PathIntegrator, frames: int, fps: float) -> dict:
     accel = integrator.geometry.accel
     clock: dict[int, float] = {}
     shade_clock: dict[int, float] = {}
-    shade, fused = kernels.shade, integrator.fused
+    fused = integrator.fused
+    shading = {name: getattr(kernels, name) for name in SHADING}
     originals = {name: getattr(accel, name) for name in QUERIES}
     rows = []
     try:
         integrator.fused = False
-        kernels.shade = _Timed(shade, shade_clock)
+        for name, fn in shading.items():
+            setattr(kernels, name, _Timed(fn, shade_clock))
         for name in QUERIES:
             setattr(accel, name, _Timed(originals[name], clock))
         for k in range(frames):
@@ -141,7 +145,9 @@ def _staged_split(integrator: PathIntegrator, frames: int, fps: float) -> dict:
             rows.append(((time.perf_counter() - start) * 1e3, sum(clock.values()) / integrator.threads * 1e3,
                          sum(shade_clock.values()) / integrator.threads * 1e3))
     finally:
-        integrator.fused, kernels.shade = fused, shade
+        integrator.fused = fused
+        for name, fn in shading.items():
+            setattr(kernels, name, fn)
         for name in QUERIES:
             setattr(accel, name, originals[name])
     ms, embree_ms, shade_ms = (float(np.median(col)) for col in zip(*rows))
@@ -181,7 +187,8 @@ def _raw_throughput(integrator: PathIntegrator, threads: int) -> dict:
         return intersect(o, d, first, end, R, T, hits, static_done, packets=packets)
 
     def cap_occluded(o, d, tmax, first, end, R, T, blocked, packets=False):
-        captured["OCCLUDED"].append((o[first:end].copy(), d[first:end].copy(), tmax[first:end].copy()))
+        traced = tmax[first:end] >= 0  # (the first vertex's rows without a shadow ray are inactive)
+        captured["OCCLUDED"].append((o[first:end][traced], d[first:end][traced], tmax[first:end][traced]))
         return occluded(o, d, tmax, first, end, R, T, blocked, packets=packets)
 
     fused = integrator.fused

@@ -92,6 +92,12 @@ class PathIntegrator:
         self._rays = None  # camera rays (origins, directions), rewritten in place for a new pose
         self._rays_key = None
         self._work: list[_Work] = []  # most recently used first
+        # (pose key, work buffers, G-buffer): the first vertices' surfaces in those buffers and the
+        # G-buffer are this pose's, for as long as nothing moves (then frames share the G-buffer).
+        # Kept from a pose's second frame on: a moving camera keeps nothing (a G-buffer held past
+        # its frame made the allocator hand every moved frame fresh, page-faulting memory)
+        self._surface: tuple | None = None
+        self._last_pose_key = None
         # (continuation, shadow) rays as 16-wide packets of consecutive paths, or single rays
         self.packets = PACKETS
         # one compiled call per thread and pass (with the C API); False: Python between the stages (the
@@ -131,31 +137,42 @@ class PathIntegrator:
         R, T = self.geometry.poses(poses)
         self.counts = RayCounts()
         npix = self.width * self.height
+        jitter = self.pixel_sampling == "jitter"
+        moving = bool(self.geometry.accel.dynamic_objects)
+        # The first vertices' surfaces depend on the camera hits alone: computed by the first pass
+        # (every pass with jitter), and kept with the G-buffer while the camera and all objects stay put
+        pose_key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
+        w = self._work_buffers(npix)
+        kept = (not jitter and not moving and self._surface is not None and self._surface[0] == pose_key
+                and self._surface[1] is w and self._static_primary_key == pose_key)
+        if not kept:
+            self._surface = None
+        same_pose, self._last_pose_key = self._last_pose_key == pose_key, pose_key
         # allocated empty: each segment clears its own rows in its thread (kernels.clear_rows)
         film = {k: np.empty((npix, 3), f32) for k in ("emit", "diff", "spec")}
-        gbuf = _GBuffer(npix)
+        gbuf = self._surface[2] if kept else _GBuffer(npix)
         nonfinite = np.empty(npix, np.int32)
         # at 1 spp with the compiled path, the segments also write the radiance sum
         radiance = np.empty((npix, 3), f32) if spp == 1 and self._fused_native() else None
         o, d = self._camera_rays(camera)
-        jitter = self.pixel_sampling == "jitter"
         if jitter:  # every pass traces its own camera rays in full, into the work buffers
-            static_hits, moving, primary, trace_static = None, False, self._work_buffers(npix).primary, False
+            static_hits, primary, trace_static = None, w.primary, False
         else:
             # with the C API a new pose's static hits are traced by the first pass's segments
             static_hits, trace_static = self._static_primary(camera, o, d, defer=self._fused_native())
             # without moving objects the cached hits are the primary hits; with them, the first
             # pass completes them per segment (in its thread) into a work buffer later passes reuse
-            moving = bool(self.geometry.accel.dynamic_objects)
-            primary = self._work_buffers(npix).primary if moving else static_hits
+            primary = w.primary if moving else static_hits
         self.counts.primary = npix
         done = 0
         for p in range(spp):
             if should_stop is not None and done > 0 and should_stop():
                 break
+            surface_ready = kept or (p > 0 and not jitter)
             self._trace_pass(kernels.pass_key(seed, p), o, d, static_hits if moving and p == 0 else None, primary,
-                             R, T, camera, film, gbuf, nonfinite, p == 0, kernels.jitter_key(seed, p) if jitter else None,
-                             trace_static=trace_static and p == 0, clear=p == 0, radiance=radiance)
+                             R, T, camera, film, _NO_GBUFFER if kept else gbuf, nonfinite, p == 0 and not kept,
+                             kernels.jitter_key(seed, p) if jitter else None,
+                             trace_static=trace_static and p == 0, clear=p == 0, radiance=radiance, surface_ready=surface_ready)
             if trace_static and p == 0:  # the cache is valid only once a pass has filled all of it
                 self._static_primary_key = self._pending_key
             if jitter:
@@ -163,6 +180,11 @@ class PathIntegrator:
             done += 1
             if progress is not None:
                 progress(done, spp)
+        if not kept and same_pose and not jitter and not moving and done:
+            # this pose's surfaces and G-buffer, kept (read-only from now on: later frames share it)
+            for a in vars(gbuf).values():
+                a.flags.writeable = False
+            self._surface = (pose_key, w, gbuf)
         H, W = self.height, self.width
         # x / 1 == x exactly: at 1 spp hand over the film arrays (fresh each frame) without copies
         emit, diff, spec = (film[k].reshape(H, W, 3) / f32(done) if done > 1 else film[k].reshape(H, W, 3) for k in ("emit", "diff", "spec"))
@@ -278,14 +300,16 @@ class PathIntegrator:
 
     def _trace_pass(self, key, camera_o, primary_dirs, static_hits: Hits | None, primary: Hits, R, T, camera, film, gbuf,
                     nonfinite, write_gbuffer, jitter_key=None, work: "_Work | None" = None, trace_static: bool = False,
-                    clear: bool = False, radiance: np.ndarray | None = None):
+                    clear: bool = False, radiance: np.ndarray | None = None, surface_ready: bool = False):
         """One sample per pixel. The image is cut into row ranges (segments); each is traced to the
         end of its paths by one thread (shade → shadow rays → continuation rays → shade …), so a
         segment's rays and hits are still in cache when the next stage reads them, and the
         threads never wait for each other between stages. Segments write disjoint pixels.
         `trace_static` (fused path only): the camera rays' static hits (`static_hits`, or `primary`
         when nothing moves) are still to be traced, by each segment for its own rows. `clear`:
-        each segment first sets its rows of the film and G-buffer to their starting values.
+        each segment first zeros its rows of the film. `surface_ready`: the work buffers'
+        first-vertex surfaces (`kernels.first_surface`) are already those of `primary` (else each
+        segment computes its rows of them, writing the G-buffer when `write_gbuffer`).
         `radiance` (fused path only): each segment writes its rows of emit + diff + spec there."""
         w = work if work is not None else self._work_buffers(len(primary.t))
         cam_fwd = camera.pose.R[:, 2].astype(f32)
@@ -311,6 +335,7 @@ class PathIntegrator:
             static = (trace_static, cache.t, cache.obj, cache.prim, cache.u, cache.v)
             depth_limit = self.max_bounces + (1 if self.mis_last else 0)
             jitter = (jitter_key is not None, np.uint64(jitter_key or 0), corners, cam_R, self.width, w.cam_d)
+            surface = (surface_ready, w.surf)
 
             counter = np.zeros(1, np.int64)  # the next segment, taken by the threads as they get free
             no_radiance = np.empty((0, 3), f32)
@@ -319,7 +344,7 @@ class PathIntegrator:
                 traced = kernels.trace_segments(counter, w.starts, w.full_counts, clear, no_radiance if radiance is None else radiance,
                                                 accel.acc, accel.acc_moving, accel.acc_static, self.packets, self.split, depth_limit,
                                                 self.max_bounces, self.mis_last, key, primary_dirs, prim,
-                                                static_hits is not None, static, camera_o, scn, films, gb, work, jitter)
+                                                static_hits is not None, static, camera_o, scn, films, gb, surface, work, jitter)
                 if traced[0] < 0:
                     raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
                 return traced
@@ -334,12 +359,12 @@ class PathIntegrator:
             def run(segment):
                 first, count = segment
                 if clear:
-                    kernels.clear_rows(films, gb, first, first + count)
+                    kernels.clear_rows(films, first, first + count)
                 if jitter_key is not None:
                     kernels.jittered_directions(corners, cam_R, self.width, jitter_key, first, first + count, primary_dirs)
                     accel.intersect_range(camera_o, primary_dirs, first, first + count, R, T, primary, packets=self.packets[0])
                 return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, light_world, cam_fwd,
-                                           viewer, film, gbuf, nonfinite, write_gbuffer, w)
+                                           viewer, film, gbuf, nonfinite, write_gbuffer, surface_ready, w)
 
             jobs = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
         results = list(self._pool.map(run, jobs)) if self._pool is not None else [run(j) for j in jobs]
@@ -347,46 +372,51 @@ class PathIntegrator:
         self.counts.intersect += sum(r[1] for r in results)
 
     def _trace_segment(self, first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, light_world, cam_fwd, viewer,
-                       film, gbuf, nonfinite, write_gbuffer, w: "_Work") -> tuple[int, int]:
-        """All bounces of the paths through pixels [first, first + count); their rows in the
-        work buffers are the same range. `static_hits`: the camera rays' cached hits on static
-        objects, to complete with the moving objects into `primary` first (None: `primary` is
-        ready). Returns (shadow rays, continuation rays) traced."""
+                       film, gbuf, nonfinite, write_gbuffer, surface_ready, w: "_Work") -> tuple[int, int]:
+        """All bounces of the paths through pixels [first, first + count), with Python between
+        the stages (the same kernels and queries as kernels.trace_segment, so the same image);
+        their rows in the work buffers are the same range. `static_hits`: the camera rays'
+        cached hits on static objects, to complete with the moving objects into `primary` first
+        (None: `primary` is ready). Returns (shadow rays, continuation rays) traced."""
         g = self.geometry
+        end = first + count
         if static_hits is not None:
-            end = first + count
             for name in ("t", "obj", "prim", "u", "v"):
                 getattr(primary, name)[first:end] = getattr(static_hits, name)[first:end]
             g.accel.intersect_range(camera_o, primary_dirs, first, end, R, T, primary, static_done=True, packets=self.packets[0])
+        if not surface_ready:
+            kernels.first_surface(first, end, primary_dirs, primary.t, primary.obj, primary.prim, primary.u, primary.v, g.tri, R, T,
+                                  g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.background, viewer, self.use_viewer,
+                                  cam_fwd, w.surf, gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec,
+                                  gbuf.rough, write_gbuffer)
+        traced_shadow, n_next = kernels.sample_first(
+            first, end, key, w.surf, light_world, g.light_obj, g.light_cdf, g.obj_emission, g.obj_pdf_area, g.p_env, g.background,
+            self.max_bounces > 0 or self.mis_last, self.split, film["emit"], nonfinite, w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix,
+            w.pixel, w.beta, w.kd, w.prev_pdf, w.prev_env, w.ray_o[0], w.ray_d[0], *kernels.block_scratch())
+        g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, end, R, T, w.blocked, packets=self.packets[1])
+        kernels.add_unoccluded(first, count, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"], self.split)
         last_depth = self.max_bounces + (1 if self.mis_last else 0)
-        rd, hits = primary_dirs, primary
-        rays = 0  # which of the two ray buffers the kernel writes continuation rays into
-        traced_shadow = traced_next = 0
-        depth = 0
-        while True:
-            nx_o, nx_d = w.ray_o[rays], w.ray_d[rays]
+        traced_next = 0
+        depth, rays = 0, 0  # which of the two ray buffers holds this depth's continuation rays
+        while depth < last_depth and n_next > 0:
+            g.accel.intersect_range(w.ray_o[rays], w.ray_d[rays], first, first + n_next, R, T, w.hits, packets=self.packets[0])
+            traced_next += n_next
+            depth += 1
+            if depth > 4096:
+                raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
+            rd, rays, count = w.ray_d[rays], 1 - rays, n_next
             n_shadow, n_next = kernels.shade(
                 depth, self.max_bounces, self.mis_last, key, first, count, w.pixel, rd,
-                hits.t, hits.obj, hits.prim, hits.u, hits.v, w.beta, w.kd, w.prev_pdf, w.prev_env,
-                g.tri,
-                R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
-                light_world, g.light_obj, g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd,
-                film["emit"], film["diff"], film["spec"], nonfinite,
-                gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer,
-                w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, nx_o, nx_d, self.split,
+                w.hits.t, w.hits.obj, w.hits.prim, w.hits.u, w.hits.v, w.beta, w.kd, w.prev_pdf, w.prev_env,
+                g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
+                light_world, g.light_obj, g.light_cdf, g.p_env, g.background, film["diff"], film["spec"], nonfinite,
+                w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.ray_o[rays], w.ray_d[rays], self.split,
             )
             if n_shadow:
                 g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, first + n_shadow, R, T, w.blocked, packets=self.packets[1])
                 kernels.add_unoccluded(first, n_shadow, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"], self.split)
                 traced_shadow += n_shadow
-            if depth >= last_depth or n_next == 0:
-                return traced_shadow, traced_next
-            g.accel.intersect_range(nx_o, nx_d, first, first + n_next, R, T, w.hits, packets=self.packets[0])
-            traced_next += n_next
-            rd, hits, rays, count = nx_d, w.hits, 1 - rays, n_next
-            depth += 1
-            if depth > 4096:
-                raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
+        return traced_shadow, traced_next
 
     def _work_buffers(self, n: int, min_segments: int = 1) -> "_Work":
         """The working arrays for n paths in at least `min_segments` segments (of ≥ 64 paths);
@@ -417,6 +447,10 @@ class _Work:
         self.hits = empty_hits(n)
         self.cam_d = np.empty((n, 3), f32)  # jittered camera rays of the current pass
         self.primary = empty_hits(n)  # camera hits, when objects move (the static ones are cached)
+        # the first vertices' surfaces (kernels.first_surface), a column per quantity. Padded: at
+        # 1024×768 columns n floats apart would all fall in the same cache set (n · 4 bytes is a
+        # multiple of 4 KiB), and writing or reading 24 of them at once ran 10× slower
+        self.surf = np.empty((kernels.SURF_COLS, n + 16), f32)
         self.sh_o = np.empty((n, 3), f32)
         self.sh_d = np.empty((n, 3), f32)
         self.sh_tmax = np.empty(n, f32)
@@ -428,7 +462,9 @@ class _Work:
         """The first n rows of every array (views), segmented for n paths (`render_pixels`)."""
         w = object.__new__(_Work)
         for k, a in vars(self).items():
-            if isinstance(a, np.ndarray):
+            if k == "surf":  # (columns, paths): kept whole (C-contiguous); rows ≥ n are not read
+                pass
+            elif isinstance(a, np.ndarray):
                 a = a[:n]
             elif isinstance(a, tuple):
                 a = tuple(x[:n] for x in a)
@@ -449,8 +485,8 @@ def _segments(n: int, min_segments: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _GBuffer:
-    """A frame's G-buffer arrays, allocated empty: the render segments set their rows' no-hit
-    values (kernels.clear_rows) before shading them."""
+    """A frame's G-buffer arrays, allocated empty: the render segments write every row
+    (kernels.first_surface)."""
 
     def __init__(self, npix: int):
         self.id = np.empty(npix, np.int32)

@@ -34,6 +34,14 @@ OFFSET_REL = 3e-5  # origin offset along the geometric normal, relative to coord
 
 # fastmath without nnan/ninf: the kernels test for non-finite samples and must keep doing so
 _jit = dict(cache=True, error_model="numpy", fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
+# The shading kernels without reassociation: a vectorised loop and its scalar remainder must round
+# alike (which pixels fall in the remainder depends on the segmentation), and so must their copies
+# inlined into trace_segment, where constants fold into the arithmetic, and the staged path's own
+_jit_shading = dict(cache=True, error_model="numpy", fastmath={"nsz", "arcp", "contract", "afn"})
+# ... and the vectorised ones without contraction into FMAs either: LLVM fused their vector
+# multiply-adds differently in the code it caches on disk than in the code it runs after compiling
+# (the same kernel gave other last bits in the next process)
+_jit_vector = dict(cache=True, error_model="numpy", fastmath={"nsz", "arcp", "afn"})
 
 M1 = np.uint64(0xBF58476D1CE4E5B9)
 M2 = np.uint64(0x94D049BB133111EB)
@@ -41,8 +49,8 @@ GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 S30, S27, S31, S40 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(40)
 
 # float32 constants: a Python float literal beside a float32 value makes numba compute in float64
-# (wider, slower square roots and divisions, and conversions back and forth). The diffuse path of
-# `shade` stays in float32 with these; the GGX lobe computes in float64 and rounds its results.
+# (wider, slower square roots and divisions, and conversions back and forth, and a loop that does
+# not vectorise to 16 lanes). The shading kernels, GGX lobe included, stay in float32 with these.
 F0, F1 = np.float32(0.0), np.float32(1.0)
 INV_PI32 = np.float32(INV_PI)
 OFFSET_REL32, TINY32 = np.float32(OFFSET_REL), np.float32(1e-20)
@@ -85,6 +93,7 @@ def pass_key(seed: int, pass_index: int) -> np.uint64:
 
 
 HALF_PI32 = np.float32(0.5 * math.pi)
+PI32 = np.float32(math.pi)
 _S3, _S5, _S7, _S9 = (np.float32(c) for c in (-1 / 6, 1 / 120, -1 / 5040, 1 / 362880))
 _C2, _C4, _C6, _C8 = (np.float32(c) for c in (-1 / 2, 1 / 24, -1 / 720, 1 / 40320))
 
@@ -130,14 +139,13 @@ def _basis(n0, n1, n2):
 
 @nb.njit(inline="always", **_jit)
 def _ggx_d(cos_h, a2):
-    c2 = cos_h * cos_h
-    denom = c2 * (a2 - 1.0) + 1.0
-    return a2 / (math.pi * denom * denom)
+    denom = cos_h * cos_h * (a2 - F1) + F1
+    return a2 / (PI32 * denom * denom)
 
 
 @nb.njit(inline="always", **_jit)
 def _ggx_g1(cos_v, a2):
-    return 2.0 * cos_v / (cos_v + math.sqrt(a2 + (1.0 - a2) * cos_v * cos_v))
+    return np.float32(2.0) * cos_v / (cos_v + math.sqrt(max(F0, a2 + (F1 - a2) * cos_v * cos_v)))
 
 
 @nb.njit(inline="always", **_jit)
@@ -146,28 +154,61 @@ def _max_abs3(x, y, z):
 
 
 @nb.njit(inline="always", **_jit)
-def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, ar, ag, ab, sr, sg, sb, alpha, p_spec):
-    """Diffuse and specular BSDF values (fd0..2, fs0..2) and the lobe-mixture pdf of wi."""
-    cos_o = _dot(wo0, wo1, wo2, n0, n1, n2)
+def _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, n0, n1, n2, ar, ag, ab, sr, sg, sb, alpha, p_spec, glossy):
+    """Diffuse and specular BSDF values (fd0..2, fs0..2) and the lobe-mixture pdf of wi, in
+    float32 and branch-free (selects), so it vectorises. `glossy` False (a constant in the
+    vectorised kernels): the Lambert lobe alone."""
     cos_i = _dot(wi0, wi1, wi2, n0, n1, n2)
     fd0 = ar * (F1 - sr) * INV_PI32
     fd1 = ag * (F1 - sg) * INV_PI32
     fd2 = ab * (F1 - sb) * INV_PI32
     fs0 = fs1 = fs2 = F0
     pdf = (F1 - p_spec) * cos_i * INV_PI32
-    if p_spec > 0.0:
+    if glossy:
+        cos_o = _dot(wo0, wo1, wo2, n0, n1, n2)
         h0, h1, h2 = wo0 + wi0, wo1 + wi1, wo2 + wi2
         hl = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
-        if hl > 1e-12:
-            cos_h = _dot(h0, h1, h2, n0, n1, n2) / hl
-            if cos_h > 0.0:
-                a2 = alpha * alpha
-                d = _ggx_d(cos_h, a2)
-                g1o = _ggx_g1(cos_o, a2)
-                common = d * g1o * _ggx_g1(cos_i, a2) / (4.0 * cos_o * cos_i)
-                fs0, fs1, fs2 = np.float32(sr * common), np.float32(sg * common), np.float32(sb * common)
-                pdf += np.float32(p_spec * g1o * d / (4.0 * cos_o))
+        cos_h = _dot(h0, h1, h2, n0, n1, n2) / hl
+        a2 = alpha * alpha
+        d = _ggx_d(cos_h, a2)
+        g1o = _ggx_g1(cos_o, a2)
+        ok = (p_spec > F0) & (hl > TINY_LEN32) & (cos_h > F0)
+        common = d * g1o * _ggx_g1(cos_i, a2) / (np.float32(4.0) * cos_o * cos_i) if ok else F0
+        fs0, fs1, fs2 = sr * common, sg * common, sb * common
+        pdf += p_spec * g1o * d / (np.float32(4.0) * cos_o) if ok else F0
     return fd0, fd1, fd2, fs0, fs1, fs2, pdf
+
+
+@nb.njit(inline="always", **_jit)
+def _ggx_sample(wo0, wo1, wo2, t0, t1, t2, c0, c1, c2, s0, s1, s2, alpha, x, y):
+    """A GGX reflection direction by visible-normal sampling (Heitz 2018) in the frame (t, c, s),
+    from the disk point (x, y) (radius √u1, angle 2π·u2). Branch-free, float32."""
+    lx = _dot(wo0, wo1, wo2, t0, t1, t2)
+    ly = _dot(wo0, wo1, wo2, c0, c1, c2)
+    lz = _dot(wo0, wo1, wo2, s0, s1, s2)
+    vx, vy, vz = alpha * lx, alpha * ly, lz
+    ivl = F1 / math.sqrt(vx * vx + vy * vy + vz * vz)
+    vx, vy, vz = vx * ivl, vy * ivl, vz * ivl
+    lensq = vx * vx + vy * vy
+    tilted = lensq > np.float32(1e-14)
+    il = F1 / math.sqrt(lensq) if tilted else F0
+    a0 = -vy * il if tilted else F1
+    a1 = vx * il if tilted else F0
+    e0, e1, e2 = -vz * a1, vz * a0, vx * a1 - vy * a0
+    sv = np.float32(0.5) * (F1 + vz)
+    q2 = (F1 - sv) * math.sqrt(max(F0, F1 - x * x)) + sv * y
+    q3 = math.sqrt(max(F0, F1 - x * x - q2 * q2))
+    hx = x * a0 + q2 * e0 + q3 * vx
+    hy = x * a1 + q2 * e1 + q3 * vy
+    hz = max(np.float32(1e-6), q3 * vz + q2 * e2)
+    hx, hy = alpha * hx, alpha * hy
+    ihl = F1 / math.sqrt(hx * hx + hy * hy + hz * hz)
+    hx, hy, hz = hx * ihl, hy * ihl, hz * ihl
+    h0 = hx * t0 + hy * c0 + hz * s0
+    h1 = hx * t1 + hy * c1 + hz * s1
+    h2 = hx * t2 + hy * c2 + hz * s2
+    dh = np.float32(2.0) * _dot(wo0, wo1, wo2, h0, h1, h2)
+    return dh * h0 - wo0, dh * h1 - wo1, dh * h2 - wo2
 
 
 @nb.njit(inline="always", **_jit)
@@ -225,22 +266,21 @@ def face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2, v0, v1, v2, use
     return g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, front
 
 
-@nb.njit(nogil=True, **_jit)
+@nb.njit(nogil=True, **_jit_shading)
 def shade(
     depth, max_bounces, mis_last, key, first, count, pixel, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v,
     beta, kd, prev_pdf, prev_env,
     tri,
     obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
-    light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
-    film_emit, film_diff, film_spec, nonfinite,
-    gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
+    light_world, light_obj, light_cdf, p_env, background,
+    film_diff, film_spec, nonfinite,
     sh_o, sh_d, sh_tmax, sh_c, sh_pix,
     nx_o, nx_d, split,
 ):
-    """One wavefront step over the paths in rows [first, first + count) (see module doc),
-    compacting as it goes. Serial and without the GIL: the integrator runs one image segment
-    per call, on several threads at once (at depth 0 the rows are pixels, path index = pixel
-    index, and `pixel` is only written).
+    """One wavefront step at a vertex after the first (depth ≥ 1: the first is
+    first_surface + sample_first) over the paths in rows [first, first + count) (see module
+    doc), compacting as it goes. Serial and without the GIL: the integrator runs one image
+    segment per call, on several threads at once.
 
     `tri` : (F, 24) float32 rows of v0, e1 = v1 − v0, e2 = v2 − v0, unit geometric normal and the
     three corner shading normals, all in model space: one hit touches two cache lines. Column 21:
@@ -268,53 +308,33 @@ def shade(
     for k in range(first, end):
         if k + PREFETCH_AHEAD < end and hit_prim[k + PREFETCH_AHEAD] >= 0:
             prefetch_row(tri, hit_prim[k + PREFETCH_AHEAD])
-        pix = k if depth == 0 else pixel[k]
+        pix = pixel[k]
         d0, d1, d2 = rd[k, 0], rd[k, 1], rd[k, 2]
         ob = hit_obj[k]
         kdr, kdg, kdb = F1, F1, F1
-        if depth == 0:
-            b0 = b1 = b2 = F1
-        else:
-            b0, b1, b2 = beta[k, 0], beta[k, 1], beta[k, 2]
-            if split:
-                kdr, kdg, kdb = kd[k, 0], kd[k, 1], kd[k, 2]
+        b0, b1, b2 = beta[k, 0], beta[k, 1], beta[k, 2]
+        if split:
+            kdr, kdg, kdb = kd[k, 0], kd[k, 1], kd[k, 2]
         tri_i = 0
         u = v = F0
         g0 = g1 = g2 = F0
         le0 = le1 = le2 = F0  # radiance arriving along this ray from a light, MIS-weighted
         if ob < 0:  # escaped: the constant environment
-            if depth == 0 and write_gbuffer:  # no hit (clear_rows leaves the G-buffer to this pass)
-                gb_id[pix] = -1
-                gb_depth[pix] = np.inf
-                gb_rough[pix] = F0
-                for c in range(3):
-                    gb_model[pix, c] = gb_pos[pix, c] = gb_normal[pix, c] = gb_alb[pix, c] = gb_spec[pix, c] = F0
             if has_bg:
-                if depth == 0:
-                    film_emit[pix, 0] += background[0]
-                    film_emit[pix, 1] += background[1]
-                    film_emit[pix, 2] += background[2]
-                else:
-                    r_lb = prev_env[k] / prev_pdf[k]
-                    w = F1 / (F1 + r_lb * r_lb)
-                    le0, le1, le2 = background[0] * w, background[1] * w, background[2] * w
+                r_lb = prev_env[k] / prev_pdf[k]
+                w = F1 / (F1 + r_lb * r_lb)
+                le0, le1, le2 = background[0] * w, background[1] * w, background[2] * w
         else:
             tri_i = hit_prim[k]
             u, v = hit_u[k], hit_v[k]
             g0, g1, g2 = geometric_normal(tri, obj_R, ob, tri_i)
             if (obj_emit[ob, 0] > 0.0 or obj_emit[ob, 1] > 0.0 or obj_emit[ob, 2] > 0.0) and _dot(g0, g1, g2, d0, d1, d2) < 0.0:
-                if depth == 0:
-                    if not use_viewer:
-                        film_emit[pix, 0] += obj_emit[ob, 0]
-                        film_emit[pix, 1] += obj_emit[ob, 1]
-                        film_emit[pix, 2] += obj_emit[ob, 2]
-                else:
-                    t = hit_t[k]
-                    pl = p_area * obj_pdfA[ob] * t * t / max(-_dot(g0, g1, g2, d0, d1, d2), np.float32(1e-12))
-                    r_lb = pl / prev_pdf[k]
-                    w = F1 / (F1 + r_lb * r_lb)
-                    le0, le1, le2 = obj_emit[ob, 0] * w, obj_emit[ob, 1] * w, obj_emit[ob, 2] * w
-        if depth > 0 and (le0 > 0.0 or le1 > 0.0 or le2 > 0.0):
+                t = hit_t[k]
+                pl = p_area * obj_pdfA[ob] * t * t / max(-_dot(g0, g1, g2, d0, d1, d2), np.float32(1e-12))
+                r_lb = pl / prev_pdf[k]
+                w = F1 / (F1 + r_lb * r_lb)
+                le0, le1, le2 = obj_emit[ob, 0] * w, obj_emit[ob, 1] * w, obj_emit[ob, 2] * w
+        if le0 > 0.0 or le1 > 0.0 or le2 > 0.0:
             c0, c1, c2 = b0 * le0, b1 * le1, b2 * le2
             if math.isfinite(c0 + c1 + c2):
                 if split:
@@ -335,25 +355,10 @@ def shade(
         # ---- surface interaction: hit point from barycentrics in model space, then to world ----
         pm0, pm1, pm2, p0, p1, p2, s0, s1, s2 = hit_point(tri, obj_R, obj_t, ob, tri_i, u, v)
         g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, front = face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2,
-                                                                    viewer[0], viewer[1], viewer[2], depth == 0 and use_viewer)
+                                                                    F0, F0, F0, False)
         alpha = obj_alpha[ob]
         if tri[tri_i, 21] > 0.0:  # per-triangle α (a scene's roughness_map)
             alpha = tri[tri_i, 21]
-        if depth == 0:
-            if use_viewer and front and (obj_emit[ob, 0] > 0.0 or obj_emit[ob, 1] > 0.0 or obj_emit[ob, 2] > 0.0):
-                film_emit[pix, 0] += obj_emit[ob, 0]
-                film_emit[pix, 1] += obj_emit[ob, 1]
-                film_emit[pix, 2] += obj_emit[ob, 2]
-            if write_gbuffer:
-                gb_id[pix] = ob
-                gb_model[pix, 0], gb_model[pix, 1], gb_model[pix, 2] = pm0, pm1, pm2
-                gb_pos[pix, 0], gb_pos[pix, 1], gb_pos[pix, 2] = p0, p1, p2
-                gb_normal[pix, 0], gb_normal[pix, 1], gb_normal[pix, 2] = s0, s1, s2
-                gb_depth[pix] = hit_t[k] * _dot(d0, d1, d2, cam_fwd[0], cam_fwd[1], cam_fwd[2])
-                for c in range(3):
-                    gb_alb[pix, c] = obj_alb[ob, c]
-                    gb_spec[pix, c] = obj_spec[ob, c]
-                gb_rough[pix] = math.sqrt(alpha)
         wd = _lum(obj_alb[ob, 0] * (F1 - obj_spec[ob, 0]), obj_alb[ob, 1] * (F1 - obj_spec[ob, 1]), obj_alb[ob, 2] * (F1 - obj_spec[ob, 2]))
         ws = _lum(obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2])
         if wd + ws <= 0.0:
@@ -408,7 +413,7 @@ def shade(
                     tmax = dist * np.float32(1.0 - SHADOW_SHORTEN)
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if inv_pl > 0.0 and cos_i > 0.0 and _dot(wi0, wi1, wi2, g0, g1, g2) > 0.0:
-            fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec)
+            fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec, split)
             w = F1
             if continues or mis_last:
                 r_bl = pdf_b * inv_pl
@@ -416,7 +421,7 @@ def shade(
             scale = cos_i * w * inv_pl
             cd0, cd1, cd2 = fd0 * li0 * scale * b0, fd1 * li1 * scale * b1, fd2 * li2 * scale * b2
             cs0, cs1, cs2 = fs0 * li0 * scale * b0, fs1 * li1 * scale * b1, fs2 * li2 * scale * b2
-            if depth > 0 and split:  # deeper vertices inherit the first vertex's diffuse/specular split
+            if split:  # deeper vertices inherit the first vertex's diffuse/specular split
                 t0 = cd0 + cs0
                 t1 = cd1 + cs1
                 t2 = cd2 + cs2
@@ -441,54 +446,21 @@ def shade(
         u1 = rand(key, pix, base_dim + 4)
         u2 = rand(key, pix, base_dim + 5)
         t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
-        if u_lobe < p_spec:  # GGX visible-normal sampling (Heitz 2018) in the local frame
-            lx = _dot(wo0, wo1, wo2, t0, t1, t2)
-            ly = _dot(wo0, wo1, wo2, c0, c1, c2)
-            lz = _dot(wo0, wo1, wo2, s0, s1, s2)
-            vx, vy, vz = alpha * lx, alpha * ly, lz
-            vl = math.sqrt(vx * vx + vy * vy + vz * vz)
-            vx, vy, vz = vx / vl, vy / vl, vz / vl
-            lensq = vx * vx + vy * vy
-            if lensq > 1e-14:
-                il = F1 / math.sqrt(lensq)
-                a0, a1, a2 = -vy * il, vx * il, F0
-            else:
-                a0, a1, a2 = F1, F0, F0
-            e0, e1, e2 = vy * a2 - vz * a1, vz * a0 - vx * a2, vx * a1 - vy * a0
-            r = math.sqrt(u1)
-            cphi, sphi = _cos_sin_turn(u2)
-            q1 = r * cphi
-            q2 = r * sphi
-            sv = np.float32(0.5) * (F1 + vz)
-            q2 = (F1 - sv) * math.sqrt(max(F0, F1 - q1 * q1)) + sv * q2
-            q3 = math.sqrt(max(F0, F1 - q1 * q1 - q2 * q2))
-            hx = q1 * a0 + q2 * e0 + q3 * vx
-            hy = q1 * a1 + q2 * e1 + q3 * vy
-            hz = max(np.float32(1e-6), q3 * vz + q2 * e2)
-            hx, hy = alpha * hx, alpha * hy
-            hl = math.sqrt(hx * hx + hy * hy + hz * hz)
-            hx, hy, hz = hx / hl, hy / hl, hz / hl
-            h0 = hx * t0 + hy * c0 + hz * s0
-            h1 = hx * t1 + hy * c1 + hz * s1
-            h2 = hx * t2 + hy * c2 + hz * s2
-            dh = np.float32(2.0) * _dot(wo0, wo1, wo2, h0, h1, h2)
-            wi0, wi1, wi2 = dh * h0 - wo0, dh * h1 - wo1, dh * h2 - wo2
+        r = math.sqrt(u1)
+        cphi, sphi = _cos_sin_turn(u2)
+        x, y = r * cphi, r * sphi
+        if u_lobe < p_spec:
+            wi0, wi1, wi2 = _ggx_sample(wo0, wo1, wo2, t0, t1, t2, c0, c1, c2, s0, s1, s2, alpha, x, y)
         else:
-            r = math.sqrt(u1)
-            cphi, sphi = _cos_sin_turn(u2)
-            x, y, z = r * cphi, r * sphi, math.sqrt(max(F0, F1 - u1))
+            z = math.sqrt(max(F0, F1 - u1))
             wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if cos_i <= 0.0 or _dot(wi0, wi1, wi2, g0, g1, g2) <= 0.0:
             continue
-        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec)
+        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec, split)
         if not pdf_b > 0.0:
             continue
         f0, f1, f2 = fd0 + fs0, fd1 + fs1, fd2 + fs2
-        if depth == 0 and split:  # split the path by the lobe weights at the first vertex
-            kdr = fd0 / f0 if f0 > 0.0 else F1
-            kdg = fd1 / f1 if f1 > 0.0 else F1
-            kdb = fd2 / f2 if f2 > 0.0 else F1
         scale = cos_i / pdf_b
         nb0, nb1, nb2 = b0 * f0 * scale, b1 * f1 * scale, b2 * f2 * scale
         if depth + 1 >= RR_START_DEPTH:
@@ -511,6 +483,284 @@ def shade(
         nx_d[nc, 0], nx_d[nc, 1], nx_d[nc, 2] = wi0, wi1, wi2
         nc += 1
     return ns - first, nc - first
+
+
+# ---- the first vertex in two passes: its surface (per camera pose), then its samples (per frame) ----
+# What a first vertex needs that does not depend on the frame's random numbers (the hit point
+# turned into a ray origin, the facing normals, the outgoing direction, the material, what the
+# camera sees directly) is written per pixel by `first_surface`, as columns (S_* rows of `surf`).
+# With the projector fixed and nothing moving these are the same every frame, and the integrator
+# keeps them with the camera hits. `sample_first` then takes a frame's light sample and BSDF
+# sample at every pixel in straight-line float32 code over those columns, which LLVM vectorises
+# (16 lanes), and writes each pixel's shadow ray at its own row (an unused one gets tmax −1,
+# which Embree skips) and its continuation ray, packed.
+S_O, S_G, S_S, S_WO, S_ALB, S_SPEC = 0, 3, 6, 9, 12, 15  # origin (offset), facing normals, wo, albedo, specular
+S_ALPHA, S_PSPEC, S_ACTIVE, S_EMIT = 18, 19, 20, 21  # GGX α, lobe probability, 1 = reflects, emission seen (3)
+SURF_COLS = 24
+LIGHT_BLOCK = 128  # pixels whose light rows are gathered (scalar) before their vectorised samples
+L_ROW, L_EMIT, L_PA = 0, 12, 15  # gathered light columns: world row (12), emission (3), p_area · pdf per area
+LIGHT_COLS = 16
+NO_SHADOW = np.float32(-1.0)  # tmax of a shadow ray not traced (tnear 0 > tfar: an inactive ray)
+
+
+@nb.njit(nogil=True, **_jit_shading)
+def first_surface(first, end, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v, tri, obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit,
+                  background, viewer, use_viewer, cam_fwd, surf, gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec,
+                  gb_rough, write_gbuffer):
+    """The frame-independent part of the first vertex of pixels [first, end) (camera rays rd,
+    their hits): surf[S_*, pixel] (see above), and the G-buffer rows when `write_gbuffer`."""
+    has_bg = background[0] > 0.0 or background[1] > 0.0 or background[2] > 0.0
+    for k in range(first, end):
+        if k + PREFETCH_AHEAD < end and hit_prim[k + PREFETCH_AHEAD] >= 0:
+            prefetch_row(tri, hit_prim[k + PREFETCH_AHEAD])
+        ob = hit_obj[k]
+        for c in range(SURF_COLS):
+            surf[c, k] = F0
+        if ob < 0:  # escaped: the constant environment
+            if write_gbuffer:
+                gb_id[k] = -1
+                gb_depth[k] = np.inf
+                gb_rough[k] = F0
+                for c in range(3):
+                    gb_model[k, c] = gb_pos[k, c] = gb_normal[k, c] = gb_alb[k, c] = gb_spec[k, c] = F0
+            if has_bg:
+                for c in range(3):
+                    surf[S_EMIT + c, k] = background[c]
+            continue
+        d0, d1, d2 = rd[k, 0], rd[k, 1], rd[k, 2]
+        i = hit_prim[k]
+        g0, g1, g2 = geometric_normal(tri, obj_R, ob, i)
+        emissive = obj_emit[ob, 0] > 0.0 or obj_emit[ob, 1] > 0.0 or obj_emit[ob, 2] > 0.0
+        pm0, pm1, pm2, p0, p1, p2, s0, s1, s2 = hit_point(tri, obj_R, obj_t, ob, i, hit_u[k], hit_v[k])
+        g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, front = face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2,
+                                                                    viewer[0], viewer[1], viewer[2], use_viewer)
+        # an emitter seen from its front (from the viewer's side when there is one; the
+        # geometric normal before facing points against the ray when front is from the camera)
+        if emissive and front:
+            for c in range(3):
+                surf[S_EMIT + c, k] = obj_emit[ob, c]
+        alpha = obj_alpha[ob]
+        if tri[i, 21] > 0.0:  # per-triangle α (a scene's roughness_map)
+            alpha = tri[i, 21]
+        if write_gbuffer:
+            gb_id[k] = ob
+            gb_model[k, 0], gb_model[k, 1], gb_model[k, 2] = pm0, pm1, pm2
+            gb_pos[k, 0], gb_pos[k, 1], gb_pos[k, 2] = p0, p1, p2
+            gb_normal[k, 0], gb_normal[k, 1], gb_normal[k, 2] = s0, s1, s2
+            gb_depth[k] = hit_t[k] * _dot(d0, d1, d2, cam_fwd[0], cam_fwd[1], cam_fwd[2])
+            for c in range(3):
+                gb_alb[k, c] = obj_alb[ob, c]
+                gb_spec[k, c] = obj_spec[ob, c]
+            gb_rough[k] = math.sqrt(alpha)
+        wd = _lum(obj_alb[ob, 0] * (F1 - obj_spec[ob, 0]), obj_alb[ob, 1] * (F1 - obj_spec[ob, 1]), obj_alb[ob, 2] * (F1 - obj_spec[ob, 2]))
+        ws = _lum(obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2])
+        if wd + ws <= 0.0:
+            continue  # black surface: nothing is reflected
+        eps = OFFSET_REL32 * max(_max_abs3(p0, p1, p2), _max_abs3(pm0, pm1, pm2)) + TINY32
+        surf[S_O, k], surf[S_O + 1, k], surf[S_O + 2, k] = p0 + g0 * eps, p1 + g1 * eps, p2 + g2 * eps
+        surf[S_G, k], surf[S_G + 1, k], surf[S_G + 2, k] = g0, g1, g2
+        surf[S_S, k], surf[S_S + 1, k], surf[S_S + 2, k] = s0, s1, s2
+        surf[S_WO, k], surf[S_WO + 1, k], surf[S_WO + 2, k] = wo0, wo1, wo2
+        for c in range(3):
+            surf[S_ALB + c, k] = obj_alb[ob, c]
+            surf[S_SPEC + c, k] = obj_spec[ob, c]
+        surf[S_ALPHA, k] = alpha
+        surf[S_PSPEC, k] = ws / (wd + ws)
+        surf[S_ACTIVE, k] = F1
+
+
+LSB = LIGHT_BLOCK + 16  # a block column's stride (not a multiple of 512 bytes: columns in different L1 sets)
+# columns of a block's samples (`_sample_block` → the scalar writes of `sample_first`)
+O_SD, O_TMAX, O_SC, O_ND, O_NB, O_NKD, O_PDF, O_ENV, O_BAD = 0, 3, 4, 10, 13, 16, 19, 20, 21
+OUT_COLS = 22
+
+
+@nb.njit(nogil=True, **_jit_shading)
+def _gather_lights(key, a, m, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env, p_area, lblk):
+    """The emissive triangle of pixel a + j's light sample (j < m), as columns lblk[L_* · LSB + j]."""
+    for j in range(m):
+        lo = 0
+        if p_area > 0.0:
+            ut = (rand(key, a + j, 0) - p_env) / p_area  # < 0: the environment is sampled (unused then)
+            hi = light_cdf.shape[0] - 1
+            while lo < hi:  # first triangle whose cumulative weight exceeds ut
+                mid = (lo + hi) // 2
+                if light_cdf[mid] <= ut:
+                    lo = mid + 1
+                else:
+                    hi = mid
+        lob = light_obj[lo]
+        for c in range(12):
+            lblk[(L_ROW + c) * LSB + j] = light_world[lo, c]
+        for c in range(3):
+            lblk[(L_EMIT + c) * LSB + j] = obj_emit[lob, c]
+        lblk[L_PA * LSB + j] = p_area * obj_pdfA[lob]
+
+
+@nb.njit(inline="always", **_jit_vector)
+def _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, glossy):
+    """The light and BSDF samples of pixels [a, a + m), one pixel per vector lane (every branch a
+    select): reads their surfaces and gathered lights, writes the block's columns oblk[O_* · LSB
+    + j] and nothing else (so LLVM needs no run-time alias checks). `glossy` is a constant:
+    False compiles the Lambert lobe alone."""
+    bg0, bg1, bg2 = background[0], background[1], background[2]
+    ua = np.uint64(a)
+    for j in range(np.uint64(m)):
+        k = ua + j
+        active = surf[S_ACTIVE, k] > F0
+        o0, o1, o2 = surf[S_O, k], surf[S_O + 1, k], surf[S_O + 2, k]
+        g0, g1, g2 = surf[S_G, k], surf[S_G + 1, k], surf[S_G + 2, k]
+        s0, s1, s2 = surf[S_S, k], surf[S_S + 1, k], surf[S_S + 2, k]
+        wo0, wo1, wo2 = surf[S_WO, k], surf[S_WO + 1, k], surf[S_WO + 2, k]
+        ar, ag, ab = surf[S_ALB, k], surf[S_ALB + 1, k], surf[S_ALB + 2, k]
+        sr = sg = sb = F0
+        alpha = p_spec = F0
+        if glossy:
+            sr, sg, sb = surf[S_SPEC, k], surf[S_SPEC + 1, k], surf[S_SPEC + 2, k]
+            alpha, p_spec = surf[S_ALPHA, k], surf[S_PSPEC, k]
+        # ---- next-event estimation: the environment (cosine-sampled) or the gathered emissive triangle ----
+        u_sel = rand(key, k, 0)
+        u1 = rand(key, k, 1)
+        u2 = rand(key, k, 2)
+        t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
+        r = math.sqrt(u1)
+        cphi, sphi = _cos_sin_turn(u2)
+        x, y, z = r * cphi, r * sphi, math.sqrt(max(F0, F1 - u1))
+        pdf_e = p_env * z * INV_PI32
+        inv_e = F1 / pdf_e if pdf_e > F0 else F0
+        bb1, bb2 = u2 * r, F1 - r  # uniform on the triangle (r = √u1)
+        q0 = lblk[L_ROW * LSB + j] + bb1 * lblk[(L_ROW + 3) * LSB + j] + bb2 * lblk[(L_ROW + 6) * LSB + j] - o0
+        q1 = lblk[(L_ROW + 1) * LSB + j] + bb1 * lblk[(L_ROW + 4) * LSB + j] + bb2 * lblk[(L_ROW + 7) * LSB + j] - o1
+        q2 = lblk[(L_ROW + 2) * LSB + j] + bb1 * lblk[(L_ROW + 5) * LSB + j] + bb2 * lblk[(L_ROW + 8) * LSB + j] - o2
+        dist2 = q0 * q0 + q1 * q1 + q2 * q2
+        dist = math.sqrt(dist2)
+        idist = F1 / dist
+        qa0, qa1, qa2 = q0 * idist, q1 * idist, q2 * idist
+        cos_l = -_dot(lblk[(L_ROW + 9) * LSB + j], lblk[(L_ROW + 10) * LSB + j], lblk[(L_ROW + 11) * LSB + j], qa0, qa1, qa2)
+        pa = lblk[L_PA * LSB + j] * dist2  # the pdf is pa / cos_l: one division
+        area_ok = (dist > TINY32) & (cos_l > F0) & (pa > F0)
+        inv_a = cos_l / pa if area_ok else F0
+        env = u_sel < p_env
+        wi0 = x * t0 + y * c0 + z * s0 if env else qa0
+        wi1 = x * t1 + y * c1 + z * s1 if env else qa1
+        wi2 = x * t2 + y * c2 + z * s2 if env else qa2
+        inv_pl = inv_e if env else inv_a
+        li0 = bg0 if env else lblk[L_EMIT * LSB + j]
+        li1 = bg1 if env else lblk[(L_EMIT + 1) * LSB + j]
+        li2 = bg2 if env else lblk[(L_EMIT + 2) * LSB + j]
+        cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
+        nee = active & (inv_pl > F0) & (cos_i > F0) & (_dot(wi0, wi1, wi2, g0, g1, g2) > F0)
+        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, ar, ag, ab, sr, sg, sb,
+                                                         alpha, p_spec, glossy)
+        r_bl = pdf_b * inv_pl
+        w = F1 / (F1 + r_bl * r_bl) if sample_bsdf else F1
+        scale = cos_i * w * inv_pl
+        cd0, cd1, cd2 = fd0 * li0 * scale, fd1 * li1 * scale, fd2 * li2 * scale
+        cs0, cs1, cs2 = fs0 * li0 * scale, fs1 * li1 * scale, fs2 * li2 * scale
+        tot = cd0 + cd1 + cd2 + cs0 + cs1 + cs2
+        fin = math.isfinite(tot)
+        shadow = nee & fin & (tot > F0)
+        oblk[O_SD * LSB + j], oblk[(O_SD + 1) * LSB + j], oblk[(O_SD + 2) * LSB + j] = wi0, wi1, wi2
+        tmax = np.float32(3.0e38) if env else dist * np.float32(1.0 - SHADOW_SHORTEN)
+        oblk[O_TMAX * LSB + j] = tmax if shadow else NO_SHADOW
+        oblk[O_SC * LSB + j] = cd0 if shadow else F0
+        oblk[(O_SC + 1) * LSB + j] = cd1 if shadow else F0
+        oblk[(O_SC + 2) * LSB + j] = cd2 if shadow else F0
+        oblk[(O_SC + 3) * LSB + j] = cs0 if shadow else F0
+        oblk[(O_SC + 4) * LSB + j] = cs1 if shadow else F0
+        oblk[(O_SC + 5) * LSB + j] = cs2 if shadow else F0
+        # ---- BSDF sampling: the continuation ray ----
+        u_lobe = rand(key, k, 3)
+        u1 = rand(key, k, 4)
+        u2 = rand(key, k, 5)
+        r = math.sqrt(u1)
+        cphi, sphi = _cos_sin_turn(u2)
+        x, y, z = r * cphi, r * sphi, math.sqrt(max(F0, F1 - u1))
+        wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
+        if glossy:  # the GGX lobe's direction where u_lobe chooses it
+            h0, h1, h2 = _ggx_sample(wo0, wo1, wo2, t0, t1, t2, c0, c1, c2, s0, s1, s2, alpha, x, y)
+            spec_lobe = u_lobe < p_spec
+            wi0 = h0 if spec_lobe else wi0
+            wi1 = h1 if spec_lobe else wi1
+            wi2 = h2 if spec_lobe else wi2
+        cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
+        ok = active & sample_bsdf & (cos_i > F0) & (_dot(wi0, wi1, wi2, g0, g1, g2) > F0)
+        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, ar, ag, ab, sr, sg, sb,
+                                                         alpha, p_spec, glossy)
+        ok = ok & (pdf_b > F0)
+        f0, f1, f2 = fd0 + fs0, fd1 + fs1, fd2 + fs2
+        scale = cos_i / pdf_b
+        nb0, nb1, nb2 = f0 * scale, f1 * scale, f2 * scale
+        nsum = nb0 + nb1 + nb2
+        fin2 = math.isfinite(nsum)
+        alive = ok & fin2 & (nsum > F0)
+        oblk[O_BAD * LSB + j] = np.float32(nee & (not fin)) + np.float32(ok & (not fin2))
+        oblk[O_ND * LSB + j], oblk[(O_ND + 1) * LSB + j], oblk[(O_ND + 2) * LSB + j] = wi0, wi1, wi2
+        oblk[O_NB * LSB + j], oblk[(O_NB + 1) * LSB + j], oblk[(O_NB + 2) * LSB + j] = nb0, nb1, nb2
+        if glossy:  # split the path by the lobe weights at the first vertex
+            oblk[O_NKD * LSB + j] = fd0 / f0 if f0 > F0 else F1
+            oblk[(O_NKD + 1) * LSB + j] = fd1 / f1 if f1 > F0 else F1
+            oblk[(O_NKD + 2) * LSB + j] = fd2 / f2 if f2 > F0 else F1
+        oblk[O_PDF * LSB + j] = pdf_b if alive else F0  # 0: no continuation
+        oblk[O_ENV * LSB + j] = p_env * cos_i * INV_PI32
+
+
+@nb.njit(nogil=True, cache=True)
+def block_scratch():
+    """The per-thread scratch of sample_first (allocated per thread and pass, not per call)."""
+    return np.empty(LIGHT_COLS * LSB, np.float32), np.empty(OUT_COLS * LSB, np.float32)
+
+
+@nb.njit(nogil=True, **_jit_vector)
+def sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env, background, sample_bsdf, split,
+                 film_emit, nonfinite, sh_o, sh_d, sh_tmax, sh_c, sh_pix, pixel, beta, kd, prev_pdf, prev_env, nx_o, nx_d, lblk, oblk):
+    """The first vertex's samples at pixels [first, end) from their surfaces (first_surface), in
+    blocks: the lights gathered (scalar), the samples (vectorised), then written out (scalar):
+    the emission seen directly into film_emit, each pixel's shadow ray at its own row of sh_*
+    (tmax NO_SHADOW and no contribution where none is traced: Embree skips it), and the paths
+    that continue packed from row `first` (pixel, beta, kd, prev_pdf, prev_env, nx_o, nx_d).
+    `lblk`, `oblk`: scratch of LIGHT_COLS · LSB and OUT_COLS · LSB floats (block_scratch()).
+    Returns (shadow rays, continuation rays)."""
+    p_env = np.float32(p_env)  # 0, ½ or 1: exact
+    p_area = F1 - p_env
+    n_shadow = 0
+    nc = first
+    for a in range(first, end, LIGHT_BLOCK):
+        m = min(LIGHT_BLOCK, end - a)
+        _gather_lights(key, a, m, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env, p_area, lblk)
+        if split:
+            _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, True)
+        else:
+            _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, False)
+        for j in range(m):
+            k = a + j
+            for c in range(3):
+                film_emit[k, c] += surf[S_EMIT + c, k]
+            nonfinite[k] += np.int32(oblk[O_BAD * LSB + j])
+            sh_pix[k] = k
+            for c in range(3):
+                sh_o[k, c] = surf[S_O + c, k]
+                sh_d[k, c] = oblk[(O_SD + c) * LSB + j]
+                sh_c[k, c] = oblk[(O_SC + c) * LSB + j]
+            if split:
+                for c in range(3, 6):
+                    sh_c[k, c] = oblk[(O_SC + c) * LSB + j]
+            tmax = oblk[O_TMAX * LSB + j]
+            sh_tmax[k] = tmax
+            n_shadow += tmax >= F0
+            pdf = oblk[O_PDF * LSB + j]
+            if pdf > F0:
+                pixel[nc] = k
+                prev_pdf[nc], prev_env[nc] = pdf, oblk[O_ENV * LSB + j]
+                for c in range(3):
+                    beta[nc, c] = oblk[(O_NB + c) * LSB + j]
+                    nx_o[nc, c] = surf[S_O + c, k]
+                    nx_d[nc, c] = oblk[(O_ND + c) * LSB + j]
+                if split:
+                    for c in range(3):
+                        kd[nc, c] = oblk[(O_NKD + c) * LSB + j]
+                nc += 1
+    return n_shadow, nc - first
 
 
 @nb.njit(nogil=True, **_jit)
@@ -585,39 +835,29 @@ def _take_next(typingctx, counter):
 
 
 @nb.njit(nogil=True, cache=True)
-def clear_rows(film, gb, first, end):
-    """The starting values of rows [first, end) of a frame's film (zeros) and G-buffer (no hit:
-    id −1, depth inf, the rest zeros; skipped when the G-buffer is empty). Each image segment
-    clears its own rows in its own thread, so the frame's arrays are allocated empty on the
-    main thread (no serial 88 MB fill there at 1024×768) and are in cache when that segment shades.
-    When the G-buffer is written (`write_gbuffer`), shading's first vertex writes every one of its
-    rows, a miss's no-hit values included, so only the film is cleared here."""
+def clear_rows(film, first, end):
+    """Zeros in rows [first, end) of a frame's film. Each image segment clears its own rows in its
+    own thread, so the frame's arrays are allocated empty on the main thread (no serial fill
+    there) and are in cache when that segment shades. The G-buffer needs none: first_surface
+    writes every row of it, a miss's no-hit values included."""
     film_emit, film_diff, film_spec, nonfinite = film
-    gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer = gb
     for i in range(first, end):
         for c in range(3):
             film_emit[i, c] = film_diff[i, c] = film_spec[i, c] = 0.0
         nonfinite[i] = 0
-    if gb_id.shape[0] > 0 and not write_gbuffer:
-        for i in range(first, end):
-            gb_id[i] = -1
-            gb_depth[i] = np.inf
-            gb_rough[i] = 0.0
-            for c in range(3):
-                gb_model[i, c] = gb_pos[i, c] = gb_normal[i, c] = gb_alb[i, c] = gb_spec[i, c] = 0.0
 
 
 @nb.njit(nogil=True, cache=True, error_model="numpy")
 def trace_segments(counter, starts, counts, clear, radiance, acc, acc_moving, acc_static, packets, split, depth_limit, max_bounces,
-                   mis_last, key, primary_dirs, primary, complete_primary, static, camera_o, scn, film, gb, work, jitter):
+                   mis_last, key, primary_dirs, primary, complete_primary, static, camera_o, scn, film, gb, surface, work, jitter):
     """trace_segment over the image segments (first rows `starts`, row counts `counts`) that
     this thread takes from the shared `counter` (counter[0] = next segment, atomically), so each
     render thread makes one call per pass instead of one per segment (each call unboxes some
-    60 arrays under the GIL). `clear`: each segment first sets its film and G-buffer rows to
-    their starting values (clear_rows). `radiance` (n, 3) or empty: each segment then writes its
+    60 arrays under the GIL). `clear`: each segment first zeros its film rows (clear_rows). `radiance` (n, 3) or empty: each segment then writes its
     rows of emit + diff + spec (a 1-spp frame's radiance, the same float32 sums as numpy's).
     Returns the (shadow rays, continuation rays) traced, or (−1, −1) if a path outlived 4096 bounces."""
     film_emit, film_diff, film_spec = film[0], film[1], film[2]
+    scratch = block_scratch()
     traced_shadow = traced_next = 0
     while True:
         s = _take_next(counter)
@@ -627,9 +867,10 @@ def trace_segments(counter, starts, counts, clear, radiance, acc, acc_moving, ac
         if count <= 0:
             continue
         if clear:
-            clear_rows(film, gb, first, first + count)
+            clear_rows(film, first, first + count)
         n_shadow, n_next = trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_bounces, mis_last, key, first, count,
-                                         primary_dirs, primary, complete_primary, static, camera_o, scn, film, gb, work, jitter)
+                                         primary_dirs, primary, complete_primary, static, camera_o, scn, film, gb, surface, work, jitter,
+                                         scratch)
         if n_shadow < 0:
             return -1, -1
         traced_shadow += n_shadow
@@ -644,7 +885,7 @@ def trace_segments(counter, starts, counts, clear, radiance, acc, acc_moving, ac
 # their float32 transforms into FMAs (moving objects' hits would change in the last bit).
 @nb.njit(nogil=True, cache=True, error_model="numpy")
 def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_bounces, mis_last, key, first, count, primary_dirs, primary,
-                  complete_primary, static, camera_o, scn, film, gb, work, jitter):
+                  complete_primary, static, camera_o, scn, film, gb, surface, work, jitter, scratch):
     """All bounces of the paths through pixels [first, first + count) in one call, with Embree
     queried from inside (traversal): shade → shadow rays → continuation rays → shade …, no
     Python between the stages. `primary` = (t, obj, prim, u, v) of the camera rays. `static` =
@@ -656,14 +897,16 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     shaded. With `complete_primary` the static hits are copied into `primary`'s rows and the
     moving objects traced (from camera_o along primary_dirs). `packets` = (continuation, shadow): 16-wide
     packets of consecutive rows, or single rays. Tuples, see the integrator: scn (scene tables),
-    film (emit, diff, spec, nonfinite), gb (G-buffer arrays and write flag), work (per-path
-    arrays, kept between frames). `jitter` = (on, jitter key, pixel corners, camera rotation,
+    film (emit, diff, spec, nonfinite), gb (G-buffer arrays and write flag), surface (ready,
+    surf): the first vertices' surfaces (first_surface), computed here unless ready (kept by the
+    integrator while the camera and every object stay put), work (per-path arrays, kept between frames). `jitter` = (on, jitter key, pixel corners, camera rotation,
     image width, cam_d): when on, the camera rays are generated through a random point of each
     pixel into cam_d (which `primary_dirs` must then be) and traced here in full. Returns (shadow rays,
     continuation rays), or (−1, −1) if a path outlived 4096 bounces."""
     tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd = scn
     film_emit, film_diff, film_spec, nonfinite = film
     gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer = gb
+    surface_ready, surf = surface
     (pixel, beta, kd, prev_pdf, prev_env, sh_o, sh_d, sh_tmax, sh_c, sh_pix, blocked,
      ray_o0, ray_d0, ray_o1, ray_d1, h_t, h_obj, h_prim, h_u, h_v) = work
     p_t, p_obj, p_prim, p_u, p_v = primary
@@ -680,33 +923,35 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
             for i in range(first, end):
                 p_t[i], p_obj[i], p_prim[i], p_u[i], p_v[i] = s_t[i], s_obj[i], s_prim[i], s_u[i], s_v[i]
             traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], True)
-    traced_shadow = traced_next = 0
+    # the first vertex: its surface (unless kept), then this pass's samples; its shadow rays sit
+    # at their pixels' rows, those not traced inactive
+    if not surface_ready:
+        first_surface(first, end, primary_dirs, p_t, p_obj, p_prim, p_u, p_v, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit,
+                      background, viewer, use_viewer, cam_fwd, surf, gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec,
+                      gb_rough, write_gbuffer)
+    traced_shadow, n_next = sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env, background,
+                                         max_bounces > 0 or mis_last, split, film_emit, nonfinite, sh_o, sh_d, sh_tmax, sh_c, sh_pix,
+                                         pixel, beta, kd, prev_pdf, prev_env, ray_o0, ray_d0, scratch[0], scratch[1])
+    traversal.occluded_range(acc, R, T, sh_o, sh_d, sh_tmax, first, end, blocked, packets[1])
+    add_unoccluded(first, count, sh_pix, sh_c, blocked, film_diff, film_spec, split)
+    traced_next = 0
     depth = 0
     while True:
-        nx_o, nx_d = (ray_o0, ray_d0) if depth % 2 == 0 else (ray_o1, ray_d1)
-        rd = ray_d1 if depth % 2 == 0 else ray_d0  # (unused at depth 0: the camera rays)
-        if depth == 0:
-            n_shadow, n_next = shade(
-                0, max_bounces, mis_last, key, first, count, pixel, primary_dirs, p_t, p_obj, p_prim, p_u, p_v,
-                beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
-                light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
-                film_emit, film_diff, film_spec, nonfinite,
-                gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer,
-                sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d, split)
-        else:
+        if depth > 0:
+            nx_o, nx_d = (ray_o0, ray_d0) if depth % 2 == 0 else (ray_o1, ray_d1)
+            rd = ray_d1 if depth % 2 == 0 else ray_d0
             n_shadow, n_next = shade(
                 depth, max_bounces, mis_last, key, first, count, pixel, rd, h_t, h_obj, h_prim, h_u, h_v,
                 beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
-                light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd,
-                film_emit, film_diff, film_spec, nonfinite,
-                gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, False,
+                light_world, light_obj, light_cdf, p_env, background, film_diff, film_spec, nonfinite,
                 sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d, split)
-        if n_shadow:
-            traversal.occluded_range(acc, R, T, sh_o, sh_d, sh_tmax, first, first + n_shadow, blocked, packets[1])
-            add_unoccluded(first, n_shadow, sh_pix, sh_c, blocked, film_diff, film_spec, split)
-            traced_shadow += n_shadow
+            if n_shadow:
+                traversal.occluded_range(acc, R, T, sh_o, sh_d, sh_tmax, first, first + n_shadow, blocked, packets[1])
+                add_unoccluded(first, n_shadow, sh_pix, sh_c, blocked, film_diff, film_spec, split)
+                traced_shadow += n_shadow
         if depth >= depth_limit or n_next == 0:
             return traced_shadow, traced_next
+        nx_o, nx_d = (ray_o0, ray_d0) if depth % 2 == 0 else (ray_o1, ray_d1)
         traversal.closest_range(acc, R, T, nx_o, nx_d, first, first + n_next, h_t, h_obj, h_prim, h_u, h_v, packets[0], False)
         traced_next += n_next
         count = n_next
