@@ -1,11 +1,11 @@
 """Closest-hit and occlusion queries over the whole scene, inside numba kernels (Embree C API).
 
 Same scene model as `accel.EmbreeAccel`: one BVH for all static objects in world space, and one
-per moving mesh in its model space. A ray is tested against a moving object only if it passes
-within that object's bounding sphere before the closest hit so far, and is then rotated into
-model space (a rigid transform keeps ray distances), with Embree's tfar culling the farther
-hits. The sphere test and the transform repeat `accel._rays_into_model`'s float32 arithmetic
-exactly, so both paths return the same hits bit for bit.
+per distinct moving mesh (`accel.mesh_key`) in its model space. A ray is tested against a moving
+object only if it passes within that object's bounding sphere before the closest hit so far, and
+is then rotated into model space (a rigid transform keeps ray distances), with Embree's tfar
+culling the farther hits. The sphere test and the transform repeat `accel._rays_into_model`'s
+float32 arithmetic exactly, so both paths return the same hits bit for bit.
 
 `acc` is the tuple (scenes, static_objects, tri_offsets, dyn_obj, dyn_sphere) built by
 `RtcAccel.tables`: scenes[0] is the static RTCScene (0 if none), scenes[1 + j] the BVH of moving
@@ -23,6 +23,7 @@ import numba as nb
 import numpy as np
 
 from dpmhw.render import rtc
+from dpmhw.render.accel import mesh_key
 
 NO_HIT_TFAR = np.float32(1e37)  # embreex's default tfar: keeps hits identical to it
 
@@ -290,15 +291,16 @@ class RtcAccel:
                                              [objects[i].mesh.faces for i in static], robust=robust)
             self._scenes.append(self.static_scene)
         self.dynamic_objects = [i for i, o in enumerate(objects) if o.is_dynamic]
-        by_mesh: dict[int, rtc.RtcScene] = {}
+        by_mesh: dict[bytes, rtc.RtcScene] = {}
         handles = [self.static_scene.handle if self.static_scene else 0]
         sphere = []
         for i in self.dynamic_objects:
             mesh = objects[i].mesh
-            if id(mesh) not in by_mesh:  # instances of one mesh share one BVH
-                by_mesh[id(mesh)] = rtc.RtcScene([np.asarray(mesh.vertices, np.float32)], [mesh.faces], robust=robust)
-                self._scenes.append(by_mesh[id(mesh)])
-            handles.append(by_mesh[id(mesh)].handle)
+            key = mesh_key(mesh)
+            if key not in by_mesh:  # copies of one mesh share one BVH
+                by_mesh[key] = rtc.RtcScene([np.asarray(mesh.vertices, np.float32)], [mesh.faces], robust=robust)
+                self._scenes.append(by_mesh[key])
+            handles.append(by_mesh[key].handle)
             lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
             centre = (lo + hi) / 2  # the same sphere as EmbreeAccel's
             radius = np.linalg.norm(mesh.vertices - centre, axis=1).max() * (1 + 1e-4) + 1e-9
