@@ -180,3 +180,41 @@ def test_grazing_view_and_light(make_scene, render):
     floor = f.object_id == 0
     assert floor.sum() > 50
     assert f.radiance[floor].max() < 50.0
+
+
+def test_a_fixed_camera_keeps_the_first_surfaces_and_shares_a_read_only_gbuffer(make_scene):
+    """With the camera fixed and nothing moving, the first vertices' surfaces and the G-buffer
+    are kept from a pose's second frame on: every frame still equals a fresh integrator's frame
+    at its pose and seed, the frames at the pose share one read-only G-buffer, and a new pose
+    (or a return to an old one) computes them anew."""
+    import pytest
+
+    scene = make_scene(ROOM.format(extra=""))
+    p0 = scene.camera.pose
+    p1 = Pose(p0.R, p0.t + np.array([0.03, 0.0, 0.0]))
+    poses = [p0, p0, p0, p1, p1, p0]
+    with PathIntegrator(scene, threads=2) as integrator:
+        frames = [integrator.render(seed=k, spp=1 + k % 2, camera_pose=pose) for k, pose in enumerate(poses)]
+    for k, pose in enumerate(poses):
+        with PathIntegrator(scene, threads=1) as fresh:
+            ref = fresh.render(seed=k, spp=1 + k % 2, camera_pose=pose)
+        assert np.array_equal(frames[k].radiance, ref.radiance), k
+        for name in ("object_id", "model_position", "position", "normal", "depth", "albedo", "specular_albedo", "roughness"):
+            assert np.array_equal(getattr(frames[k], name), getattr(ref, name)), (k, name)
+    assert not np.shares_memory(frames[0].normal, frames[1].normal)  # kept from the second frame on
+    assert np.shares_memory(frames[1].normal, frames[2].normal) and np.shares_memory(frames[1].object_id, frames[2].object_id)
+    assert not np.shares_memory(frames[2].normal, frames[3].normal) and not np.shares_memory(frames[4].normal, frames[5].normal)
+    with pytest.raises(ValueError):
+        frames[2].normal[0, 0, 0] = 1.0
+
+
+def test_nothing_is_kept_while_an_object_moves(make_scene):
+    """A moving object changes the camera hits every frame: each frame computes its first
+    surfaces and writes its own G-buffer, which follows the object."""
+    from .test_rtc import MOTION
+
+    scene = make_scene(ROOM.format(extra=MOTION))
+    with PathIntegrator(scene, threads=2) as integrator:
+        a, b = (integrator.render(time=t, seed=1) for t in (0.0, 0.5))
+    assert not np.shares_memory(a.normal, b.normal) and b.normal.flags.writeable
+    assert not np.array_equal(a.object_id, b.object_id)
