@@ -388,7 +388,7 @@ class PathIntegrator:
             kernels.first_surface(first, end, primary_dirs, primary.t, primary.obj, primary.prim, primary.u, primary.v, g.tri, R, T,
                                   g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.background, viewer, self.use_viewer,
                                   cam_fwd, w.surf, gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec,
-                                  gbuf.rough, write_gbuffer)
+                                  gbuf.rough, write_gbuffer, self.split)
         traced_shadow, n_next = kernels.sample_first(
             first, end, key, w.surf, light_world, g.light_obj, g.light_cdf, g.obj_emission, g.obj_pdf_area, g.p_env, g.background,
             self.max_bounces > 0 or self.mis_last, self.split, film["emit"], nonfinite, w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix,
@@ -450,7 +450,7 @@ class _Work:
         # the first vertices' surfaces (kernels.first_surface), a column per quantity. Padded: at
         # 1024×768 columns n floats apart would all fall in the same cache set (n · 4 bytes is a
         # multiple of 4 KiB), and writing or reading 24 of them at once ran 10× slower
-        self.surf = np.empty((kernels.SURF_COLS, n + 16), f32)
+        self.surf = np.zeros((kernels.SURF_COLS, n + 16), f32)  # zeros: a lane that reflects nothing reads finite values
         self.sh_o = np.empty((n, 3), f32)
         self.sh_d = np.empty((n, 3), f32)
         self.sh_tmax = np.empty(n, f32)

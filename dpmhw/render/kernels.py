@@ -506,16 +506,21 @@ NO_SHADOW = np.float32(-1.0)  # tmax of a shadow ray not traced (tnear 0 > tfar:
 @nb.njit(nogil=True, **_jit_shading)
 def first_surface(first, end, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v, tri, obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit,
                   background, viewer, use_viewer, cam_fwd, surf, gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec,
-                  gb_rough, write_gbuffer):
+                  gb_rough, write_gbuffer, split):
     """The frame-independent part of the first vertex of pixels [first, end) (camera rays rd,
-    their hits): surf[S_*, pixel] (see above), and the G-buffer rows when `write_gbuffer`."""
+    their hits): surf[S_*, pixel] (see above), and the G-buffer rows when `write_gbuffer`.
+    Each column is written once, and only what sample_first reads: a pixel that reflects
+    nothing gets S_ACTIVE 0 and its S_EMIT (its other columns keep stale, finite values, which
+    its vector lane computes with and discards); without specular lobes (`split` False) the
+    S_SPEC, S_ALPHA and S_PSPEC columns are not read."""
     has_bg = background[0] > 0.0 or background[1] > 0.0 or background[2] > 0.0
     for k in range(first, end):
         if k + PREFETCH_AHEAD < end and hit_prim[k + PREFETCH_AHEAD] >= 0:
             prefetch_row(tri, hit_prim[k + PREFETCH_AHEAD])
         ob = hit_obj[k]
-        for c in range(SURF_COLS):
-            surf[c, k] = F0
+        surf[S_ACTIVE, k] = F0
+        for c in range(3):
+            surf[S_EMIT + c, k] = F0
         if ob < 0:  # escaped: the constant environment
             if write_gbuffer:
                 gb_id[k] = -1
@@ -563,9 +568,11 @@ def first_surface(first, end, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v, tri, o
         surf[S_WO, k], surf[S_WO + 1, k], surf[S_WO + 2, k] = wo0, wo1, wo2
         for c in range(3):
             surf[S_ALB + c, k] = obj_alb[ob, c]
-            surf[S_SPEC + c, k] = obj_spec[ob, c]
-        surf[S_ALPHA, k] = alpha
-        surf[S_PSPEC, k] = ws / (wd + ws)
+        if split:
+            for c in range(3):
+                surf[S_SPEC + c, k] = obj_spec[ob, c]
+            surf[S_ALPHA, k] = alpha
+            surf[S_PSPEC, k] = ws / (wd + ws)
         surf[S_ACTIVE, k] = F1
 
 
@@ -734,9 +741,14 @@ def sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_e
             _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, False)
         for j in range(m):
             k = a + j
-            for c in range(3):
-                film_emit[k, c] += surf[S_EMIT + c, k]
-            nonfinite[k] += np.int32(oblk[O_BAD * LSB + j])
+            e0, e1, e2 = surf[S_EMIT, k], surf[S_EMIT + 1, k], surf[S_EMIT + 2, k]
+            if e0 != F0 or e1 != F0 or e2 != F0:  # (most pixels see no emitter: no read-modify-write)
+                film_emit[k, 0] += e0
+                film_emit[k, 1] += e1
+                film_emit[k, 2] += e2
+            bad = oblk[O_BAD * LSB + j]
+            if bad != F0:
+                nonfinite[k] += np.int32(bad)
             sh_pix[k] = k
             for c in range(3):
                 sh_o[k, c] = surf[S_O + c, k]
@@ -928,7 +940,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     if not surface_ready:
         first_surface(first, end, primary_dirs, p_t, p_obj, p_prim, p_u, p_v, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit,
                       background, viewer, use_viewer, cam_fwd, surf, gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec,
-                      gb_rough, write_gbuffer)
+                      gb_rough, write_gbuffer, split)
     traced_shadow, n_next = sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env, background,
                                          max_bounces > 0 or mis_last, split, film_emit, nonfinite, sh_o, sh_d, sh_tmax, sh_c, sh_pix,
                                          pixel, beta, kd, prev_pdf, prev_env, ray_o0, ray_d0, scratch[0], scratch[1])
