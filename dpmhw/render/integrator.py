@@ -1,8 +1,12 @@
 """Wavefront path tracer: Embree for every ray query, fused numba kernels for everything else.
 
-Per pass (1 sample per pixel): primary hits, then per bounce: `shade` (emission with MIS, one
-NEE shadow ray, BSDF sampling, Russian roulette, compaction of the shadow rays and surviving
-paths) → occlusion query for the shadow rays → closest-hit query. The wavefront runs per image
+Per pass (1 sample per pixel): primary hits; the first vertex in two kernels,
+`first_surface` (what does not depend on the pass's random numbers: hit point, facing normals,
+material, emission seen, G-buffer; kept per camera pose while nothing moves) and
+`sample_first` (NEE shadow ray and BSDF sample, vectorised over the pixels); then per further
+bounce: `shade` (emission with MIS, one NEE shadow ray, BSDF sampling, Russian roulette,
+compaction of the shadow rays and surviving paths); each followed by the occlusion query for
+its shadow rays and the closest-hit query for its continuation rays. The wavefront runs per image
 segment, one thread taking a segment through all its bounces; with Embree's C API the whole
 chain of a segment is compiled code (`kernels.trace_segment`, queries from inside), and each render
 thread makes one call per pass that takes segments until none is left (`kernels.trace_segments`).

@@ -3,6 +3,8 @@
 Chained numpy temporaries cost several times the arithmetic here, so each wavefront stage is one
 kernel over the active paths: surface interaction, emission with MIS, next-event estimation,
 BSDF sampling and Russian roulette. Numpy arrays stay the interface between stages and Embree.
+The first vertex is split in two (first_surface, per camera pose when nothing moves, and
+sample_first, per pass and vectorised); the deeper ones are shaded by `shade`, scalar.
 
 BSDF: Lambert diffuse scaled by (1 − specular) plus a GGX lobe (Smith G, visible-normal
 sampling), so reflectance never exceeds max(albedo, specular) ≤ 1. Randomness is a counter-based
