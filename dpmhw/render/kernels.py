@@ -214,6 +214,19 @@ def _ggx_sample(wo0, wo1, wo2, t0, t1, t2, c0, c1, c2, s0, s1, s2, alpha, x, y):
 
 
 @nb.njit(inline="always", **_jit)
+def _light_index(light_cdf, ut):
+    """The emissive triangle light_cdf picks for ut: the first whose cumulative weight exceeds it."""
+    lo, hi = 0, light_cdf.shape[0] - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if light_cdf[mid] <= ut:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@nb.njit(inline="always", **_jit)
 def geometric_normal(tri, R, ob, i):
     """World-space unit geometric normal of triangle i (`tri` rows, see `shade`) of object ob."""
     g0 = R[ob, 0, 0] * tri[i, 9] + R[ob, 0, 1] * tri[i, 10] + R[ob, 0, 2] * tri[i, 11]
@@ -389,14 +402,7 @@ def shade(
             li0, li1, li2 = background[0], background[1], background[2]
             tmax = np.float32(3.0e38)
         elif p_area > 0.0:
-            ut = (u_sel - p_env) / p_area
-            lo, hi = 0, light_cdf.shape[0] - 1
-            while lo < hi:  # first triangle whose cumulative weight exceeds ut
-                mid = (lo + hi) // 2
-                if light_cdf[mid] <= ut:
-                    lo = mid + 1
-                else:
-                    hi = mid
+            lo = _light_index(light_cdf, (u_sel - p_env) / p_area)
             lob = light_obj[lo]
             su = math.sqrt(u1)
             bb1, bb2 = u2 * su, F1 - su
@@ -589,15 +595,8 @@ def _gather_lights(key, a, m, light_world, light_obj, light_cdf, obj_emit, obj_p
     """The emissive triangle of pixel a + j's light sample (j < m), as columns lblk[L_* · LSB + j]."""
     for j in range(m):
         lo = 0
-        if p_area > 0.0:
-            ut = (rand(key, a + j, 0) - p_env) / p_area  # < 0: the environment is sampled (unused then)
-            hi = light_cdf.shape[0] - 1
-            while lo < hi:  # first triangle whose cumulative weight exceeds ut
-                mid = (lo + hi) // 2
-                if light_cdf[mid] <= ut:
-                    lo = mid + 1
-                else:
-                    hi = mid
+        if p_area > 0.0:  # (ut < 0: the environment is sampled, this row unused)
+            lo = _light_index(light_cdf, (rand(key, a + j, 0) - p_env) / p_area)
         lob = light_obj[lo]
         for c in range(12):
             lblk[(L_ROW + c) * LSB + j] = light_world[lo, c]
