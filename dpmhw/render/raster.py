@@ -268,7 +268,8 @@ class CameraHits:
                                         "are not images of straight lines); trace the camera rays instead")
 
     def triangles(self, camera) -> np.ndarray:
-        """(H·W,) int32: the row in `faces` of each pixel's closest static triangle, −1 for none."""
+        """(H·W,) int32: the row in `faces` of each pixel's closest static triangle, −1 for none
+        (a buffer this object reuses)."""
         self.check(camera)
         K, w, h = camera.K, camera.width, camera.height
         npix = w * h
@@ -284,7 +285,12 @@ class CameraHits:
         """The static hits of the camera's pixel rays: origin the camera's position in float32,
         directions d ((H·W, 3) float32, row-major, as `PinholeCamera.rays_into` writes them),
         into `out` (or new arrays)."""
+        n = camera.width * camera.height
+        if d.shape != (n, 3) or d.dtype != np.float32:
+            raise ValueError(f"d: expected ({n}, 3) float32 camera ray directions (one per pixel), got {d.shape} {d.dtype}")
+        if out is not None and len(out.t) != n:
+            raise ValueError(f"out: expected hits for {n} pixels, got {len(out.t)}")
         tri = self.triangles(camera)
-        out = out if out is not None else empty_hits(len(tri))
+        out = out if out is not None else empty_hits(n)
         _resolve(tri, self.vertices, self.faces, self.tri_obj, self.tri_prim, camera.pose.t.astype(np.float32), d, out.t, out.obj, out.prim, out.u, out.v)
         return out

@@ -199,3 +199,17 @@ def test_paper_static_matches_embree():
             _agree(want, got, max_other=5, rel_t=1e-5, uv=2e-3)
     finally:
         geometry.close()
+
+
+def test_bad_inputs_name_the_field_and_a_scene_without_static_objects_misses():
+    objects, offsets = _static(([[-1, -1, -2], [1, -1, -2], [0, 1, -2]], [[0, 1, 2]]))
+    camera = _camera(64, 48, 50.0, _look((0, 0, 0), (0, 0, -1)))
+    raster = CameraHits(objects, offsets)
+    d = camera.generate_rays()[1]
+    with pytest.raises(ValueError, match="^d: "):
+        raster.hits(camera, d[:-1])
+    with pytest.raises(ValueError, match="^d: "):
+        raster.hits(camera, d.astype(np.float64))
+    objects[0].is_dynamic = True  # nothing static: every pixel misses
+    hits = CameraHits(objects, offsets).hits(camera, d)
+    assert np.all(hits.prim == -1) and np.all(hits.obj == -1) and np.all(np.isinf(hits.t))
