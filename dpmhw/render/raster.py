@@ -9,10 +9,15 @@ plane need no special case). 1/z of the hit is r · n / det, also linear in (x, 
 test. Neighbours compute their shared edge's coefficients from the same vertices in the other
 order, which negates them exactly, and the tests are inclusive: no pixel falls between them.
 
-Then the closest triangle's t, u, v come from an exact float32 ray–triangle intersection with the
+Then the closest triangle's t, u, v come from a float32 ray–triangle intersection with the
 pixel's own camera ray (`PinholeCamera.rays_into`) and the world-space float32 vertices Embree
-was given (`traversal.RtcAccel`), so they match Embree's to the last few bits; the triangle
-found differs from Embree's only where the ray passes within rounding of an edge.
+was given (`traversal.RtcAccel`), factored as Embree's Moeller test is. On paper-static at
+1024×768 (five poses) they agree with Embree's within 1.3e-6 in t/t; u and v within 1e-6 on the
+room and 7e-4 on the bunny, whose 3 mm triangles seen from 1.5 m leave both intersectors' float32
+barycentrics that uncertain. The triangle differs from Embree's in 0-1 pixel per frame, on an
+edge two triangles share (the same t); where an edge passes exactly through pixel centres, the
+inclusive edge tests hit where Embree, without its robust flag, lets a few rays through.
+A frame costs 15 CPU-ms there against 35 for the traced tiles (README, "Where a frame's time goes").
 
 Cameras with lens distortion are declined (`CameraHitsUnsupported`): their pixel rays are not
 the images of straight lines, so the integrator keeps ray tracing them.
@@ -184,11 +189,11 @@ def _span(a, e, lo, hi):
 @nb.njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def _resolve(tri, vw, faces, tri_obj, tri_prim, origin, d, t, obj, prim, u, v):
     """Each pixel's hit on its triangle, intersected in float32 with the pixel's own camera ray
-    (unit direction: t is the ray distance), or a miss. The Moeller–Trumbore test factored
-    around the origin-relative corner C = v0 − o and the normal Ng = (v2 − v0) × (v0 − v1), as
-    Embree's Moeller intersector factors it (u = (C × d)·(v2 − v0) / Ng·d, v = (C × d)·(v0 − v1)
-    / Ng·d, t = Ng·C / Ng·d): the same roundings of the inputs, so the same values to a few ulps
-    where the hit is well conditioned."""
+    (origin the camera's position, unit direction: t is the ray distance), or a miss. The
+    Moeller–Trumbore test factored around the origin-relative corner C = v0 − o and the normal
+    Ng = (v2 − v0) × (v0 − v1), as Embree's Moeller intersector factors it (u = (C × d)·(v2 − v0)
+    / Ng·d, v = (C × d)·(v0 − v1) / Ng·d, t = Ng·C / Ng·d): the same roundings of the inputs. (The
+    textbook factoring gave u, v up to 1.5e-3 from Embree's on the bunny; this one 7e-4.)"""
     o0, o1, o2 = origin[0], origin[1], origin[2]
     for p in nb.prange(tri.shape[0]):
         f = tri[p]
