@@ -213,3 +213,27 @@ def test_bad_inputs_name_the_field_and_a_scene_without_static_objects_misses():
     objects[0].is_dynamic = True  # nothing static: every pixel misses
     hits = CameraHits(objects, offsets).hits(camera, d)
     assert np.all(hits.prim == -1) and np.all(hits.obj == -1) and np.all(np.isinf(hits.t))
+
+
+def test_rows_resolved_piecewise_equal_the_whole_frame(make_scene):
+    """The integrator's segments can resolve their own pixels (resolve_range) from one z-buffer."""
+    from dpmhw.render.accel import empty_hits
+    from dpmhw.render.raster import resolve_range
+
+    scene = make_scene(ROOM.format(extra=""))
+    geometry = SceneGeometry(scene, threads=1)
+    try:
+        raster = CameraHits(scene.objects, geometry.tri_offsets)
+        camera = _camera(96, 64, 80.0, scene.camera.pose)
+        d = camera.generate_rays()[1]
+        whole = raster.hits(camera, d)
+        tri = raster.triangles(camera)
+        parts = empty_hits(len(d))
+        origin = camera.pose.t.astype(np.float32)
+        for a, e in ((0, 1000), (1000, 4097), (4097, len(d))):
+            resolve_range(tri, raster.vertices, raster.faces, raster.tri_obj, raster.tri_prim, origin, d, a, e,
+                          parts.t, parts.obj, parts.prim, parts.u, parts.v)
+        for name in ("t", "obj", "prim", "u", "v"):
+            assert np.array_equal(getattr(whole, name), getattr(parts, name)), name
+    finally:
+        geometry.close()
