@@ -30,7 +30,6 @@ import numpy as np
 
 from dpmhw.render.accel import Hits, empty_hits
 
-F8 = np.float64
 BAND_ROWS = 16  # image rows per band: the unit of parallel work and of triangle binning
 NEAR_Z = 1e-6  # bounding boxes of triangles crossing the camera plane are taken from z ≥ NEAR_Z
 BOX_MARGIN = 1e-3  # pixels
@@ -76,7 +75,7 @@ def _setup(vc, faces, fx, fy, cx, cy, width, height, coef, box):
         n1x, n1y, n1z = y1 * z2 - z1 * y2, z1 * x2 - x1 * z2, x1 * y2 - y1 * x2
         n2x, n2y, n2z = y2 * z0 - z2 * y0, z2 * x0 - x2 * z0, x2 * y0 - y2 * x0
         det = x2 * n0x + y2 * n0y + z2 * n0z  # V0 · (V1 × V2)
-        if not det != 0.0:  # degenerate, or its plane through the camera centre (seen edge-on)
+        if det == 0.0 or np.isnan(det):  # degenerate, or its plane through the camera centre (edge-on)
             continue
         s = 1.0 if det > 0.0 else -1.0
         a0, b0 = n0x / fx, n0y / fy
