@@ -107,7 +107,12 @@ def test_renderer_and_native_gbuffer_read_the_per_triangle_roughness(tmp_path):
         g = NativeGBuffer(scene, integ.geometry, 32, 24, threads=1)
         try:
             g.update(scene.object_poses(0.0))
-            np.testing.assert_allclose(g.roughness.reshape(24, 32)[hit], rough[hit], rtol=1e-5)
+            # (not at x = 0, the bands' shared edge: the image centre's ray meets it exactly, so
+            # either band is a right answer there, and the rasterised camera hits and the
+            # native G-buffer's traced ones may take different sides)
+            off_edge = hit & (np.abs(x) > 1e-6)
+            np.testing.assert_allclose(g.roughness.reshape(24, 32)[off_edge], rough[off_edge], rtol=1e-5)
+            assert off_edge.sum() >= hit.sum() - 24  # (at most the column of pixels the edge passes through)
         finally:
             g.close()
 

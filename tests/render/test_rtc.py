@@ -216,11 +216,13 @@ def test_fused_segments_give_the_staged_image_bit_for_bit(make_scene, packets):
 
 
 @pytest.mark.parametrize("moving", [False, True])
-def test_moved_camera_traced_by_segments_gives_the_staged_image(make_scene, monkeypatch, moving):
+@pytest.mark.parametrize("raster", [False, True])
+def test_moved_camera_traced_by_segments_gives_the_staged_image(make_scene, monkeypatch, moving, raster):
     """A new camera pose's static hits are traced by the first pass's segments (4×4 tiles cut at
     segment rows that are not multiples of 4) into the pose cache, reused in place: moving the
     camera away and back gives, frame by frame, the image of the staged path, which traces them
-    up front with intersect_static."""
+    up front with intersect_static. Rasterised (raster_camera), both paths take them from the
+    rasteriser up front, and still agree."""
     import dpmhw.render.integrator as integrator_module
     from dpmhw.render.integrator import PathIntegrator
     from dpmhw.transforms import Pose
@@ -232,11 +234,13 @@ def test_moved_camera_traced_by_segments_gives_the_staged_image(make_scene, monk
     frames = {}
     for fused in (True, False):
         with PathIntegrator(scene, threads=2) as integrator:
-            integrator.fused = fused
+            integrator.fused, integrator.raster_camera = fused, raster
             frames[fused] = []
             for k, pose in enumerate(poses):
                 frames[fused].append(integrator.render(time=0.1 * k, seed=k, spp=2, camera_pose=pose))
-                assert integrator.counts.primary_static_traced == (0 if k == 3 else 30 * 22)  # cached for the repeated pose
+                new = 0 if k == 3 else 30 * 22  # cached for the repeated pose
+                assert integrator.counts.primary_static_traced == (0 if raster else new)
+                assert integrator.counts.primary_static_rasterised == (new if raster else 0)
     assert not np.array_equal(frames[True][0].object_id, frames[True][1].object_id)
     for a, b in zip(frames[True], frames[False]):
         assert np.array_equal(a.radiance, b.radiance) and np.array_equal(a.object_id, b.object_id)
