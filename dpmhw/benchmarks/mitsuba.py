@@ -20,7 +20,8 @@ what dpmhw's `jitter` sampling does. dpmhw's default (`centre`) traces pixel cen
 count, so timings compare, while the converged images are compared with dpmhw in `jitter` mode.
 
 Timing (`bench_mitsuba`): the two renderers alternate frame by frame in one process (the load of
-a shared machine hits both alike), each warmed up first (LLVM compilation for Mitsuba, numba and
+a shared machine hits both alike), each frame after a short idle pause (SETTLE_S: the other
+renderer's threads wind down), each warmed up first (LLVM compilation for Mitsuba, numba and
 caches for dpmhw). Camera "fixed": seeds change, the pose does not (dpmhw reuses its cached camera
 hits; Mitsuba traces camera rays every frame anyway). Camera "moved": the camera pans by a small,
 different angle every frame; Mitsuba's sensor is moved through `mi.traverse` (its `to_world` is an
@@ -51,6 +52,11 @@ WARMUP_FRAMES = 2
 EDGE_RADIUS_PX = 3  # comparison regions keep pixels at least this far from an object or normal edge
 NORMAL_EDGE = 0.2  # on a flat-shaded object, a normal component varying more than this within the radius is an edge
 MAX_SPP_PER_CALL = 16  # Mitsuba's wavefront is width × height × spp lanes: bounded memory
+# Before each timed frame the process idles this long (not timed): drjit's worker threads keep
+# running for a while after a Mitsuba frame, and in the same process they were charged to, and
+# competed with, the dpmhw frame timed next (its CPU-ms per frame 161 → 148 fixed, 206 → 184
+# moved with a 0.1 s pause, two alternated runs each; Mitsuba's own unchanged, 295-300)
+SETTLE_S = 0.1
 
 
 class MitsubaUnavailable(DpmhwError, RuntimeError):
@@ -256,6 +262,7 @@ class _Clock:
     cpu_ms: list
 
     def time(self, fn):
+        time.sleep(SETTLE_S)
         start, start_cpu = time.perf_counter(), time.process_time()
         out = fn()
         self.wall_ms.append((time.perf_counter() - start) * 1e3)
