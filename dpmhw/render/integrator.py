@@ -115,6 +115,7 @@ class PathIntegrator:
         # distortion, whose pixel rays are traced. False: traced (for comparisons)
         self.raster_camera = True
         self._raster = None if np.any(self.camera.dist != 0) else CameraHits(scene.objects, self.geometry.tri_offsets)
+        self._raster_tri = _NO_TRI  # each pixel's rasterised triangle for the pose the next pass resolves
 
     def close(self) -> None:
         if self._pool is not None:
@@ -293,35 +294,44 @@ class PathIntegrator:
         return self.fused and isinstance(self.geometry.accel, RtcAccel)
 
     def _static_primary(self, camera: PinholeCamera, o, d, defer: bool = False) -> tuple[Hits, bool]:
-        """Primary hits on static objects depend only on the camera pose: trace them once per pose.
-        Returns (hits, whether they are still to be traced). `defer`: for a new pose, return the
-        cache's arrays (reused in place, not 16 MB allocated per moved frame) to
-        be traced by the first pass's segments; the pose is recorded once that pass is done."""
+        """Primary hits on static objects depend only on the camera pose: made once per pose
+        (rasterised, or traced with lens distortion or `raster_camera` off). Returns (hits,
+        whether they are still to be made). `defer`: for a new pose, return the cache's arrays
+        (reused in place, not 16 MB allocated per moved frame) for the first pass's segments to
+        fill (resolving their pixels on the rasterised triangles, or tracing their camera rays);
+        the pose is recorded once that pass is done."""
         key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
         if self._static_primary_key == key:
             return self._static_primary_hits, False
-        if self._raster is not None and self.raster_camera:
-            hits = self._static_primary_hits
-            if hits is None or len(hits.t) != len(o):
-                hits = empty_hits(len(o))
+        rasterised = self._raster is not None and self.raster_camera
+        if rasterised:
+            self.counts.primary_static_rasterised = len(o)
             threads = nb.get_num_threads()  # (numba's pool, on this integrator's thread count)
             nb.set_num_threads(min(self.threads, nb.config.NUMBA_NUM_THREADS))
             try:
-                self._raster.hits(camera, d, out=hits)
+                if not defer:
+                    self._static_primary_hits = self._raster.hits(camera, d, out=self._cache_hits(len(o)))
+                    self._static_primary_key = key
+                    return self._static_primary_hits, False
+                # each pixel's triangle now; the first pass's segments resolve their pixels' hits
+                self._raster_tri = self._raster.triangles(camera)
             finally:
                 nb.set_num_threads(threads)
-            self._static_primary_hits, self._static_primary_key = hits, key
-            self.counts.primary_static_rasterised = len(o)
-            return hits, False
-        self.counts.primary_static_traced = len(o)
+        else:
+            self.counts.primary_static_traced = len(o)
         if not defer:
             self._static_primary_hits = self.geometry.accel.intersect_static(o, d, width=self.width)
             self._static_primary_key = key
             return self._static_primary_hits, False
-        if self._static_primary_hits is None or len(self._static_primary_hits.t) != len(o):
-            self._static_primary_hits = empty_hits(len(o))
+        self._static_primary_hits = self._cache_hits(len(o))
         self._static_primary_key, self._pending_key = None, key
         return self._static_primary_hits, True
+
+    def _cache_hits(self, n: int) -> Hits:
+        """The static-hit cache's arrays for n pixels, reused in place (not 16 MB allocated per moved frame)."""
+        if self._static_primary_hits is None or len(self._static_primary_hits.t) != n:
+            self._static_primary_hits = empty_hits(n)
+        return self._static_primary_hits
 
     def _trace_pass(self, key, camera_o, primary_dirs, static_hits: Hits | None, primary: Hits, R, T, camera, film, gbuf,
                     nonfinite, write_gbuffer, jitter_key=None, work: "_Work | None" = None, trace_static: bool = False,
@@ -357,7 +367,9 @@ class PathIntegrator:
             # the static camera hits: traced per segment for a new pose, copied into `primary`'s
             # rows and completed with the moving objects (static_hits given), or primary itself
             cache = static_hits if static_hits is not None else primary
-            static = (trace_static, cache.t, cache.obj, cache.prim, cache.u, cache.v)
+            rz = self._raster if self._raster is not None and self.raster_camera and trace_static else _NO_RASTER
+            static = (trace_static, cache.t, cache.obj, cache.prim, cache.u, cache.v, self._raster_tri if rz is self._raster else _NO_TRI,
+                      rz.vertices, rz.faces, rz.tri_obj, rz.tri_prim, camera.pose.t.astype(f32))
             depth_limit = self.max_bounces + (1 if self.mis_last else 0)
             jitter = (jitter_key is not None, np.uint64(jitter_key or 0), corners, cam_R, self.width, w.cam_d)
             surface = (surface_ready, w.surf)
@@ -520,4 +532,15 @@ class _GBuffer:
         self.rough = np.empty(npix, f32)
 
 
-_NO_GBUFFER = _GBuffer(0)  # render_pixels writes no G-buffer: the kernels take empty arrays of the right types
+_NO_GBUFFER = _GBuffer(0)
+_NO_TRI = np.zeros(0, np.int32)  # trace_segment: no rasterised triangles (its camera hits are traced)
+
+
+class _NoRaster:
+    """The rasteriser's tables, empty (trace_segment takes them whether it resolves or not)."""
+
+    vertices, faces = np.zeros((0, 3), f32), np.zeros((0, 3), np.int32)
+    tri_obj = tri_prim = np.zeros(0, np.int32)
+
+
+_NO_RASTER = _NoRaster()  # render_pixels writes no G-buffer: the kernels take empty arrays of the right types

@@ -22,7 +22,7 @@ from llvmlite import ir
 from numba import types
 from numba.core.extending import intrinsic
 
-from dpmhw.render import traversal
+from dpmhw.render import raster, traversal
 from dpmhw.render.prefetch import prefetch_row
 
 INV_PI = 1.0 / math.pi
@@ -902,12 +902,13 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     """All bounces of the paths through pixels [first, first + count) in one call, with Embree
     queried from inside (traversal): shade → shadow rays → continuation rays → shade …, no
     Python between the stages. `primary` = (t, obj, prim, u, v) of the camera rays. `static` =
-    (trace, t, obj, prim, u, v): the camera rays' hits on the static objects (the integrator's
+    (trace, t, obj, prim, u, v, then the rasteriser's per-pixel triangles and tables, see
+    raster.resolve_range): the camera rays' hits on the static objects (the integrator's
     per-pose cache, which is `primary` itself when nothing moves); with `trace` (a new camera
-    pose) this segment's rows of it are traced first, as 4×4-tile packets against the static
-    BVH (`acc_static`), here rather than in a separate pass over the image, so the camera rays
-    are spread over the threads with everything else and their hits are still in cache when
-    shaded. With `complete_primary` the static hits are copied into `primary`'s rows and the
+    pose) this segment's rows of it are made first: resolved on the rasterised triangles, or
+    (no triangles given) traced as 4×4-tile packets against the static BVH (`acc_static`), here
+    rather than in a separate pass over the image, so the work is spread over the threads with
+    everything else and the hits are still in cache when shaded. With `complete_primary` the static hits are copied into `primary`'s rows and the
     moving objects traced (from camera_o along primary_dirs). `packets` = (continuation, shadow): 16-wide
     packets of consecutive rows, or single rays. Tuples, see the integrator: scn (scene tables),
     film (emit, diff, spec, nonfinite), gb (G-buffer arrays and write flag), surface (ready,
@@ -929,8 +930,10 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
         jittered_directions(corners, cam_R, width, jkey, first, end, cam_d)
         traversal.closest_range(acc, R, T, camera_o, cam_d, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], False)
     else:
-        trace_static, s_t, s_obj, s_prim, s_u, s_v = static
-        if trace_static:
+        trace_static, s_t, s_obj, s_prim, s_u, s_v, r_tri, r_vw, r_faces, r_obj, r_prim, r_origin = static
+        if trace_static and r_tri.shape[0] > 0:  # rasterised: each pixel's triangle known, its hit resolved here
+            raster.resolve_range(r_tri, r_vw, r_faces, r_obj, r_prim, r_origin, primary_dirs, first, end, s_t, s_obj, s_prim, s_u, s_v)
+        elif trace_static:
             traversal.closest_tiles(acc_static, R, T, camera_o, primary_dirs, width, first, end, s_t, s_obj, s_prim, s_u, s_v)
         if complete_primary:
             for i in range(first, end):
