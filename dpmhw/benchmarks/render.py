@@ -187,8 +187,7 @@ def _raw_throughput(integrator: PathIntegrator, threads: int) -> dict:
         return intersect(o, d, first, end, R, T, hits, static_done, packets=packets)
 
     def cap_occluded(o, d, tmax, first, end, R, T, blocked, packets=False):
-        traced = tmax[first:end] >= 0  # (the first vertex's rows without a shadow ray are inactive)
-        captured["OCCLUDED"].append((o[first:end][traced], d[first:end][traced], tmax[first:end][traced]))
+        captured["OCCLUDED"].append((o[first:end].copy(), d[first:end].copy(), tmax[first:end].copy()))
         return occluded(o, d, tmax, first, end, R, T, blocked, packets=packets)
 
     fused = integrator.fused

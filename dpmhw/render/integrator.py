@@ -430,8 +430,8 @@ class PathIntegrator:
             first, end, key, w.surf, light_world, g.light_obj, g.light_cdf, g.obj_emission, g.obj_pdf_area, g.p_env, g.background,
             self.max_bounces > 0 or self.mis_last, self.split, film["emit"], nonfinite, w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix,
             w.pixel, w.beta, w.kd, w.prev_pdf, w.prev_env, w.ray_o[0], w.ray_d[0], *kernels.block_scratch())
-        g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, end, R, T, w.blocked, packets=self.packets[1])
-        kernels.add_unoccluded(first, count, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"], self.split)
+        g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, first + traced_shadow, R, T, w.blocked, packets=self.packets[1])
+        kernels.add_unoccluded(first, traced_shadow, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"], self.split)
         last_depth = self.max_bounces + (1 if self.mis_last else 0)
         traced_next = 0
         depth, rays = 0, 0  # which of the two ray buffers holds this depth's continuation rays

@@ -508,7 +508,7 @@ SURF_COLS = 24
 LIGHT_BLOCK = 128  # pixels whose light rows are gathered (scalar) before their vectorised samples
 L_ROW, L_EMIT, L_PA = 0, 12, 15  # gathered light columns: world row (12), emission (3), p_area · pdf per area
 LIGHT_COLS = 16
-NO_SHADOW = np.float32(-1.0)  # tmax of a shadow ray not traced (tnear 0 > tfar: an inactive ray)
+NO_SHADOW = np.float32(-1.0)  # a block table's tmax where no shadow ray is traced
 
 
 @nb.njit(nogil=True, **_jit_shading)
@@ -724,17 +724,28 @@ def sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_e
                  film_emit, nonfinite, sh_o, sh_d, sh_tmax, sh_c, sh_pix, pixel, beta, kd, prev_pdf, prev_env, nx_o, nx_d, lblk, oblk):
     """The first vertex's samples at pixels [first, end) from their surfaces (first_surface), in
     blocks: the lights gathered (scalar), the samples (vectorised), then written out (scalar):
-    the emission seen directly into film_emit, each pixel's shadow ray at its own row of sh_*
-    (tmax NO_SHADOW and no contribution where none is traced: Embree skips it), and the paths
-    that continue packed from row `first` (pixel, beta, kd, prev_pdf, prev_env, nx_o, nx_d).
+    the emission seen directly into film_emit, and packed from row `first` the shadow rays
+    (sh_*, as `shade` writes them) and the paths that continue (pixel, beta, kd, prev_pdf,
+    prev_env, nx_o, nx_d). Packed, not at their pixels' rows: where most pixels see nothing
+    (an object in front of an empty background) the queries then cost what the hits cost.
     `lblk`, `oblk`: scratch of LIGHT_COLS · LSB and OUT_COLS · LSB floats (block_scratch()).
     Returns (shadow rays, continuation rays)."""
     p_env = np.float32(p_env)  # 0, ½ or 1: exact
     p_area = F1 - p_env
-    n_shadow = 0
-    nc = first
+    ns = nc = first
     for a in range(first, end, LIGHT_BLOCK):
         m = min(LIGHT_BLOCK, end - a)
+        for j in range(m):  # the emission seen directly (the environment, emitters)
+            e0, e1, e2 = surf[S_EMIT, a + j], surf[S_EMIT + 1, a + j], surf[S_EMIT + 2, a + j]
+            if e0 != F0 or e1 != F0 or e2 != F0:  # (most pixels see none: no read-modify-write)
+                film_emit[a + j, 0] += e0
+                film_emit[a + j, 1] += e1
+                film_emit[a + j, 2] += e2
+        active = 0
+        for j in range(m):
+            active += surf[S_ACTIVE, a + j] > F0
+        if active == 0:  # nothing here reflects (an empty background): no samples to take
+            continue
         _gather_lights(key, a, m, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env, p_area, lblk)
         if split:
             _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, True)
@@ -742,25 +753,21 @@ def sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_e
             _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, False)
         for j in range(m):
             k = a + j
-            e0, e1, e2 = surf[S_EMIT, k], surf[S_EMIT + 1, k], surf[S_EMIT + 2, k]
-            if e0 != F0 or e1 != F0 or e2 != F0:  # (most pixels see no emitter: no read-modify-write)
-                film_emit[k, 0] += e0
-                film_emit[k, 1] += e1
-                film_emit[k, 2] += e2
             bad = oblk[O_BAD * LSB + j]
             if bad != F0:
                 nonfinite[k] += np.int32(bad)
-            sh_pix[k] = k
-            for c in range(3):
-                sh_o[k, c] = surf[S_O + c, k]
-                sh_d[k, c] = oblk[(O_SD + c) * LSB + j]
-                sh_c[k, c] = oblk[(O_SC + c) * LSB + j]
-            if split:
-                for c in range(3, 6):
-                    sh_c[k, c] = oblk[(O_SC + c) * LSB + j]
             tmax = oblk[O_TMAX * LSB + j]
-            sh_tmax[k] = tmax
-            n_shadow += tmax >= F0
+            if tmax >= F0:
+                sh_pix[ns] = k
+                for c in range(3):
+                    sh_o[ns, c] = surf[S_O + c, k]
+                    sh_d[ns, c] = oblk[(O_SD + c) * LSB + j]
+                    sh_c[ns, c] = oblk[(O_SC + c) * LSB + j]
+                if split:
+                    for c in range(3, 6):
+                        sh_c[ns, c] = oblk[(O_SC + c) * LSB + j]
+                sh_tmax[ns] = tmax
+                ns += 1
             pdf = oblk[O_PDF * LSB + j]
             if pdf > F0:
                 pixel[nc] = k
@@ -773,7 +780,7 @@ def sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_e
                     for c in range(3):
                         kd[nc, c] = oblk[(O_NKD + c) * LSB + j]
                 nc += 1
-    return n_shadow, nc - first
+    return ns - first, nc - first
 
 
 @nb.njit(nogil=True, **_jit)
@@ -939,8 +946,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
             for i in range(first, end):
                 p_t[i], p_obj[i], p_prim[i], p_u[i], p_v[i] = s_t[i], s_obj[i], s_prim[i], s_u[i], s_v[i]
             traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], True)
-    # the first vertex: its surface (unless kept), then this pass's samples; its shadow rays sit
-    # at their pixels' rows, those not traced inactive
+    # the first vertex: its surface (unless kept), then this pass's samples
     if not surface_ready:
         first_surface(first, end, primary_dirs, p_t, p_obj, p_prim, p_u, p_v, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit,
                       background, viewer, use_viewer, cam_fwd, surf, gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec,
@@ -948,8 +954,8 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     traced_shadow, n_next = sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env, background,
                                          max_bounces > 0 or mis_last, split, film_emit, nonfinite, sh_o, sh_d, sh_tmax, sh_c, sh_pix,
                                          pixel, beta, kd, prev_pdf, prev_env, ray_o0, ray_d0, scratch[0], scratch[1])
-    traversal.occluded_range(acc, R, T, sh_o, sh_d, sh_tmax, first, end, blocked, packets[1])
-    add_unoccluded(first, count, sh_pix, sh_c, blocked, film_diff, film_spec, split)
+    traversal.occluded_range(acc, R, T, sh_o, sh_d, sh_tmax, first, first + traced_shadow, blocked, packets[1])
+    add_unoccluded(first, traced_shadow, sh_pix, sh_c, blocked, film_diff, film_spec, split)
     traced_next = 0
     depth = 0
     while True:
