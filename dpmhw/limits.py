@@ -8,10 +8,11 @@ limit and the environment variable that raises it:
 - scene files: `DPMHW_MAX_SCENE_KB` (default 1024: hand-written scenes are a few kilobytes);
 - mesh files: `DPMHW_MAX_MESH_MB` (default 512: the Stanford bunny's OBJ is 3 MB, a 10-million-
   triangle scan about 500 MB);
-- render buffers: `DPMHW_RENDER_MEMORY_MB` (default 4096). A render allocates per pixel its
-  rays, path state, film lobes, G-buffer and work arrays: measured here as 374 bytes per pixel
-  (peak RSS of two 1-spp renders of paper-static at 2048×1536 minus 512×384), taken as 400.
-  The default admits 4K (3840×2160 ≈ 3.3 GB).
+- render buffers: `DPMHW_RENDER_MEMORY_MB` (default 4608). A render allocates per pixel its
+  rays, path state, film lobes, G-buffer, the first vertices' surfaces, the rasterised camera
+  hits and work arrays: measured here as 506 bytes per pixel (peak RSS of two 1-spp renders of
+  paper-static at 2048×1536 minus 512×384; session 9, 416 before its first-vertex surfaces
+  and rasteriser), taken as 520. The default admits 4K (3840×2160 ≈ 4.3 GB).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from pathlib import Path
 
 __all__ = ["RENDER_BYTES_PER_PIXEL", "check_file_size", "max_mesh_bytes", "max_scene_bytes", "render_memory_problem"]
 
-RENDER_BYTES_PER_PIXEL = 400
+RENDER_BYTES_PER_PIXEL = 520
 
 
 def _limit(env: str, default: int, unit: int) -> int:
@@ -53,7 +54,7 @@ def check_file_size(path: Path, limit: int, what: str, env: str) -> None:
 
 def render_memory_problem(width: int, height: int) -> str | None:
     """Why a `width`×`height` render would allocate too much memory, or None when it fits."""
-    limit = _limit("DPMHW_RENDER_MEMORY_MB", 4096, 1024 * 1024)
+    limit = _limit("DPMHW_RENDER_MEMORY_MB", 4608, 1024 * 1024)
     need = int(width) * int(height) * RENDER_BYTES_PER_PIXEL
     if need <= limit:
         return None
