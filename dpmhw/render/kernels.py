@@ -500,12 +500,14 @@ def shade(
 # With the projector fixed and nothing moving these are the same every frame, and the integrator
 # keeps them with the camera hits. `sample_first` then takes a frame's light sample and BSDF
 # sample at every pixel in straight-line float32 code over those columns, which LLVM vectorises
-# (16 lanes), and writes each pixel's shadow ray at its own row (an unused one gets tmax −1,
-# which Embree skips) and its continuation ray, packed.
+# (16 lanes), and writes the shadow and continuation rays out, packed.
 S_O, S_G, S_S, S_WO, S_ALB, S_SPEC = 0, 3, 6, 9, 12, 15  # origin (offset), facing normals, wo, albedo, specular
 S_ALPHA, S_PSPEC, S_ACTIVE, S_EMIT = 18, 19, 20, 21  # GGX α, lobe probability, 1 = reflects, emission seen (3)
 SURF_COLS = 24
-LIGHT_BLOCK = 32  # pixels whose light rows are gathered (scalar) before their vectorised samples: small, so a block half on an object before an empty background wastes few lanes (128: +5 % on the session's 256×192 render)
+# pixels whose light rows are gathered (scalar) before their vectorised samples: few, so a block
+# half on an object before an empty background wastes few lanes (128: +5 % on the session's
+# 256×192 render)
+LIGHT_BLOCK = 32
 L_ROW, L_EMIT, L_PA = 0, 12, 15  # gathered light columns: world row (12), emission (3), p_area · pdf per area
 LIGHT_COLS = 16
 NO_SHADOW = np.float32(-1.0)  # a block table's tmax where no shadow ray is traced
