@@ -115,7 +115,11 @@ class PathIntegrator:
         # distortion, whose pixel rays are traced. False: traced (for comparisons)
         self.raster_camera = True
         self._raster = None if np.any(self.camera.dist != 0) else CameraHits(scene.objects, self.geometry.tri_offsets)
-        self._raster_tri = _NO_TRI  # each pixel's rasterised triangle for the pose the next pass resolves
+        r = self._raster
+        # its tables as trace_segment takes them (empty without a rasteriser)
+        self._raster_tables = ((r.vertices, r.faces, r.tri_obj, r.tri_prim) if r is not None else
+                               (np.zeros((0, 3), f32), np.zeros((0, 3), np.int32), _NO_TRI, _NO_TRI))
+        self._raster_tri = _NO_TRI  # each pixel's rasterised triangle for the pose the next pass resolves (none: traced)
 
     def close(self) -> None:
         if self._pool is not None:
@@ -172,7 +176,7 @@ class PathIntegrator:
             static_hits, primary, trace_static = None, w.primary, False
         else:
             # with the C API a new pose's static hits are traced by the first pass's segments
-            static_hits, trace_static = self._static_primary(camera, o, d, defer=self._fused_native())
+            static_hits, trace_static = self._static_primary(camera, pose_key, o, d, defer=self._fused_native())
             # without moving objects the cached hits are the primary hits; with them, the first
             # pass completes them per segment (in its thread) into a work buffer later passes reuse
             primary = w.primary if moving else static_hits
@@ -293,18 +297,17 @@ class PathIntegrator:
         """Compiled calls that take whole segments, Embree queried from inside (the C API is loaded)."""
         return self.fused and isinstance(self.geometry.accel, RtcAccel)
 
-    def _static_primary(self, camera: PinholeCamera, o, d, defer: bool = False) -> tuple[Hits, bool]:
+    def _static_primary(self, camera: PinholeCamera, key, o, d, defer: bool = False) -> tuple[Hits, bool]:
         """Primary hits on static objects depend only on the camera pose: made once per pose
         (rasterised, or traced with lens distortion or `raster_camera` off). Returns (hits,
         whether they are still to be made). `defer`: for a new pose, return the cache's arrays
         (reused in place, not 16 MB allocated per moved frame) for the first pass's segments to
         fill (resolving their pixels on the rasterised triangles, or tracing their camera rays);
-        the pose is recorded once that pass is done."""
-        key = (camera.pose.R.tobytes(), camera.pose.t.tobytes())
+        the pose is recorded once that pass is done. `key`: the pose's (render's pose_key)."""
         if self._static_primary_key == key:
             return self._static_primary_hits, False
-        rasterised = self._raster is not None and self.raster_camera
-        if rasterised:
+        self._raster_tri = _NO_TRI
+        if self._raster is not None and self.raster_camera:
             self.counts.primary_static_rasterised = len(o)
             threads = nb.get_num_threads()  # (numba's pool, on this integrator's thread count)
             nb.set_num_threads(min(self.threads, nb.config.NUMBA_NUM_THREADS))
@@ -367,9 +370,8 @@ class PathIntegrator:
             # the static camera hits: traced per segment for a new pose, copied into `primary`'s
             # rows and completed with the moving objects (static_hits given), or primary itself
             cache = static_hits if static_hits is not None else primary
-            rz = self._raster if self._raster is not None and self.raster_camera and trace_static else _NO_RASTER
-            static = (trace_static, cache.t, cache.obj, cache.prim, cache.u, cache.v, self._raster_tri if rz is self._raster else _NO_TRI,
-                      rz.vertices, rz.faces, rz.tri_obj, rz.tri_prim, camera.pose.t.astype(f32))
+            static = (trace_static, cache.t, cache.obj, cache.prim, cache.u, cache.v, self._raster_tri if trace_static else _NO_TRI,
+                      *self._raster_tables, camera.pose.t.astype(f32))
             depth_limit = self.max_bounces + (1 if self.mis_last else 0)
             jitter = (jitter_key is not None, np.uint64(jitter_key or 0), corners, cam_R, self.width, w.cam_d)
             surface = (surface_ready, w.surf)
@@ -421,39 +423,41 @@ class PathIntegrator:
             for name in ("t", "obj", "prim", "u", "v"):
                 getattr(primary, name)[first:end] = getattr(static_hits, name)[first:end]
             g.accel.intersect_range(camera_o, primary_dirs, first, end, R, T, primary, static_done=True, packets=self.packets[0])
-        if not surface_ready:
-            kernels.first_surface(first, end, primary_dirs, primary.t, primary.obj, primary.prim, primary.u, primary.v, g.tri, R, T,
-                                  g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.background, viewer, self.use_viewer,
-                                  cam_fwd, w.surf, gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec,
-                                  gbuf.rough, write_gbuffer, self.split)
-        traced_shadow, n_next = kernels.sample_first(
-            first, end, key, w.surf, light_world, g.light_obj, g.light_cdf, g.obj_emission, g.obj_pdf_area, g.p_env, g.background,
-            self.max_bounces > 0 or self.mis_last, self.split, film["emit"], nonfinite, w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix,
-            w.pixel, w.beta, w.kd, w.prev_pdf, w.prev_env, w.ray_o[0], w.ray_d[0], *kernels.block_scratch())
-        g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, first + traced_shadow, R, T, w.blocked, packets=self.packets[1])
-        kernels.add_unoccluded(first, traced_shadow, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"], self.split)
         last_depth = self.max_bounces + (1 if self.mis_last else 0)
-        traced_next = 0
-        depth, rays = 0, 0  # which of the two ray buffers holds this depth's continuation rays
-        while depth < last_depth and n_next > 0:
-            g.accel.intersect_range(w.ray_o[rays], w.ray_d[rays], first, first + n_next, R, T, w.hits, packets=self.packets[0])
-            traced_next += n_next
-            depth += 1
-            if depth > 4096:
-                raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
-            rd, rays, count = w.ray_d[rays], 1 - rays, n_next
-            n_shadow, n_next = kernels.shade(
-                depth, self.max_bounces, self.mis_last, key, first, count, w.pixel, rd,
-                w.hits.t, w.hits.obj, w.hits.prim, w.hits.u, w.hits.v, w.beta, w.kd, w.prev_pdf, w.prev_env,
-                g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
-                light_world, g.light_obj, g.light_cdf, g.p_env, g.background, film["diff"], film["spec"], nonfinite,
-                w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.ray_o[rays], w.ray_d[rays], self.split,
-            )
+        traced_shadow = traced_next = 0
+        depth, rays = 0, 0  # which of the two ray buffers this depth's continuation rays go to
+        while True:
+            if depth == 0:  # the first vertex: its surface (unless kept), then this pass's samples
+                if not surface_ready:
+                    kernels.first_surface(first, end, primary_dirs, primary.t, primary.obj, primary.prim, primary.u, primary.v, g.tri,
+                                          R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.background, viewer,
+                                          self.use_viewer, cam_fwd, w.surf, gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth,
+                                          gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer, self.split)
+                n_shadow, n_next = kernels.sample_first(
+                    first, end, key, w.surf, light_world, g.light_obj, g.light_cdf, g.obj_emission, g.obj_pdf_area, g.p_env,
+                    g.background, self.max_bounces > 0 or self.mis_last, self.split, film["emit"], nonfinite, w.sh_o, w.sh_d,
+                    w.sh_tmax, w.sh_c, w.sh_pix, w.pixel, w.beta, w.kd, w.prev_pdf, w.prev_env, w.ray_o[rays], w.ray_d[rays],
+                    *kernels.block_scratch())
+            else:
+                n_shadow, n_next = kernels.shade(
+                    depth, self.max_bounces, self.mis_last, key, first, count, w.pixel, w.ray_d[1 - rays],
+                    w.hits.t, w.hits.obj, w.hits.prim, w.hits.u, w.hits.v, w.beta, w.kd, w.prev_pdf, w.prev_env,
+                    g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
+                    light_world, g.light_obj, g.light_cdf, g.p_env, g.background, film["diff"], film["spec"], nonfinite,
+                    w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.ray_o[rays], w.ray_d[rays], self.split,
+                )
             if n_shadow:
                 g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, first + n_shadow, R, T, w.blocked, packets=self.packets[1])
                 kernels.add_unoccluded(first, n_shadow, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"], self.split)
                 traced_shadow += n_shadow
-        return traced_shadow, traced_next
+            if depth >= last_depth or n_next == 0:
+                return traced_shadow, traced_next
+            g.accel.intersect_range(w.ray_o[rays], w.ray_d[rays], first, first + n_next, R, T, w.hits, packets=self.packets[0])
+            traced_next += n_next
+            rays, count = 1 - rays, n_next
+            depth += 1
+            if depth > 4096:
+                raise RenderError("path depth exceeded 4096: Russian roulette failed to terminate")
 
     def _work_buffers(self, n: int, min_segments: int = 1) -> "_Work":
         """The working arrays for n paths in at least `min_segments` segments (of ≥ 64 paths);
@@ -532,15 +536,5 @@ class _GBuffer:
         self.rough = np.empty(npix, f32)
 
 
-_NO_GBUFFER = _GBuffer(0)
+_NO_GBUFFER = _GBuffer(0)  # render_pixels writes no G-buffer: the kernels take empty arrays of the right types
 _NO_TRI = np.zeros(0, np.int32)  # trace_segment: no rasterised triangles (its camera hits are traced)
-
-
-class _NoRaster:
-    """The rasteriser's tables, empty (trace_segment takes them whether it resolves or not)."""
-
-    vertices, faces = np.zeros((0, 3), f32), np.zeros((0, 3), np.int32)
-    tri_obj = tri_prim = np.zeros(0, np.int32)
-
-
-_NO_RASTER = _NoRaster()  # render_pixels writes no G-buffer: the kernels take empty arrays of the right types

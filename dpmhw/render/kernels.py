@@ -948,34 +948,31 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
             for i in range(first, end):
                 p_t[i], p_obj[i], p_prim[i], p_u[i], p_v[i] = s_t[i], s_obj[i], s_prim[i], s_u[i], s_v[i]
             traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], True)
-    # the first vertex: its surface (unless kept), then this pass's samples
-    if not surface_ready:
-        first_surface(first, end, primary_dirs, p_t, p_obj, p_prim, p_u, p_v, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit,
-                      background, viewer, use_viewer, cam_fwd, surf, gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec,
-                      gb_rough, write_gbuffer, split)
-    traced_shadow, n_next = sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env, background,
-                                         max_bounces > 0 or mis_last, split, film_emit, nonfinite, sh_o, sh_d, sh_tmax, sh_c, sh_pix,
-                                         pixel, beta, kd, prev_pdf, prev_env, ray_o0, ray_d0, scratch[0], scratch[1])
-    traversal.occluded_range(acc, R, T, sh_o, sh_d, sh_tmax, first, first + traced_shadow, blocked, packets[1])
-    add_unoccluded(first, traced_shadow, sh_pix, sh_c, blocked, film_diff, film_spec, split)
-    traced_next = 0
+    traced_shadow = traced_next = 0
     depth = 0
     while True:
-        if depth > 0:
-            nx_o, nx_d = (ray_o0, ray_d0) if depth % 2 == 0 else (ray_o1, ray_d1)
+        nx_o, nx_d = (ray_o0, ray_d0) if depth % 2 == 0 else (ray_o1, ray_d1)
+        if depth == 0:  # the first vertex: its surface (unless kept), then this pass's samples
+            if not surface_ready:
+                first_surface(first, end, primary_dirs, p_t, p_obj, p_prim, p_u, p_v, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit,
+                              background, viewer, use_viewer, cam_fwd, surf, gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb,
+                              gb_spec, gb_rough, write_gbuffer, split)
+            n_shadow, n_next = sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env,
+                                            background, max_bounces > 0 or mis_last, split, film_emit, nonfinite, sh_o, sh_d, sh_tmax,
+                                            sh_c, sh_pix, pixel, beta, kd, prev_pdf, prev_env, nx_o, nx_d, scratch[0], scratch[1])
+        else:
             rd = ray_d1 if depth % 2 == 0 else ray_d0
             n_shadow, n_next = shade(
                 depth, max_bounces, mis_last, key, first, count, pixel, rd, h_t, h_obj, h_prim, h_u, h_v,
                 beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
                 light_world, light_obj, light_cdf, p_env, background, film_diff, film_spec, nonfinite,
                 sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d, split)
-            if n_shadow:
-                traversal.occluded_range(acc, R, T, sh_o, sh_d, sh_tmax, first, first + n_shadow, blocked, packets[1])
-                add_unoccluded(first, n_shadow, sh_pix, sh_c, blocked, film_diff, film_spec, split)
-                traced_shadow += n_shadow
+        if n_shadow:
+            traversal.occluded_range(acc, R, T, sh_o, sh_d, sh_tmax, first, first + n_shadow, blocked, packets[1])
+            add_unoccluded(first, n_shadow, sh_pix, sh_c, blocked, film_diff, film_spec, split)
+            traced_shadow += n_shadow
         if depth >= depth_limit or n_next == 0:
             return traced_shadow, traced_next
-        nx_o, nx_d = (ray_o0, ray_d0) if depth % 2 == 0 else (ray_o1, ray_d1)
         traversal.closest_range(acc, R, T, nx_o, nx_d, first, first + n_next, h_t, h_obj, h_prim, h_u, h_v, packets[0], False)
         traced_next += n_next
         count = n_next
