@@ -255,28 +255,24 @@ def shading_scene(scene: Scene, scale: float) -> Scene:
     return scale_to(scene, max(1, round(r.width * scale)), max(1, round(r.height * scale)))
 
 
-def warm_up(renderer, scene: Scene, gbuffer=None) -> None:
-    """Run every per-frame kernel once before the loop starts. On a fresh install the first call
-    compiles them (numba; tens of seconds, then cached on disk): inside the loop that would be a
-    stall the watchdog reports as a fault. `scene` is the native one."""
-    from dpmhw.lod.refine import RefineSettings, TileRefiner
-    from dpmhw.reconstruct.adaptive import AdaptiveSampler
-    from dpmhw.reconstruct.stage import ReconstructStage
+def build_renderer(config: SessionConfig, scene: Scene):
+    """The path tracer at the shading size and, when that differs from the native (output) size,
+    the native G-buffer (else None)."""
+    from dpmhw.render.integrator import PathIntegrator
 
-    t0 = time.monotonic()
-    poses = scene.object_poses(0.0)
-    frame = renderer.render(time=0.0, seed=0, spp=1, poses=poses)
-    native = (scene.render.width, scene.render.height)
-    for mode in ("same-pixel", "motion"):
-        for filt in ("off", "lobe"):
-            stage = ReconstructStage(native, (renderer.width, renderer.height), background=scene.render.background,
-                                     viewer=scene.viewer_position, gbuffer=gbuffer,
-                                     adaptive=AdaptiveSampler(renderer, gbuffer) if gbuffer is not None else None,
-                                     lod=TileRefiner(renderer, gbuffer, RefineSettings(rays=1 << 20, visible=True))
-                                     if gbuffer is not None else None)  # issue 13: its kernels too
-            for _ in range(2):  # the second frame takes the history path
-                stage.apply(frame, mode=mode, alpha=0.2, filter=filt, poses=poses, camera=renderer.camera)
-    log.info("render and reconstruction kernels ready in %.1f s", time.monotonic() - t0)
+    renderer = PathIntegrator(shading_scene(scene, config.render.shading_scale), threads=config.render.threads,
+                              pixel_sampling=config.render.pixel_sampling)
+    gbuffer = None
+    if (renderer.width, renderer.height) != (scene.render.width, scene.render.height):
+        from dpmhw.render.gbuffer import NativeGBuffer
+
+        try:
+            gbuffer = NativeGBuffer(scene, renderer.geometry, scene.render.width, scene.render.height,
+                                    threads=config.render.threads)
+        except BaseException:
+            renderer.close()
+            raise
+    return renderer, gbuffer
 
 
 def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: Any = None,
@@ -293,20 +289,10 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
             closers.append(rig.stack.close)
         gbuffer = None
         if renderer is None:
-            from dpmhw.render.integrator import PathIntegrator
-
-            renderer = PathIntegrator(shading_scene(scene, config.render.shading_scale), threads=config.render.threads,
-                                      pixel_sampling=config.render.pixel_sampling)
-            if hasattr(renderer, "close"):
-                closers.append(renderer.close)
-            if (renderer.width, renderer.height) != (scene.render.width, scene.render.height):
-                from dpmhw.render.gbuffer import NativeGBuffer
-
-                gbuffer = NativeGBuffer(scene, renderer.geometry, scene.render.width, scene.render.height,
-                                        threads=config.render.threads)
+            renderer, gbuffer = build_renderer(config, scene)
+            if gbuffer is not None:
                 closers.append(gbuffer.close)
-            warm_up(renderer, scene, gbuffer)
-        elif hasattr(renderer, "close"):
+        if hasattr(renderer, "close"):
             closers.append(renderer.close)
         projector = None
         if config.projector.kind == "dlpc900":
@@ -337,8 +323,18 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
 
 def build_session(config: SessionConfig, *, mock: bool = False, renderer: Any = None, frame_log: int = 0,
                   usb: tuple[str, bytes] | None = None) -> SessionLoop:
-    """A ready-to-start loop over freshly opened parts."""
-    return SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer, usb=usb), frame_log=frame_log)
+    """A ready-to-start loop over freshly opened parts, every per-frame kernel ready (compiled
+    now if the cache lacks it: `warmup.compile_kernels` fills it ahead, in parallel)."""
+    from dpmhw.session.warmup import warm_loop
+
+    loop = SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer, usb=usb), frame_log=frame_log)
+    if renderer is None:
+        try:
+            warm_loop(loop)
+        except BaseException:
+            loop.stop("the render kernels could not be readied")
+            raise
+    return loop
 
 
 # ---- for the supervisor (dpmhw.session.supervisor), which outlives the loop's process -------------

@@ -173,6 +173,19 @@ class _Job:
     frame: Any = None
 
 
+def reconstruct_stage(config: SessionConfig, scene, renderer, gbuffer, clock) -> ReconstructStage:
+    """The session's reconstruction from its config: `renderer` at the shading size (it also
+    serves the adaptive and LOD paths), `gbuffer` the native one (None at equal sizes)."""
+    r = config.render
+    return ReconstructStage((scene.render.width, scene.render.height), (renderer.width, renderer.height),
+                            background=scene.render.background, viewer=scene.viewer_position,
+                            warmup=config.reuse.warmup, gbuffer=gbuffer, clock=clock,
+                            adaptive=AdaptiveSampler(renderer, gbuffer, r.adaptive_rays, r.adaptive_threshold)
+                            if gbuffer is not None and r.adaptive_rays > 0 else None,
+                            lod=tile_refiner(renderer, gbuffer, config.lod),
+                            analytic=(r.analytic_floor, r.analytic_specular_floor) if r.analytic else None)
+
+
 class SessionLoop:
     """Runs one projection session. `start()`, then `stop()` (idempotent) for a verified dark end."""
 
@@ -192,15 +205,7 @@ class SessionLoop:
         scene = parts.scene
         self.output_size = (scene.render.width, scene.render.height)  # the projector's native (W, H)
         self._renderer = OneCallAtATime(parts.renderer)  # pipelining renders on a second thread
-        self.reconstruct = ReconstructStage(self.output_size, (parts.renderer.width, parts.renderer.height),
-                                            background=scene.render.background, viewer=scene.viewer_position,
-                                            warmup=config.reuse.warmup, gbuffer=parts.gbuffer, clock=clock,
-                                            adaptive=AdaptiveSampler(self._renderer, parts.gbuffer, config.render.adaptive_rays,
-                                                                     config.render.adaptive_threshold)
-                                            if parts.gbuffer is not None and config.render.adaptive_rays > 0 else None,
-                                            lod=tile_refiner(self._renderer, parts.gbuffer, config.lod),  # issue 13
-                                            analytic=(config.render.analytic_floor, config.render.analytic_specular_floor)
-                                            if config.render.analytic else None)
+        self.reconstruct = reconstruct_stage(config, scene, self._renderer, parts.gbuffer, clock)
         self.mesh_lod = mesh_lod(parts.renderer, parts.gbuffer, config.lod)  # issue 13: mesh levels (None: off)
         self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
         # render frame n+1 beside frame n's reconstruction; not with mesh LOD, whose level switch must hold for
@@ -217,6 +222,8 @@ class SessionLoop:
         self._lock = threading.Lock()  # guards the published references and the queue only
         self._output_lock = threading.Lock()  # serialises going dark / going live
         self._output_on = False
+        self.first_lit = threading.Event()  # set when the output first goes on (the show's clock starts)
+        self.first_lit_at: float | None = None  # time.monotonic() then (one clock for every process here)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._heartbeat_ns = clock()
@@ -649,6 +656,9 @@ class SessionLoop:
                     return
             self.reconstruct.reset()  # history from before the dark spell describes another moment
             self._output_on = True
+            if self.first_lit_at is None:
+                self.first_lit_at = time.monotonic()
+                self.first_lit.set()
             self.metrics.count("resumes")
             log.warning("projection resumed")
 

@@ -85,6 +85,16 @@ def status_line(status: dict) -> str:
     return line + (f" — {status['reason']}" if status.get("reason") else "")
 
 
+def _process_age_s() -> float:
+    """Seconds since this process started (its imports included), 0 where /proc cannot tell."""
+    try:
+        with open("/proc/self/stat") as f:
+            ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+        return max(0.0, time.clock_gettime(time.CLOCK_BOOTTIME) - ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError, AttributeError):
+        return 0.0
+
+
 class RestartPolicy:
     """When to restart after a crash: at most `limit` restarts within `window_s`, each after a
     backoff that doubles with every crash still inside the window. Pure; the clock is given."""
@@ -288,8 +298,16 @@ def run_child(args: ChildArgs, conn) -> None:
     logging.getLogger().addHandler(_Relay(echo))
     loop = api = None
     try:
-        echo("opening devices, loading the scene, readying the render kernels (a first run compiles them) …")
+        echo("opening devices, loading the scene and the render kernels …")
         loop = build_session(config, mock=args.mock, usb=args.usb).start()
+
+        def first_light() -> None:
+            while not stop.is_set():
+                if loop.first_lit.wait(0.1):
+                    send("lit", loop.first_lit_at)
+                    return
+
+        threading.Thread(target=first_light, name="first-light", daemon=True).start()
         echo(f"session started ({'mock devices' if args.mock else 'hardware'}); scene {config.scene.source}, "
              f"render {loop.parts.renderer.width}×{loop.parts.renderer.height}")
         threading.Thread(target=listen, name="supervisor-link", daemon=True).start()
@@ -346,6 +364,10 @@ class Supervisor:
         self._deadline: float | None = None
         self._window = None
         self._unconfirmed = ""  # what left the projector without a confirmed dark (retried)
+        self._t_start = time.monotonic() - _process_age_s()  # when the command started
+        self._loop_started: float | None = None
+        self._first_lit: float | None = None
+        self.compile_s = 0.0
 
     def request_stop(self, reason: str) -> None:
         if not self._stop.is_set():
@@ -374,6 +396,8 @@ class Supervisor:
             except Exception as exc:
                 self.echo(f"supervisor: warning: cannot reach the projector to idle it ({exc}); "
                           "after a crash of the loop process it may not be made dark")
+            if not self._ready_kernels():
+                return 0
             while True:
                 child, conn = self._start_child()
                 outcome = self._watch(child, conn)
@@ -403,8 +427,35 @@ class Supervisor:
             if self.emulator is not None:
                 self.emulator.close()
 
+    def _ready_kernels(self) -> bool:
+        """Compile the session's kernels in worker processes before the loop process starts (a
+        first run on this machine), with progress on the console and `/status`; False if stopped
+        meanwhile. The loop process then loads them from the cache in seconds."""
+        from dpmhw.session.warmup import compile_kernels
+
+        printed = [-1e9]
+
+        def show(p) -> None:
+            if p.warm:
+                return
+            now = time.monotonic()
+            if now - printed[0] >= 5.0 or not p.groups_left:  # a line every 5 s, and the last
+                printed[0] = now
+                self.echo(p.line())
+            if self.responder is not None:
+                self.responder.set_status({"state": "compiling", "reason": p.line(), "output_on": False,
+                                           "compile": p.as_status(), "supervisor": {"pid": os.getpid(), "starts": 0}})
+                self.responder.start()
+
+        result = compile_kernels(self.config, progress=show, should_stop=self._stop.is_set)
+        for group, why in result.failed.items():
+            self.echo(f"supervisor: compiling the {group} kernels ahead failed ({why}); the loop process compiles them")
+        self.compile_s = 0.0 if result.warm else result.elapsed_s
+        return not result.stopped
+
     def _deadline_passed(self) -> bool:
-        """The --duration counts from the first start of the loop (as before supervision)."""
+        """The --duration counts from the first lit frame; a show that never lights ends
+        `duration` after its loop process started."""
         if self._deadline is not None and time.monotonic() >= self._deadline:
             self.request_stop(f"the --duration of {self.duration:g} s elapsed")
         return self._stop.is_set()
@@ -434,11 +485,23 @@ class Supervisor:
         if kind == "line":  # its output: relayed, so that one process writes the session's lines
             self.echo(payload)
         elif kind == "started":
-            if self._deadline is None and self.duration is not None:
-                self._deadline = time.monotonic() + self.duration
+            if self._loop_started is None:
+                self._loop_started = time.monotonic()
+                self._set_deadline()
             if self.responder is not None:
                 self.responder.stop()  # the loop process's own API serves the port now
+        elif kind == "lit" and self._first_lit is None:
+            self._first_lit = payload
+            compiled = f", {self.compile_s:.1f} s of it compiling the render kernels" if self.compile_s else ""
+            self.echo(f"first lit frame {payload - self._t_start:.1f} s after the command started{compiled}"
+                      + (f"; showing for {self.duration:g} s" if self.duration is not None else ""))
+            self._set_deadline()
         return kind
+
+    def _set_deadline(self) -> None:
+        """The --duration counts from the first lit frame, or from the loop's start while none came."""
+        if self.duration is not None and self._loop_started is not None:
+            self._deadline = (self._first_lit if self._first_lit is not None else self._loop_started) + self.duration
 
     def _relay_until_exit(self, child, conn, timeout_s: float) -> None:
         """Relay its messages until the loop process has exited (or `timeout_s`), then the rest."""
