@@ -255,24 +255,23 @@ def shading_scene(scene: Scene, scale: float) -> Scene:
     return scale_to(scene, max(1, round(r.width * scale)), max(1, round(r.height * scale)))
 
 
-def build_renderer(config: SessionConfig, scene: Scene):
-    """The path tracer at the shading size and, when that differs from the native (output) size,
-    the native G-buffer (else None)."""
+def build_renderer(config: SessionConfig, scene: Scene, gbuffer: bool = True):
+    """The path tracer at the shading size and, when that differs from the native (output) size
+    and `gbuffer`, the native G-buffer (else None)."""
     from dpmhw.render.integrator import PathIntegrator
 
     renderer = PathIntegrator(shading_scene(scene, config.render.shading_scale), threads=config.render.threads,
                               pixel_sampling=config.render.pixel_sampling)
-    gbuffer = None
-    if (renderer.width, renderer.height) != (scene.render.width, scene.render.height):
-        from dpmhw.render.gbuffer import NativeGBuffer
+    if not gbuffer or (renderer.width, renderer.height) == (scene.render.width, scene.render.height):
+        return renderer, None
+    from dpmhw.render.gbuffer import NativeGBuffer
 
-        try:
-            gbuffer = NativeGBuffer(scene, renderer.geometry, scene.render.width, scene.render.height,
-                                    threads=config.render.threads)
-        except BaseException:
-            renderer.close()
-            raise
-    return renderer, gbuffer
+    try:
+        return renderer, NativeGBuffer(scene, renderer.geometry, scene.render.width, scene.render.height,
+                                       threads=config.render.threads)
+    except BaseException:
+        renderer.close()
+        raise
 
 
 def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: Any = None,

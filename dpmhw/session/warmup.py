@@ -80,19 +80,18 @@ def cache_is_warm() -> bool:
 
 
 # ---- the groups: each runs in its own process, on the session's scene and sizes --------------------
-def _build(config_data: dict):
+def _build(config_data: dict, gbuffer: bool = True):
     from dpmhw.session.config import SessionConfig
     from dpmhw.session.factory import build_renderer, prepare_scene
 
     config = SessionConfig.model_validate(config_data)
     scene = prepare_scene(config)
-    renderer, gbuffer = build_renderer(config, scene)
-    return config, scene, renderer, gbuffer
+    return (config, scene, *build_renderer(config, scene, gbuffer=gbuffer))
 
 
 def _path_tracing(config_data: dict) -> None:
     """The renderer: a frame at two poses (camera hits traced, then kept) and a pixel subset."""
-    _, scene, renderer, _ = _build(config_data)
+    _, scene, renderer, _ = _build(config_data, gbuffer=False)
     for k, t in enumerate((0.0, 0.0, 0.25)):
         renderer.render(time=t, seed=k, spp=1, poses=scene.object_poses(t))
     renderer.render_pixels(renderer.camera, np.arange(64), scene.object_poses(0.0), seed=1)
