@@ -6,22 +6,26 @@ field path, what was expected and what was given; unknown fields are errors too 
 not pass silently as a default).
 
 `LiveSettings` is the subset the operator may change while the loop runs (over HTTP): the loop
-applies a validated change on its next frame.
+applies a validated change on its next frame. It is derived from the section fields named in
+`LIVE_FIELDS`, and the API's models, the operator page and the recording derive from it, so a
+live setting is declared (type, bounds, default, description) once.
 """
 
 from __future__ import annotations
 
+import copy
 import os
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
 
 from dpmhw.errors import DpmhwError
+from dpmhw.reconstruct.settings import ALPHA_MAX, ALPHA_MIN, FILTER_MODES, REUSE_MODES
 
 __all__ = [
-    "REUSE_MODES",
+    "LIVE_FIELDS",
     "SessionConfig",
     "SessionConfigError",
     "LiveSettings",
@@ -30,15 +34,12 @@ __all__ = [
     "format_validation_error",
 ]
 
-REUSE_MODES = ("off", "same-pixel", "motion")  # dpmhw.reconstruct.reuse.MODES
-
-
 class SessionConfigError(DpmhwError, ValueError):
     """The session configuration is invalid; the message lists every bad field."""
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class SceneSection(_Section):
@@ -48,7 +49,6 @@ class SceneSection(_Section):
 
 
 SHADING_SCALES = (1.0, 0.5, 0.25)
-FILTER_MODES = ("off", "normal", "lobe")  # dpmhw.reconstruct.weights.FILTER_MODES
 
 
 class RenderSection(_Section):
@@ -58,8 +58,8 @@ class RenderSection(_Section):
     height: int = Field(0, ge=0, le=16384, description="output height in pixels; 0 = the projector's native height")
     shading_scale: float = Field(0.25, description="shading resolution per axis relative to the output: 1, 0.5 or 0.25; "
                                                    "the frame is upsampled to the output size (dpmhw.reconstruct)")
-    filter: Literal["off", "normal", "lobe"] = Field("lobe", description="cross-bilateral filter: off, normal-aware or "
-                                                                          "specular-lobe-aware (live setting)")
+    filter: Literal[FILTER_MODES] = Field("lobe", description="cross-bilateral filter of the reconstruction: off, "
+                                                              "normal-aware or specular-lobe-aware")
     adaptive_rays: int = Field(2048, ge=0, le=1 << 24, description="adaptive sampling: most rays per frame for extra "
                                "native-resolution paths where the upsampling lacks support (0 = off; only below "
                                "shading_scale 1)")
@@ -81,7 +81,7 @@ class RenderSection(_Section):
     pixel_sampling: Literal["centre", "jitter"] = Field("centre", description="shading rays through pixel centres "
                                                          "(static primary hits cached) or jittered per frame (reuse "
                                                          "then antialiases; camera rays traced every frame)")
-    spp: int = Field(1, ge=1, le=64)
+    spp: int = Field(1, ge=1, le=64, description="samples per pixel per frame")
     threads: int = Field(2, ge=1, le=256)
     exposure: float = Field(1.0, gt=0.0, le=1e4)
     seed: int = Field(0, ge=0)
@@ -102,8 +102,10 @@ class RenderSection(_Section):
 
 
 class ReuseSection(_Section):
-    mode: Literal["off", "same-pixel", "motion"] = Field("motion", description="motion: reproject through the object's motion")
-    alpha: float = Field(0.2, gt=0.0, le=1.0, description="weight of the new frame, in (0, 1]; 1 = no reuse")
+    mode: Literal[REUSE_MODES] = Field("motion", description="temporal reuse: off, same-pixel, or motion (reproject "
+                                                              "through the object's motion)")
+    alpha: float = Field(0.2, ge=ALPHA_MIN, le=ALPHA_MAX, description="weight of the new frame, in (0, 1]; 1 = no reuse "
+                         "(at least 2^-20: the longest history the reuse keeps)")
     split_screen: bool = Field(False, description="left half plain, right half with reuse (for comparison)")
     warmup: bool = Field(False, description="running mean for the first 1/alpha frames after a reset")
 
@@ -132,7 +134,7 @@ class LodSection(_Section):
 
 
 class PredictionSection(_Section):
-    enabled: bool = True
+    enabled: bool = Field(True, description="extrapolate tracked poses to the display time")
     model: Literal["velocity", "acceleration"] = Field("velocity", description="constant velocity, or constant linear acceleration")
     history: int = Field(8, ge=2, le=64, description="recent samples used to estimate the derivatives")
     display_latency_ms: float = Field(0.0, ge=0.0, le=1000.0, description="present() to photons (the projector's own delay)")
@@ -257,23 +259,33 @@ class SessionConfig(_Section):
         return os.environ.get("DPMHW_API_TOKEN", "") or self.api.token
 
     def live_settings(self) -> "LiveSettings":
-        return LiveSettings(
-            alpha=self.reuse.alpha, reuse_mode=self.reuse.mode, spp=self.render.spp,
-            split_screen=self.reuse.split_screen, prediction=self.prediction.enabled, filter=self.render.filter,
-        )
+        return LiveSettings(**{name: getattr(getattr(self, section), field) for name, (section, field) in LIVE_FIELDS.items()})
 
 
-class LiveSettings(BaseModel):
-    """What the operator may change while the loop runs; immutable, so a snapshot is safe to share."""
+# The live settings: name → (section, field) of SessionConfig that declares it and gives its start value.
+LIVE_FIELDS: dict[str, tuple[str, str]] = {
+    "alpha": ("reuse", "alpha"),
+    "reuse_mode": ("reuse", "mode"),
+    "spp": ("render", "spp"),
+    "split_screen": ("reuse", "split_screen"),
+    "prediction": ("prediction", "enabled"),
+    "filter": ("render", "filter"),
+}
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
-    alpha: float = Field(0.2, gt=0.0, le=1.0, description="reuse weight of the new frame, in (0, 1]")
-    reuse_mode: Literal["off", "same-pixel", "motion"] = "motion"
-    spp: int = Field(1, ge=1, le=64, description="samples per pixel per frame")
-    split_screen: bool = False
-    prediction: bool = True
-    filter: Literal["off", "normal", "lobe"] = Field("lobe", description="cross-bilateral filter of the reconstruction")
+def _live_field(section: str, field: str) -> tuple[Any, Any]:
+    info = SessionConfig.model_fields[section].annotation.model_fields[field]
+    return info.annotation, copy.copy(info)
+
+
+LiveSettings = create_model(
+    "LiveSettings",
+    __config__=ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False),
+    __doc__="What the operator may change while the loop runs; immutable, so a snapshot is safe to share. "
+            "Each field is the section field `LIVE_FIELDS` names: the same type, bounds, default and description.",
+    __module__=__name__,
+    **{name: _live_field(*where) for name, where in LIVE_FIELDS.items()},
+)
 
 
 def format_validation_error(source: str, exc: ValidationError) -> str:

@@ -154,10 +154,6 @@ async function loadSettings() {
     const [api, values] = await Promise.all([fetch("/openapi.json").then((r) => r.json()), fetch("/settings").then((r) => r.json())]);
     settingsSchema = api.components.schemas.SettingsModel;
     lastSettings = values;
-    // Anything /settings returns that the schema does not describe still gets a plain control.
-    for (const k of Object.keys(values)) {
-      if (!settingsSchema.properties[k]) settingsSchema.properties[k] = { type: typeof values[k] === "boolean" ? "boolean" : typeof values[k] === "number" ? "number" : "string" };
-    }
     buildControls(settingsSchema, values);
   } catch (err) {
     say(`could not read the settings: ${err.message}`, false);
