@@ -15,7 +15,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli import app, bench_app, write_json
+from dpmhw.cli.apps import app, bench_app, write_json
 from dpmhw.cli.choices import ApiMode, BenchTrajectory, ClientPriority
 
 session_app = typer.Typer(no_args_is_help=True, help="Projection sessions: tracker → prediction → render → projector.")
