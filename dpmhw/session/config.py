@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import os
+import sys
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
@@ -39,7 +40,17 @@ class SessionConfigError(DpmhwError, ValueError):
 
 
 class _Section(BaseModel):
+    """Every number finite (pydantic's allow_inf_nan) and none subnormal: no consumer means one."""
+
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+    @field_validator("*")
+    @classmethod
+    def _not_subnormal(cls, value: Any) -> Any:
+        if any(isinstance(x, float) and 0.0 < abs(x) < sys.float_info.min
+               for x in (value if isinstance(value, tuple) else (value,))):
+            raise ValueError(f"subnormal number: expected 0 or at least {sys.float_info.min:.3g} in magnitude")
+        return value
 
 
 class SceneSection(_Section):
