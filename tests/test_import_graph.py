@@ -113,8 +113,8 @@ def test_the_reader_sees_every_kind_of_import_and_finds_a_cycle():
 
 
 def test_no_import_cycles():
-    found = cycles(graph())
     edges = graph()
+    found = cycles(edges)
     detail = "\n".join(" ↔ ".join(c) + ": " + "; ".join(f"{a} → {b}" for a in c for b in sorted(edges[a] & set(c)))
                        for c in found)
     assert not found, f"import cycles:\n{detail}"

@@ -46,13 +46,13 @@ from typing import Callable
 import numpy as np
 
 from dpmhw.benchmarks.figures import save_figure
-from dpmhw.benchmarks.native_quality import _masked_psnr, flip_error
+from dpmhw.benchmarks.native_quality import flip_error
 from dpmhw.benchmarks.references import REFERENCE_SEED, ReferenceCache
 from dpmhw.lod.mesh_lod import MeshLodSettings
 from dpmhw.lod.mesh_loop import MeshLod, build_levels
 from dpmhw.lod.refine import RefineSettings, TileRefiner
 from dpmhw.lod.visibility import VisibilitySettings, visibility_map
-from dpmhw.metrics import psnr, ssim
+from dpmhw.metrics import masked_psnr, psnr, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.analytic import DEFAULT_FLOORS
@@ -285,7 +285,7 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                     st["psnr"].append(psnr(img, ref8))
                     st["ssim"].append(ssim(img, ref8))
                     st["flip"].append(flip_error(ref8, img))
-                    st["obj"].append(_masked_psnr(img, ref8, mask))
+                    st["obj"].append(masked_psnr(img, ref8, mask))
                     if r.refiner is not None and r.refiner.vmap is not None and r.settings.visible:
                         st["vis"].append(int((r.refiner.vmap.visibility > 20.0).sum()))
                     if k == eval_k[-1]:

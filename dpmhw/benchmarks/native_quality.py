@@ -56,7 +56,7 @@ from scipy import ndimage
 
 from dpmhw.benchmarks.figures import labelled, save_figure
 from dpmhw.benchmarks.references import REFERENCE_SEED
-from dpmhw.metrics import noise_corrected_psnr, psnr, reference_noise_mse, ssim
+from dpmhw.metrics import masked_psnr, noise_corrected_psnr, psnr, reference_noise_mse, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.stage import ReconstructStage
@@ -119,10 +119,6 @@ def _masks(scene: Scene, frame) -> dict[str, np.ndarray]:
     edges = ndimage.maximum_filter(oid, 3) != ndimage.minimum_filter(oid, 3)
     return {"object": np.isin(oid, shapes), "glossy": glossy, "roughness_edge": glossy & same_object & (step >= ROUGHNESS_STEP),
             "id_edges": edges}
-
-
-def _masked_psnr(img, ref, mask) -> float:
-    return psnr(img[mask], ref[mask]) if mask.any() else float("nan")
 
 
 def _reference(cache, scene, name, t, spp, integrator, sampling) -> dict:
@@ -213,11 +209,11 @@ def run_native_scene(name: str, kind: str, cfg, cache, progress: Callable, image
                 st["cap"].append(10 * np.log10(255.0**2 / max(reference_noise_mse(ref["a8"], ref["b8"]), 1e-12)))
                 for key in ("object", "glossy", "roughness_edge"):
                     mask = masks[key]
-                    st[key].append(_masked_psnr(img, ref8, mask))
+                    st[key].append(masked_psnr(img, ref8, mask))
                     st[key + "_c"].append(noise_corrected_psnr(img, ref8, ref["a8"], ref["b8"], mask) if mask.any() else np.nan)
                 if t in jrefs:
                     st["jref"].append(psnr(img, jrefs[t]["ref8"]))
-                    st["jref_edges"].append(_masked_psnr(img, jrefs[t]["ref8"], masks["id_edges"]))
+                    st["jref_edges"].append(masked_psnr(img, jrefs[t]["ref8"], masks["id_edges"]))
                 if k == max(eval_at):
                     images.setdefault(f"native {name}", {})["reference"] = ref8
                     images[f"native {name}"][m.name] = img

@@ -18,9 +18,9 @@ Native (the `native` part, `native_quality`): reconstruction at the projector's 
 reuse / ½ and ¼ shading + upsampling, each with no, normal-aware and lobe-aware filtering,
 with FLIP beside PSNR and SSIM, as flat rows.
 
-References are rendered once and cached on disk (`cache_dir`), keyed by a digest of the scene's
-content (resolution, camera, meshes, materials, motion), time, spp, seed and a digest of the
-renderer's source, with the parameters that made them stored beside them.
+References are rendered once and cached on disk (`cache_dir`, `references.ReferenceCache`).
+The sweep's independent units run here, or wherever the injected `run_units` sends them
+(`dpmhw.cluster.bench.run_units_on_ray`).
 
 Costs per row: ms per frame for render, reuse, post-processing and their total, medians over
 the frames of the run (plain n-spp rows: over their repeats). The machine may be shared:
@@ -42,7 +42,7 @@ import numpy as np
 from dpmhw import __version__
 from dpmhw.benchmarks.figures import labelled, save_figure
 from dpmhw.benchmarks.references import ReferenceCache
-from dpmhw.metrics import equivalent_spp, psnr, ssim
+from dpmhw.metrics import equivalent_spp, masked_psnr, psnr, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.reconstruct.adaptive import DEFAULT_BUDGET_RAYS
@@ -108,12 +108,6 @@ def _row(label: str, kind: str, psnrs, ssims, render_ms, reuse_ms, post_ms, **ex
     r["total_ms"] = r["render_ms"] + r["reuse_ms"] + r["post_ms"]
     r.update(extra)
     return r
-
-
-def _masked_psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
-    if not mask.any():
-        return float("nan")
-    return psnr(img[mask], ref[mask])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -245,7 +239,7 @@ def run_dynamic(cfg: QualityConfig, cache: ReferenceCache, progress: Callable, i
                     img, pm = _post(step.frame.radiance)
                     plain["post"].append(pm)
                     plain["ps"].append(psnr(img, ref8))
-                    plain["ps_moving"].append(_masked_psnr(img, ref8, moving))
+                    plain["ps_moving"].append(masked_psnr(img, ref8, moving))
                     plain["ss"].append(ssim(img, ref8))
                     last = fk == eval_frames[-1]
                     if last:
@@ -255,7 +249,7 @@ def run_dynamic(cfg: QualityConfig, cache: ReferenceCache, progress: Callable, i
                         s = series[i]
                         s["post"].append(pm)
                         s["ps"].append(psnr(img, ref8))
-                        s["ps_moving"].append(_masked_psnr(img, ref8, moving))
+                        s["ps_moving"].append(masked_psnr(img, ref8, moving))
                         s["ss"].append(ssim(img, ref8))
                         m, a, w = configs[i]
                         if last and a == min(cfg.alphas) and not w:

@@ -35,6 +35,7 @@ __all__ = [
     "format_validation_error",
 ]
 
+
 class SessionConfigError(DpmhwError, ValueError):
     """The session configuration is invalid; the message lists every bad field."""
 
@@ -116,7 +117,7 @@ class ReuseSection(_Section):
     mode: Literal[REUSE_MODES] = Field("motion", description="temporal reuse: off, same-pixel, or motion (reproject "
                                                               "through the object's motion)")
     alpha: float = Field(0.2, ge=ALPHA_MIN, le=ALPHA_MAX, description="weight of the new frame, in (0, 1]; 1 = no reuse "
-                         "(at least 2^-20: the longest history the reuse keeps)")
+                         f"(at least {ALPHA_MIN:.3g}: 1/the longest history the reuse keeps)")
     split_screen: bool = Field(False, description="left half plain, right half with reuse (for comparison)")
     warmup: bool = Field(False, description="running mean for the first 1/alpha frames after a reset")
 
