@@ -6,8 +6,9 @@ field path, what was expected and what was given; unknown fields are errors too 
 not pass silently as a default).
 
 Each field's bounds are what its consumer can honour: the wire format's integer width (NatNet
-ids are int32), the device's limits (the baud rates pyserial offers), a finite normal float, text
-without control characters. Values that are legal but cost much (`SessionConfig.warnings`) are
+packs a body id into a marker's int32 id), the device's limits (the baud rates pyserial
+offers), a finite normal float, text without control characters. The memory the output size
+needs is checked where that size is known (`dpmhw.session.factory.memory_problem`). Values that are legal but cost much (`SessionConfig.warnings`) are
 accepted and named, with what they cost.
 
 `LiveSettings` is the subset the operator may change while the loop runs (over HTTP): the loop
@@ -45,7 +46,8 @@ __all__ = [
 ]
 
 
-INT32_MAX = (1 << 31) - 1  # NatNet's ids, SDL's display index: C ints
+INT32_MAX = (1 << 31) - 1  # a C int: SDL's display index, counters
+MAX_BODY_ID = (1 << 15) - 1  # NatNet sends a labeled marker's id as the int32 (body id << 16 | marker index)
 MAX_TEXT = 4096  # characters in any text field (PATH_MAX on Linux)
 MAX_SET_DEPTH = 32  # brackets and braces a `--set` value may nest (a config needs 2)
 BAUDRATES = SerialBase.BAUDRATES  # the rates pyserial sets on every platform it supports
@@ -181,8 +183,8 @@ class PredictionSection(_Section):
 
 
 class Binding(_Section):
-    rigid_body: int = Field(ge=0, le=INT32_MAX, description="NatNet's rigid body id (an int32), or the serial "
-                            f"tracker's station (1…{MAX_STATIONS})")
+    rigid_body: int = Field(ge=0, le=MAX_BODY_ID, description=f"NatNet's rigid body id (0…{MAX_BODY_ID}: its markers' "
+                            f"ids carry it in their upper 16 bits), or the serial tracker's station (1…{MAX_STATIONS})")
     object: str = Field(min_length=1, description="scene object name")
 
 

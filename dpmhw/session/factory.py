@@ -21,7 +21,7 @@ import numpy as np
 
 from dpmhw.errors import DpmhwError
 from dpmhw.scene_file import Scene, load_scene
-from dpmhw.session.config import SessionConfig, SessionConfigError
+from dpmhw.session.config import MAX_BODY_ID, SessionConfig, SessionConfigError
 from dpmhw.session.loop import SessionLoop, SessionParts
 
 __all__ = ["DLPC900Control", "MockRig", "build_session", "idle_projector", "memory_problem", "open_black_window",
@@ -130,6 +130,10 @@ def resolve_bindings(config: SessionConfig, scene: Scene) -> dict[int, int]:
             out[names.index(b.object)] = b.rigid_body
         return out
     out = {i: o.rigid_body for i, o in enumerate(scene.objects) if o.rigid_body is not None}
+    for i, body in out.items():
+        if body > MAX_BODY_ID:  # the scene file allows more than NatNet carries
+            raise SessionConfigError(f"bindings: scene {scene.source} objects[{i}].rigid_body = {body}: a tracker "
+                                     f"body id is at most {MAX_BODY_ID}; bind the object with [[bindings]]")
     if not out:
         raise SessionConfigError(f"bindings: scene {scene.source} has no object with a rigid_body; "
                                  "add [[bindings]] rigid_body = N, object = \"name\"")
