@@ -13,6 +13,16 @@ limit and the environment variable that raises it:
   hits and work arrays: measured here as 506 bytes per pixel (peak RSS of two 1-spp renders of
   paper-static at 2048×1536 minus 512×384; session 9, 416 before its first-vertex surfaces
   and rasteriser), taken as 520. The default admits 4K (3840×2160 ≈ 4.3 GB).
+- a session: `DPMHW_SESSION_MEMORY_MB` (default 8192). At its output (native) size a session
+  holds the shading render and the native G-buffer, the reconstruction's guides, histories and
+  output, the frame rendered ahead (pipelining) and the sink's frames. Measured as whole: the
+  peak RSS of `dpmhw session start --mock --duration 3 --no-api` (dpm-bunny, the loop's child
+  included) at two to four output sizes from 640×480 to 2560×1920 per shading scale, the
+  difference over the difference in pixels: 890–910 bytes per output pixel at shading scale 1
+  and ½, 530–690 at ¼ (less render, the same native buffers), taken as
+  `SESSION_BYTES_PER_PIXEL`; the part that does not grow with the size (interpreter, compiled
+  kernels, the bunny's BVH, the mocks) was 300–350 MiB, taken as `SESSION_BASE_BYTES`. The
+  default admits 4K at ¼.
 """
 
 from __future__ import annotations
@@ -20,9 +30,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["RENDER_BYTES_PER_PIXEL", "check_file_size", "max_mesh_bytes", "max_scene_bytes", "render_memory_problem"]
+__all__ = ["RENDER_BYTES_PER_PIXEL", "SESSION_BASE_BYTES", "SESSION_BYTES_PER_PIXEL", "check_file_size", "max_mesh_bytes",
+           "max_scene_bytes", "render_memory_problem", "session_memory", "session_memory_problem"]
 
 RENDER_BYTES_PER_PIXEL = 520
+SESSION_BYTES_PER_PIXEL = {1.0: 960, 0.5: 960, 0.25: 740}  # per output pixel, by shading scale
+SESSION_BASE_BYTES = 384 * 2**20
 
 
 def _limit(env: str, default: int, unit: int) -> int:
@@ -61,3 +74,20 @@ def render_memory_problem(width: int, height: int) -> str | None:
     return (f"a {width}×{height} render needs about {need / 2**20:.0f} MiB of pixel and ray buffers "
             f"({RENDER_BYTES_PER_PIXEL} bytes per pixel), over the limit of {limit / 2**20:.0f} MiB: lower the size, "
             f"or raise the limit with DPMHW_RENDER_MEMORY_MB")
+
+
+def session_memory(width: int, height: int, shading_scale: float) -> tuple[int, int]:
+    """(bytes a session at a `width`×`height` output needs, the limit)."""
+    need = SESSION_BASE_BYTES + int(width) * int(height) * SESSION_BYTES_PER_PIXEL[shading_scale]
+    return need, _limit("DPMHW_SESSION_MEMORY_MB", 8192, 1024 * 1024)
+
+
+def session_memory_problem(width: int, height: int, shading_scale: float) -> str | None:
+    """Why a session at a `width`×`height` output would allocate too much memory, or None when it fits."""
+    need, limit = session_memory(width, height, shading_scale)
+    if need <= limit:
+        return None
+    return (f"a session at a {width}×{height} output (shading_scale {shading_scale:g}) needs about "
+            f"{need / 2**20:.0f} MiB ({SESSION_BYTES_PER_PIXEL[shading_scale]} bytes per output pixel for the render, "
+            f"the native G-buffer, the reconstruction's histories and the frames in flight), over the limit of "
+            f"{limit / 2**20:.0f} MiB: lower the size, or raise the limit with DPMHW_SESSION_MEMORY_MB")

@@ -50,6 +50,11 @@ def psnr(image: np.ndarray, reference: np.ndarray) -> float:
     return float("inf") if mse == 0 else 10.0 * np.log10(255.0**2 / mse)
 
 
+def masked_psnr(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR over `mask`'s pixels; NaN where the mask is empty (nothing to compare)."""
+    return psnr(image[mask], reference[mask]) if mask.any() else float("nan")
+
+
 def reference_noise_mse(half_a: np.ndarray, half_b: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Estimated MSE that the noise of R = (A + B)/2 adds: MSE(A, B)/4 (see module doc); uint8
     images of the two independent halves, over `mask`'s pixels (all if None)."""

@@ -29,6 +29,7 @@ BUILTIN_SCENES = ("paper-static", "paper-dynamic", "dpm-bunny", "glossy-roughnes
 # and would overflow into infinities and NaNs downstream (1e300 squared is inf).
 MAX_MAGNITUDE = 1e9
 SHAPES = ("quad", "box", "sphere", "mesh")
+SCENE_SECTIONS = {"render", "camera", "viewer", "objects"}
 
 
 @dataclass(frozen=True)
@@ -358,14 +359,18 @@ def _parse_object(source: str, table, index: int, base_dir: Path, notes: list[st
     )
 
 
-def parse_scene(text: str, source: str, base_dir: Path, mesh_override: Path | None = None) -> Scene:
+def _toml(text: str, source: str) -> dict:
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(source, "(syntax)", f"not valid TOML: {exc}") from None
     except RecursionError:
         raise SceneError(source, "(syntax)", "arrays or tables nested too deeply to be a scene") from None
-    top = _Fields(source, data, "", {"render", "camera", "viewer", "objects"})
+
+
+def parse_scene(text: str, source: str, base_dir: Path, mesh_override: Path | None = None) -> Scene:
+    data = _toml(text, source)
+    top = _Fields(source, data, "", SCENE_SECTIONS)
 
     def section(name: str):
         if not top.has(name):
@@ -410,15 +415,28 @@ def _read_scene_text(path: Path) -> str:
                                               f"(line {line})") from None
 
 
-def load_scene(name_or_path: str | Path, mesh_override: Path | None = None) -> Scene:
-    """Load a scene by built-in name (see BUILTIN_SCENES) or from a TOML file."""
+def _scene_text(name_or_path: str | Path) -> tuple[str, str, Path]:
+    """(text, source name, folder relative paths resolve against) of a built-in scene or a file."""
     key = str(name_or_path)
     if key in BUILTIN_SCENES:
-        text = resources.files("dpmhw.scenes").joinpath(f"{key}.toml").read_text()
-        scene = parse_scene(text, f"built-in scene {key!r}", Path("."), mesh_override)
-    else:
-        path = Path(name_or_path)
-        scene = parse_scene(_read_scene_text(path), str(path), path.parent, mesh_override)
+        return resources.files("dpmhw.scenes").joinpath(f"{key}.toml").read_text(), f"built-in scene {key!r}", Path(".")
+    path = Path(name_or_path)
+    return _read_scene_text(path), str(path), path.parent
+
+
+def scene_size(name_or_path: str | Path) -> tuple[int, int]:
+    """A scene's (width, height) from its [render] table alone: no mesh is read."""
+    text, source, _ = _scene_text(name_or_path)
+    top = _Fields(source, _toml(text, source), "", SCENE_SECTIONS)
+    if not top.has("render"):
+        top.fail("render", "missing required section")
+    render = _parse_render(source, top.table["render"])
+    return render.width, render.height
+
+
+def load_scene(name_or_path: str | Path, mesh_override: Path | None = None) -> Scene:
+    """Load a scene by built-in name (see BUILTIN_SCENES) or from a TOML file."""
+    scene = parse_scene(*_scene_text(name_or_path), mesh_override)
     for note in scene.notes:
         log.warning("%s: %s", scene.source, note)
     return scene

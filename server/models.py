@@ -1,37 +1,41 @@
-"""Request and response bodies (the OpenAPI schema is generated from these)."""
+"""Request and response bodies (the OpenAPI schema is generated from these).
+
+The settings bodies are derived from `dpmhw.session.config.LiveSettings`: a live setting added
+there appears in GET and PATCH /settings and on the operator page (built from this schema) by
+itself, with the same bounds.
+"""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Any, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
+
+from dpmhw.session.config import LiveSettings
 
 __all__ = ["ActionResult", "SettingsModel", "SettingsPatch"]
 
 
-class SettingsModel(BaseModel):
-    """Live settings; the same bounds as `dpmhw.session.config.LiveSettings`."""
-
-    alpha: float = Field(gt=0.0, le=1.0, description="temporal reuse weight of the new frame, in (0, 1]; 1 = no reuse")
-    reuse_mode: Literal["off", "same-pixel", "motion"]
-    spp: int = Field(ge=1, le=64, description="samples per pixel per frame")
-    split_screen: bool = Field(description="left half without reuse, for comparison")
-    prediction: bool = Field(description="extrapolate tracked poses to the display time")
+class SettingsModel(LiveSettings):
+    """The accepted live settings (`LiveSettings`, under the name the API's schema has always used)."""
 
 
-class SettingsPatch(BaseModel):
-    """Any subset of the live settings; unknown fields are refused (422). Strict: no string or
-    boolean coercion (`"0.5"`, `true` for a number, `"yes"` for a flag are refused), and no NaN
-    or infinity."""
+def _optional(info) -> tuple[Any, Any]:
+    """The field's type and bounds, or null (left out: unchanged)."""
+    constrained = Annotated[(info.annotation, *info.metadata)] if info.metadata else info.annotation
+    return Optional[constrained], Field(None, description=info.description)
 
-    model_config = ConfigDict(extra="forbid", strict=True,
-                              json_schema_extra={"examples": [{"alpha": 0.5}, {"prediction": False}]})
 
-    alpha: float | None = Field(None, gt=0.0, le=1.0, allow_inf_nan=False)
-    reuse_mode: Literal["off", "same-pixel", "motion"] | None = None
-    spp: int | None = Field(None, ge=1, le=64)
-    split_screen: bool | None = None
-    prediction: bool | None = None
+SettingsPatch = create_model(
+    "SettingsPatch",
+    __config__=ConfigDict(extra="forbid", strict=True, allow_inf_nan=False,
+                          json_schema_extra={"examples": [{"alpha": 0.5}, {"prediction": False}]}),
+    __doc__="Any subset of the live settings; unknown fields are refused (422). Strict: no string or "
+            "boolean coercion (`\"0.5\"`, `true` for a number, `\"yes\"` for a flag are refused), and no NaN "
+            "or infinity.",
+    __module__=__name__,
+    **{name: _optional(info) for name, info in LiveSettings.model_fields.items()},
+)
 
 
 class ActionResult(BaseModel):

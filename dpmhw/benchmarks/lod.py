@@ -45,13 +45,14 @@ from typing import Callable
 
 import numpy as np
 
-from dpmhw.benchmarks.native_quality import _masked_psnr, flip_error
-from dpmhw.benchmarks.quality import ReferenceCache, _save
+from dpmhw.benchmarks.figures import save_figure
+from dpmhw.benchmarks.native_quality import flip_error
+from dpmhw.benchmarks.references import REFERENCE_SEED, ReferenceCache
 from dpmhw.lod.mesh_lod import MeshLodSettings
 from dpmhw.lod.mesh_loop import MeshLod, build_levels
 from dpmhw.lod.refine import RefineSettings, TileRefiner
 from dpmhw.lod.visibility import VisibilitySettings, visibility_map
-from dpmhw.metrics import psnr, ssim
+from dpmhw.metrics import masked_psnr, psnr, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.analytic import DEFAULT_FLOORS
@@ -64,7 +65,6 @@ from dpmhw.transforms import Pose
 
 METHODS = ("none", "quarter", "moving", "shading-rate", "spp", "mesh-LOD", "all")
 PLAIN = "-plain"  # method suffix: the same without the analytic-direct demodulation (`reconstruct.analytic`)
-REFERENCE_SEED = 1_000_003
 FPS = 60.0
 
 
@@ -285,7 +285,7 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                     st["psnr"].append(psnr(img, ref8))
                     st["ssim"].append(ssim(img, ref8))
                     st["flip"].append(flip_error(ref8, img))
-                    st["obj"].append(_masked_psnr(img, ref8, mask))
+                    st["obj"].append(masked_psnr(img, ref8, mask))
                     if r.refiner is not None and r.refiner.vmap is not None and r.settings.visible:
                         st["vis"].append(int((r.refiner.vmap.visibility > 20.0).sum()))
                     if k == eval_k[-1]:
@@ -379,7 +379,7 @@ def write_figures(rows: list[dict], images: dict, out_dir: Path) -> list[str]:
         fig.suptitle(f"mesh levels chosen by 'all': {run['choice']}", fontsize=9)
         for ax in axes:
             ax.set_xlabel("x (px)")
-        files.append(_save(fig, out_dir / f"lod-map-{name}.png"))
+        files.append(save_figure(fig, out_dir / f"lod-map-{name}.png"))
     files.append(plot_rows(rows, out_dir))
     return files
 
@@ -416,7 +416,7 @@ def plot_rows(rows: list[dict], out_dir: Path) -> str:
     axes[0].legend(fontsize=6, ncol=2)
     size = ", ".join(dict.fromkeys(f"{r['width']}×{r['height']}" for r in rows))
     fig.suptitle(f"Contrast-driven LOD in the loop's pipeline: speed against error ({size}, 60 fps timeline)")
-    return _save(fig, Path(out_dir) / "lod-ms-vs-error.png")
+    return save_figure(fig, Path(out_dir) / "lod-ms-vs-error.png")
 
 
 def _or_dash(x) -> str:

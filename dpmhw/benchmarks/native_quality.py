@@ -54,7 +54,9 @@ from typing import Callable
 import numpy as np
 from scipy import ndimage
 
-from dpmhw.metrics import noise_corrected_psnr, psnr, reference_noise_mse, ssim
+from dpmhw.benchmarks.figures import labelled, save_figure
+from dpmhw.benchmarks.references import REFERENCE_SEED
+from dpmhw.metrics import masked_psnr, noise_corrected_psnr, psnr, reference_noise_mse, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.stage import ReconstructStage
@@ -119,15 +121,9 @@ def _masks(scene: Scene, frame) -> dict[str, np.ndarray]:
             "id_edges": edges}
 
 
-def _masked_psnr(img, ref, mask) -> float:
-    return psnr(img[mask], ref[mask]) if mask.any() else float("nan")
-
-
 def _reference(cache, scene, name, t, spp, integrator, sampling) -> dict:
     """(A + B)/2 of two independent halves, post-processed, with the halves' uint8 images."""
     half = max(1, spp // 2)
-    from dpmhw.benchmarks.quality import REFERENCE_SEED
-
     a, b = (cache.get(scene, name, t, half, seed=REFERENCE_SEED + i, integrator=integrator, pixel_sampling=sampling)
             for i in (0, 1))
     return {"ref8": postprocess(0.5 * (a["radiance"] + b["radiance"])), "a8": postprocess(a["radiance"]),
@@ -213,11 +209,11 @@ def run_native_scene(name: str, kind: str, cfg, cache, progress: Callable, image
                 st["cap"].append(10 * np.log10(255.0**2 / max(reference_noise_mse(ref["a8"], ref["b8"]), 1e-12)))
                 for key in ("object", "glossy", "roughness_edge"):
                     mask = masks[key]
-                    st[key].append(_masked_psnr(img, ref8, mask))
+                    st[key].append(masked_psnr(img, ref8, mask))
                     st[key + "_c"].append(noise_corrected_psnr(img, ref8, ref["a8"], ref["b8"], mask) if mask.any() else np.nan)
                 if t in jrefs:
                     st["jref"].append(psnr(img, jrefs[t]["ref8"]))
-                    st["jref_edges"].append(_masked_psnr(img, jrefs[t]["ref8"], masks["id_edges"]))
+                    st["jref_edges"].append(masked_psnr(img, jrefs[t]["ref8"], masks["id_edges"]))
                 if k == max(eval_at):
                     images.setdefault(f"native {name}", {})["reference"] = ref8
                     images[f"native {name}"][m.name] = img
@@ -265,8 +261,6 @@ def native_plot(result: dict, out_dir) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from dpmhw.benchmarks.quality import _save
-
     scenes = result["native"]["scenes"]
     fig, axes = plt.subplots(1, len(scenes), figsize=(6.5 * len(scenes), 5), squeeze=False)
     for ax, sc in zip(axes[0], scenes):
@@ -294,7 +288,7 @@ def native_plot(result: dict, out_dir) -> str:
         ax.set_ylabel("noise-corrected PSNR (dB, uint8 sRGB) against the converged image")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")
-    return _save(fig, out_dir / "native_speed_vs_psnr.png")
+    return save_figure(fig, out_dir / "native_speed_vs_psnr.png")
 
 
 def _tag(row: dict) -> str:
@@ -308,7 +302,6 @@ GLOSSY_CROP_METHODS = ("reference", "1 spp + normal", "1 spp + lobe", "native + 
 def glossy_crops(images: dict, out_dir) -> list[str]:
     """The glossy scene's brightest highlight (a third of the frame around the reference's
     brightest smoothed pixel), normal- against lobe-aware, each crop labelled; [] without it."""
-    from dpmhw.benchmarks.quality import labelled
     from dpmhw.postprocess import write_png
 
     imgs = images.get(f"native {GLOSSY_SCENE}")

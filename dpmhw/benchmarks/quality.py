@@ -18,9 +18,9 @@ Native (the `native` part, `native_quality`): reconstruction at the projector's 
 reuse / ½ and ¼ shading + upsampling, each with no, normal-aware and lobe-aware filtering,
 with FLIP beside PSNR and SSIM, as flat rows.
 
-References are rendered once and cached on disk (`cache_dir`), keyed by a digest of the scene's
-content (resolution, camera, meshes, materials, motion), time, spp, seed and a digest of the
-renderer's source, with the parameters that made them stored beside them.
+References are rendered once and cached on disk (`cache_dir`, `references.ReferenceCache`).
+The sweep's independent units run here, or wherever the injected `run_units` sends them
+(`dpmhw.cluster.bench.run_units_on_ray`).
 
 Costs per row: ms per frame for render, reuse, post-processing and their total, medians over
 the frames of the run (plain n-spp rows: over their repeats). The machine may be shared:
@@ -29,8 +29,6 @@ medians, not means, and the JSON records the load average at the start and the e
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import os
 import platform
@@ -42,16 +40,16 @@ from typing import Callable
 import numpy as np
 
 from dpmhw import __version__
-from dpmhw.cluster.passes import render_passes
-from dpmhw.metrics import equivalent_spp, psnr, ssim
+from dpmhw.benchmarks.figures import labelled, save_figure
+from dpmhw.benchmarks.references import ReferenceCache
+from dpmhw.metrics import equivalent_spp, masked_psnr, psnr, ssim
 from dpmhw.postprocess import postprocess
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.reconstruct.adaptive import DEFAULT_BUDGET_RAYS
 from dpmhw.reconstruct.reuse import TemporalReuse
-from dpmhw.scene_file import Scene, load_scene
+from dpmhw.scene_file import load_scene
 from dpmhw.sequence import run_sequence, scaled_scene, with_fps
 
-REFERENCE_SEED = 1_000_003  # far from the sequence seeds 0, 1, 2, …: independent noise
 PLAIN_SEED = 500_000
 
 
@@ -91,102 +89,6 @@ class QualityConfig:
 
 
 # ----------------------------------------------------------------------------------------------
-# references
-
-
-def scene_digest(scene: Scene) -> str:
-    """sha256 over everything that changes the image: render settings, camera, objects."""
-    h = hashlib.sha256()
-
-    def put(*items):
-        for x in items:
-            h.update(np.ascontiguousarray(np.asarray(x, dtype=np.float64)).tobytes() if not isinstance(x, str) else x.encode())
-
-    r = scene.render
-    put(str((r.width, r.height, r.max_bounces)), r.background)
-    put(scene.camera.K, scene.camera.dist, scene.camera.pose.R, scene.camera.pose.t, scene.viewer_position)
-    for o in scene.objects:
-        put(o.name, o.shape, o.mesh.vertices, o.mesh.faces.astype(np.float64), o.pose.R, o.pose.t, o.albedo, o.specular,
-            float(o.roughness), o.emission, repr(o.motion), repr(o.rigid_body))
-        if o.face_roughness is not None:
-            put(o.face_roughness)
-        if o.mesh.vertex_normals is not None:
-            put(o.mesh.vertex_normals)
-    return h.hexdigest()
-
-
-def renderer_digest() -> str:
-    """sha256 of dpmhw/render/*.py: a renderer change invalidates cached references (not
-    gbuffer.py: the native G-buffer never changes a path-traced image)."""
-    h = hashlib.sha256(__version__.encode())
-    for p in sorted((Path(__file__).resolve().parents[1] / "render").glob("*.py")):
-        if p.name == "gbuffer.py":
-            continue
-        h.update(p.name.encode() + p.read_bytes())
-    return h.hexdigest()[:16]
-
-
-def default_cache_dir() -> Path:
-    return Path(os.environ.get("DPMHW_CACHE", Path.home() / ".cache" / "dpmhw")) / "references"
-
-
-class ReferenceCache:
-    """References on disk. Rendered as blocks of passes (dpmhw.cluster.passes), here or, with a
-    RayPool as `pool`, as Ray tasks: the same image either way, so the key ignores where."""
-
-    def __init__(self, cache_dir: Path | None = None, threads: int = 2, progress: Callable | None = None, pool=None):
-        self.dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-        self.threads = threads
-        self.progress = progress  # progress(description, done, total)
-        self.pool = pool
-        self.renderer = renderer_digest()
-        self.rendered = 0
-        self.hits = 0
-        self.cpu_seconds = 0.0  # the rendered references' CPU time, wherever they rendered
-
-    def key(self, scene: Scene, time: float, spp: int, seed: int, pixel_sampling: str = "centre") -> tuple[str, dict]:
-        key_fields = dict(scene=scene_digest(scene), time=repr(float(time)), spp=int(spp), seed=int(seed), renderer=self.renderer)
-        if pixel_sampling != "centre":  # centre references keep their keys
-            key_fields["pixel_sampling"] = pixel_sampling
-        return hashlib.sha256(json.dumps(key_fields, sort_keys=True).encode()).hexdigest()[:24], key_fields
-
-    def get(self, scene: Scene, scene_name: str, time: float, spp: int, seed: int = REFERENCE_SEED, integrator=None,
-            pixel_sampling: str = "centre") -> dict:
-        """{"radiance": (H, W, 3) float32, "object_id": (H, W) int32} of a converged render;
-        `pixel_sampling` as PathIntegrator's ("jitter": the pixel integral; `integrator`, if
-        given, must sample that way)."""
-        if integrator is not None and integrator.pixel_sampling != pixel_sampling:
-            raise ValueError(f"reference: the integrator samples {integrator.pixel_sampling!r}, not {pixel_sampling!r}")
-        key, key_fields = self.key(scene, time, spp, seed, pixel_sampling)
-        path = self.dir / f"{key}.npz"
-        if path.exists():
-            self.hits += 1
-            with np.load(path) as data:
-                return {"radiance": data["radiance"], "object_id": data["object_id"]}
-        desc = f"reference {scene_name} t={time:.4f}s {scene.render.width}×{scene.render.height} {spp} spp"
-        started = _time.perf_counter()
-        frame = render_passes(scene, time, seed, spp, integrator=integrator, pool=self.pool, threads=self.threads,
-                              progress=(lambda d, t: self.progress(desc, d, t)) if self.progress else None,
-                              integrator_options=dict(pixel_sampling=pixel_sampling))
-        self.dir.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.stem + ".partial.npz")
-        np.savez(tmp, radiance=frame.radiance.astype(np.float32), object_id=frame.object_id)
-        tmp.replace(path)
-        cpu = float(sum(frame.block_cpu_seconds))
-        self.cpu_seconds += cpu
-        meta = dict(key_fields, scene_name=scene_name, width=scene.render.width, height=scene.render.height,
-                    max_bounces=scene.render.max_bounces, seconds=round(_time.perf_counter() - started, 1),
-                    cpu_seconds=round(cpu, 3),
-                    nonfinite_samples=frame.nonfinite_samples, dpmhw=__version__,
-                    equivalent_command=f"dpmhw render {scene_name} --spp {spp} --seed {seed} --time {time!r} "
-                    f"--pixel-sampling {pixel_sampling} --out ref.npy"
-                    + ("" if scene.render.width == 1024 else f"  (at {scene.render.width}×{scene.render.height})"))
-        path.with_suffix(".json").write_text(json.dumps(meta, indent=2))
-        self.rendered += 1
-        return {"radiance": frame.radiance, "object_id": frame.object_id}
-
-
-# ----------------------------------------------------------------------------------------------
 # measurement helpers
 
 
@@ -206,12 +108,6 @@ def _row(label: str, kind: str, psnrs, ssims, render_ms, reuse_ms, post_ms, **ex
     r["total_ms"] = r["render_ms"] + r["reuse_ms"] + r["post_ms"]
     r.update(extra)
     return r
-
-
-def _masked_psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
-    if not mask.any():
-        return float("nan")
-    return psnr(img[mask], ref[mask])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -343,7 +239,7 @@ def run_dynamic(cfg: QualityConfig, cache: ReferenceCache, progress: Callable, i
                     img, pm = _post(step.frame.radiance)
                     plain["post"].append(pm)
                     plain["ps"].append(psnr(img, ref8))
-                    plain["ps_moving"].append(_masked_psnr(img, ref8, moving))
+                    plain["ps_moving"].append(masked_psnr(img, ref8, moving))
                     plain["ss"].append(ssim(img, ref8))
                     last = fk == eval_frames[-1]
                     if last:
@@ -353,7 +249,7 @@ def run_dynamic(cfg: QualityConfig, cache: ReferenceCache, progress: Callable, i
                         s = series[i]
                         s["post"].append(pm)
                         s["ps"].append(psnr(img, ref8))
-                        s["ps_moving"].append(_masked_psnr(img, ref8, moving))
+                        s["ps_moving"].append(masked_psnr(img, ref8, moving))
                         s["ss"].append(ssim(img, ref8))
                         m, a, w = configs[i]
                         if last and a == min(cfg.alphas) and not w:
@@ -402,10 +298,21 @@ def run_unit(unit: QualityConfig, cache: ReferenceCache, progress: Callable) -> 
     return out, images
 
 
+# runs sweep units: (units, reference cache, progress) → ((result parts, images) per unit, in their
+# order; CPU seconds the units took outside this process)
+UnitRunner = Callable[[list[QualityConfig], ReferenceCache, Callable], tuple[list[tuple[dict, dict]], float]]
+
+
+def run_units_here(units: list[QualityConfig], cache: ReferenceCache, progress: Callable) -> tuple[list[tuple[dict, dict]], float]:
+    """The default UnitRunner: every unit in this process, one after another."""
+    return [run_unit(u, cache, progress) for u in units], 0.0
+
+
 def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path | None = None, progress: Callable | None = None,
-                pool=None) -> dict:
-    """`pool`: a dpmhw.cluster RayPool; references then render as blocks of passes and the sweep
-    units run as Ray tasks (their ms are the workers')."""
+                pool=None, run_units: UnitRunner | None = None) -> dict:
+    """`pool`: a dpmhw.cluster RayPool; references then render on it as blocks of passes.
+    `run_units`: where the sweep units run (default: here); `dpmhw.cluster.bench.run_units_on_ray`
+    runs them as Ray tasks (their ms are the workers', their CPU seconds reported as ray_units)."""
     progress = progress or (lambda desc, done, total: None)
     cache = ReferenceCache(cache_dir, threads=cfg.threads, progress=progress, pool=pool)
     started, cpu_started = _time.perf_counter(), _time.process_time()
@@ -415,12 +322,7 @@ def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path
                   machine=dict(cpus=os.cpu_count(), python=platform.python_version(), processor=platform.processor() or platform.machine()),
                   metrics="PSNR on uint8 sRGB (exposure 1, clip), all channels; SSIM Wang et al. 2004 on Rec.601 luma, 11×11 Gaussian σ=1.5, K1=0.01, K2=0.03, data range 255",
                   paper_table1=[dict(label=l, psnr=p, ssim=s) for l, p, s in PAPER_TABLE1])
-    if pool is None:
-        outcomes = [run_unit(u, cache, progress) for u in sweep_units(cfg)]
-    else:
-        from dpmhw.cluster.bench import run_units_on_ray
-
-        outcomes, units_cpu = run_units_on_ray(pool, sweep_units(cfg), cache, progress)
+    outcomes, units_cpu = (run_units or run_units_here)(sweep_units(cfg), cache, progress)
     for out, imgs in outcomes:  # the dynamic timelines come back one unit each
         if "dynamic" in out and "dynamic" in result:
             result["dynamic"]["timelines"] += out.pop("dynamic")["timelines"]
@@ -436,7 +338,9 @@ def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path
     result["cpu_seconds"] = dict(this_process=round(_time.process_time() - cpu_started, 3))
     if pool is not None:
         result["ray"] = dict(address=pool.address or "local", cpus=pool.cpus)
-        result["cpu_seconds"].update(ray_references=round(cache.cpu_seconds, 3), ray_units=round(units_cpu, 3))
+        result["cpu_seconds"]["ray_references"] = round(cache.cpu_seconds, 3)
+    if run_units is not None:
+        result["cpu_seconds"]["ray_units"] = round(units_cpu, 3)
     result["seconds"] = round(_time.perf_counter() - started, 1)
     result["loadavg_start_end"] = [list(load0), list(os.getloadavg())]
     if out_dir is not None:
@@ -481,30 +385,6 @@ def write_figures(result: dict, images: dict, out_dir: Path) -> list[str]:
     return files
 
 
-def labelled(image: np.ndarray, text: str) -> np.ndarray:
-    """A copy of an (H, W, 3) uint8 RGB panel with `text` on a dark band at its top left."""
-    import cv2
-
-    out = np.array(image, copy=True)
-    scale = max(0.4, out.shape[0] / 768 * 0.9)
-    thick = max(1, int(round(scale * 2)))
-    text = text.replace("α", "a").replace("≈", "~").replace("×", "x")  # Hershey fonts are ASCII
-    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
-    out[: h + base + 8, : w + 10] //= 3
-    cv2.putText(out, text, (5, h + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), thick, cv2.LINE_AA)
-    return out
-
-
-def _save(fig, path: Path) -> str:
-    """Lay out, write and close a figure; returns the path written."""
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
-    return str(path)
-
-
 def _plots(result: dict, out_dir: Path) -> list[str]:
     import matplotlib
 
@@ -531,7 +411,7 @@ def _plots(result: dict, out_dir: Path) -> list[str]:
     ax.set_ylabel("PSNR (dB) against the reference")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=6, loc="lower right")
-    files.append(_save(fig, out_dir / "speed_vs_psnr.png"))
+    files.append(save_figure(fig, out_dir / "speed_vs_psnr.png"))
     if "static" in result:
         fig, ax = plt.subplots(figsize=(7, 4.5))
         for label, pts in result["static"]["convergence"].items():
@@ -544,7 +424,7 @@ def _plots(result: dict, out_dir: Path) -> list[str]:
         ax.set_title("static scene: convergence of reuse, with and without warm-up")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
-        files.append(_save(fig, out_dir / "static_convergence.png"))
+        files.append(save_figure(fig, out_dir / "static_convergence.png"))
     tls = result.get("dynamic", {}).get("timelines", [])
     if tls:
         fig, axes = plt.subplots(1, len(tls), figsize=(6 * len(tls), 4.5), squeeze=False)
@@ -557,7 +437,7 @@ def _plots(result: dict, out_dir: Path) -> list[str]:
             ax.set_ylabel("PSNR (dB)")
             ax.grid(True, alpha=0.3)
             ax.legend(fontsize=6)
-        files.append(_save(fig, out_dir / "dynamic_psnr_over_time.png"))
+        files.append(save_figure(fig, out_dir / "dynamic_psnr_over_time.png"))
     return files
 
 

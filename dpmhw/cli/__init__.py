@@ -2,38 +2,11 @@
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import typer
 
-from dpmhw import __version__
+from dpmhw.cli.apps import app
 
-app = typer.Typer(no_args_is_help=True, add_completion=False, help="Dynamic projection mapping: render, bench, mock devices.")
-bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks that print and save their tables.")
-mock_app = typer.Typer(no_args_is_help=True, help="Run emulated devices (firmware mocks) standalone.")
-app.add_typer(bench_app, name="bench")
-app.add_typer(mock_app, name="mock")
-
-
-def write_json(data, path: Path) -> Path:
-    """Write a benchmark's result as indented JSON (making the folder); returns the path."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=2))
-    return path
-
-
-def _version(value: bool) -> None:
-    if value:
-        typer.echo(f"dpmhw {__version__}")
-        raise typer.Exit()
-
-
-@app.callback()
-def _root(
-    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
-) -> None:
-    """dpmhw command line."""
+__all__ = ["app", "main"]
 
 
 def _register() -> None:

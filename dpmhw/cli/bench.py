@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli import bench_app, write_json
+from dpmhw.cli.apps import bench_app, write_json
 from dpmhw.cli.choices import QualityPart
 from dpmhw.cli.optional_value import optional_values
 from dpmhw.progress import Progress
@@ -48,8 +48,10 @@ def bench_quality(
     temporal reuse (static table vs the paper's Table 1, dynamic per-frame error), and native
     reconstruction rows (filters, shading scales; PSNR/SSIM/FLIP), with costs."""
     import dataclasses
+    import functools
 
     from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
+    from dpmhw.cluster.bench import run_units_on_ray
     from dpmhw.cluster.ray_pool import connect
     from dpmhw.errors import DpmhwError
 
@@ -77,7 +79,8 @@ def bench_quality(
         raise typer.Exit(2)
     try:
         with Progress() as bar:
-            result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=bar.callback, pool=pool)
+            result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=bar.callback, pool=pool,
+                                 run_units=None if pool is None else functools.partial(run_units_on_ray, pool))
     finally:
         if pool is not None:
             pool.close()

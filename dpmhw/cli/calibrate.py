@@ -10,7 +10,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli import app
+from dpmhw.cli.apps import app
 from dpmhw.cli.choices import SinkKind
 from dpmhw.progress import Progress
 

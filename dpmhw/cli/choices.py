@@ -8,7 +8,7 @@ from __future__ import annotations
 import enum
 
 from dpmhw.postprocess import TONEMAPS
-from dpmhw.reconstruct.reuse import MODES
+from dpmhw.reconstruct.settings import REUSE_MODES
 
 __all__ = ["ApiMode", "BenchTrajectory", "ClientPriority", "NatNetVersion", "PixelSampling", "QualityPart", "ReuseMode",
            "SerialModel", "SinkKind", "Tonemap", "Trajectory"]
@@ -18,7 +18,7 @@ def _choices(name: str, values) -> type[enum.Enum]:
     return enum.Enum(name, {v: v for v in values}, type=str)
 
 
-ReuseMode = _choices("ReuseMode", MODES)
+ReuseMode = _choices("ReuseMode", REUSE_MODES)
 Tonemap = _choices("Tonemap", TONEMAPS)
 QualityPart = _choices("QualityPart", ("static", "dynamic", "native", "all"))
 BenchTrajectory = _choices("BenchTrajectory", ("linear", "rotate-oscillate", "static"))

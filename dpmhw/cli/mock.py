@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli import mock_app
+from dpmhw.cli.apps import mock_app
 from dpmhw.cli.choices import NatNetVersion, SerialModel, Trajectory
 
 

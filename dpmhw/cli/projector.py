@@ -12,7 +12,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli import app
+from dpmhw.cli.apps import app
 
 projector_app = typer.Typer(no_args_is_help=True, help="DLPC900 projector over USB: list, status, blank.")
 app.add_typer(projector_app, name="projector")

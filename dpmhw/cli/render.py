@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli import app
+from dpmhw.cli.apps import app
 from dpmhw.cli.choices import PixelSampling, ReuseMode, Tonemap
 from dpmhw.cli.optional_value import optional_values
 from dpmhw.progress import Progress

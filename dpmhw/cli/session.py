@@ -15,7 +15,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli import app, bench_app, write_json
+from dpmhw.cli.apps import app, bench_app, write_json
 from dpmhw.cli.choices import ApiMode, BenchTrajectory, ClientPriority
 
 session_app = typer.Typer(no_args_is_help=True, help="Projection sessions: tracker → prediction → render → projector.")
@@ -36,6 +36,27 @@ def _load(config: Optional[Path], sets: Optional[list[str]], extra: list[str]):
 def _fail(exc: Exception) -> None:
     typer.echo(f"error: {exc}", err=True)
     raise typer.Exit(code=2)
+
+
+def _vet(cfg) -> None:
+    """On stderr, the memory the output size needs and what costly values cost; refuses a session
+    over the memory limit (before anything allocates at that size)."""
+    from dpmhw.errors import DpmhwError
+    from dpmhw.limits import session_memory
+    from dpmhw.session.factory import memory_problem, output_size
+
+    try:
+        size = output_size(cfg)
+    except DpmhwError as exc:
+        _fail(exc)
+    problem = memory_problem(cfg, size)
+    if problem is not None:
+        _fail(ValueError(problem))
+    need, limit = session_memory(*size, cfg.render.shading_scale)
+    typer.echo(f"memory: about {need / 2**20:.0f} MiB for a {size[0]}×{size[1]} output at shading_scale "
+               f"{cfg.render.shading_scale:g} (limit {limit / 2**20:.0f} MiB: DPMHW_SESSION_MEMORY_MB)", err=True)
+    for warning in cfg.warnings():
+        typer.echo(f"warning: {warning}", err=True)
 
 
 @session_app.command("start")
@@ -65,6 +86,7 @@ def start(
         cfg = _load(config, sets, extra)
     except DpmhwError as exc:
         _fail(exc)
+    _vet(cfg)
     from dpmhw.session.supervisor import Supervisor
 
     sock = token = None
@@ -92,13 +114,15 @@ def start(
 
 @session_app.command("config")
 def show_config(config: ConfigOpt = None, sets: SetOpt = None) -> None:
-    """Validate a session config (with overrides) and print it resolved, as JSON."""
+    """Validate a session config (with overrides) and print it resolved, as JSON; the memory its
+    output size needs and what costly values cost go to stderr."""
     from dpmhw.errors import DpmhwError
 
     try:
         cfg = _load(config, sets, [])
     except DpmhwError as exc:
         _fail(exc)
+    _vet(cfg)
     data = cfg.model_dump()
     data["api"]["token"] = "***" if data["api"]["token"] else ""
     typer.echo(json.dumps(data, indent=2))

@@ -13,7 +13,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli import app
+from dpmhw.cli.apps import app
 
 tracker_app = typer.Typer(no_args_is_help=True, help="Check a tracker before a session.")
 app.add_typer(tracker_app, name="tracker")

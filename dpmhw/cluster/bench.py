@@ -1,5 +1,6 @@
 """`dpmhw bench quality --ray`: the bench's sweep units (static part, each dynamic timeline) as
-Ray tasks, its references as blocks of passes on the same cluster.
+Ray tasks (`run_units_on_ray`, the bench's UnitRunner), its references as blocks of passes on the
+same cluster.
 
 References stay where the reference cache is, on this machine: a unit task gets the references
 it has asked for shipped in, and a unit that meets one it does not have returns the request
@@ -13,7 +14,8 @@ from __future__ import annotations
 import time as _time
 from typing import Callable
 
-from dpmhw.benchmarks.quality import REFERENCE_SEED, QualityConfig, ReferenceCache, run_unit
+from dpmhw.benchmarks.quality import QualityConfig, run_unit
+from dpmhw.benchmarks.references import REFERENCE_SEED, ReferenceCache
 from dpmhw.cluster import ClusterError
 
 

@@ -133,21 +133,3 @@ def render_local(integrator, time: float, seed: int, spp: int, progress: Callabl
         if total.complete:
             break
     return total
-
-
-def render_passes(scene, time: float, seed: int, spp: int, integrator=None, pool=None, threads: int = 2,
-                  progress: Callable[[int, int], None] | None = None, integrator_options: dict | None = None) -> PassSum:
-    """The summed render wherever it runs: as Ray tasks of `threads` CPUs on `pool` (a RayPool),
-    else on `integrator`, else on an integrator of its own; `integrator_options` (keyword
-    arguments of PathIntegrator) apply to the last two. The same image in every case."""
-    if pool is not None:
-        from dpmhw.cluster.ray_pool import render_on_ray
-
-        return render_on_ray(pool, scene, time, seed, spp, threads=threads, progress=progress,
-                             integrator_options=integrator_options)
-    if integrator is not None:
-        return render_local(integrator, time, seed, spp, progress=progress)
-    from dpmhw.render.integrator import PathIntegrator
-
-    with PathIntegrator(scene, threads=threads, **(integrator_options or {})) as own:
-        return render_local(own, time, seed, spp, progress=progress)

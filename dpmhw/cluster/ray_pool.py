@@ -1,4 +1,5 @@
-"""Blocks of passes (and any other independent work) as Ray tasks.
+"""Blocks of passes (and any other independent work) as Ray tasks, and `render_passes`, which
+sends a render's blocks here or renders them in this process (`passes.render_local`).
 
 `RayPool()` starts a local Ray instance on this machine (2 CPUs); `RayPool("ray://head:10001")`
 or `RayPool("head:6379")` joins an existing cluster. Tasks are plain Ray tasks with
@@ -14,7 +15,8 @@ import uuid
 from typing import Any, Callable, Iterable, Iterator
 
 from dpmhw.cluster import INSTALL_HINT, ClusterError
-from dpmhw.cluster.passes import Block, BlockResult, PassSum, plan, render_block
+from dpmhw.cluster.passes import Block, BlockResult, PassSum, plan, render_block, render_local
+from dpmhw.render.digest import renderer_digest
 
 LOCAL_CPUS = 2
 MAX_RETRIES = 3  # re-runs of a task whose worker died (not of tasks that raised)
@@ -121,12 +123,6 @@ def connect(address: str | None) -> RayPool | None:
 _integrators: dict = {}  # per worker process: the integrator of the render it last worked on
 
 
-def _renderer_digest() -> str:
-    from dpmhw.benchmarks.quality import renderer_digest  # the digest that also keys cached references
-
-    return renderer_digest()
-
-
 def _worker_integrator(token: str, scene, threads: int, options: dict, renderer: str):
     """Reuse the BVHs, caches and compiled kernels across the blocks of one render; a worker
     keeps one integrator at a time, so memory stays bounded however many renders it serves.
@@ -135,7 +131,7 @@ def _worker_integrator(token: str, scene, threads: int, options: dict, renderer:
 
     key = (token, threads, tuple(sorted(options.items())))
     if key not in _integrators:
-        mine = _renderer_digest()
+        mine = renderer_digest()
         if mine != renderer:
             raise ClusterError(f"a worker's renderer ({mine}) differs from the driver's ({renderer}): "
                                "install the same dpmhw on every node")
@@ -165,7 +161,7 @@ def render_on_ray(pool: RayPool, scene, time: float, seed: int, spp: int, thread
     total = PassSum(blocks)
     done = 0
     items = [(float(time), b, int(threads), dict(integrator_options or {})) for b in blocks]
-    results = pool.map(task, items, shared=(uuid.uuid4().hex, scene, _renderer_digest()), num_cpus=threads)
+    results = pool.map(task, items, shared=(uuid.uuid4().hex, scene, renderer_digest()), num_cpus=threads)
     try:
         for _, result in results:
             total.add(result)
@@ -177,3 +173,19 @@ def render_on_ray(pool: RayPool, scene, time: float, seed: int, spp: int, thread
     finally:
         results.close()
     return total
+
+
+def render_passes(scene, time: float, seed: int, spp: int, integrator=None, pool=None, threads: int = 2,
+                  progress: Callable[[int, int], None] | None = None, integrator_options: dict | None = None) -> PassSum:
+    """The summed render wherever it runs: as Ray tasks of `threads` CPUs on `pool` (a RayPool),
+    else on `integrator`, else on an integrator of its own; `integrator_options` (keyword
+    arguments of PathIntegrator) apply to the last two. The same image in every case."""
+    if pool is not None:
+        return render_on_ray(pool, scene, time, seed, spp, threads=threads, progress=progress,
+                             integrator_options=integrator_options)
+    if integrator is not None:
+        return render_local(integrator, time, seed, spp, progress=progress)
+    from dpmhw.render.integrator import PathIntegrator
+
+    with PathIntegrator(scene, threads=threads, **(integrator_options or {})) as own:
+        return render_local(own, time, seed, spp, progress=progress)

@@ -24,7 +24,8 @@ import numba as nb
 import numpy as np
 
 from dpmhw.reconstruct.guides import Guides
-from dpmhw.reconstruct.weights import FASTMATH, FILTER_MODES, fast_exp_neg, fast_lobe_weight, fast_normal_weight
+from dpmhw.reconstruct.settings import FILTER_MODES
+from dpmhw.reconstruct.weights import FASTMATH, fast_exp_neg, fast_lobe_weight, fast_normal_weight
 
 DEPTH_GATE = 0.1  # relative depth difference beyond which two pixels never blend
 DEPTH_SIGMA = 0.03  # relative depth scale of the smooth depth weight

@@ -58,11 +58,10 @@ import numba as nb
 import numpy as np
 
 from dpmhw.errors import DpmhwError
+from dpmhw.reconstruct.settings import ALPHA_MAX, ALPHA_MIN, MAX_HISTORY_LENGTH, REUSE_MODES
 
-MODES = ("off", "same-pixel", "motion")
 MIN_BILINEAR_WEIGHT = 1e-6
 SNAP_PX = 1e-3
-MAX_HISTORY_LENGTH = 2.0**20  # history length saturates here (float32 counts exactly up to 2^24)
 
 
 class ReuseError(DpmhwError, ValueError):
@@ -70,19 +69,20 @@ class ReuseError(DpmhwError, ValueError):
 
 
 def validate_alpha(alpha) -> float:
-    """α must be a finite number in (0, 1]; anything else raises ReuseError."""
+    """α must be a finite number in (0, 1], at least ALPHA_MIN; anything else raises ReuseError."""
+    expected = f"expected a number in (0, {ALPHA_MAX:g}], at least {ALPHA_MIN:.3g}"
     try:
         a = float(alpha)
     except (TypeError, ValueError):
-        raise ReuseError(f"alpha: expected a number in (0, 1], got {alpha!r}") from None
-    if not np.isfinite(a) or not (0.0 < a <= 1.0):
-        raise ReuseError(f"alpha: expected a number in (0, 1] (1 = no reuse, 0.2 = the paper's setting), got {alpha!r}")
+        raise ReuseError(f"alpha: {expected}, got {alpha!r}") from None
+    if not np.isfinite(a) or not (ALPHA_MIN <= a <= ALPHA_MAX):
+        raise ReuseError(f"alpha: {expected} (1 = no reuse, 0.2 = the paper's setting), got {alpha!r}")
     return a
 
 
 def validate_mode(mode: str) -> str:
-    if mode not in MODES:
-        raise ReuseError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
+    if mode not in REUSE_MODES:
+        raise ReuseError(f"mode: expected one of {', '.join(REUSE_MODES)}, got {mode!r}")
     return mode
 
 
@@ -328,7 +328,7 @@ class TemporalReuse:
     Parameters
     ----------
     width, height : image size
-    alpha : float in (0, 1]; 1 = no reuse
+    alpha : float in (0, 1], at least ALPHA_MIN; 1 = no reuse
     mode : "off" | "same-pixel" | "motion"
     warmup : α_eff = max(α, 1/n) with n frames since the last reset
     split_screen : left half of the output is the plain input

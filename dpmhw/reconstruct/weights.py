@@ -35,7 +35,6 @@ DIFFUSE_LAMBDA_BAR = 2.0 / (BETA * SIGMA_N2)  # = 10: β λ̄ / 2 = 1 / σ_n²
 DIFFUSE_LAMBDA = DIFFUSE_LAMBDA_BAR * KAPPA / (KAPPA - DIFFUSE_LAMBDA_BAR)
 MIN_NDOTV = 0.1  # grazing views: the warped lobe's sharpness is capped, not infinite
 
-FILTER_MODES = ("off", "normal", "lobe")
 # fast-math without "no NaN / no Inf": the kernels test finiteness to keep NaN out of the image
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 

@@ -5,23 +5,38 @@ A lab operator edits the file and overrides single fields from the command line
 field path, what was expected and what was given; unknown fields are errors too (a typo must
 not pass silently as a default).
 
+Each field's bounds are what its consumer can honour: the wire format's integer width (NatNet
+packs a body id into a marker's int32 id), the device's limits (the baud rates pyserial
+offers), a finite normal float, text without control characters. The memory the output size
+needs is checked where that size is known (`dpmhw.session.factory.memory_problem`). Values that are legal but cost much (`SessionConfig.warnings`) are
+accepted and named, with what they cost.
+
 `LiveSettings` is the subset the operator may change while the loop runs (over HTTP): the loop
-applies a validated change on its next frame.
+applies a validated change on its next frame. It is derived from the section fields named in
+`LIVE_FIELDS`, and the API's models, the operator page and the recording derive from it, so a
+live setting is declared (type, bounds, default, description) once.
 """
 
 from __future__ import annotations
 
+import copy
 import os
+import sys
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from serial import SerialBase
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
 
 from dpmhw.errors import DpmhwError
+from dpmhw.limits import check_file_size, max_scene_bytes
+from dpmhw.reconstruct.settings import ALPHA_MAX, ALPHA_MIN, FILTER_MODES, REUSE_MODES
+from dpmhw.session.metrics import STAGES, WINDOWS
 
 __all__ = [
-    "REUSE_MODES",
+    "LIVE_FIELDS",
     "SessionConfig",
     "SessionConfigError",
     "LiveSettings",
@@ -30,7 +45,15 @@ __all__ = [
     "format_validation_error",
 ]
 
-REUSE_MODES = ("off", "same-pixel", "motion")  # dpmhw.reconstruct.reuse.MODES
+
+INT32_MAX = (1 << 31) - 1  # a C int: SDL's display index, counters
+MAX_BODY_ID = (1 << 15) - 1  # NatNet sends a labeled marker's id as the int32 (body id << 16 | marker index)
+MAX_TEXT = 4096  # characters in any text field (PATH_MAX on Linux)
+MAX_SET_DEPTH = 32  # brackets and braces a `--set` value may nest (a config needs 2)
+BAUDRATES = SerialBase.BAUDRATES  # the rates pyserial sets on every platform it supports
+MAX_STATIONS = 16  # a Polhemus tracker numbers its stations 1…16 (docs/protocols.md)
+WORKSPACE_LIMIT_M = 1e4  # no capture volume reaches 10 km from its origin
+NS_PER_RAY = 250  # wall time per native ray on the bunny's 69k triangles, 2 render threads (docs/lod.md)
 
 
 class SessionConfigError(DpmhwError, ValueError):
@@ -38,7 +61,24 @@ class SessionConfigError(DpmhwError, ValueError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    """Every number finite (pydantic's allow_inf_nan) and none subnormal, every text short and
+    without control characters: no consumer means one (a NUL is no path, a newline no header)."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+    @field_validator("*")
+    @classmethod
+    def _plain(cls, value: Any) -> Any:
+        if any(isinstance(x, float) and 0.0 < abs(x) < sys.float_info.min
+               for x in (value if isinstance(value, tuple) else (value,))):
+            raise ValueError(f"subnormal number: expected 0 or at least {sys.float_info.min:.3g} in magnitude")
+        if isinstance(value, str):
+            if len(value) > MAX_TEXT:
+                raise ValueError(f"text of {len(value)} characters: expected at most {MAX_TEXT}")
+            bad = next((i for i, c in enumerate(value) if c < " " or c == "\x7f"), None)
+            if bad is not None:
+                raise ValueError(f"control character U+{ord(value[bad]):04X} at position {bad}")
+        return value
 
 
 class SceneSection(_Section):
@@ -48,7 +88,6 @@ class SceneSection(_Section):
 
 
 SHADING_SCALES = (1.0, 0.5, 0.25)
-FILTER_MODES = ("off", "normal", "lobe")  # dpmhw.reconstruct.weights.FILTER_MODES
 
 
 class RenderSection(_Section):
@@ -58,8 +97,8 @@ class RenderSection(_Section):
     height: int = Field(0, ge=0, le=16384, description="output height in pixels; 0 = the projector's native height")
     shading_scale: float = Field(0.25, description="shading resolution per axis relative to the output: 1, 0.5 or 0.25; "
                                                    "the frame is upsampled to the output size (dpmhw.reconstruct)")
-    filter: Literal["off", "normal", "lobe"] = Field("lobe", description="cross-bilateral filter: off, normal-aware or "
-                                                                          "specular-lobe-aware (live setting)")
+    filter: Literal[FILTER_MODES] = Field("lobe", description="cross-bilateral filter of the reconstruction: off, "
+                                                              "normal-aware or specular-lobe-aware")
     adaptive_rays: int = Field(2048, ge=0, le=1 << 24, description="adaptive sampling: most rays per frame for extra "
                                "native-resolution paths where the upsampling lacks support (0 = off; only below "
                                "shading_scale 1)")
@@ -81,11 +120,13 @@ class RenderSection(_Section):
     pixel_sampling: Literal["centre", "jitter"] = Field("centre", description="shading rays through pixel centres "
                                                          "(static primary hits cached) or jittered per frame (reuse "
                                                          "then antialiases; camera rays traced every frame)")
-    spp: int = Field(1, ge=1, le=64)
-    threads: int = Field(2, ge=1, le=256)
+    spp: int = Field(1, ge=1, le=64, description="samples per pixel per frame")
+    threads: int = Field(2, ge=1, le=256, description="threads of each render pool (renderer, G-buffer, ray tracer)")
     exposure: float = Field(1.0, gt=0.0, le=1e4)
-    seed: int = Field(0, ge=0)
-    target_fps: float = Field(30.0, gt=0.0, le=10000.0, description="a frame slower than 1/target_fps is a deadline miss")
+    seed: int = Field(0, ge=0, le=(1 << 32) - 1, description="added to the frame number to seed each frame's "
+                      "random numbers (a 32-bit unsigned seed)")
+    target_fps: float = Field(30.0, ge=1e-3, le=10000.0, description="a frame slower than 1/target_fps is a deadline "
+                              "miss")
 
     @field_validator("shading_scale")
     @classmethod
@@ -102,8 +143,10 @@ class RenderSection(_Section):
 
 
 class ReuseSection(_Section):
-    mode: Literal["off", "same-pixel", "motion"] = Field("motion", description="motion: reproject through the object's motion")
-    alpha: float = Field(0.2, gt=0.0, le=1.0, description="weight of the new frame, in (0, 1]; 1 = no reuse")
+    mode: Literal[REUSE_MODES] = Field("motion", description="temporal reuse: off, same-pixel, or motion (reproject "
+                                                              "through the object's motion)")
+    alpha: float = Field(0.2, ge=ALPHA_MIN, le=ALPHA_MAX, description="weight of the new frame, in (0, 1]; 1 = no reuse "
+                         f"(at least {ALPHA_MIN:.3g}: 1/the longest history the reuse keeps)")
     split_screen: bool = Field(False, description="left half plain, right half with reuse (for comparison)")
     warmup: bool = Field(False, description="running mean for the first 1/alpha frames after a reset")
 
@@ -132,7 +175,7 @@ class LodSection(_Section):
 
 
 class PredictionSection(_Section):
-    enabled: bool = True
+    enabled: bool = Field(True, description="extrapolate tracked poses to the display time")
     model: Literal["velocity", "acceleration"] = Field("velocity", description="constant velocity, or constant linear acceleration")
     history: int = Field(8, ge=2, le=64, description="recent samples used to estimate the derivatives")
     display_latency_ms: float = Field(0.0, ge=0.0, le=1000.0, description="present() to photons (the projector's own delay)")
@@ -140,21 +183,36 @@ class PredictionSection(_Section):
 
 
 class Binding(_Section):
-    rigid_body: int = Field(ge=0)
+    rigid_body: int = Field(ge=0, le=MAX_BODY_ID, description=f"NatNet's rigid body id (0…{MAX_BODY_ID}: its markers' "
+                            f"ids carry it in their upper 16 bits), or the serial tracker's station (1…{MAX_STATIONS})")
     object: str = Field(min_length=1, description="scene object name")
 
 
 class TrackerSection(_Section):
     kind: Literal["natnet", "serial"] = "natnet"
     server: str = "127.0.0.1"
-    command_port: int = Field(1510, ge=0, le=65535)
+    command_port: int = Field(1510, ge=1, le=65535)
     local_interface: str = "127.0.0.1"
     port: str = Field("", description="serial port (kind = serial): a device path or a pyserial URL")
-    baudrate: int = Field(115200, gt=0)
+    baudrate: int = Field(115200, description="serial line rate (kind = serial): one of pyserial's standard rates")
     # the plausibility gate (dpmhw.plausibility): samples breaking these are dropped, never projected
     max_speed_m_s: float = Field(20.0, gt=0.0, le=1000.0, description="fastest a tracked body can move")
     workspace_min: tuple[float, float, float] = Field((-20.0, -20.0, -20.0), description="capture volume, metres")
     workspace_max: tuple[float, float, float] = Field((20.0, 20.0, 20.0), description="capture volume, metres")
+
+    @field_validator("baudrate")
+    @classmethod
+    def _standard_rate(cls, v: int) -> int:
+        if v not in BAUDRATES:
+            raise ValueError(f"expected a standard baud rate ({', '.join(map(str, BAUDRATES))})")
+        return v
+
+    @field_validator("workspace_min", "workspace_max")
+    @classmethod
+    def _in_reach(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if any(abs(x) > WORKSPACE_LIMIT_M for x in v):
+            raise ValueError(f"expected coordinates within ±{WORKSPACE_LIMIT_M:g} m")
+        return v
 
     @model_validator(mode="after")
     def _workspace_is_a_box(self) -> "TrackerSection":
@@ -175,7 +233,7 @@ class ProjectorSection(_Section):
 class SinkSection(_Section):
     kind: Literal["window", "file", "recording", "none"] = "window"
     path: str = Field("", description="output path (kind = file)")
-    display: int = Field(0, ge=0)
+    display: int = Field(0, ge=0, le=INT32_MAX, description="display index (kind = window)")
 
 
 class SafetySection(_Section):
@@ -200,7 +258,8 @@ class ApiSection(_Section):
     enabled: bool = True
     host: str = "127.0.0.1"
     port: int = Field(8765, ge=0, le=65535)
-    token: str = Field("", description="bearer token for mutating endpoints; DPMHW_API_TOKEN overrides")
+    token: str = Field("", pattern=r"^([A-Za-z0-9._~+/-]+=*)?$", description="bearer token for mutating endpoints "
+                       "(RFC 6750 token characters); DPMHW_API_TOKEN overrides")
     priority: Literal["idle", "low", "normal"] = Field(
         "idle", description="CPU priority of the API process: idle (Linux SCHED_IDLE: runs only on otherwise idle "
                             "CPU time, so the loop always goes first), low (nice 10), normal")
@@ -209,7 +268,7 @@ class ApiSection(_Section):
 class RecordingSection(_Section):
     enabled: bool = False
     path: str = Field("sessions", description="parent folder; each session gets its own subfolder")
-    frame_every: int = Field(30, ge=1, description="keep every Nth presented frame as PNG")
+    frame_every: int = Field(30, ge=1, le=INT32_MAX, description="keep every Nth presented frame as PNG")
 
 
 class MockSection(_Section):
@@ -248,6 +307,43 @@ class SessionConfig(_Section):
             seen.add(b.object)
         return bindings
 
+    @model_validator(mode="after")
+    def _stations(self) -> "SessionConfig":
+        if self.tracker.kind == "serial":
+            for i, b in enumerate(self.bindings):
+                if not 1 <= b.rigid_body <= MAX_STATIONS:
+                    raise ValueError(f"bindings[{i}].rigid_body: a serial tracker's stations are 1…{MAX_STATIONS} "
+                                     f"(got {b.rigid_body})")
+        return self
+
+    def warnings(self) -> list[str]:
+        """Legal values that cost much, one line each saying what they cost (the caller prints them)."""
+        r, out = self.render, []
+        period_s = 1.0 / r.target_fps
+        if r.target_fps < 1.0:
+            out.append(f"render.target_fps={r.target_fps:g}: a frame counts as a deadline miss only after "
+                       f"{period_s:.3g} s, so the deadline-miss counter says almost nothing")
+        if period_s > self.safety.watchdog_s:
+            out.append(f"render.target_fps={r.target_fps:g}: a frame that misses its deadline ({period_s:.3g} s) "
+                       f"has already been a stall (safety.watchdog_s={self.safety.watchdog_s:g}) and blanked the output")
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        if r.threads > cpus:
+            out.append(f"render.threads={r.threads} on {cpus} CPU(s): each render pool starts {r.threads} threads; "
+                       "beyond the CPU count they add switching and memory, not speed")
+        if self.metrics.window > 16384:
+            out.append(f"metrics.window={self.metrics.window}: keeps {WINDOWS * 8 * self.metrics.window / 2**20:.0f} "
+                       f"MiB of timings and takes percentiles over {len(STAGES) + 1} windows of that many frames on "
+                       "the loop thread at every status update (every 50 ms)")
+        budgets = [("render.adaptive_rays", r.adaptive_rays, r.shading_scale < 1)]
+        budgets.append(("lod.rays", self.lod.rays, r.shading_scale < 1 and (self.lod.moving or self.lod.visible)))
+        for name, rays, active in budgets:
+            cost_s = rays * NS_PER_RAY * 1e-9
+            if active and cost_s > self.safety.watchdog_s:
+                out.append(f"{name}={rays}: at about {NS_PER_RAY} ns a ray the budget allows {cost_s:.3g} s of rays in "
+                           f"one frame ({period_s * 1e3:.0f} ms at render.target_fps={r.target_fps:g}); a frame that "
+                           f"spends it is a stall (safety.watchdog_s={self.safety.watchdog_s:g}) and blanks the output")
+        return out
+
     def resolve(self, path: str) -> Path:
         p = Path(path).expanduser()
         return p if p.is_absolute() or not self.base_dir else Path(self.base_dir) / p
@@ -257,23 +353,33 @@ class SessionConfig(_Section):
         return os.environ.get("DPMHW_API_TOKEN", "") or self.api.token
 
     def live_settings(self) -> "LiveSettings":
-        return LiveSettings(
-            alpha=self.reuse.alpha, reuse_mode=self.reuse.mode, spp=self.render.spp,
-            split_screen=self.reuse.split_screen, prediction=self.prediction.enabled, filter=self.render.filter,
-        )
+        return LiveSettings(**{name: getattr(getattr(self, section), field) for name, (section, field) in LIVE_FIELDS.items()})
 
 
-class LiveSettings(BaseModel):
-    """What the operator may change while the loop runs; immutable, so a snapshot is safe to share."""
+# The live settings: name → (section, field) of SessionConfig that declares it and gives its start value.
+LIVE_FIELDS: dict[str, tuple[str, str]] = {
+    "alpha": ("reuse", "alpha"),
+    "reuse_mode": ("reuse", "mode"),
+    "spp": ("render", "spp"),
+    "split_screen": ("reuse", "split_screen"),
+    "prediction": ("prediction", "enabled"),
+    "filter": ("render", "filter"),
+}
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
-    alpha: float = Field(0.2, gt=0.0, le=1.0, description="reuse weight of the new frame, in (0, 1]")
-    reuse_mode: Literal["off", "same-pixel", "motion"] = "motion"
-    spp: int = Field(1, ge=1, le=64, description="samples per pixel per frame")
-    split_screen: bool = False
-    prediction: bool = True
-    filter: Literal["off", "normal", "lobe"] = Field("lobe", description="cross-bilateral filter of the reconstruction")
+def _live_field(section: str, field: str) -> tuple[Any, Any]:
+    info = SessionConfig.model_fields[section].annotation.model_fields[field]
+    return info.annotation, copy.copy(info)
+
+
+LiveSettings = create_model(
+    "LiveSettings",
+    __config__=ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False),
+    __doc__="What the operator may change while the loop runs; immutable, so a snapshot is safe to share. "
+            "Each field is the section field `LIVE_FIELDS` names: the same type, bounds, default and description.",
+    __module__=__name__,
+    **{name: _live_field(*where) for name, where in LIVE_FIELDS.items()},
+)
 
 
 def format_validation_error(source: str, exc: ValidationError) -> str:
@@ -289,8 +395,34 @@ def format_validation_error(source: str, exc: ValidationError) -> str:
     return "\n".join(lines)
 
 
-def _parse_value(text: str) -> Any:
-    """A command-line value as TOML (numbers, booleans, strings in quotes, lists); bare words are strings."""
+def _nesting(text: str) -> int:
+    """How deep the brackets and braces of a TOML value nest, outside its strings."""
+    depth = deepest = 0
+    quote = ""
+    escaped = False
+    for c in text:
+        if quote:
+            if escaped:
+                escaped = False
+            elif c == "\\" and quote == '"':
+                escaped = True
+            elif c == quote:
+                quote = ""
+        elif c in "\"'":
+            quote = c
+        elif c in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif c in "]}":
+            depth -= 1
+    return deepest
+
+
+def _parse_value(key: str, text: str) -> Any:
+    """A command-line value as TOML (numbers, booleans, strings in quotes, lists); bare words are strings.
+    Nesting is bounded before the (recursive) parser sees it."""
+    if _nesting(text) > MAX_SET_DEPTH:
+        raise SessionConfigError(f"--set {key}: the value nests deeper than {MAX_SET_DEPTH} levels of [ ] and {{ }}")
     try:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
@@ -311,7 +443,7 @@ def parse_overrides(items: list[str]) -> dict:
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
                 raise SessionConfigError(f"--set {item!r}: {part} is set both as a value and as a section")
-        node[parts[-1]] = _parse_value(value.strip())
+        node[parts[-1]] = _parse_value(key, value.strip())
     return out
 
 
@@ -336,9 +468,14 @@ def load_session_config(path: str | Path | None = None, overrides: list[str] | d
         if not p.is_file():
             raise SessionConfigError(f"{p}: no such session config file")
         try:
-            data = tomllib.loads(p.read_text())
+            check_file_size(p, max_scene_bytes(), "session config file", "DPMHW_MAX_SCENE_KB")  # hand-written, as a scene
+            data = tomllib.loads(p.read_bytes().decode("utf-8"))
         except tomllib.TOMLDecodeError as exc:
             raise SessionConfigError(f"{p}: not valid TOML: {exc}") from None
+        except (OSError, ValueError) as exc:  # too large, unreadable, not UTF-8
+            raise SessionConfigError(f"{p}: {exc}") from None
+        except RecursionError:
+            raise SessionConfigError(f"{p}: arrays or tables nested too deeply to be a session config") from None
         base_dir = str(p.parent.resolve())
     if overrides:
         over = parse_overrides(overrides) if isinstance(overrides, list) else overrides

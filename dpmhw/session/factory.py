@@ -21,11 +21,11 @@ import numpy as np
 
 from dpmhw.errors import DpmhwError
 from dpmhw.scene_file import Scene, load_scene
-from dpmhw.session.config import SessionConfig, SessionConfigError
+from dpmhw.session.config import MAX_BODY_ID, SessionConfig, SessionConfigError
 from dpmhw.session.loop import SessionLoop, SessionParts
 
-__all__ = ["DLPC900Control", "MockRig", "build_session", "idle_projector", "open_black_window", "open_session_parts",
-           "prepare_scene", "resolve_bindings", "start_usb_emulator"]
+__all__ = ["DLPC900Control", "MockRig", "build_session", "idle_projector", "memory_problem", "open_black_window",
+           "open_session_parts", "output_size", "prepare_scene", "resolve_bindings", "start_usb_emulator"]
 
 log = logging.getLogger(__name__)
 
@@ -46,26 +46,62 @@ def scale_to(scene: Scene, width: int, height: int) -> Scene:
                                camera=dataclasses.replace(scene.camera, K=K))
 
 
+def _scene_source(config: SessionConfig) -> str:
+    from dpmhw.scene_file import BUILTIN_SCENES
+
+    source = config.scene.source
+    return source if source in BUILTIN_SCENES else str(config.resolve(source))
+
+
+def _calibration(config: SessionConfig):
+    from dpmhw.projector_calibration import load_projector_calibration
+
+    path = config.resolve(config.scene.calibration)
+    try:
+        return path, load_projector_calibration(path)
+    except Exception as exc:
+        raise SessionConfigError(f"scene.calibration: cannot load {path}: {exc}") from None
+
+
+def output_size(config: SessionConfig) -> tuple[int, int]:
+    """The output (native) size `prepare_scene` gives, read without loading a mesh: render.width ×
+    render.height, else the calibration's, else the scene's [render] size."""
+    from dpmhw.scene_file import scene_size
+
+    r = config.render
+    if r.width:
+        return r.width, r.height
+    if config.scene.calibration:
+        calib = _calibration(config)[1]
+        return calib.width, calib.height
+    return scene_size(_scene_source(config))
+
+
+def memory_problem(config: SessionConfig, size: tuple[int, int]) -> str | None:
+    """Why a session at output `size` would allocate more than the limit (naming the fields), or None."""
+    from dpmhw.limits import session_memory_problem
+
+    try:
+        problem = session_memory_problem(*size, config.render.shading_scale)
+    except ValueError as exc:  # the limit's environment variable is malformed
+        return str(exc)
+    if problem is None:
+        return None
+    where = "render.width, render.height" if config.render.width else (
+        f"render.width, render.height (0: {'scene.calibration' if config.scene.calibration else 'scene.source'}'s size)")
+    return f"{where}: {problem}"
+
+
 def prepare_scene(config: SessionConfig) -> Scene:
     """Load the scene, apply the calibration file and the output-size override: the scene's
     camera is the projector at its native (output) size."""
     sc = config.scene
-    source = sc.source
-    from dpmhw.scene_file import BUILTIN_SCENES
-
-    if source not in BUILTIN_SCENES:
-        source = str(config.resolve(source))
-    scene = load_scene(source, mesh_override=config.resolve(sc.mesh) if sc.mesh else None)
+    scene = load_scene(_scene_source(config), mesh_override=config.resolve(sc.mesh) if sc.mesh else None)
     if sc.calibration:
-        from dpmhw.projector_calibration import load_projector_calibration
         from dpmhw.scene_file import CameraSpec
         from dpmhw.transforms import Pose
 
-        path = config.resolve(sc.calibration)
-        try:
-            calib = load_projector_calibration(path)
-        except Exception as exc:
-            raise SessionConfigError(f"scene.calibration: cannot load {path}: {exc}") from None
+        path, calib = _calibration(config)
         if calib.frame != "tracker":
             raise SessionConfigError(
                 f"scene.calibration: {path} gives the projector pose in the {calib.frame!r} frame, but tracked poses are "
@@ -94,6 +130,10 @@ def resolve_bindings(config: SessionConfig, scene: Scene) -> dict[int, int]:
             out[names.index(b.object)] = b.rigid_body
         return out
     out = {i: o.rigid_body for i, o in enumerate(scene.objects) if o.rigid_body is not None}
+    for i, body in out.items():
+        if body > MAX_BODY_ID:  # the scene file allows more than NatNet carries
+            raise SessionConfigError(f"bindings: scene {scene.source} objects[{i}].rigid_body = {body}: a tracker "
+                                     f"body id is at most {MAX_BODY_ID}; bind the object with [[bindings]]")
     if not out:
         raise SessionConfigError(f"bindings: scene {scene.source} has no object with a rigid_body; "
                                  "add [[bindings]] rigid_body = N, object = \"name\"")
@@ -278,6 +318,9 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
                        usb: tuple[str, bytes] | None = None) -> SessionParts:
     """Open every part the config names (mocks first with `mock`); closes what it opened on error."""
     scene = prepare_scene(config)
+    problem = memory_problem(config, (scene.render.width, scene.render.height))
+    if problem is not None:  # before anything allocates at that size
+        raise SessionConfigError(problem)
     bindings = resolve_bindings(config, scene)
     closers: list = []
     rig = None

@@ -499,7 +499,7 @@ class SessionLoop:
                 return False
             self._dark_render_ns = t1
         return _Job(settings, t_start, stages, samples, age_s, scene_time, poses, used, horizon_ns, t_target, resume_at,
-                    self._frame_number + (1 if ahead else 0))
+                    self.config.render.seed + self._frame_number + (1 if ahead else 0))
 
     def _render(self, job: "_Job"):
         t = self.clock()

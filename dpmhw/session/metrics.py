@@ -12,7 +12,7 @@ from collections import Counter
 
 import numpy as np
 
-__all__ = ["STAGES", "Histogram", "LoopMetrics", "RollingWindow"]
+__all__ = ["STAGES", "WINDOWS", "Histogram", "LoopMetrics", "RollingWindow"]
 
 # tracker_age: newest sample's age when the frame started; render: shading at the shading
 # resolution; gbuffer: the native G-buffer update; filter / upsample: reconstruction
@@ -20,6 +20,7 @@ __all__ = ["STAGES", "Histogram", "LoopMetrics", "RollingWindow"]
 STAGES = ("tracker_age", "predict", "render", "gbuffer", "reuse", "filter", "upsample", "adaptive", "lod", "mesh_lod", "post", "present", "frame")
 LATENCY_BUCKETS_S = (0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0)
 FRAME_BUCKETS_S = (0.002, 0.005, 0.01, 0.02, 0.033, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0)
+WINDOWS = len(STAGES) + 3  # the rolling windows a LoopMetrics keeps: the stages, latency, present times, horizon
 
 
 class RollingWindow:

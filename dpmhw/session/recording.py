@@ -3,7 +3,8 @@
 One folder per session (`<parent>/session-YYYYmmdd-HHMMSS/`):
 
     config.json    the resolved session config (token masked)
-    frames.csv     one row per presented frame: times, stage durations, settings, pose used per body
+    frames.csv     one row per presented frame: times, stage durations, every live setting
+                   (`LiveSettings`, flags as 0/1), pose used per body
     poses.csv      every tracker sample (body, exposure time, valid, position, quaternion xyzw)
     frames/NNNNNN.png   every `frame_every`-th presented frame
 
@@ -26,6 +27,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from dpmhw.session.config import LiveSettings
+
 __all__ = ["SessionRecorder"]
 
 FLUSH_EVERY_S = 1.0
@@ -45,7 +48,7 @@ class SessionRecorder:
         self._frames = csv.writer(self._frames_file)
         self._poses = csv.writer(self._poses_file)
         self._frames.writerow(["number", "t_start_ns", "t_target_ns", "t_present_ns", "sample_age_ms",
-                               *[f"{s}_ms" for s in _STAGES], "alpha", "reuse_mode", "spp", "prediction",
+                               *[f"{s}_ms" for s in _STAGES], *LiveSettings.model_fields,
                                "body", "sample_t_exposure_ns", "x", "y", "z", "qx", "qy", "qz", "qw"])
         self._poses.writerow(["body", "t_exposure_ns", "t_arrival_ns", "frame_number", "valid", "x", "y", "z",
                               "qx", "qy", "qz", "qw"])
@@ -73,13 +76,13 @@ class SessionRecorder:
 
     # ---- writer thread -------------------------------------------------------------------------
     def _write_frame(self, record, image) -> None:
-        s = record.settings
+        settings = [int(v) if isinstance(v, bool) else v for v in record.settings.model_dump().values()]
         stages = [round(record.stages_s.get(k, float("nan")) * 1e3, 4) for k in _STAGES]
         for body, pose in record.poses.items():
             q = Rotation.from_matrix(pose.R).as_quat()
             self._frames.writerow([record.number, record.t_start_ns, record.t_target_ns, record.t_present_ns,
-                                   round(record.sample_age_s * 1e3, 4), *stages, s.alpha, s.reuse_mode, s.spp,
-                                   int(s.prediction), body, record.sample_t_ns.get(body), *np.round(pose.t, 6),
+                                   round(record.sample_age_s * 1e3, 4), *stages, *settings, body,
+                                   record.sample_t_ns.get(body), *np.round(pose.t, 6),
                                    *np.round(q, 8)])
         if image is not None:
             from dpmhw.postprocess import write_png

@@ -76,6 +76,17 @@ function resolve(schema) {
   return schema;
 }
 
+// A slider over a number field's bounds in round steps (a power of ten, about 100 positions): its
+// ends are the first and last multiples of the step within the bounds (exclusive ones excluded).
+function sliderRange(s) {
+  const lo = s.minimum ?? s.exclusiveMinimum ?? 0, hi = s.maximum ?? s.exclusiveMaximum;
+  const step = 10 ** Math.round(Math.log10((hi - lo) / 100));
+  let first = Math.ceil(lo / step) * step, last = Math.floor(hi / step) * step;
+  if (s.minimum === undefined && first <= lo) first += step;
+  if (s.maximum === undefined && last >= hi) last -= step;
+  return [first, last, step];
+}
+
 function labelText(name) { return name.replace(/_/g, " "); }
 
 async function applySetting(name, value) {
@@ -108,9 +119,8 @@ function buildControls(schema, values) {
     } else if (s.type === "number" && (s.maximum !== undefined || s.exclusiveMaximum !== undefined)) {
       input = document.createElement("input");
       input.type = "range";
-      const lo = s.minimum ?? s.exclusiveMinimum ?? 0, hi = s.maximum ?? s.exclusiveMaximum;
-      const step = (hi - lo) / 100;
-      input.min = s.minimum ?? (lo + step); input.max = s.maximum ?? (hi - step); input.step = step;
+      const [min, max, step] = sliderRange(s);
+      input.min = min; input.max = max; input.step = step;
       const out = document.createElement("output");
       out.id = "val-" + name;
       input.addEventListener("input", () => { out.textContent = Number(input.value).toFixed(2); });
@@ -154,10 +164,6 @@ async function loadSettings() {
     const [api, values] = await Promise.all([fetch("/openapi.json").then((r) => r.json()), fetch("/settings").then((r) => r.json())]);
     settingsSchema = api.components.schemas.SettingsModel;
     lastSettings = values;
-    // Anything /settings returns that the schema does not describe still gets a plain control.
-    for (const k of Object.keys(values)) {
-      if (!settingsSchema.properties[k]) settingsSchema.properties[k] = { type: typeof values[k] === "boolean" ? "boolean" : typeof values[k] === "number" ? "number" : "string" };
-    }
     buildControls(settingsSchema, values);
   } catch (err) {
     say(`could not read the settings: ${err.message}`, false);

@@ -97,13 +97,16 @@ def test_relative_mesh_path_renders_on_a_worker_elsewhere_without_the_file(pool,
 def test_bench_quality_on_ray_matches_local_and_its_references_are_reused_locally(pool, tmp_path):
     import dataclasses
 
-    from dpmhw.benchmarks.quality import QualityConfig, ReferenceCache, format_table, run_quality
+    from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
+    from dpmhw.benchmarks.references import ReferenceCache
+    from dpmhw.cluster.bench import run_units_on_ray
     from dpmhw.sequence import scaled_scene
 
     cfg = dataclasses.replace(
         QualityConfig.quick(), parts=("static", "dynamic"), scale=1 / 32, ref_spp=PASSES_PER_BLOCK + 4, dynamic_ref_spp=4, static_spp=(1, 2), spp_repeats=1,
         alphas=(0.5,), eval_frames=1, modes=("same-pixel",), dynamic_fps=(947.0, 60.0), dynamic_eval_times=(0.02, 0.04), threads=1)
-    on_ray = run_quality(cfg, cache_dir=tmp_path / "cluster-cache", pool=pool)
+    on_ray = run_quality(cfg, cache_dir=tmp_path / "cluster-cache", pool=pool,
+                         run_units=lambda units, cache, progress: run_units_on_ray(pool, units, cache, progress))
     assert on_ray["references"]["rendered"] == 1 + 2 + 2 and on_ray["ray"]["address"] == "local"
     assert [t["fps"] for t in on_ray["dynamic"]["timelines"]] == [947.0, 60.0]
     cpu = on_ray["cpu_seconds"]  # the workers' CPU, which no process here accounts for

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dpmhw.metrics import equivalent_spp, luma, psnr, ssim
+from dpmhw.metrics import equivalent_spp, luma, masked_psnr, psnr, ssim
 from dpmhw.postprocess import ProjectorResponse, postprocess, srgb_decode, srgb_encode, to_srgb8, tonemap
 
 
@@ -56,6 +56,17 @@ def test_psnr_definition():
     assert psnr(ref, ref) == float("inf")
     with pytest.raises(ValueError, match="uint8"):
         psnr(ref.astype(float), ref)
+
+
+def test_masked_psnr_is_the_psnr_of_the_masked_pixels_and_nan_for_none():
+    ref = np.zeros((4, 4, 3), np.uint8)
+    img = ref.copy()
+    img[0] = 10  # the error is all in row 0
+    mask = np.zeros((4, 4), bool)
+    mask[:2] = True
+    assert masked_psnr(img, ref, mask) == pytest.approx(10 * np.log10(255.0**2 / 50.0))  # mse 100 over half the pixels
+    assert masked_psnr(img, ref, ~mask) == float("inf")
+    assert np.isnan(masked_psnr(img, ref, np.zeros((4, 4), bool)))
 
 
 def test_ssim_is_wang_2004_on_luma():

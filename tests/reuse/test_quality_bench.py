@@ -6,7 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from dpmhw.benchmarks.quality import QualityConfig, ReferenceCache, format_table, run_quality, scene_digest
+from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
+from dpmhw.benchmarks.references import ReferenceCache, scene_digest
 from dpmhw.scene_file import load_scene
 from dpmhw.sequence import scaled_scene
 

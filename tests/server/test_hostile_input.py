@@ -13,6 +13,7 @@ import pytest
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings, strategies as st
 
+from dpmhw.session.config import LiveSettings
 from server.app import MAX_BODY_BYTES, build_app
 
 TOKEN = "test-token-123"
@@ -110,7 +111,7 @@ _hostile_value = st.one_of(
 
 
 @settings(max_examples=60, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(field=st.sampled_from(["alpha", "spp", "reuse_mode", "split_screen", "prediction", "colour"]), value=_hostile_value,
+@given(field=st.sampled_from([*LiveSettings.model_fields, "colour"]), value=_hostile_value,
        auth=st.sampled_from(["good", "none", "wrong", "scheme"]), oversize=st.booleans())
 def test_every_mutating_route_survives_nan_infinity_wrong_types_oversized_bodies_and_bad_tokens(
         client, field, value, auth, oversize):

@@ -81,3 +81,29 @@ def test_live_settings_reject_out_of_range():
         LiveSettings(spp=0)
     with pytest.raises(ValueError):
         LiveSettings(colour="red")
+
+
+def _float_fields():
+    """(section.field, is a tuple) of every float in the config."""
+    from dpmhw.session.config import SessionConfig
+
+    for section, info in SessionConfig.model_fields.items():
+        model = info.annotation
+        for name, field in getattr(model, "model_fields", {}).items():
+            if field.annotation is float or field.annotation == tuple[float, float, float]:
+                yield f"{section}.{name}", field.annotation is not float
+
+
+@pytest.mark.parametrize("path, is_tuple", list(_float_fields()))
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "1e-320", "-5e-324"])
+def test_every_float_refuses_non_finite_and_subnormal_values_naming_the_field(path, is_tuple, value):
+    shown = f"[{value}, 0.0, 0.0]" if is_tuple else value
+    with pytest.raises(SessionConfigError) as info:
+        load_session_config(None, [f"{path}={shown}"])
+    lines = str(info.value).splitlines()
+    assert len(lines) >= 1 and all(line.startswith(f"command line: {path}") for line in lines), lines
+
+
+def test_the_float_table_is_not_empty():
+    paths = [p for p, _ in _float_fields()]
+    assert {"reuse.alpha", "render.target_fps", "tracker.workspace_min", "safety.watchdog_s"} <= set(paths)

@@ -1,0 +1,22 @@
+"""A digest of the renderer's source: what keys cached references, and what a cluster's workers
+must share with the driver to give the same image."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+from dpmhw import __version__
+
+# neither changes a path-traced image: the native G-buffer, and this file
+NOT_RENDERING = ("gbuffer.py", "digest.py")
+
+
+def renderer_digest() -> str:
+    """sha256 of the version and dpmhw/render/*.py (but NOT_RENDERING), 16 hex digits."""
+    h = hashlib.sha256(__version__.encode())
+    for p in sorted(Path(__file__).resolve().parent.glob("*.py")):
+        if p.name in NOT_RENDERING:
+            continue
+        h.update(p.name.encode() + p.read_bytes())
+    return h.hexdigest()[:16]
