@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli import app, write_json
+from dpmhw.cli.apps import app, write_json
 from dpmhw.cli.session import ConfigOpt, SetOpt, _fail, _load
 
 

@@ -367,12 +367,10 @@ def build_session(config: SessionConfig, *, mock: bool = False, renderer: Any = 
                   usb: tuple[str, bytes] | None = None) -> SessionLoop:
     """A ready-to-start loop over freshly opened parts, every per-frame kernel ready (compiled
     now if the cache lacks it: `warmup.compile_kernels` fills it ahead, in parallel)."""
-    from dpmhw.session.warmup import warm_loop
-
     loop = SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer, usb=usb), frame_log=frame_log)
     if renderer is None:
         try:
-            warm_loop(loop)
+            loop.warm()
         except BaseException:
             loop.stop("the render kernels could not be readied")
             raise

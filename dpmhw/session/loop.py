@@ -43,6 +43,7 @@ from dpmhw.postprocess import NonFiniteFrameError
 from dpmhw.lod.mesh_loop import mesh_lod
 from dpmhw.lod.refine import tile_refiner
 from dpmhw.reconstruct.adaptive import AdaptiveSampler
+from dpmhw.reconstruct.settings import FILTER_MODES, REUSE_MODES
 from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
@@ -186,6 +187,17 @@ def reconstruct_stage(config: SessionConfig, scene, renderer, gbuffer, clock) ->
                             analytic=(r.analytic_floor, r.analytic_specular_floor) if r.analytic else None)
 
 
+def exercise_stage(stage: ReconstructStage, frames, camera) -> None:
+    """Every reuse mode and filter an operator can switch to, each over `frames` ((poses, Frame)
+    at two poses: the second takes the history and the moved region), then a clean history:
+    what a stage calls, called once (numba compiles or loads it now, not in a frame)."""
+    for mode in REUSE_MODES:
+        for filt in FILTER_MODES:
+            for poses, frame in frames:
+                stage.apply(frame, mode=mode, alpha=0.2, filter=filt, poses=poses, camera=camera)
+    stage.reset()
+
+
 class SessionLoop:
     """Runs one projection session. `start()`, then `stop()` (idempotent) for a verified dark end."""
 
@@ -242,6 +254,21 @@ class SessionLoop:
         self._publish(force=True)
 
     # ---- lifecycle -------------------------------------------------------------------------
+    def warm(self) -> float:
+        """Run each per-frame path once, on this loop's own renderer and stage, before it goes
+        live (a pose twice, its camera hits then kept, and a move); returns the seconds taken.
+        With a warm kernel cache this loads code; otherwise it compiles it."""
+        t0 = time.monotonic()
+        scene, renderer = self.parts.scene, self.parts.renderer
+        frames = []
+        for k, t in enumerate((0.0, 0.0, 0.25)):
+            poses = scene.object_poses(t)
+            frames.append((poses, renderer.render(time=t, seed=k, spp=1, poses=poses)))
+        exercise_stage(self.reconstruct, frames[1:], renderer.camera)
+        took = time.monotonic() - t0
+        log.info("render and reconstruction kernels ready in %.1f s", took)
+        return took
+
     def start(self) -> "SessionLoop":
         # every tracker sample feeds the predictor, not only the newest one per frame: at 10 fps
         # `history` newest-per-frame samples would span a second instead of a few milliseconds

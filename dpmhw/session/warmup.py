@@ -12,8 +12,8 @@ Two passes, so that no frame ever waits for a compile:
 1. `compile_kernels`: independent groups compiled at once in worker processes that fill the
    cache, with progress (kernels done out of those expected, elapsed time, ETA). Nothing of the
    session is open yet, so a stop just ends the workers.
-2. `warm_loop`: the session's own renderer and reconstruction stage run every per-frame path
-   once (every reuse mode and filter an operator can switch to, an object moving between two
+2. `SessionLoop.warm`: the session's own renderer and reconstruction stage run every per-frame
+   path once (every reuse mode and filter an operator can switch to, an object moving between two
    frames) before the loop goes live: loaded from the cache, compiled where it lacks something.
 """
 
@@ -125,12 +125,12 @@ def _synthetic_frame(scene, renderer, t: float):
 
 def _reconstruction(config_data: dict) -> None:
     """The native G-buffer, reuse, filter, upsampling, LOD and post on synthetic frames."""
-    from dpmhw.session.loop import reconstruct_stage
+    from dpmhw.session.loop import exercise_stage, reconstruct_stage
 
     config, scene, renderer, gbuffer = _build(config_data)
     stage = reconstruct_stage(config, scene, _NoPaths(renderer), gbuffer, time.monotonic_ns)
     frames = [(scene.object_poses(t), _synthetic_frame(scene, renderer, t)) for t in (0.0, 0.25)]
-    _run_stage(stage, frames, renderer.camera)
+    exercise_stage(stage, frames, renderer.camera)
 
 
 # Each group's kernels and their cold compile time in seconds (exclusive of the callees listed
@@ -171,19 +171,6 @@ class KernelGroup:
 
 GROUPS: dict[str, KernelGroup] = {name: KernelGroup(run, EXPECTED_S[name]) for name, run in
                                   (("path tracing", _path_tracing), ("G-buffer and reconstruction", _reconstruction))}
-
-
-def _run_stage(stage, frames, camera) -> None:
-    """Every reuse mode and filter, each over frames at two poses (the second takes the history
-    and the moved region), then a clean history."""
-    from dpmhw.reconstruct.reuse import MODES
-    from dpmhw.reconstruct.weights import FILTER_MODES
-
-    for mode in MODES:
-        for filt in FILTER_MODES:
-            for poses, frame in frames:
-                stage.apply(frame, mode=mode, alpha=0.2, filter=filt, poses=poses, camera=camera)
-    stage.reset()
 
 
 def _qualname(dispatcher) -> str:
@@ -311,19 +298,3 @@ def compile_kernels(config, *, progress: Callable[[CompileProgress], None] | Non
     if progress is not None and not state.stopped and not reported_end:
         progress(state)
     return state
-
-
-def warm_loop(loop) -> float:
-    """Run each per-frame path of `loop` once, on its own renderer and stage, before it goes live;
-    returns the seconds it took. With a warm cache this loads; otherwise it compiles."""
-    t0 = time.monotonic()
-    parts = loop.parts
-    scene, renderer = parts.scene, parts.renderer
-    frames = []
-    for k, t in enumerate((0.0, 0.0, 0.25)):  # a pose twice (its camera hits kept), then a move
-        poses = scene.object_poses(t)
-        frames.append((poses, renderer.render(time=t, seed=k, spp=1, poses=poses)))
-    _run_stage(loop.reconstruct, frames[1:], renderer.camera)
-    took = time.monotonic() - t0
-    log.info("render and reconstruction kernels ready in %.1f s", took)
-    return took
