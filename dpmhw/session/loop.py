@@ -187,15 +187,17 @@ def reconstruct_stage(config: SessionConfig, scene, renderer, gbuffer, clock) ->
                             analytic=(r.analytic_floor, r.analytic_specular_floor) if r.analytic else None)
 
 
-def exercise_stage(stage: ReconstructStage, frames, camera) -> None:
+def exercise_stage(stage: ReconstructStage, frames, camera):
     """Every reuse mode and filter an operator can switch to, each over `frames` ((poses, Frame)
     at two poses: the second takes the history and the moved region), then a clean history:
-    what a stage calls, called once (numba compiles or loads it now, not in a frame)."""
+    what a stage calls, called once (numba compiles or loads it now, not in a frame). Returns
+    the last output."""
     for mode in REUSE_MODES:
         for filt in FILTER_MODES:
             for poses, frame in frames:
-                stage.apply(frame, mode=mode, alpha=0.2, filter=filt, poses=poses, camera=camera)
+                out = stage.apply(frame, mode=mode, alpha=0.2, filter=filt, poses=poses, camera=camera)
     stage.reset()
+    return out
 
 
 class SessionLoop:
@@ -264,10 +266,20 @@ class SessionLoop:
         for k, t in enumerate((0.0, 0.0, 0.25)):
             poses = scene.object_poses(t)
             frames.append((poses, renderer.render(time=t, seed=k, spp=1, poses=poses)))
-        exercise_stage(self.reconstruct, frames[1:], renderer.camera)
+        out = exercise_stage(self.reconstruct, frames[1:], renderer.camera)
+        if self.mesh_lod is not None:
+            self._observe_mesh_lod(out.image, frames[-1][1])
         took = time.monotonic() - t0
         log.info("render and reconstruction kernels ready in %.1f s", took)
         return took
+
+    def _observe_mesh_lod(self, image: np.ndarray, frame) -> None:
+        g = self.parts.gbuffer
+        H, W = image.shape[:2]
+        refiner = self.reconstruct.lod  # its map of this output, when tiles are refined: one map for both uses
+        self.mesh_lod.observe(image, g.depth.reshape(H, W) if g is not None else frame.depth,
+                              g.id.reshape(H, W) if g is not None else frame.object_id,
+                              visibility=refiner.output_map if refiner is not None else None)
 
     def start(self) -> "SessionLoop":
         # every tracker sample feeds the predictor, not only the newest one per frame: at 10 fps
@@ -588,14 +600,9 @@ class SessionLoop:
         image = out.image
         image.setflags(write=False)
         stages.update(out.stages_s)
-        if self.mesh_lod is not None:  # issue 13: the output's visibility per object, for the next choice
+        if self.mesh_lod is not None:  # the output's visibility per object, for the next choice
             t3 = self.clock()
-            g = self.parts.gbuffer
-            H, W = image.shape[:2]
-            refiner = self.reconstruct.lod  # its map of this output, when tiles are refined: one map for both uses
-            self.mesh_lod.observe(image, g.depth.reshape(H, W) if g is not None else frame.depth,
-                                  g.id.reshape(H, W) if g is not None else frame.object_id,
-                                  visibility=refiner.output_map if refiner is not None else None)
+            self._observe_mesh_lod(image, frame)
             stages["mesh_lod"] += (self.clock() - t3) / 1e9
         t4 = self.clock()
         # the newest sample may have gone stale while this frame was made: never light it then
