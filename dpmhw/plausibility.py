@@ -19,10 +19,11 @@ picture somewhere it must not be, so each sample of a tracked body is checked ag
 
 The defaults bound a hand-held or hand-guided object: 10 m/s, 100 m/s² (10 g, a hard swing),
 30 rad/s (a wrist flick, about 1700°/s), 1000 rad/s². At 240 Hz they allow a sample 2.9 mm and
-1.1° off the prediction: a corrupted record that moves a pose further is refused.
+0.8° off the prediction: a corrupted record that moves a pose further is refused.
 
 After a gap (refused or missing samples) the allowed deviation grows with dt²; once it would
-exceed `max_jump_m` the body is re-acquired: `confirm` consecutive samples must agree with each
+exceed `max_jump_m` (6 mm: with a stamp up to 1 ms off, a pose the gate accepts on its own is
+within 1 cm of the truth at 2 m/s) the body is re-acquired: `confirm` consecutive samples must agree with each
 other (the last within the acceleration bound of the first two's velocity) before the newest is
 accepted, so a single corrupt sample is never accepted because its body went unseen for a while.
 A sample that fails against the last accepted one but fits the one before is accepted and the
@@ -61,7 +62,7 @@ class PlausibilityLimits:
     max_angular_speed_rad_s: float = 30.0
     max_angular_accel_rad_s2: float = 1000.0
     rotation_noise_rad: float = 0.003
-    max_jump_m: float = 0.01
+    max_jump_m: float = 0.006
     confirm: int = 3  # 1 takes a sample after a gap on its own (replays of single frames)
 
     def __post_init__(self) -> None:
@@ -163,7 +164,7 @@ class PlausibilityGate:
                                  f"(at most {lim.max_speed_m_s:g} m/s)")
             if lim.jump_bound_m(dt_s) <= lim.max_jump_m:
                 why = self._fits(history, new)
-                if why is None or (len(history) >= 2 and self._fits(history[:-1], new) is None):
+                if why is None or (len(history) >= 2 and self._fits(history[:-1], new, lim.max_jump_m) is None):
                     if why is not None:
                         history.pop()  # the last one was off (within the bounds): the fallback fits
                     self._accept(body, history, new)
@@ -197,8 +198,9 @@ class PlausibilityGate:
         history.append(new)
         self._accepted[body] = history[-_HISTORY:]
 
-    def _fits(self, history: list[_Accepted], new: _Accepted) -> tuple[str, str] | None:
-        """None when `new` lies within the acceleration bounds of the motion `history` predicts."""
+    def _fits(self, history: list[_Accepted], new: _Accepted, cap_m: float = math.inf) -> tuple[str, str] | None:
+        """None when `new` lies within the acceleration bounds of the motion `history` predicts
+        (and within `cap_m` of the predicted position)."""
         lim = self.limits
         last = history[-1]
         dt_s = (new.t_ns - last.t_ns) / 1e9
@@ -216,7 +218,7 @@ class PlausibilityGate:
         else:
             predicted = last.p
         off = math.dist(new.p, predicted)
-        bound = lim.jump_bound_m(dt_s)
+        bound = min(lim.jump_bound_m(dt_s), cap_m)
         if off > bound:
             return "jump", (f"{off * 1e3:.1f} mm from where its motion predicts it {dt_s * 1e3:.1f} ms after the last "
                             f"accepted sample (at most {bound * 1e3:.1f} mm: {lim.max_accel_m_s2:g} m/s²)")

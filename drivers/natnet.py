@@ -237,7 +237,10 @@ class NatNetClient(ReceiverTracker):
                 f"positive and before the transmit stamp {transmit}"
             )
         bodies = self._check_bodies(frame)  # validates before anything is counted
-        self.clock.add_one_way(self._ticks_to_ns(transmit), arrival_ns)
+        transmit_ns = self._ticks_to_ns(transmit)
+        unmapped = self.clock.offset_ns is None
+        if unmapped:  # the first evidence: there is nothing yet to check it against
+            self.clock.add_one_way(transmit_ns, arrival_ns)
         if frame.models_changed:
             self._want_models = True
         self.system_latency_s = (transmit - mid) / clock_hz  # Motive's mid-exposure → transmit
@@ -246,7 +249,10 @@ class NatNetClient(ReceiverTracker):
             PoseSample.from_floats(rb_id, rotation, position, mid_host, arrival_ns, valid, error, frame.frame_number)
             for rb_id, rotation, position, valid, error in bodies
         ]
-        return self._publish_frame(samples, arrival_ns, frame.frame_number)
+        published = self._publish_frame(samples, arrival_ns, frame.frame_number)
+        if self.frame_taken and not unmapped:  # only a frame the checks believe feeds the clock
+            self.clock.add_one_way(transmit_ns, arrival_ns)
+        return published
 
     @staticmethod
     def _check_bodies(frame: FramePoses) -> list[tuple[int, tuple, tuple, bool, float]]:

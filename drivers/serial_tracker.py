@@ -10,7 +10,9 @@ echo, so the device→host offset is the running minimum of arrival minus device
 device's known output latency (measurement to first byte, `device_latency_s`) is subtracted:
 without it every pose would be stamped late by that latency. The first `warmup_records` of a
 session only feed that minimum (they are not published): a single delayed record must not set
-the stamps of everything after it.
+the stamps of everything after it. After them, only records the plausibility gate accepts feed
+it: the protocol has no checksum, and a corrupt stamp a few ms ahead would lower the minimum and
+stamp every later pose that much early.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import numpy as np
 import serial
 
 from dpmhw.plausibility import PlausibilityLimits
-from dpmhw.tracking import PoseSample, TrackerState, quaternions_xyzw_to_matrices
+from dpmhw.tracking import ClockMapping, PoseSample, TrackerState, quaternions_xyzw_to_matrices
 from drivers.polhemus_protocol import PoseRecord, PolhemusDecodeError, RecordParser, TextRecord
 from drivers.tracker_base import _RESYNC_RUN, LinkLost, ReceiverTracker
 
@@ -71,6 +73,10 @@ class PolhemusTracker(ReceiverTracker):
             raise ValueError(f"units must be one of {', '.join(_UNITS)}, got {units!r}")
         self.port = port
         self.baudrate = baudrate
+        # The one-way minimum may drop by at most this per reading unless three agree: a corrupt
+        # stamp the gate cannot tell from a genuine one (a little ahead while the body is slow)
+        # then moves every later stamp by at most 1 ms, not by the 10 ms a socket's default allows.
+        self.clock = ClockMapping(jump_tolerance_s=0.001)
         self.units = units
         self.device_latency_ns = int(device_latency_s * 1e9)
         self.reset_wait_s = reset_wait_s
@@ -112,15 +118,20 @@ class PolhemusTracker(ReceiverTracker):
             elif isinstance(item, TextRecord):
                 self.model, self.who_am_i = item.model, item.text.strip()
             elif isinstance(item, PoseRecord):
-                sample = self._sample(item, arrival_ns)
                 if not self._stamp_fresh(item.station, item.timestamp_ms):
                     continue
                 self._count_gap(item.station, item.timestamp_ms)
+                device_ns = item.timestamp_ms * 1_000_000
+                unmapped = self._warmup_left > 0 or self.clock.offset_ns is None
+                if unmapped:  # the warm-up's records, or the first: nothing yet to check them against
+                    self.clock.add_one_way(device_ns, arrival_ns)
                 if self._warmup_left > 0:
                     self._warmup_left -= 1
                     self.warmup_skipped += 1
                     continue
-                out = self._publish_frame([sample], arrival_ns)
+                out = self._publish_frame([self._sample(item, arrival_ns)], arrival_ns)
+                if self.frame_taken and not unmapped:  # only a record the checks believe feeds the clock
+                    self.clock.add_one_way(device_ns, arrival_ns)
                 if out:
                     self._newest_ms[item.station] = item.timestamp_ms
                     published += out
@@ -175,7 +186,6 @@ class PolhemusTracker(ReceiverTracker):
 
     def _sample(self, rec: PoseRecord, arrival_ns: int) -> PoseSample:
         device_ns = rec.timestamp_ms * 1_000_000
-        self.clock.add_one_way(device_ns, arrival_ns)
         w, x, y, z = rec.quaternion_wxyz
         rotation, usable = quaternions_xyzw_to_matrices(np.array([[x, y, z, w]]))
         scale = _UNITS[self.units][1]

@@ -86,6 +86,7 @@ class ReceiverTracker:
         self.internal_errors = 0
         self.last_decode_error = ""
         self._last_arrival_ns: int | None = None
+        self.frame_taken = False  # whether the last frame published was numbered in order and refused by no check
         self._last_latency_ns: int | None = None
 
     # -- Tracker protocol ----------------------------------------------------------------------
@@ -220,8 +221,11 @@ class ReceiverTracker:
         """Publish one frame's samples; returns those the plausibility gate let through.
 
         With a `frame_number`, the frame is first checked against the newest number, and it
-        becomes the newest unless the gate refused every sample of it as implausible."""
-        resync = False
+        becomes the newest unless the gate refused every sample of it as implausible.
+        `frame_taken` tells the driver whether the gate refused none: only such a frame's stamps
+        may feed the clock mapping (one corrupt transmit stamp a few ms ahead would otherwise
+        lower the one-way minimum and stamp every later pose that much early)."""
+        resync = self.frame_taken = False
         if frame_number is not None:
             fresh = self._frame_number_fresh(frame_number)
             if fresh is False:
@@ -230,8 +234,9 @@ class ReceiverTracker:
         self.frames += 1
         refused = self.gate.refused
         published = self._poses.publish(samples)
+        self.frame_taken = self.gate.refused == refused
         if samples and not published:
-            if self.gate.refused != refused:
+            if not self.frame_taken:
                 return published  # implausible: it takes neither the frame number nor the arrival
             if frame_number is not None:  # held while a body is re-acquired: numbered, not yet an arrival
                 self._commit_frame_number(frame_number, resync)

@@ -105,7 +105,8 @@ def test_finding_3_one_flipped_timestamp_bit_does_not_shift_the_clock():
     # before it arrived, also the ones after the corrupt one (before the fix: 10^9 ms before)
     assert np.all(ages == tracker.device_latency_ns)
     st = tracker.status()
-    assert st.implausible == 1 and st.details["clock_outliers"] == 1 and st.frames_missed == 0
+    # the gate refused it before it could reach the clock mapping (only accepted records feed it)
+    assert st.implausible == 1 and st.details["clock_outliers"] == 0 and st.frames_missed == 0
 
 
 def test_clock_mapping_ignores_a_low_outlier_but_follows_a_confirmed_jump():

@@ -362,11 +362,12 @@ def test_gaps_in_record_timestamps_count_as_missed_records():
     tracker = PolhemusTracker("loop://", warmup_records=0)
     # each record arrives when it was made (the clock mapping refuses device time that outruns
     # arrival time: 50 ms of records arriving at one instant would look like corrupt stamps)
-    samples = [s for ms in (0, 4, 8, 13, 17, 21, 25, 33, 45, 50)
+    samples = [s for ms in (0, 4, 8, 13, 17, 21, 25, 33, 45, 50, 54, 58)
                for s in tracker.process_bytes(record_bytes(station=1, ms=ms), arrival_ns=10**9 + ms * 10**6)]
-    assert len(samples) == 10 - (CONFIRM - 1) and tracker.status().frames == 10  # the first ones held until they agree
+    # held until they agree: the first ones, and the two after the 12 ms gap (past `max_jump_m`)
+    assert len(samples) == 12 - 2 * (CONFIRM - 1) and tracker.status().frames == 12
     assert tracker.status().frames_missed == 3  # 29, then 37 and 41
-    assert [s.frame_number for s in samples][-1] == 50
+    assert [s.frame_number for s in samples][-1] == 58
     # units: the driver asked for centimetres, so 1, 2, 3 cm are metres 0.01, 0.02, 0.03
     np.testing.assert_allclose(samples[0].translation, [0.01, 0.02, 0.03], atol=1e-9)
 
