@@ -23,9 +23,10 @@ The defaults bound a hand-held or hand-guided object: 10 m/s, 100 m/s² (10 g, a
 
 After a gap (refused or missing samples) the allowed deviation grows with dt²; once it would
 exceed `max_jump_m` (6 mm: with a stamp up to 1 ms off, a pose the gate accepts on its own is
-within 1 cm of the truth at 2 m/s) the body is re-acquired: `confirm` consecutive samples must agree with each
-other (the last within the acceleration bound of the first two's velocity) before the newest is
-accepted, so a single corrupt sample is never accepted because its body went unseen for a while.
+within 1 cm of the truth at 2 m/s) the body is re-acquired: `confirm` consecutive samples must
+agree with each other (the last within the acceleration bound of the first two's velocity)
+before the newest is accepted, so a single corrupt sample is never accepted because its body
+went unseen for a while.
 A sample that fails against the last accepted one but fits the one before is accepted and the
 last is forgotten (that one was a small corruption the bounds let through: it must not cost the
 genuine samples after it). Samples the tracker itself marks invalid carry no pose and pass (the

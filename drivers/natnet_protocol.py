@@ -455,8 +455,8 @@ def _channels(r: _Reader, what: str, keep: bool) -> dict[int, list[np.ndarray]]:
     return items
 
 
-_SECTIONS_41 = ("marker sets", "unlabeled markers", "rigid bodies", "skeletons", "assets", "labeled markers",
-                "force plates", "devices")
+# marker sets, unlabeled markers, rigid bodies, skeletons, assets, labeled markers, force plates, devices
+_SECTIONS_41 = 8
 
 
 def _check_outline(r: _Reader, sized: bool) -> None:
@@ -473,7 +473,7 @@ def _check_outline(r: _Reader, sized: bool) -> None:
     if not sized:
         return
     pos = r.pos
-    for name in _SECTIONS_41:
+    for _ in range(_SECTIONS_41):
         if end - pos < 8:
             return  # the walk names the short field
         n, size = _TWO_I32.unpack_from(buf, pos)

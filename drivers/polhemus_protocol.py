@@ -18,7 +18,9 @@ On a malformed record the parser drops one byte and resynchronises on the next p
 good records behind it are never lost. A who-am-I reply may declare up to 512 body bytes, so a
 stray or corrupt who-am-I header would swallow the records behind it if its body were taken on
 trust: its body must be printable text, and the first byte that is not (every pose record
-carries its station number, 1…16, in its third byte) rejects the header at once. A truncated record is only known to be bad once a full
+carries its station number, 1…16, in its third byte) rejects the header at once. A reply cut
+short takes the next record's printable "LY" as text, so a body in which a pose-record header
+begins is refused there and the record kept. A truncated record is only known to be bad once a full
 record's worth of bytes follows it, so the good record right behind it is delayed by about one
 record period (never dropped).
 """
@@ -139,7 +141,7 @@ class RecordParser:
     def pending(self) -> int:
         return len(self._buf)
 
-    def _record_inside_text(self, model: str, end: int) -> int | None:
+    def _record_inside_text(self, end: int) -> int | None:
         """Where a valid pose-record header begins inside a who-am-I body (buffer offset); 0 when
         none does, None when one may but its header has not fully arrived.
 
@@ -188,7 +190,7 @@ class RecordParser:
                 del self._buf[:1]  # resynchronise on the next preamble
                 continue
             if command == WHO_AM_I:
-                cut = self._record_inside_text(model, HEADER.size + size)
+                cut = self._record_inside_text(HEADER.size + size)
                 if cut is None:
                     return out  # a preamble near its end: wait for the bytes that tell
                 if cut:

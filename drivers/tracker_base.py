@@ -86,7 +86,7 @@ class ReceiverTracker:
         self.internal_errors = 0
         self.last_decode_error = ""
         self._last_arrival_ns: int | None = None
-        self.frame_taken = False  # whether the last frame published was numbered in order and refused by no check
+        self.frame_taken = False  # the last frame was in order and the gate refused none of it
         self._last_latency_ns: int | None = None
 
     # -- Tracker protocol ----------------------------------------------------------------------
@@ -164,7 +164,8 @@ class ReceiverTracker:
     def _details(self) -> dict:
         return {"clock_method": self.clock.method, "clock_outliers": self.clock.outliers, "clock_jumps": self.clock.jumps,
                 "internal_errors": self.internal_errors, "last_decode_error": self.last_decode_error,
-                "callback_errors": self._poses.callback_errors, "older_dropped": self._poses.older_dropped, "frame_resyncs": self.frame_resyncs,
+                "callback_errors": self._poses.callback_errors, "older_dropped": self._poses.older_dropped,
+                "frame_resyncs": self.frame_resyncs,
                 **self.gate.counts()}
 
     def _set_state(self, state: TrackerState, reason: str = "") -> None:
@@ -217,7 +218,8 @@ class ReceiverTracker:
         self._first_frame_of_session = False
         self._last_frame_number = frame_number
 
-    def _publish_frame(self, samples: list[PoseSample], arrival_ns: int, frame_number: int | None = None) -> list[PoseSample]:
+    def _publish_frame(self, samples: list[PoseSample], arrival_ns: int,
+                       frame_number: int | None = None) -> list[PoseSample]:
         """Publish one frame's samples; returns those the plausibility gate let through.
 
         With a `frame_number`, the frame is first checked against the newest number, and it

@@ -25,6 +25,7 @@ from firmware_mocks.natnet_server import FrameContent, encode_frame
 from firmware_mocks.world import make_trajectory
 
 from .test_serial_tracker import record_bytes
+from .test_tracker_gates import server_info
 
 MS = 1_000_000
 STALE_NS = 50 * MS  # the loop's default `stale_after_ms`
@@ -67,12 +68,6 @@ PERIOD_360 = 2_777_778
 OFFSET_NS = 5 * 10**9  # host = server clock (1 GHz ticks) + this
 
 
-def _server_info(clock_hz: int, version=(4, 1)) -> bytes:
-    payload = (b"Motive".ljust(256, b"\0") + bytes((3, 1, 0, 0)) + bytes((*version, 0, 0))
-               + struct.pack("<QHB4B", clock_hz, 1511, 0, 239, 255, 42, 99))
-    return struct.pack("<HH", 1, len(payload)) + payload
-
-
 def _natnet_frame(number: int, mid: int, t_s: float, *, position=None, transmit=None) -> bytes:
     content = FrameContent(
         frame_number=number,
@@ -81,10 +76,10 @@ def _natnet_frame(number: int, mid: int, t_s: float, *, position=None, transmit=
     return encode_frame(content, "4.1")
 
 
-def _natnet_mutant(rng: np.random.Generator, k: int, number: int, mid: int, t_s: float) -> bytes:
+def _natnet_mutant(rng: np.random.Generator, number: int, mid: int, t_s: float) -> bytes:
     kind = rng.integers(9)
     if kind == 0:  # a server info: the clock changed, another version, or bytes flipped
-        info = bytearray(_server_info(int(10**9 * rng.choice([2, 0.5, 1.001])), ((3, 0), (4, 1), (4, 2))[rng.integers(3)]))
+        info = bytearray(server_info(int(10**9 * rng.choice([2, 0.5, 1.001])), ((3, 0), (4, 1), (4, 2))[rng.integers(3)]))
         for _ in range(rng.integers(0, 3)):
             info[rng.integers(len(info))] ^= 1 << rng.integers(8)
         return bytes(info)
@@ -118,7 +113,7 @@ def run_natnet(datagrams: int, seed: int) -> dict:
     rng = np.random.default_rng(seed)
     client = NatNetClient()
     client._info_requested_ns = 10**12  # the handshake: the reply to its own connect request
-    client.process_datagram(_server_info(10**9), arrival_ns=10**12 + MS)
+    client.process_datagram(server_info(10**9), arrival_ns=10**12 + MS)
     assert client.clock_hz == 10**9
     dark, wrong, published_total, genuine = Dark(), [], 0, 0
     k = 0
@@ -130,7 +125,7 @@ def run_natnet(datagrams: int, seed: int) -> dict:
         out = client.process_datagram(_natnet_frame(number, mid, t_s), arrival)
         sent, genuine = sent + 1, genuine + 1
         for _ in range(rng.poisson(1.0)):
-            out += client.process_datagram(_natnet_mutant(rng, k, number, mid, t_s), arrival + int(rng.integers(0, 2 * MS)))
+            out += client.process_datagram(_natnet_mutant(rng, number, mid, t_s), arrival + int(rng.integers(0, 2 * MS)))
             sent += 1
         for s in out:
             if s.valid:
@@ -168,11 +163,11 @@ def test_natnet_fuzz_100k():
 SCALE_CM = 100.0
 
 
-def _record(ms: int, pos_m=None) -> bytes:
+def _record(ms: int) -> bytes:
+    """The genuine record stamped `ms` (device time = the trajectory's time)."""
     t_s = ms / 1000
-    x, qy, _, qw = 0.0, *quat_xyzw(t_s)[1:]
-    pos = truth(t_s) if pos_m is None else pos_m
-    return record_bytes(station=1, pos=tuple(pos * SCALE_CM), quat_wxyz=(qw, 0.0, qy, 0.0), ms=ms)
+    _, qy, _, qw = quat_xyzw(t_s)
+    return record_bytes(station=1, pos=tuple(truth(t_s) * SCALE_CM), quat_wxyz=(qw, 0.0, qy, 0.0), ms=ms)
 
 
 def _serial_mutant(rng: np.random.Generator, stamps: list[int], k: int) -> bytes:
