@@ -77,7 +77,8 @@ def test_a_solicited_server_info_with_a_new_clock_ends_the_session_instead_of_be
     assert stream(client, range(20, 25), start_ns=10**12 + 20 * PERIOD_NS) == [[]] * 5  # nothing stamped on it
 
 
-def test_a_server_restarted_with_another_clock_is_handshaken_again():
+@pytest.mark.parametrize("unicast", [True, False], ids=["unicast", "multicast"])
+def test_a_server_restarted_with_another_clock_is_handshaken_again(unicast):
     """Loopback: Motive restarts with its clock at twice the rate; the client's connect probe while
     frames are missing gets the new server info, and the client handshakes again instead of
     stamping frames with the old rate (every stamp would be wrong)."""
@@ -85,7 +86,7 @@ def test_a_server_restarted_with_another_clock_is_handshaken_again():
 
     logged = with_state_log(type(natnet_client()))
     kw = dict(stale_after_s=0.05, lost_after_s=30.0, backoff_initial_s=0.05)
-    with natnet_pair("4.1", unicast=True, client_kw=kw, client_cls=logged) as (world, server, client):
+    with natnet_pair("4.1", unicast=unicast, client_kw=kw, client_cls=logged) as (world, server, client):
         assert wait_for(lambda: client.status().frames >= 20, WAIT_S)
         server.restart(0.1, server_uptime_s=100.0, clock_hz=2 * server.config.clock_hz)
         assert wait_for(lambda: client.was(TrackerState.LOST, "server info changed"), WAIT_S), client.states
