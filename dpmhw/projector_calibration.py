@@ -157,9 +157,11 @@ def load_projector_calibration(path: str | Path) -> ProjectorCalibration:
     path = Path(path)
     src = str(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise CalibrationFileError(src, "(file)", "no such file; run `dpmhw calibrate procam` to create it") from None
+    except UnicodeDecodeError as exc:
+        raise CalibrationFileError(src, "(file)", f"not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     except OSError as exc:
         raise CalibrationFileError(src, "(file)", f"cannot read: {exc}") from None
     try:

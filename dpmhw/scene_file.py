@@ -28,6 +28,9 @@ BUILTIN_SCENES = ("paper-static", "paper-dynamic", "dpm-bunny", "glossy-roughnes
 # No quantity in a scene (metres, pixels, radiance) is near this; larger ones are typos or attacks,
 # and would overflow into infinities and NaNs downstream (1e300 squared is inf).
 MAX_MAGNITUDE = 1e9
+# A timeline slower than a frame every 1000 s is a typo; below it, frame k sits so far out on the timeline
+# that scripted motion loses every digit of precision (1 / 1e-300 s).
+MIN_FPS = 1e-3
 SHAPES = ("quad", "box", "sphere", "mesh")
 SCENE_SECTIONS = {"render", "camera", "viewer", "objects"}
 
@@ -185,7 +188,7 @@ def _parse_render(source: str, table: dict) -> RenderSettings:
         height=height,
         max_bounces=f.number("max_bounces", default=1, lo=0, hi=64, integer=True),
         background=f.vector("background", default=(0, 0, 0), lo=0.0),
-        fps=float(f.number("fps", default=947.0, lo=0.0, hi=1e5, lo_open=True)),
+        fps=float(f.number("fps", default=947.0, lo=MIN_FPS, hi=1e5)),
     )
 
 

@@ -442,16 +442,25 @@ class LatestPoses:
         self._subscriptions: tuple[SampleSubscription, ...] = ()
         self.callback_errors = 0
         self.last_callback_error: str = ""
+        self.older_dropped = 0  # samples describing an instant no later than the newest held
 
     def publish(self, samples: list[PoseSample]) -> list[PoseSample]:
-        """Hand `samples` to every consumer; returns those the gate let through."""
+        """Hand `samples` to every consumer; returns those the gate let through that describe a later
+        instant than the newest held for their body (an older one is dropped, never made the newest)."""
         gate = self.gate
         if gate is not None:
             samples = [s for s in samples if gate.admit(s) is None]
         latest = self._latest
         with self._lock:
+            newer = []
             for s in samples:
-                latest[s.rigid_body_id] = s
+                held = latest.get(s.rigid_body_id)
+                if held is None or s.t_exposure_ns > held.t_exposure_ns:  # never an older instant as the newest
+                    latest[s.rigid_body_id] = s
+                    newer.append(s)
+                else:
+                    self.older_dropped += 1
+            samples = newer
         callbacks, subscriptions = self._callbacks, self._subscriptions
         for s in samples:
             for sub in subscriptions:

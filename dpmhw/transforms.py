@@ -45,8 +45,12 @@ def rotation_from_quat_xyzw(q) -> np.ndarray:
 
 
 def rotation_about_axis(axis, angle_rad: float) -> np.ndarray:
+    """Rotation by `angle_rad` about `axis`; the angle is taken modulo a turn (exactly, by fmod), so
+    a scripted rotation far out on a timeline stays a rotation instead of overflowing."""
+    if not math.isfinite(angle_rad):
+        raise ValueError(f"rotation angle {angle_rad!r} rad is not finite")
     axis = np.asarray(axis, dtype=float)
-    return rotvec_to_matrix(axis / np.linalg.norm(axis) * angle_rad)
+    return rotvec_to_matrix(axis / np.linalg.norm(axis) * math.fmod(angle_rad, 2.0 * math.pi))
 
 
 def rotvec_to_matrix(w) -> np.ndarray:

@@ -10,7 +10,9 @@ server→host clock offset comes from echo round trips (Cristian's method) and, 
 echo returns, from the running minimum of arrival minus transmit. Each pose is stamped with its
 mid-exposure instant mapped to `time.monotonic_ns()`.
 
-Every datagram is decoded defensively: malformed ones are counted (`status().malformed`) and
+A server info is applied only as the reply to this client's own connect request; one that
+changes the clock frequency or NatNet version under a running stream makes the client handshake
+again. Every datagram is decoded defensively: malformed ones are counted (`status().malformed`) and
 dropped; a frame with a flagged-tracked body whose pose is not a pose is malformed too.
 Only datagrams from the configured server's address are read at all (and replies to commands
 only from its command port; see `_from_server`): any host on the network can send UDP to these
@@ -113,6 +115,9 @@ class NatNetClient(ReceiverTracker):
         self.models = ModelDefinitions()
         self.system_latency_s: float | None = None  # Motive's own mid-exposure→transmit
         self.other_messages = 0
+        self.unsolicited_server_info = 0
+        self._info_requested_ns: int | None = None  # when this client last asked for a server info
+        self._rehandshake = ""  # why the running session must handshake again
         self.foreign_datagrams = 0
         self.foreign_senders: Counter[str] = Counter()
         self._server_ip: str | None = None
@@ -154,7 +159,7 @@ class NatNetClient(ReceiverTracker):
             if msg_id == MessageId.FRAME_OF_DATA:
                 return self._handle_frame(payload, arrival_ns)
             if msg_id == MessageId.SERVER_INFO:
-                self._apply_server_info(decode_server_info(payload))
+                self._on_server_info(decode_server_info(payload), arrival_ns)
             elif msg_id == MessageId.MODEL_DEF:
                 if self.version is None:
                     raise NatNetDecodeError("model definitions arrived before the server info (version unknown)")
@@ -169,13 +174,36 @@ class NatNetClient(ReceiverTracker):
             self._count_internal_error(exc)
         return []
 
+    def _on_server_info(self, info: ServerInfo, arrival_ns: int) -> None:
+        """Apply a server info only as the answer to this client's own connect request (within
+        `connect_timeout_s` of it): one at any other time (from the server's address and command
+        port, so a spoofed or stray datagram) could change the clock every stamp is derived from.
+        Those are counted (`status().details['unsolicited_server_info']`) and ignored."""
+        requested = self._info_requested_ns
+        if requested is None or not 0 <= arrival_ns - requested <= self.connect_timeout_s * 1e9:
+            self.unsolicited_server_info += 1
+            return
+        self._info_requested_ns = None
+        self._apply_server_info(info)
+
     def _apply_server_info(self, info: ServerInfo) -> None:
+        """Take the handshake's server info; a later one that changes the clock frequency or the
+        NatNet version (a Motive restarted with other settings) is not applied under a running
+        stream: it ends the session (`_rehandshake`), and the next one handshakes afresh."""
         try:
             server_version = parse_version(info.natnet_version)
         except ValueError as exc:
             raise TrackerError(f"{info.app_name} at {self.server}: {exc}") from None
         if info.clock_hz is None:
             raise TrackerError(f"{info.app_name} at {self.server}: server info lacks the clock frequency")
+        old = self.server_info
+        if old is not None:
+            if (info.clock_hz, info.natnet_version[:2]) != (old.clock_hz, old.natnet_version[:2]):
+                self._rehandshake = (
+                    f"the server info changed mid-stream (clock {old.clock_hz} → {info.clock_hz} Hz, NatNet "
+                    f"{'.'.join(map(str, old.natnet_version[:2]))} → {'.'.join(map(str, info.natnet_version[:2]))}); "
+                    "handshaking again")
+            return
         self.server_info = info
         self.version = self.forced_version or server_version
         self.clock_hz = info.clock_hz
@@ -195,6 +223,9 @@ class NatNetClient(ReceiverTracker):
             log.warning("natnet: the server's clock changed (restarted?); clock mapping and frame numbers start over")
 
     def _handle_frame(self, payload, arrival_ns: int) -> list[PoseSample]:
+        if self._rehandshake:
+            self.other_messages += 1  # stamped on a clock the server no longer uses: not read
+            return []
         clock_hz = self.clock_hz
         if self.version is None or clock_hz is None:
             raise NatNetDecodeError("frame arrived before the server info (version and clock unknown)")
@@ -206,18 +237,22 @@ class NatNetClient(ReceiverTracker):
                 f"positive and before the transmit stamp {transmit}"
             )
         bodies = self._check_bodies(frame)  # validates before anything is counted
-        self.clock.add_one_way(self._ticks_to_ns(transmit), arrival_ns)
+        transmit_ns = self._ticks_to_ns(transmit)
+        unmapped = self.clock.offset_ns is None
+        if unmapped:  # the first evidence: there is nothing yet to check it against
+            self.clock.add_one_way(transmit_ns, arrival_ns)
         if frame.models_changed:
             self._want_models = True
-        if not self._accept_frame_number(frame.frame_number):
-            return []
         self.system_latency_s = (transmit - mid) / clock_hz  # Motive's mid-exposure → transmit
         mid_host = self.clock.to_host_ns(self._ticks_to_ns(mid))
         samples = [
             PoseSample.from_floats(rb_id, rotation, position, mid_host, arrival_ns, valid, error, frame.frame_number)
             for rb_id, rotation, position, valid, error in bodies
         ]
-        return self._publish_frame(samples, arrival_ns)
+        published = self._publish_frame(samples, arrival_ns, frame.frame_number)
+        if self.frame_taken and not unmapped:  # only a frame the checks believe feeds the clock
+            self.clock.add_one_way(transmit_ns, arrival_ns)
+        return published
 
     @staticmethod
     def _check_bodies(frame: FramePoses) -> list[tuple[int, tuple, tuple, bool, float]]:
@@ -246,6 +281,7 @@ class NatNetClient(ReceiverTracker):
 
     def _details(self) -> dict:
         return {**super()._details(), "foreign_datagrams": self.foreign_datagrams,
+                "unsolicited_server_info": self.unsolicited_server_info,
                 "foreign_senders": dict(self.foreign_senders)}
 
     def _from_server(self, sender: tuple, data: bytes, command_socket: bool) -> bool:
@@ -283,6 +319,11 @@ class NatNetClient(ReceiverTracker):
     def _send(self, datagram: bytes) -> None:
         self._cmd.sendto(datagram, (self.server, self.command_port))
 
+    def _send_connect(self, version: tuple[int, int]) -> None:
+        """A connect request; its server-info reply is the only one this client applies."""
+        self._info_requested_ns = time.monotonic_ns()
+        self._send(encode_connect((*version, 0, 0)))
+
     def _send_echo(self) -> int:
         """Echo request stamped with the host clock; the response is matched by that stamp."""
         stamp = time.monotonic_ns()
@@ -304,6 +345,7 @@ class NatNetClient(ReceiverTracker):
         self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._cmd.bind((self.local_interface, 0))
         self.server_info = None
+        self._rehandshake = ""
         deadline = time.monotonic() + self.connect_timeout_s
         next_try = 0.0
         while self.server_info is None:
@@ -316,7 +358,7 @@ class NatNetClient(ReceiverTracker):
                     "(is Motive streaming, and are the address and command port right?)"
                 )
             if now >= next_try:
-                self._send(encode_connect((*(self.forced_version or (4, 1)), 0, 0)))
+                self._send_connect(self.forced_version or (4, 1))
                 next_try = now + 0.2
             if select.select([self._cmd], [], [], 0.02)[0]:
                 data = self._recv(self._cmd)
@@ -325,7 +367,7 @@ class NatNetClient(ReceiverTracker):
                 try:
                     msg_id, payload = split_message(data)
                     if msg_id == MessageId.SERVER_INFO:
-                        self._apply_server_info(decode_server_info(payload))
+                        self._on_server_info(decode_server_info(payload), time.monotonic_ns())
                 except NatNetDecodeError as exc:
                     self._count_malformed(exc)
 
@@ -393,7 +435,6 @@ class NatNetClient(ReceiverTracker):
         keepalive_ns, echo_ns = self.keepalive_interval_s * 1e9, self.echo_interval_s * 1e9
         stop, monotonic_ns, dont_wait = self._stop, time.monotonic_ns, socket.MSG_DONTWAIT
         connected_ns = last_keepalive = last_echo = last_probe = monotonic_ns()
-        frames_at_start = self.frames
         while not stop.is_set():
             for fd, _ in poller.poll(20):
                 try:
@@ -403,15 +444,16 @@ class NatNetClient(ReceiverTracker):
                 if data is not None:
                     self.process_datagram(data, monotonic_ns())
             now = monotonic_ns()
-            since = self._last_arrival_ns if self.frames > frames_at_start else connected_ns
+            since = max(self._last_arrival_ns or 0, connected_ns)  # the newest plausible frame of this session
             if now - since > stale_ns and now - last_probe > probe_ns:
                 # Frames are missing: Motive may have restarted. Every `stale_after_s`, connect
-                # again (unicast: a restarted Motive has forgotten its clients; a CONNECT registers
-                # one, and its server-info reply is harmless) and send an echo (its round trip
-                # teaches the client a restarted server's clock at once), instead of waiting for
-                # the next keep-alive, echo or the link timeout.
+                # again (a restarted Motive has forgotten its unicast clients, and a CONNECT
+                # registers one; its server-info reply ends the session if the clock or version
+                # changed) and send an echo (its round trip teaches the client a restarted
+                # server's clock at once), instead of waiting for the next keep-alive, echo or
+                # the link timeout.
+                self._send_connect(self.forced_version or self.version or (4, 1))
                 if not use_multicast:
-                    self._send(encode_connect((*(self.forced_version or self.version or (4, 1)), 0, 0)))
                     last_keepalive = now
                 last_probe = last_echo = self._send_echo()
             elif not use_multicast and now - last_keepalive > keepalive_ns:
@@ -424,3 +466,5 @@ class NatNetClient(ReceiverTracker):
                 self._send(encode_message(MessageId.REQUEST_MODEL_DEF))
             if now - since > lost_ns:
                 self._check_alive(since, "frame of data")
+            if self._rehandshake:
+                raise LinkLost(self._rehandshake)

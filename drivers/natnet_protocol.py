@@ -455,6 +455,36 @@ def _channels(r: _Reader, what: str, keep: bool) -> dict[int, list[np.ndarray]]:
     return items
 
 
+# marker sets, unlabeled markers, rigid bodies, skeletons, assets, labeled markers, force plates, devices
+_SECTIONS_41 = 8
+
+
+def _check_outline(r: _Reader, sized: bool) -> None:
+    """Refuse a frame its outline already refutes, before any section is walked: the end-of-data
+    tag (the last 4 bytes) must be 0 and, from NatNet 4.1, the section byte counts must chain to
+    exactly the suffix. Refusing a malformed datagram then costs a few reads, not a walk of
+    everything before its flaw (a 64 KB datagram holds 13,000 empty marker sets)."""
+    buf, end = r.buf, r.end
+    if end - r.pos >= 4:
+        (eod,) = _I32.unpack_from(buf, end - 4)
+        if eod != 0:
+            raise NatNetDecodeError(f"{r.what}: end-of-data tag at payload byte {end - 4}: is {eod}, expected 0 "
+                                    "(wrong NatNet version or corrupt frame?)")
+    if not sized:
+        return
+    pos = r.pos
+    for _ in range(_SECTIONS_41):
+        if end - pos < 8:
+            return  # the walk names the short field
+        n, size = _TWO_I32.unpack_from(buf, pos)
+        if n < 0 or not 0 <= size <= end - pos - 8:
+            return  # likewise: the walk's own check of that count names it
+        pos += 8 + size
+    if end - pos != _SUFFIX_41.size:
+        raise NatNetDecodeError(f"{r.what}: section byte counts at payload byte {pos}: the sections end "
+                                f"{end - pos} bytes before the end of the frame, its suffix is {_SUFFIX_41.size}")
+
+
 def _parse_frame(payload: bytes | memoryview, version: tuple[int, int], keep: bool) -> tuple:
     """Walk and validate a whole frame-of-data payload; the fields of `MocapFrame` in order.
 
@@ -466,13 +496,26 @@ def _parse_frame(payload: bytes | memoryview, version: tuple[int, int], keep: bo
     r = _Reader(payload, f"NatNet {major}.{minor} frame", sized)
     buf = r.buf
     frame_number = r.i32("frame number")
+    _check_outline(r, sized)
 
     n, section = r.section("marker set count", 5, "marker sets byte count")
     marker_sets: dict[str, np.ndarray] = {}
+    end, find, i32 = r.end, buf.find, _I32.unpack_from
     for i in range(n):
-        name = r.string(f"marker set {i} name")
-        k = r.count(f"marker set {name!r} marker count", 12)
-        start = r.skip(12 * k, f"marker set {name!r} positions")
+        # The common case inline (a set of markers: name, count, positions); anything amiss is
+        # parsed again by the checked reader, which names the field. A datagram can hold 13,000
+        # empty sets: their cost is a few operations each, not a formatted field name.
+        pos = r.pos
+        nul = find(b"\0", pos, end)
+        k = i32(buf, nul + 1)[0] if 0 <= nul <= end - 5 else -1
+        stop = nul + 5 + 12 * k
+        if k < 0 or stop > end or not buf[pos:nul].isascii():
+            name = r.string(f"marker set {i} name")
+            k = r.count(f"marker set {name!r} marker count", 12)
+            start = r.skip(12 * k, f"marker set {name!r} positions")
+        else:
+            name = buf[pos:nul].decode("ascii") if keep else ""
+            start, r.pos = nul + 5, stop
         if keep:
             marker_sets[name] = np.frombuffer(buf, _VEC3, k, start).copy()
     r.finish("marker sets byte count", section)

@@ -18,7 +18,9 @@ On a malformed record the parser drops one byte and resynchronises on the next p
 good records behind it are never lost. A who-am-I reply may declare up to 512 body bytes, so a
 stray or corrupt who-am-I header would swallow the records behind it if its body were taken on
 trust: its body must be printable text, and the first byte that is not (every pose record
-carries its station number, 1…16, in its third byte) rejects the header at once. A truncated record is only known to be bad once a full
+carries its station number, 1…16, in its third byte) rejects the header at once. A reply cut
+short takes the next record's printable "LY" as text, so a body in which a pose-record header
+begins is refused there and the record kept. A truncated record is only known to be bad once a full
 record's worth of bytes follows it, so the good record right behind it is delayed by about one
 record period (never dropped).
 """
@@ -139,6 +141,31 @@ class RecordParser:
     def pending(self) -> int:
         return len(self._buf)
 
+    def _record_inside_text(self, end: int) -> int | None:
+        """Where a valid pose-record header begins inside a who-am-I body (buffer offset); 0 when
+        none does, None when one may but its header has not fully arrived.
+
+        A text body may hold "LY" or "PA" (printable), so a reply cut short would otherwise take
+        the start of the record behind it as text and swallow the rest of that record."""
+        start = HEADER.size
+        while True:
+            m = _PREAMBLE_RE.search(self._buf, start, min(end + 1, len(self._buf)))  # one may straddle the end
+            if m is None:
+                if len(self._buf) < end or (len(self._buf) == end and self._buf[end - 1:end] in (b"L", b"P")):
+                    return None
+                return 0
+            j = m.start()
+            if len(self._buf) < j + HEADER.size:
+                return None
+            try:
+                _, _, command, _, _ = _header(bytes(self._buf[j:j + HEADER.size]))
+            except PolhemusDecodeError:
+                start = j + 1
+                continue
+            if command in _POSE_COMMANDS:
+                return j
+            start = j + 1
+
     def feed(self, data: bytes) -> list[PoseRecord | TextRecord | PolhemusDecodeError]:
         self._buf += data
         out: list[PoseRecord | TextRecord | PolhemusDecodeError] = []
@@ -162,6 +189,15 @@ class RecordParser:
                 out.append(exc)
                 del self._buf[:1]  # resynchronise on the next preamble
                 continue
+            if command == WHO_AM_I:
+                cut = self._record_inside_text(HEADER.size + size)
+                if cut is None:
+                    return out  # a preamble near its end: wait for the bytes that tell
+                if cut:
+                    out.append(PolhemusDecodeError(f"{model} who-am-I: a pose record begins at body byte "
+                                                   f"{cut - HEADER.size}: the reply was cut short"))
+                    del self._buf[:cut]
+                    continue
             if len(self._buf) < HEADER.size + size:
                 return out
             try:

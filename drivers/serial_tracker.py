@@ -10,7 +10,9 @@ echo, so the device→host offset is the running minimum of arrival minus device
 device's known output latency (measurement to first byte, `device_latency_s`) is subtracted:
 without it every pose would be stamped late by that latency. The first `warmup_records` of a
 session only feed that minimum (they are not published): a single delayed record must not set
-the stamps of everything after it.
+the stamps of everything after it. After them, only records the plausibility gate accepts feed
+it: the protocol has no checksum, and a corrupt stamp a few ms ahead would lower the minimum and
+stamp every later pose that much early.
 """
 
 from __future__ import annotations
@@ -23,9 +25,9 @@ import numpy as np
 import serial
 
 from dpmhw.plausibility import PlausibilityLimits
-from dpmhw.tracking import PoseSample, TrackerState, quaternions_xyzw_to_matrices
+from dpmhw.tracking import ClockMapping, PoseSample, TrackerState, quaternions_xyzw_to_matrices
 from drivers.polhemus_protocol import PoseRecord, PolhemusDecodeError, RecordParser, TextRecord
-from drivers.tracker_base import LinkLost, ReceiverTracker
+from drivers.tracker_base import _RESYNC_RUN, LinkLost, ReceiverTracker
 
 __all__ = ["PolhemusTracker", "SerialTracker"]
 
@@ -71,6 +73,10 @@ class PolhemusTracker(ReceiverTracker):
             raise ValueError(f"units must be one of {', '.join(_UNITS)}, got {units!r}")
         self.port = port
         self.baudrate = baudrate
+        # The one-way minimum may drop by at most this per reading unless three agree: a corrupt
+        # stamp the gate cannot tell from a genuine one (a little ahead while the body is slow)
+        # then moves every later stamp by at most 1 ms, not by the 10 ms a socket's default allows.
+        self.clock = ClockMapping(jump_tolerance_s=0.001)
         self.units = units
         self.device_latency_ns = int(device_latency_s * 1e9)
         self.reset_wait_s = reset_wait_s
@@ -83,7 +89,9 @@ class PolhemusTracker(ReceiverTracker):
         self.who_am_i = ""
         self._serial: serial.Serial | None = None
         self._parser = RecordParser()
-        self._last_ms: dict[int, int] = {}
+        self._last_ms: dict[int, int] = {}  # newest stamp counted for gaps, per station
+        self._newest_ms: dict[int, int] = {}  # newest stamp published, per station
+        self._behind: dict[int, list[int]] = {}  # consecutive stamps refused below it, per station
         self._intervals: dict[int, deque[int]] = {}
 
     @property
@@ -110,14 +118,48 @@ class PolhemusTracker(ReceiverTracker):
             elif isinstance(item, TextRecord):
                 self.model, self.who_am_i = item.model, item.text.strip()
             elif isinstance(item, PoseRecord):
+                if not self._stamp_fresh(item.station, item.timestamp_ms):
+                    continue
                 self._count_gap(item.station, item.timestamp_ms)
-                sample = self._sample(item, arrival_ns)
+                device_ns = item.timestamp_ms * 1_000_000
+                unmapped = self._warmup_left > 0 or self.clock.offset_ns is None
+                if unmapped:  # the warm-up's records, or the first: nothing yet to check them against
+                    self.clock.add_one_way(device_ns, arrival_ns)
                 if self._warmup_left > 0:
                     self._warmup_left -= 1
                     self.warmup_skipped += 1
                     continue
-                published += self._publish_frame([sample], arrival_ns)
+                out = self._publish_frame([self._sample(item, arrival_ns)], arrival_ns)
+                if self.frame_taken and not unmapped:  # only a record the checks believe feeds the clock
+                    self.clock.add_one_way(device_ns, arrival_ns)
+                if out:
+                    self._newest_ms[item.station] = item.timestamp_ms
+                    published += out
         return published
+
+    def _stamp_fresh(self, station: int, ms: int) -> bool:
+        """A station's stamps must increase: a record stamped at or before the newest published
+        one of its station (a corrupt stamp, or a repeat) is refused and counted out of order.
+
+        A device whose clock really began again (a power glitch) is followed once `_RESYNC_RUN`
+        records in a row, each 1 ms to 1 s after the one before, agree below the newest stamp;
+        a corrupt stamp is a lone record, never such a run."""
+        newest = self._newest_ms.get(station)
+        if newest is None or ms > newest:
+            self._behind.pop(station, None)
+            return True
+        run = self._behind.setdefault(station, [])
+        if run and not 0 < ms - run[-1] <= 1000:
+            run.clear()
+        run.append(ms)
+        if len(run) < _RESYNC_RUN:
+            self.out_of_order += 1
+            return False
+        self.frame_resyncs += 1
+        del self._newest_ms[station]
+        self._behind.pop(station)
+        self._last_ms.pop(station, None)
+        return True
 
     def _count_gap(self, station: int, ms: int) -> None:
         """Records carry no frame counter: a gap is an interval well above the station's
@@ -144,7 +186,6 @@ class PolhemusTracker(ReceiverTracker):
 
     def _sample(self, rec: PoseRecord, arrival_ns: int) -> PoseSample:
         device_ns = rec.timestamp_ms * 1_000_000
-        self.clock.add_one_way(device_ns, arrival_ns)
         w, x, y, z = rec.quaternion_wxyz
         rotation, usable = quaternions_xyzw_to_matrices(np.array([[x, y, z, w]]))
         scale = _UNITS[self.units][1]
@@ -208,6 +249,9 @@ class PolhemusTracker(ReceiverTracker):
         self._serial.reset_input_buffer()
         self._parser = RecordParser()
         self._warmup_left = self.warmup_records
+        self._newest_ms.clear()  # a re-initialised device's clock may have begun again
+        self._behind.clear()
+        self._last_ms.clear()
         self._write(b"F1\r")
         self._write(_UNITS[self.units][0])
         self._write(b"O*,2,7,8,0\r")
@@ -228,7 +272,6 @@ class PolhemusTracker(ReceiverTracker):
 
     def _stream(self) -> None:
         started_ns = last_bytes_ns = last_probe_ns = time.monotonic_ns()
-        frames_at_start = self.frames
         probe_ns = max(self.stale_after_s, 0.02) * 1e9
         while not self._stop.is_set():
             data = self._read_available()
@@ -243,7 +286,7 @@ class PolhemusTracker(ReceiverTracker):
                 # the timeout below re-initialises it as before.
                 self._write(b"C\r")
                 last_probe_ns = now
-            since = self._last_arrival_ns if self.frames > frames_at_start else started_ns
+            since = max(self._last_arrival_ns or 0, started_ns)  # the newest plausible record of this session
             self._check_alive(since, "record")
 
 

@@ -86,6 +86,7 @@ class ReceiverTracker:
         self.internal_errors = 0
         self.last_decode_error = ""
         self._last_arrival_ns: int | None = None
+        self.frame_taken = False  # the last frame was in order and the gate refused none of it
         self._last_latency_ns: int | None = None
 
     # -- Tracker protocol ----------------------------------------------------------------------
@@ -163,7 +164,8 @@ class ReceiverTracker:
     def _details(self) -> dict:
         return {"clock_method": self.clock.method, "clock_outliers": self.clock.outliers, "clock_jumps": self.clock.jumps,
                 "internal_errors": self.internal_errors, "last_decode_error": self.last_decode_error,
-                "callback_errors": self._poses.callback_errors, "frame_resyncs": self.frame_resyncs,
+                "callback_errors": self._poses.callback_errors, "older_dropped": self._poses.older_dropped,
+                "frame_resyncs": self.frame_resyncs,
                 **self.gate.counts()}
 
     def _set_state(self, state: TrackerState, reason: str = "") -> None:
@@ -179,40 +181,73 @@ class ReceiverTracker:
         self.last_decode_error = f"internal {type(exc).__name__}: {exc}"
         log.exception("%s: unexpected error while handling input", self.kind)
 
-    def _accept_frame_number(self, frame_number: int) -> bool:
-        """Count gaps; reject frames older than the newest published one (UDP reordering).
+    def _frame_number_fresh(self, frame_number: int) -> bool | None:
+        """Whether a frame may be published by its number: False for one older than the newest
+        published (UDP reordering, counted), None for one that resumes a run below a bogus newest
+        number (a resync), True otherwise. Nothing is committed: see `_commit_frame_number`.
 
         A newest number that was itself bogus (far ahead) is abandoned after `_RESYNC_RUN`
         consecutive frames below it, so one bad datagram costs a few frames, not a thousand."""
         last = self._last_frame_number
-        if last is not None:
-            restarted = self._first_frame_of_session or last - frame_number >= _RESTART_JUMP
-            if frame_number <= last and not restarted:
-                if self._behind and frame_number != self._behind[-1] + 1:
-                    self._behind = []
-                self._behind.append(frame_number)
-                if len(self._behind) < _RESYNC_RUN:
-                    self.out_of_order += 1
-                    return False
-                self.frame_resyncs += 1
-                self.frames_missed = max(0, self.frames_missed - self._last_gap)
-                log.warning("%s: frame numbers resumed at %d below the newest %d; following them",
-                            self.kind, frame_number, last)
-                last = None
+        if last is None or self._first_frame_of_session or frame_number > last or last - frame_number >= _RESTART_JUMP:
+            return True
+        if self._behind and frame_number != self._behind[-1] + 1:
+            self._behind = []
+        self._behind.append(frame_number)
+        if len(self._behind) < _RESYNC_RUN:
+            self.out_of_order += 1
+            return False
+        return None
+
+    def _commit_frame_number(self, frame_number: int, resync: bool) -> None:
+        """Make `frame_number` the newest, counting the frames it skipped. Called only once a frame
+        published a plausible sample: an implausible frame never takes the number of the genuine
+        ones behind it (they would be refused as reordered)."""
+        last = self._last_frame_number
+        if resync:
+            self.frame_resyncs += 1
+            self.frames_missed = max(0, self.frames_missed - self._last_gap)
+            log.warning("%s: frame numbers resumed at %d below the newest %d; following them",
+                        self.kind, frame_number, last)
+            last = None
+        elif last is not None and frame_number <= last:  # a restarted device (`_frame_number_fresh` let it in)
+            last = None
         self._last_gap = 0 if last is None else max(0, frame_number - last - 1)
         self.frames_missed += self._last_gap
         self._behind = []
         self._first_frame_of_session = False
         self._last_frame_number = frame_number
-        return True
 
-    def _publish_frame(self, samples: list[PoseSample], arrival_ns: int) -> list[PoseSample]:
-        """Publish one frame's samples; returns those the plausibility gate let through."""
+    def _publish_frame(self, samples: list[PoseSample], arrival_ns: int,
+                       frame_number: int | None = None) -> list[PoseSample]:
+        """Publish one frame's samples; returns those the plausibility gate let through.
+
+        With a `frame_number`, the frame is first checked against the newest number, and it
+        becomes the newest unless the gate refused every sample of it as implausible.
+        `frame_taken` tells the driver whether the gate refused none: only such a frame's stamps
+        may feed the clock mapping (one corrupt transmit stamp a few ms ahead would otherwise
+        lower the one-way minimum and stamp every later pose that much early)."""
+        resync = self.frame_taken = False
+        if frame_number is not None:
+            fresh = self._frame_number_fresh(frame_number)
+            if fresh is False:
+                return []
+            resync = fresh is None
         self.frames += 1
+        refused = self.gate.refused
+        published = self._poses.publish(samples)
+        self.frame_taken = self.gate.refused == refused
+        if samples and not published:
+            if not self.frame_taken:
+                return published  # implausible: it takes neither the frame number nor the arrival
+            if frame_number is not None:  # held while a body is re-acquired: numbered, not yet an arrival
+                self._commit_frame_number(frame_number, resync)
+            return published
+        if frame_number is not None:
+            self._commit_frame_number(frame_number, resync)
         self._last_arrival_ns = arrival_ns
         if self._state_reason[0] != TrackerState.STREAMING:
             self._set_state(TrackerState.STREAMING, "")
-        published = self._poses.publish(samples)
         if published:
             self._last_latency_ns = published[0].latency_ns
         return published

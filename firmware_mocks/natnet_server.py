@@ -323,11 +323,15 @@ class NatNetServer:
     def __exit__(self, *exc) -> None:
         self.stop()
 
-    def restart(self, down_s: float, server_uptime_s: float = 10.0) -> None:
+    def restart(self, down_s: float, server_uptime_s: float = 10.0, clock_hz: int | None = None) -> None:
         """Motive quits, and `down_s` later is running again on the same ports: its clock restarted
-        (reading `server_uptime_s`), frame numbers from 1, unicast clients forgotten (they must
-        connect again). Blocks for `down_s`."""
+        (reading `server_uptime_s`; ticking at `clock_hz` if given, as after a change of its
+        settings), frame numbers from 1, unicast clients forgotten (they must connect again).
+        Blocks for `down_s`."""
         self.stop()
+        if clock_hz is not None:
+            self.config.clock_hz = int(clock_hz)
+            self._ticks_per_ns = self.config.clock_hz * (1 + self.config.clock_drift_ppm * 1e-6) / 1e9
         time.sleep(down_s)
         for _ in range(50):  # the closed socket may take a moment to release its port
             try:

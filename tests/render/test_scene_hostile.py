@@ -145,3 +145,30 @@ def test_deeply_nested_calibration_json_is_a_field_error(tmp_path):
         "fx = 10.0\nfy = 10.0\ncx = 8.0\ncy = 3.0\nposition = [0.0, 0.0, 2.0]\nlook_at = [0.0, 0.0, 0.0]",
         'calibration = "p.json"')
     refused(write(tmp_path, text), "camera.calibration", "p.json")
+
+
+def test_a_timeline_of_1e300_seconds_a_frame_is_a_field_error(tmp_path):
+    """Frame 1 at 1e-300 fps lies 1e300 s out, where a rotating object's angle overflows."""
+    text = GOOD.replace("height = 12", "height = 12\nfps = 1e-300") + "motion = { rotate_deg_per_s = 90.0 }\n"
+    refused(write(tmp_path, text), "render.fps", "[0.001")
+
+
+def test_scripted_rotation_far_out_on_the_timeline_is_still_a_rotation(tmp_path):
+    scene = load_scene(write(tmp_path, GOOD + "motion = { rotate_deg_per_s = 90.0 }\n"))
+    for t in (1e300, -1e300, 4.0):  # 4 s at 90°/s is a whole turn
+        R = scene.objects[0].pose_at(t).R
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
+    assert np.allclose(scene.objects[0].pose_at(4.0).R, np.eye(3), atol=1e-12)
+
+
+def test_a_calibration_file_that_is_not_utf8_names_the_file(tmp_path):
+    from dpmhw.projector_calibration import CalibrationFileError, load_projector_calibration
+
+    (tmp_path / "p.json").write_bytes(b'{"projector": "\xe9cran"}')
+    with pytest.raises(CalibrationFileError) as info:
+        load_projector_calibration(tmp_path / "p.json")
+    assert str(info.value).startswith(f"{tmp_path / 'p.json'}: (file): not UTF-8 text (byte 15")
+    text = GOOD.replace(
+        "fx = 10.0\nfy = 10.0\ncx = 8.0\ncy = 3.0\nposition = [0.0, 0.0, 2.0]\nlook_at = [0.0, 0.0, 0.0]",
+        'calibration = "p.json"')
+    refused(write(tmp_path, text), "camera.calibration", "not UTF-8")

@@ -12,12 +12,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from dpmhw.plausibility import PlausibilityLimits
 from drivers.natnet import NatNetClient
 from firmware_mocks.natnet_server import FrameContent, encode_frame
 
 MS = 1_000_000
 LATENCY = int(4.5 * MS)
 PERIOD = 2_777_778  # 360 Hz
+CONFIRM = PlausibilityLimits().confirm
 
 
 def run(drift_ppm=0.0, jitter_ms=0.0, seconds=1.5, clock_window_s=2.0, seed=0):
@@ -34,9 +36,11 @@ def run(drift_ppm=0.0, jitter_ms=0.0, seconds=1.5, clock_window_s=2.0, seed=0):
                                stamp_mid_exposure=ticks(true_mid), stamp_transmit=ticks(true_mid + LATENCY))
         arrival = true_mid + LATENCY + int(0.1 * MS + rng.exponential(jitter_ms * MS)) if jitter_ms else \
             true_mid + LATENCY + int(0.1 * MS)
-        (sample,) = client.process_datagram(encode_frame(content, "4.1"), arrival)
-        errors.append(sample.t_exposure_ns - true_mid)
-        latencies.append(sample.latency_ns)
+        published = client.process_datagram(encode_frame(content, "4.1"), arrival)
+        if k >= CONFIRM - 1:  # the gate holds a body's first samples until they agree
+            (sample,) = published
+            errors.append(sample.t_exposure_ns - true_mid)
+            latencies.append(sample.latency_ns)
     return np.array(errors), np.array(latencies), client
 
 

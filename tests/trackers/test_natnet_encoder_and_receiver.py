@@ -10,6 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from dpmhw.plausibility import PlausibilityLimits
 from drivers.natnet import NatNetClient
 from drivers.natnet_protocol import (
     SUPPORTED_VERSIONS,
@@ -143,8 +144,10 @@ def test_mock_model_definitions_decode_to_world_names(version):
 
 
 def primed_client() -> NatNetClient:
-    """A client that has seen the real server info (NatNet 3.0, 3,312,787 Hz) but no socket."""
-    client = NatNetClient()
+    """A client that has seen the real server info (NatNet 3.0, 3,312,787 Hz) but no socket; its
+    gate takes a body's first sample on its own (these tests decode single frames)."""
+    client = NatNetClient(plausibility=PlausibilityLimits(confirm=1))
+    client._info_requested_ns = 0  # the reply to its own connect request (the only kind it applies)
     client.process_datagram(captured("serverinfo_packet_v3.bin"), 0)
     assert client.version == (3, 0) and client.clock_hz == 3_312_787
     return client
@@ -261,12 +264,13 @@ def test_frame_gaps_and_reordering_are_detected():
 
     client = primed_client()
 
-    def frame(n):
+    def frame(n, mid=None):
+        mid = 1000 * n if mid is None else mid
         content = FrameContent(
             frame_number=n,
             rigid_bodies=[(1, (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0), 0.0, 1)],
-            stamp_mid_exposure=1000 * n,
-            stamp_transmit=1000 * n + 500,
+            stamp_mid_exposure=mid,
+            stamp_transmit=mid + 500,
         )
         return encode_frame(content, "3.0")
 
@@ -278,8 +282,8 @@ def test_frame_gaps_and_reordering_are_detected():
     assert status.frames == 3 and status.out_of_order == 1 and status.frames_missed == 2
     assert client.latest(1).frame_number == 14
     client.process_datagram(frame(5), arrival + 3_000_000)  # a little back: reordered, dropped
-    client.process_datagram(frame(6000), arrival + 6_000_000)
-    client.process_datagram(frame(2), arrival + 9_000_000)  # far back: the server restarted
+    client.process_datagram(frame(6000, 24_000), arrival + 6_000_000)
+    client.process_datagram(frame(2, 34_000), arrival + 9_000_000)  # far back: the server restarted
     assert client.latest(1).frame_number == 2 and client.status().out_of_order == 2
 
 

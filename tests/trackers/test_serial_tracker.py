@@ -15,6 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from dpmhw.plausibility import PlausibilityLimits
 from dpmhw.tracking import Tracker, TrackerState, wait_for
 from drivers.polhemus_protocol import (
     POSE_RECORD_BYTES,
@@ -30,6 +31,7 @@ from firmware_mocks.world import World
 from .conftest import settle, with_state_log
 
 WAIT_S = 30  # for what must happen eventually: generous, as only broken code waits this long
+CONFIRM = PlausibilityLimits().confirm  # the gate holds a body's first samples until this many agree
 
 
 def record_bytes(station=1, pos=(1.0, 2.0, 3.0), quat_wxyz=(1.0, 0.0, 0.0, 0.0), ms=1234, model=b"LY", cmd=b"C", error=0):
@@ -204,7 +206,7 @@ def test_round_trip_with_garbage_between_records(units):
         assert emu.records_corrupted - 6 * stations <= missed <= (emu.records_corrupted + emu.records_skipped) * 1.01 + 1
         assert tracker.garbage_bytes > 0
         assert {s.rigid_body_id for s in samples} == {1, 2}
-        assert check_against_truth(samples, world, emu) == len(samples) == frames
+        assert check_against_truth(samples, world, emu) == len(samples) == frames - tracker.gate.held  # held: until they agree
 
 
 @pytest.mark.realtime
@@ -360,11 +362,12 @@ def test_gaps_in_record_timestamps_count_as_missed_records():
     tracker = PolhemusTracker("loop://", warmup_records=0)
     # each record arrives when it was made (the clock mapping refuses device time that outruns
     # arrival time: 50 ms of records arriving at one instant would look like corrupt stamps)
-    samples = [s for ms in (0, 4, 8, 13, 17, 21, 25, 33, 45, 50)
+    samples = [s for ms in (0, 4, 8, 13, 17, 21, 25, 33, 45, 50, 54, 58)
                for s in tracker.process_bytes(record_bytes(station=1, ms=ms), arrival_ns=10**9 + ms * 10**6)]
-    assert len(samples) == 10 and tracker.status().frames == 10
+    # held until they agree: the first ones, and the two after the 12 ms gap (past `max_jump_m`)
+    assert len(samples) == 12 - 2 * (CONFIRM - 1) and tracker.status().frames == 12
     assert tracker.status().frames_missed == 3  # 29, then 37 and 41
-    assert [s.frame_number for s in samples][-1] == 50
+    assert [s.frame_number for s in samples][-1] == 58
     # units: the driver asked for centimetres, so 1, 2, 3 cm are metres 0.01, 0.02, 0.03
     np.testing.assert_allclose(samples[0].translation, [0.01, 0.02, 0.03], atol=1e-9)
 
@@ -378,7 +381,7 @@ def test_dropout_at_a_fractional_millisecond_period_counts_the_records_really_mi
     # (rightly) refused by the clock mapping and the plausibility gate
     published = [s for j in kept for s in tracker.process_bytes(
         record_bytes(ms=round(j * 1000 / 240)), arrival_ns=10**9 + round(j * 1e9 / 240))]
-    assert len(published) == len(kept)
+    assert len(published) == len(kept) - 2 * (CONFIRM - 1)  # held while the body is acquired, and after the second's gap
     assert tracker.status().frames_missed == 240
 
 
