@@ -339,14 +339,8 @@ class NativeGBuffer:
         self.scene = scene
         self.geometry = geometry
         self.width, self.height = int(width), int(height)
-        r = scene.render
-        sx, sy = self.width / r.width, self.height / r.height
-        K = np.array(scene.camera.K, dtype=float)
-        K[0, 0] *= sx
-        K[1, 1] *= sy
-        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-        self.camera = PinholeCamera(K, scene.camera.dist, self.width, self.height, scene.camera.pose)
+        cam = scene.at_size(self.width, self.height).camera
+        self.camera = PinholeCamera(cam.K, cam.dist, self.width, self.height, cam.pose)
         self.viewer = np.asarray(scene.viewer_position, np.float32)
         self.use_viewer = not np.allclose(scene.viewer_position, scene.camera.pose.t)
         self.cam_fwd = self.camera.pose.R[:, 2].astype(np.float32)

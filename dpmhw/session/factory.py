@@ -30,22 +30,6 @@ __all__ = ["DLPC900Control", "MockRig", "build_session", "idle_projector", "memo
 log = logging.getLogger(__name__)
 
 
-def scale_to(scene: Scene, width: int, height: int) -> Scene:
-    """The same scene rendered at another size: intrinsics scaled about pixel centres, so a
-    point lands on the same place of the picture (lens shift kept)."""
-    r = scene.render
-    if (width, height) == (r.width, r.height):
-        return scene
-    sx, sy = width / r.width, height / r.height
-    K = np.array(scene.camera.K, dtype=float)
-    K[0, 0] *= sx
-    K[1, 1] *= sy
-    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return dataclasses.replace(scene, render=dataclasses.replace(r, width=width, height=height),
-                               camera=dataclasses.replace(scene.camera, K=K))
-
-
 def _scene_source(config: SessionConfig) -> str:
     from dpmhw.scene_file import BUILTIN_SCENES
 
@@ -114,7 +98,7 @@ def prepare_scene(config: SessionConfig) -> Scene:
                                     render=dataclasses.replace(scene.render, width=calib.width, height=calib.height))
     r = config.render
     if r.width and r.height:
-        scene = scale_to(scene, r.width, r.height)
+        scene = scene.at_size(r.width, r.height)
     return scene
 
 
@@ -292,7 +276,7 @@ def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):
 def shading_scene(scene: Scene, scale: float) -> Scene:
     """The scene at the shading resolution: `scale` of the native size per axis (at least 1 px)."""
     r = scene.render
-    return scale_to(scene, max(1, round(r.width * scale)), max(1, round(r.height * scale)))
+    return scene.at_size(max(1, round(r.width * scale)), max(1, round(r.height * scale)))
 
 
 def build_renderer(config: SessionConfig, scene: Scene, gbuffer: bool = True):
