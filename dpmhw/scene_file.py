@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -18,7 +19,7 @@ import numpy as np
 
 from dpmhw.errors import CalibrationError, SceneError
 from dpmhw.limits import check_file_size, max_scene_bytes, render_memory_problem
-from dpmhw.meshes import TriangleMesh, box_mesh, find_bunny, load_mesh, procedural_bunny, quad_mesh, sphere_mesh, BOX_FACES
+from dpmhw.meshes import TriangleMesh, box_mesh, load_mesh, quad_mesh, sphere_mesh, stanford_bunny, BOX_FACES
 from dpmhw.motion import ScriptedMotion
 from dpmhw.transforms import Pose, look_at, rotation_from_euler_xyz_deg, rotation_from_quat_xyzw
 
@@ -279,12 +280,8 @@ def _parse_mesh_shape(f: _Fields, shape: str, base_dir: Path, notes: list[str], 
         return sphere_mesh(f.number("radius", lo=0.0, lo_open=True), smooth=smooth)
     name = f.string("mesh")
     if name == "builtin:bunny":
-        path = mesh_override or find_bunny()
-        if path is None:
-            notes.append("the Stanford bunny was not found (../shared/data or $DPMHW_BUNNY); using a procedural bunny")
-            mesh = procedural_bunny()
-        else:
-            mesh = _load_mesh_field(f, Path(path), smooth)
+        override = mesh_override or os.environ.get("DPMHW_BUNNY")
+        mesh = _load_mesh_field(f, Path(override), smooth) if override else stanford_bunny(smooth)
     else:
         mesh = _load_mesh_field(f, base_dir / name, smooth)
     scale = f.vector("scale", default=(1, 1, 1), lo=0.0, scalar_ok=True)

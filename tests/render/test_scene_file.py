@@ -79,26 +79,37 @@ def test_missing_scene_file_lists_builtins(tmp_path):
         load_scene(tmp_path / "nope.toml")
 
 
-def test_builtin_scenes_load_and_use_the_real_bunny_when_present(monkeypatch):
+def test_builtin_scenes_load_with_the_packaged_bunny():
     for name in BUILTIN_SCENES:
         scene = load_scene(name)
         assert scene.render.width == 1024 and scene.render.height == 768
         bunnies = [o for o in scene.objects if o.shape == "mesh"]
-        assert name == "glossy-roughness" or (bunnies and all(len(o.mesh.faces) > 60_000 for o in bunnies))
+        assert name == "glossy-roughness" or (bunnies and all(len(o.mesh.faces) == 69_451 for o in bunnies))
     assert load_scene("paper-dynamic").objects[3].is_dynamic
     assert load_scene("dpm-bunny").objects[0].rigid_body == 1
 
 
-def test_builtin_scene_falls_back_to_procedural_bunny(monkeypatch, caplog):
-    import dpmhw.scene_file as sf
+def test_packaged_bunny_is_its_obj_read_back_bit_for_bit(tmp_path):
+    """The package stores coordinates × 10⁶; the six-decimal OBJ they came from parses to the
+    same float64 values, so the built-in scenes equal the OBJ's figures."""
+    from dpmhw.meshes import load_mesh, stanford_bunny
 
-    monkeypatch.setattr(sf, "find_bunny", lambda: None)
-    scene = load_scene("dpm-bunny")
-    assert any("procedural bunny" in note for note in scene.notes)
-    mesh = scene.objects[0].mesh
-    assert 50_000 < len(mesh.faces) < 100_000
-    extent = mesh.vertices.max(0) - mesh.vertices.min(0)
-    assert 0.15 < extent.max() < 0.35  # bunny-sized after the scene's scale of 1.3
+    packaged = stanford_bunny()
+    obj = tmp_path / "bunny.obj"
+    with obj.open("w") as out:
+        np.savetxt(out, packaged.vertices, fmt="v %.6f %.6f %.6f")
+        np.savetxt(out, packaged.faces + 1, fmt="f %d %d %d")
+    read = load_mesh(obj)
+    assert len(packaged.faces) == 69_451 and packaged.dropped_degenerate == 0
+    np.testing.assert_array_equal(read.vertices, packaged.vertices)
+    np.testing.assert_array_equal(read.faces, packaged.faces)
+    np.testing.assert_array_equal(read.vertex_normals, packaged.vertex_normals)
+
+
+def test_bunny_override_from_the_environment_names_a_missing_file(monkeypatch, tmp_path):
+    monkeypatch.setenv("DPMHW_BUNNY", str(tmp_path / "absent.obj"))
+    with pytest.raises(SceneError, match="absent.obj"):
+        load_scene("dpm-bunny")
 
 
 def test_quaternion_and_euler_agree(tmp_path):
