@@ -2,7 +2,7 @@
 
 Live frames reach a DLPC900 through its video input (HDMI / DisplayPort), so the projector sink
 is a borderless full-screen window on the display the projector is attached to (`WindowSink`,
-optional extra `dpmhw[display]`, pygame-ce). `FileSink` writes a PNG sequence or a video for
+pygame-ce). `FileSink` writes a PNG sequence or a video for
 review; `RecordingSink` keeps frames in memory for tests. All three reject frames of the wrong
 shape or dtype instead of resizing them.
 """
@@ -119,7 +119,7 @@ class FileSink:
 class WindowSink:
     """Borderless full-screen window on display `display`, fed to the projector's video input.
 
-    Needs pygame-ce (`pip install dpmhw[display]`). The window is always full-screen at the
+    Uses pygame-ce (a core dependency: the default sink). The window is always full-screen at the
     display's current mode, which must be the projector's native resolution: `size` is the
     session's output size, and a display of another size is refused here, at start (a frame
     of the wrong size would cover a corner of the projector's image). Nothing is scaled.
@@ -129,10 +129,8 @@ class WindowSink:
     def __init__(self, display: int = 0, *, size: tuple[int, int] | None = None, clock: Clock = time.monotonic_ns,
                  sleep: Callable[[float], None] = time.sleep, title: str = "dpmhw projector"):
         os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
-        try:
-            import pygame
-        except ImportError as exc:
-            raise ImportError("WindowSink needs pygame-ce: pip install 'dpmhw[display]'") from exc
+        import pygame
+
         self._pg = pygame
         self.clock, self.sleep = clock, sleep
         pygame.display.init()
