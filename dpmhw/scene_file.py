@@ -11,7 +11,7 @@ import logging
 import math
 import os
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -173,11 +173,15 @@ def _rotation(f: _Fields, key: str = "rotation") -> np.ndarray:
     f.fail(key, f"expected Euler XYZ degrees [rx, ry, rz] or a quaternion [x, y, z, w], got {value!r}")
 
 
-def _parse_render(source: str, table: dict) -> RenderSettings:
+def _parse_render(source: str, table: dict, calibrated: bool) -> RenderSettings:
+    """`calibrated`: the camera comes from a calibration file, which gives the size (width and
+    height 0 here unless the file states them, and then they must agree)."""
     f = _Fields(source, table, "render", {"width", "height", "max_bounces", "background", "fps"})
-    width = f.number("width", lo=1, hi=16384, integer=True)
-    height = f.number("height", lo=1, hi=16384, integer=True)
-    problem = render_memory_problem(width, height)
+    width = f.number("width", default=0 if calibrated else None, lo=1, hi=16384, integer=True)
+    height = f.number("height", default=0 if calibrated else None, lo=1, hi=16384, integer=True)
+    if calibrated and (width == 0) != (height == 0):
+        f.fail("height" if height == 0 else "width", "give both width and height, or neither (the calibration's)")
+    problem = render_memory_problem(width, height) if width else None
     if problem is not None:
         f.fail("width", problem)
     return RenderSettings(
@@ -189,7 +193,8 @@ def _parse_render(source: str, table: dict) -> RenderSettings:
     )
 
 
-def _parse_camera(source: str, table: dict, base_dir: Path, render: RenderSettings) -> CameraSpec:
+def _parse_camera(source: str, table: dict, base_dir: Path, render: RenderSettings) -> tuple[CameraSpec, RenderSettings]:
+    """The camera, and `render` with the calibration's size where the file left it out."""
     f = _Fields(source, table, "camera", {"fx", "fy", "cx", "cy", "dist", "position", "look_at", "up", "calibration"})
     if f.has("calibration"):
         return _camera_from_calibration(f, base_dir, render)
@@ -205,10 +210,10 @@ def _parse_camera(source: str, table: dict, base_dir: Path, render: RenderSettin
         pose = look_at(f.vector("position"), f.vector("look_at"), f.vector("up", default=(0, 1, 0)))
     except ValueError as exc:
         f.fail("look_at", str(exc))
-    return CameraSpec(K, dist, pose)
+    return CameraSpec(K, dist, pose), render
 
 
-def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings) -> CameraSpec:
+def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings) -> tuple[CameraSpec, RenderSettings]:
     extra = sorted(set(f.table) - {"calibration"})
     if extra:
         f.fail(extra[0], "cannot be combined with 'calibration' (the calibration file gives intrinsics and pose)")
@@ -223,14 +228,19 @@ def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings)
         f.fail("calibration", f"cannot load {path}: {exc}")
     except RecursionError:  # json nested too deeply to be a calibration file
         f.fail("calibration", f"cannot load {path}: JSON nested too deeply")
-    if (calib.width, calib.height) != (render.width, render.height):
+    if render.width == 0:
+        problem = render_memory_problem(calib.width, calib.height)
+        if problem is not None:
+            f.fail("calibration", f"{path}: {problem}")
+        render = replace(render, width=calib.width, height=calib.height)
+    elif (calib.width, calib.height) != (render.width, render.height):
         f.fail("calibration", f"{path} is for {calib.width}×{calib.height}, but [render] asks {render.width}×{render.height}")
     dist = np.zeros(5)
     coeffs = np.asarray(calib.dist, float).reshape(-1)
     if coeffs.size > 5 and np.any(coeffs[5:] != 0):
         f.fail("calibration", f"{path} uses a distortion model with {coeffs.size} terms; the renderer supports k1 k2 p1 p2 k3")
     dist[: min(5, coeffs.size)] = coeffs[:5]
-    return CameraSpec(np.asarray(calib.K, float), dist, Pose(np.asarray(calib.R, float), np.asarray(calib.t, float)))
+    return CameraSpec(np.asarray(calib.K, float), dist, Pose(np.asarray(calib.R, float), np.asarray(calib.t, float))), render
 
 
 OBJECT_FIELDS = {
@@ -371,8 +381,9 @@ def parse_scene(text: str, source: str, base_dir: Path, mesh_override: Path | No
 
     # sections in file order, each parsed before the next is asked for: a typo in [render] is
     # reported as that typo, not as a missing [camera] further down
-    render = _parse_render(source, section("render"))
-    camera = _parse_camera(source, section("camera"), base_dir, render)
+    calibrated = isinstance(data.get("camera"), dict) and "calibration" in data["camera"]
+    render = _parse_render(source, section("render"), calibrated)
+    camera, render = _parse_camera(source, section("camera"), base_dir, render)
     viewer = camera.pose.t.copy()
     if top.has("viewer"):
         viewer = _Fields(source, data["viewer"], "viewer", {"position"}).vector("position")

@@ -150,3 +150,18 @@ def test_calibration_for_another_resolution_is_rejected(tmp_path):
     )
     with pytest.raises(SceneError, match="1920×1080"):
         load_scene(write(tmp_path, text))
+
+
+def test_a_calibrated_camera_gives_the_size_and_a_mesh_is_no_calibration(tmp_path):
+    from dpmhw.projector_calibration import ProjectorCalibration
+
+    ProjectorCalibration(width=20, height=10, K=np.eye(3) * [30, 30, 1], dist=np.zeros(5)).save(tmp_path / "p.json")
+    camera = "fx = 10.0\nfy = 10.0\ncx = 8.0\ncy = 3.0\nposition = [0.0, 0.0, 2.0]\nlook_at = [0.0, 0.0, 0.0]"
+    text = GOOD.replace(camera, 'calibration = "p.json"').replace("width = 16\nheight = 12\n", "")
+    render = load_scene(write(tmp_path, text)).render
+    assert (render.width, render.height) == (20, 10)
+    with pytest.raises(SceneError, match=r"render\.width: give both"):
+        load_scene(write(tmp_path, text.replace("[render]\n", "[render]\nheight = 10\n")))
+    (tmp_path / "box.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(SceneError, match=r"camera\.calibration: cannot load .*box\.obj"):
+        load_scene(write(tmp_path, text.replace("p.json", "box.obj")))
