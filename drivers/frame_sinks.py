@@ -134,16 +134,11 @@ class WindowSink:
         self._pg = pygame
         self.clock, self.sleep = clock, sleep
         pygame.display.init()
-        n = pygame.display.get_num_displays()
-        if not 0 <= display < n:
+        try:
+            w, h = _display_size(pygame, display, size)
+        except ValueError:
             pygame.display.quit()
-            raise ValueError(f"display: {display} does not exist ({n} display(s) attached)")
-        native = tuple(pygame.display.get_desktop_sizes()[display])
-        w, h = size or native
-        if (w, h) != native:
-            pygame.display.quit()
-            raise ValueError(f"display {display} runs at {native[0]}×{native[1]}, but the session outputs {w}×{h} "
-                             "(set the display to the projector's native mode, or render.width/height to match)")
+            raise
         flags = pygame.NOFRAME | pygame.FULLSCREEN
         pygame.display.set_caption(title)
         self._surface = pygame.display.set_mode((w, h), flags, display=display)
@@ -171,6 +166,30 @@ class WindowSink:
         if not self.closed:
             self.closed = True
             self._pg.display.quit()
+
+
+def _display_size(pygame, display: int, size: tuple[int, int] | None) -> tuple[int, int]:
+    """Display `display`'s current mode, which must be `size` when given (ValueError otherwise)."""
+    n = pygame.display.get_num_displays()
+    if not 0 <= display < n:
+        raise ValueError(f"display: {display} does not exist ({n} display(s) attached)")
+    native = tuple(pygame.display.get_desktop_sizes()[display])
+    if size is not None and tuple(size) != native:
+        raise ValueError(f"display {display} runs at {native[0]}×{native[1]}, but the session outputs {size[0]}×{size[1]} "
+                         "(set the display to the projector's native mode, or render.width/height to match)")
+    return native
+
+
+def check_display(display: int, size: tuple[int, int] | None = None) -> None:
+    """`WindowSink`'s checks of the display, without opening a window (a config check)."""
+    os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+    import pygame
+
+    pygame.display.init()
+    try:
+        _display_size(pygame, display, size)
+    finally:
+        pygame.display.quit()
 
 
 def make_sink(kind: str, **kwargs):

@@ -91,12 +91,24 @@ def start(
 
 
 @session_app.command("config")
-def show_config(config: ConfigOpt = None, sets: SetOpt = None) -> None:
-    """Validate a session config (with overrides) and print it resolved, as JSON."""
+def show_config(
+    config: ConfigOpt = None,
+    sets: SetOpt = None,
+    offline: Annotated[bool, typer.Option("--offline", help="Skip the device checks (projector, tracker port or address, display).")] = False,
+) -> None:
+    """Validate a session config (with overrides) as a start would, and print it resolved, as JSON.
+
+    Loads the scene, its meshes and the calibration files, resolves the bindings, and (unless
+    --offline) reaches the devices without changing them."""
     from dpmhw.errors import DpmhwError
+    from dpmhw.session.factory import check_devices, prepare_scene, resolve_bindings
 
     try:
         cfg = _load(config, sets, [])
+        scene = prepare_scene(cfg)
+        resolve_bindings(cfg, scene)
+        if not offline:
+            check_devices(cfg, scene)
     except DpmhwError as exc:
         _fail(exc)
     data = cfg.model_dump()

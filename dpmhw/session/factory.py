@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import os
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -24,7 +25,7 @@ from dpmhw.scene_file import Scene, load_scene
 from dpmhw.session.config import SessionConfig, SessionConfigError
 from dpmhw.session.loop import SessionLoop, SessionParts
 
-__all__ = ["DLPC900Control", "MockRig", "build_session", "idle_projector", "open_black_window", "open_session_parts",
+__all__ = ["DLPC900Control", "MockRig", "build_session", "check_devices", "idle_projector", "open_black_window", "open_session_parts",
            "prepare_scene", "resolve_bindings", "start_usb_emulator"]
 
 log = logging.getLogger(__name__)
@@ -249,6 +250,39 @@ def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):
         raise SessionConfigError(f"sink: {exc}") from None
 
 
+def check_devices(config: SessionConfig, scene: Scene) -> None:
+    """Reach every device a start would open, changing none of them (`session config`): the
+    projector over USB, the tracker's serial port or NatNet server address, the sink's display
+    and its mode. Raises SessionConfigError naming the section of the first one missing."""
+    if config.projector.kind == "dlpc900":
+        from drivers.dlpc900 import DLPC900
+
+        try:
+            DLPC900.open(config.projector.serial or None, timeout_ms=config.projector.timeout_ms, settle_s=0.0).close()
+        except Exception as exc:
+            raise SessionConfigError(f"projector: {exc}") from None
+    t = config.tracker
+    if t.kind == "serial":
+        if not t.port:
+            raise SessionConfigError("tracker.port: a serial tracker needs a port (e.g. /dev/ttyUSB0)")
+        if "://" not in t.port and not os.path.exists(t.port):  # pyserial URLs (socket://…) are not files
+            raise SessionConfigError(f"tracker.port: {t.port} does not exist")
+    else:
+        import socket
+
+        try:
+            socket.getaddrinfo(t.server, None)
+        except OSError as exc:
+            raise SessionConfigError(f"tracker.server: cannot resolve {t.server!r}: {exc}") from None
+    if config.sink.kind == "window":
+        from drivers.frame_sinks import check_display
+
+        try:
+            check_display(config.sink.display, (scene.render.width, scene.render.height))
+        except Exception as exc:
+            raise SessionConfigError(f"sink: {exc}") from None
+
+
 def shading_scene(scene: Scene, scale: float) -> Scene:
     """The scene at the shading resolution: `scale` of the native size per axis (at least 1 px)."""
     r = scene.render
@@ -281,16 +315,24 @@ def warm_up(renderer, scene: Scene, gbuffer=None) -> None:
 
 def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: Any = None,
                        usb: tuple[str, bytes] | None = None) -> SessionParts:
-    """Open every part the config names (mocks first with `mock`); closes what it opened on error."""
-    scene = prepare_scene(config)
-    bindings = resolve_bindings(config, scene)
+    """Open every part the config names (mocks first with `mock`); closes what it opened on error.
+    The projector is opened before the renderer, a real one before the scene, so that a missing
+    one is reported at once, not after seconds of scene loading and kernel compiling."""
     closers: list = []
-    rig = None
+    rig = projector = None
     try:
+        if config.projector.kind == "dlpc900" and not mock:
+            projector = DLPC900Control.open(config)
+            closers.append(projector.close)
+        scene = prepare_scene(config)
+        bindings = resolve_bindings(config, scene)
         over: dict = {}
         if mock:
             rig, over = start_mock_rig(config, scene, bindings, usb)
             closers.append(rig.stack.close)
+            if config.projector.kind == "dlpc900":  # the rig's emulated one
+                projector = DLPC900Control.open(config)
+                closers.append(projector.close)
         gbuffer = None
         if renderer is None:
             from dpmhw.render.integrator import PathIntegrator
@@ -308,10 +350,6 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
             warm_up(renderer, scene, gbuffer)
         elif hasattr(renderer, "close"):
             closers.append(renderer.close)
-        projector = None
-        if config.projector.kind == "dlpc900":
-            projector = DLPC900Control.open(config)
-            closers.append(projector.close)
         sink = open_sink(config, mock, (scene.render.height, scene.render.width))
         closers.append(sink.close)
         tracker = open_tracker(config, **over)
