@@ -232,6 +232,18 @@ def open_tracker(config: SessionConfig, command_port: int | None = None, port: s
     return SerialTracker(port, baudrate=t.baudrate, **common)
 
 
+def describe_tracker(config: SessionConfig, command_port: int | None = None, port: str | None = None) -> tuple[str, str]:
+    """Where the tracker reads from, and the `dpmhw tracker watch` command that checks it (for
+    messages; the arguments are `open_tracker`'s mock overrides)."""
+    t = config.tracker
+    if t.kind == "natnet":
+        command_port = command_port or t.command_port
+        return (f"NatNet server {t.server}:{command_port}",
+                f"dpmhw tracker watch --natnet {t.server} --command-port {command_port} --local-interface {t.local_interface}")
+    port = port or t.port
+    return f"serial port {port}", f"dpmhw tracker watch --serial {port} --baudrate {t.baudrate}"
+
+
 def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):
     kind = config.sink.kind
     if mock and kind == "window":
@@ -369,8 +381,10 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
                 log.exception("cleanup after a failed start")
         raise
     # the loop closes tracker, sink, renderer and projector itself; the rig last
+    address, watch = describe_tracker(config, **over)
     return SessionParts(scene, renderer, tracker, sink, bindings, projector, recorder, rig, gbuffer,
-                        closers=([gbuffer.close] if gbuffer is not None else []) + ([rig.stack.close] if rig is not None else []))
+                        closers=([gbuffer.close] if gbuffer is not None else []) + ([rig.stack.close] if rig is not None else []),
+                        tracker_address=address, tracker_watch=watch)
 
 
 def build_session(config: SessionConfig, *, mock: bool = False, renderer: Any = None, frame_log: int = 0,

@@ -149,3 +149,15 @@ def test_bench_session_command(runner, tmp_path):
     for load in results["api_load"]:
         assert load["requests"] > 0 and load["errors"] == 0 and load["loaded_frames"] > 0 and load["unloaded_frames"] > 0
     assert "API in its own process: 2 clients" in r.output and "API in its thread of the session process" in r.output
+
+
+def test_the_tracker_hint_is_a_command_the_cli_accepts(runner):
+    from dpmhw.session.config import load_session_config
+    from dpmhw.session.factory import describe_tracker
+
+    for overrides, address in (([], "NatNet server 127.0.0.1:1510"),
+                               (['tracker.kind="serial"', 'tracker.port="/dev/null"'], "serial port /dev/null")):
+        got, watch = describe_tracker(load_session_config(overrides=overrides))
+        assert got == address and watch.startswith("dpmhw tracker watch ")
+        r = runner.invoke(app, [*watch.split()[1:], "--seconds", "0.2", "--every", "0.1"])
+        assert r.exit_code == 1 and "Usage" not in r.output, r.output  # 1: no frame arrived (not 2: bad options)
