@@ -61,10 +61,15 @@ def start(
     extra += [f"api.port={port}"] if port is not None else []
     extra += ["api.enabled=false"] if no_api else []
     extra += ["recording.enabled=true"] if record else []
+    from dpmhw.session.instance import SessionLock
+
     try:
         cfg = _load(config, sets, extra)
-    except DpmhwError as exc:
+        lock = SessionLock.claim(cfg, mock)  # held until this process ends
+    except (DpmhwError, OSError) as exc:
         _fail(exc)
+    if lock.warning:
+        typer.echo(lock.warning)
     from dpmhw.session.supervisor import Supervisor
 
     sock = token = None
@@ -79,6 +84,8 @@ def start(
             sock = bind_api_socket(cfg.api.host, cfg.api.port)  # held here for the whole show
         except OSError as exc:
             _fail(OSError(f"api.port: cannot listen on {cfg.api.host}:{cfg.api.port}: {exc.strerror or exc}"))
+        host = f"[{cfg.api.host}]" if ":" in cfg.api.host else cfg.api.host
+        typer.echo(f"operator page: http://{host}:{sock.getsockname()[1]}/ (once the session has started)")
     try:
         code = Supervisor(cfg, mock=mock, token=token or "", sock=sock, duration=duration,
                           status_every=status_every, echo=typer.echo).run()
@@ -87,6 +94,7 @@ def start(
     finally:
         if sock is not None:
             sock.close()
+        lock.release()
     raise typer.Exit(code=code)
 
 
