@@ -81,6 +81,46 @@ def clean(vertices: np.ndarray, faces: np.ndarray, smooth: bool, source: str) ->
     return TriangleMesh(vertices, faces, normals, source, dropped)
 
 
+# Edges whose faces turn by more than this stay sharp in a mesh file's default shading: a box's
+# 90° edges do, a tessellated curve's few degrees per facet do not.
+DEFAULT_SMOOTH_ANGLE_DEG = 30.0
+
+
+def smooth_within(mesh: TriangleMesh, angle_deg: float) -> TriangleMesh:
+    """Smooth shading across the edges whose two face normals differ by at most `angle_deg`;
+    sharper edges (and faces wound against their neighbour) stay creases. Corners at the same
+    coordinates are one vertex here (STL stores none shared; OBJ splits them at UV seams). A vertex
+    is split into one copy per fan of faces joined by smooth edges around it, each copy with the
+    area-weighted normal of its fan (the same coordinates, so the surface stays closed)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from trimesh.graph import face_adjacency
+
+    _, at = np.unique(mesh.vertices, axis=0, return_inverse=True)
+    faces = at.reshape(-1)[mesh.faces]  # vertex indices by position
+    tri = mesh.triangles
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # nonzero: `clean` dropped degenerate faces
+    unit = cross / np.linalg.norm(cross, axis=1, keepdims=True)
+    pairs, edges = face_adjacency(faces=faces, return_edges=True)
+    smooth = np.einsum("ij,ij->i", unit[pairs[:, 0]], unit[pairs[:, 1]]) >= np.cos(np.radians(angle_deg))
+    pairs, edges = pairs[smooth], edges[smooth]
+
+    def corner(f, v):  # index into faces.ravel() of vertex v in face f
+        return 3 * f + np.argmax(faces[f] == v[:, None], axis=1)
+
+    a = np.concatenate([corner(pairs[:, 0], edges[:, 0]), corner(pairs[:, 0], edges[:, 1])])
+    b = np.concatenate([corner(pairs[:, 1], edges[:, 0]), corner(pairs[:, 1], edges[:, 1])])
+    n = faces.size
+    count, label = connected_components(coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)), directed=False)
+    first = np.empty(count, np.int64)
+    first[label] = np.arange(n)  # a corner of each group (all of its corners are one vertex)
+    normals = np.zeros((count, 3))
+    np.add.at(normals, label, np.repeat(cross, 3, axis=0))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    vertices = mesh.vertices[mesh.faces.ravel()[first]]
+    return TriangleMesh(vertices, label.reshape(-1, 3).astype(np.int32), normals, mesh.source, mesh.dropped_degenerate)
+
+
 def quad_mesh(size, segments=(1, 1)) -> TriangleMesh:
     """A size[0] × size[1] rectangle in the local XZ plane, centred, facing +Y; `segments`
     (nx, nz) > (1, 1) splits it into a grid of cells, two triangles each, so that per-face

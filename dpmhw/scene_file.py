@@ -19,7 +19,8 @@ import numpy as np
 
 from dpmhw.errors import CalibrationError, SceneError
 from dpmhw.limits import check_file_size, max_scene_bytes, render_memory_problem
-from dpmhw.meshes import TriangleMesh, box_mesh, load_mesh, quad_mesh, sphere_mesh, stanford_bunny, BOX_FACES
+from dpmhw.meshes import (DEFAULT_SMOOTH_ANGLE_DEG, TriangleMesh, box_mesh, load_mesh, quad_mesh, smooth_within, sphere_mesh,
+                           stanford_bunny, BOX_FACES)
 from dpmhw.motion import ScriptedMotion
 from dpmhw.transforms import Pose, look_at, rotation_from_euler_xyz_deg, rotation_from_quat_xyzw
 
@@ -244,7 +245,7 @@ def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings)
 
 
 OBJECT_FIELDS = {
-    "name", "shape", "size", "radius", "scale", "mesh", "smooth", "recentre", "open", "position", "rotation",
+    "name", "shape", "size", "radius", "scale", "mesh", "smooth", "smooth_angle", "recentre", "open", "position", "rotation",
     "albedo", "specular", "roughness", "roughness_map", "emission", "rigid_body", "motion", "segments",
 }
 ROUGHNESS_MAP_FIELDS = {"axis", "edges", "values"}
@@ -271,9 +272,13 @@ def _parse_motion(source: str, table, path: str) -> ScriptedMotion:
 
 
 def _parse_mesh_shape(f: _Fields, shape: str, base_dir: Path, notes: list[str], mesh_override: Path | None) -> TriangleMesh:
-    smooth = f.table.get("smooth", shape in ("sphere", "mesh"))
+    smooth = f.table.get("smooth", shape == "sphere")
     if not isinstance(smooth, bool):
         f.fail("smooth", f"expected true or false, got {smooth!r}")
+    if f.has("smooth_angle") and (shape != "mesh" or f.has("smooth")):
+        f.fail("smooth_angle", "only a mesh has one, and not together with smooth")
+    # a mesh file's default: smooth within smooth_angle, its sharper edges kept (a box stays a box)
+    angle = f.number("smooth_angle", default=DEFAULT_SMOOTH_ANGLE_DEG, lo=0.0, hi=180.0) if not f.has("smooth") else None
     if f.has("segments") and shape != "quad":
         f.fail("segments", "only a quad has segments")
     if shape == "quad":
@@ -294,6 +299,8 @@ def _parse_mesh_shape(f: _Fields, shape: str, base_dir: Path, notes: list[str], 
         mesh = _load_mesh_field(f, Path(override), smooth) if override else stanford_bunny(smooth)
     else:
         mesh = _load_mesh_field(f, base_dir / name, smooth)
+    if angle is not None:
+        mesh = smooth_within(mesh, angle)
     scale = f.vector("scale", default=(1, 1, 1), lo=0.0, scalar_ok=True)
     if np.any(scale <= 0):
         f.fail("scale", "expected positive scale factors")

@@ -165,3 +165,59 @@ def test_a_calibrated_camera_gives_the_size_and_a_mesh_is_no_calibration(tmp_pat
     (tmp_path / "box.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     with pytest.raises(SceneError, match=r"camera\.calibration: cannot load .*box\.obj"):
         load_scene(write(tmp_path, text.replace("p.json", "box.obj")))
+
+
+BOX_OBJ = "".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1)) + """\
+f 1 2 4
+f 1 4 3
+f 5 7 8
+f 5 8 6
+f 1 5 6
+f 1 6 2
+f 3 4 8
+f 3 8 7
+f 1 3 7
+f 1 7 5
+f 2 6 8
+f 2 8 4
+"""
+
+
+@pytest.mark.parametrize("fields, corners, flat", [
+    ("", 24, True),  # default: 90° edges are sharper than the 30° default, each face is flat
+    ("smooth_angle = 95.0\n", 8, False),  # every edge smooth: one averaged normal per corner
+    ("smooth = true\n", 8, False),
+    ("smooth = false\n", 8, True),  # flat shading has no vertex normals at all
+])
+def test_a_shared_vertex_box_mesh_has_sharp_edges_by_default(tmp_path, fields, corners, flat):
+    (tmp_path / "box.obj").write_text(BOX_OBJ)
+    scene = load_scene(write(tmp_path, GOOD + '[[objects]]\nname = "box"\nshape = "mesh"\nmesh = "box.obj"\n' + fields))
+    mesh = scene.objects[1].mesh
+    assert len(mesh.vertices) == corners
+    tri = mesh.triangles
+    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    face_n /= np.linalg.norm(face_n, axis=1, keepdims=True)
+    if mesh.vertex_normals is None:
+        assert flat
+    else:
+        agree = np.einsum("fkj,fj->fk", mesh.vertex_normals[mesh.faces], face_n)
+        assert np.allclose(agree, 1.0) == flat and np.all(agree > 0.3)  # outward, wound consistently
+
+
+def test_smooth_angle_keeps_a_sphere_smooth_and_names_misuse(tmp_path):
+    import trimesh
+
+    from dpmhw.meshes import DEFAULT_SMOOTH_ANGLE_DEG, load_mesh, smooth_within, sphere_mesh
+
+    sphere = smooth_within(sphere_mesh(1.0, smooth=False), DEFAULT_SMOOTH_ANGLE_DEG)
+    assert len(sphere.vertices) == 2562  # no vertex split
+    np.testing.assert_allclose(np.einsum("ij,ij->i", sphere.vertex_normals, sphere.vertices), 1.0, atol=1e-4)
+    (tmp_path / "box.obj").write_text(BOX_OBJ)
+    base = GOOD + '[[objects]]\nname = "box"\nshape = "mesh"\nmesh = "box.obj"\n'
+    stl = tmp_path / "sphere.stl"  # an STL shares no vertex: corners at one position are joined
+    trimesh.creation.icosphere(subdivisions=3).export(stl)
+    assert len(smooth_within(load_mesh(stl, smooth=False), DEFAULT_SMOOTH_ANGLE_DEG).vertices) == 642
+    with pytest.raises(SceneError, match=r"objects\[1\]\.smooth_angle: only a mesh"):
+        load_scene(write(tmp_path, base + "smooth = true\nsmooth_angle = 10.0\n"))
+    with pytest.raises(SceneError, match=r"objects\[1\]\.smooth_angle: expected a number in \[0.0, 180.0\]"):
+        load_scene(write(tmp_path, base + "smooth_angle = 200.0\n"))
