@@ -1,4 +1,5 @@
-"""Triangle meshes: loading (OBJ/PLY through trimesh), primitive shapes, and the Stanford bunny.
+"""Triangle meshes: loading (OBJ/PLY/STL through trimesh), shading normals, primitive shapes and
+the Stanford bunny.
 
 Every mesh is cleaned once at load: degenerate (zero-area) triangles are dropped and counted, so
 no stage downstream divides by a zero-length normal.
@@ -178,7 +179,7 @@ def sphere_mesh(radius: float, subdivisions: int = 4, smooth: bool = True) -> Tr
 
 
 def load_mesh(path: Path, smooth: bool = True) -> TriangleMesh:
-    """Load an OBJ/PLY file. Raises FileNotFoundError / ValueError with the path in the message."""
+    """Load an OBJ/PLY/STL file. Raises FileNotFoundError / ValueError with the path in the message."""
     import trimesh
 
     path = Path(path)
