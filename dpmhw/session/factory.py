@@ -226,10 +226,14 @@ def open_tracker(config: SessionConfig, command_port: int | None = None, port: s
                             **common)
     from drivers.serial_tracker import SerialTracker
 
-    port = port or t.port
+    return SerialTracker(_serial_port(config, port), baudrate=t.baudrate, **common)
+
+
+def _serial_port(config: SessionConfig, port: str | None = None) -> str:
+    port = port or config.tracker.port
     if not port:
         raise SessionConfigError("tracker.port: a serial tracker needs a port (e.g. /dev/ttyUSB0)")
-    return SerialTracker(port, baudrate=t.baudrate, **common)
+    return port
 
 
 def describe_tracker(config: SessionConfig, command_port: int | None = None, port: str | None = None) -> tuple[str, str]:
@@ -275,10 +279,9 @@ def check_devices(config: SessionConfig, scene: Scene) -> None:
             raise SessionConfigError(f"projector: {exc}") from None
     t = config.tracker
     if t.kind == "serial":
-        if not t.port:
-            raise SessionConfigError("tracker.port: a serial tracker needs a port (e.g. /dev/ttyUSB0)")
-        if "://" not in t.port and not os.path.exists(t.port):  # pyserial URLs (socket://…) are not files
-            raise SessionConfigError(f"tracker.port: {t.port} does not exist")
+        port = _serial_port(config)
+        if "://" not in port and not os.path.exists(port):  # pyserial URLs (socket://…) are not files
+            raise SessionConfigError(f"tracker.port: {port} does not exist")
     else:
         import socket
 
