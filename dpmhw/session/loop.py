@@ -101,6 +101,8 @@ class SessionParts:
     mock: Any = None  # the mock rig (world, servers, emulated devices) in --mock sessions
     gbuffer: Any = None  # dpmhw.render.gbuffer.NativeGBuffer when the renderer shades below the native size
     closers: list[Callable[[], None]] = field(default_factory=list)
+    tracker_address: str = ""  # where the tracker reads from, for messages: "NatNet server 10.0.0.5:1510"
+    tracker_watch: str = ""  # the `dpmhw tracker watch …` command that checks the same tracker
 
 
 @dataclass(frozen=True)
@@ -425,7 +427,9 @@ class SessionLoop:
         for body in sorted(bodies):
             s = tracker.latest(body)
             if s is None:
-                problems.append(f"rigid body {body}: no sample yet (tracker {status.state.value})")
+                where = f" from {self.parts.tracker_address}" if self.parts.tracker_address else ""
+                hint = f"; check it with `{self.parts.tracker_watch}`" if self.parts.tracker_watch else ""
+                problems.append(f"rigid body {body}: no sample yet{where} (tracker {status.state.value}){hint}")
                 continue
             self.predictor.observe(s)
             age = now - s.t_exposure_ns

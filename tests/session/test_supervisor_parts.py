@@ -72,7 +72,6 @@ def test_resume_while_projecting_does_not_promise_a_hold_off():
 
 
 def test_black_window_on_the_projector_display_only_when_the_session_used_one(monkeypatch):
-    pytest.importorskip("pygame", reason="the display extra (pygame-ce) is not installed")
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
     from dpmhw.session.config import load_session_config
     from dpmhw.session.factory import open_black_window
