@@ -444,11 +444,15 @@ def _scene_text(name_or_path: str | Path) -> tuple[str, str, Path]:
 
 def scene_size(name_or_path: str | Path) -> tuple[int, int]:
     """A scene's (width, height) from its [render] table alone: no mesh is read."""
-    text, source, _ = _scene_text(name_or_path)
+    text, source, base_dir = _scene_text(name_or_path)
     top = _Fields(source, _toml(text, source), "", SCENE_SECTIONS)
     if not top.has("render"):
         top.fail("render", "missing required section")
-    render = _parse_render(source, top.table["render"])
+    camera = top.table.get("camera")
+    calibrated = isinstance(camera, dict) and "calibration" in camera
+    render = _parse_render(source, top.table["render"], calibrated)
+    if calibrated and not render.width:  # the calibration file's size
+        render = _parse_camera(source, camera, base_dir, render)[1]
     return render.width, render.height
 
 

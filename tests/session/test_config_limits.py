@@ -118,7 +118,7 @@ def special_cases() -> list[tuple[list[str], str | None]]:
 
 def _config(overrides: list[str]):
     _register()
-    return CliRunner().invoke(app, ["session", "config", *(a for o in overrides for a in ("--set", o))])
+    return CliRunner().invoke(app, ["session", "config", "--offline", *(a for o in overrides for a in ("--set", o))])
 
 
 def _check(output: str, code: int, refused: str | None, where: str) -> None:
