@@ -46,6 +46,7 @@ from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
+from dpmhw.session.heartbeat import Heartbeat
 from dpmhw.session.metrics import LoopMetrics
 from dpmhw.session.prediction import PosePredictor
 from dpmhw.session.safety import SafetyMonitor, SessionState
@@ -177,10 +178,11 @@ class SessionLoop:
     """Runs one projection session. `start()`, then `stop()` (idempotent) for a verified dark end."""
 
     def __init__(self, config: SessionConfig, parts: SessionParts, *, frame_log: int = 0,
-                 clock: Callable[[], int] = time.monotonic_ns):
+                 clock: Callable[[], int] = time.monotonic_ns, heartbeat: Heartbeat | None = None):
         self.config = config
         self.parts = parts
         self.clock = clock
+        self.heartbeat = heartbeat  # what the frame thread did, for a supervisor (clock: CLOCK_MONOTONIC)
         s = config.safety
         self.stale_ns = int(s.stale_after_ms * 1e6)
         self.watchdog_ns = int(s.watchdog_s * 1e9)
@@ -365,6 +367,8 @@ class SessionLoop:
                 self.safety.update("loop", True, f"internal error {type(exc).__name__}: {exc}", "fault")
                 presented = False
             self._heartbeat_ns = self.clock()
+            if self.heartbeat is not None:
+                self.heartbeat.beat(self._heartbeat_ns)
             self._publish()
             if not presented:
                 self._stop.wait(self._idle_wait_s(poll_s))
@@ -585,6 +589,8 @@ class SessionLoop:
         except Exception as exc:
             return self._stage_failed("sink", "present_errors", f"present failed: {type(exc).__name__}: {exc}")
         t5 = self.clock()
+        if self.heartbeat is not None:
+            self.heartbeat.presented(t5)
         stages["present"] = (t5 - t4) / 1e9
         stages["frame"] = (t5 - t_start) / 1e9
         self.safety.mark_started()
@@ -648,6 +654,8 @@ class SessionLoop:
                     self.safety.update("projector", True, f"cannot light the projector: {type(exc).__name__}: {exc}", "fault")
                     return
             self.reconstruct.reset()  # history from before the dark spell describes another moment
+            if self.heartbeat is not None:
+                self.heartbeat.lit(self.clock())
             self._output_on = True
             self.metrics.count("resumes")
             log.warning("projection resumed")
@@ -672,14 +680,16 @@ class SessionLoop:
                     self.safety.update("sink", True, f"cannot present a black frame: {type(exc).__name__}: {exc}", "fault")
             if self.parts.projector is None:
                 self._last_blank = "no projector"
-                return
-            try:
-                self._last_blank = self.parts.projector.blank()
-            except Exception as exc:
-                self._last_blank = f"FAILED: {exc}"
-                self.safety.update("projector_blank", True, f"cannot confirm the projector is dark: {exc}", "fault")
             else:
+                try:
+                    self._last_blank = self.parts.projector.blank()
+                except Exception as exc:
+                    self._last_blank = f"FAILED: {exc}"
+                    self.safety.update("projector_blank", True, f"cannot confirm the projector is dark: {exc}", "fault")
+                    return  # still lit as far as a supervisor knows
                 self.safety.update("projector_blank", False)
+            if self.heartbeat is not None:
+                self.heartbeat.dark()
 
     # ---- watchdog and device health ---------------------------------------------------------
     def _watchdog(self) -> None:
