@@ -196,8 +196,12 @@ def _accept(conn: Connection, authkey: bytes, session: _Session, slots: threadin
             deliver_challenge(conn, authkey)
             answer_challenge(conn, authkey)
             _set_timeout(conn, 0)  # an authenticated client may stay quiet as long as it likes
-        except (OSError, EOFError, multiprocessing.AuthenticationError) as exc:
-            log.warning("DLPC900 emulator: refused a connection: %s", exc or type(exc).__name__)
+        except multiprocessing.AuthenticationError as exc:
+            log.warning("DLPC900 emulator: refused a connection: %s", exc)
+            conn.close()
+            return
+        except (OSError, EOFError) as exc:  # left, or silent past the timeout
+            log.info("DLPC900 emulator: dropped a connection during its handshake: %s", exc or type(exc).__name__)
             conn.close()
             return
         _serve_client(conn, session)

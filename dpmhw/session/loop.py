@@ -367,8 +367,6 @@ class SessionLoop:
                 self.safety.update("loop", True, f"internal error {type(exc).__name__}: {exc}", "fault")
                 presented = False
             self._heartbeat_ns = self.clock()
-            if self.heartbeat is not None:
-                self.heartbeat.beat(self._heartbeat_ns)
             self._publish()
             if not presented:
                 self._stop.wait(self._idle_wait_s(poll_s))
@@ -590,7 +588,7 @@ class SessionLoop:
             return self._stage_failed("sink", "present_errors", f"present failed: {type(exc).__name__}: {exc}")
         t5 = self.clock()
         if self.heartbeat is not None:
-            self.heartbeat.presented(t5)
+            self.heartbeat.presented(t5, self._present_allowance_ns())
         stages["present"] = (t5 - t4) / 1e9
         stages["frame"] = (t5 - t_start) / 1e9
         self.safety.mark_started()
@@ -655,10 +653,16 @@ class SessionLoop:
                     return
             self.reconstruct.reset()  # history from before the dark spell describes another moment
             if self.heartbeat is not None:
-                self.heartbeat.lit(self.clock())
+                self.heartbeat.presented(self.clock(), self._present_allowance_ns())
             self._output_on = True
             self.metrics.count("resumes")
             log.warning("projection resumed")
+
+    def _present_allowance_ns(self) -> int:
+        """How long a lit frame may stand before a supervisor calls this process hung: the stale
+        limit plus twice the expected frame time (a slow but live loop presents within that), never
+        more than the watchdog's stall limit."""
+        return min(self.stale_ns + int(2e9 * self.metrics.expected_pipeline_s()), self.watchdog_ns)
 
     def _go_dark(self, reason: str, force: bool = False, from_watchdog: bool = False) -> None:
         """Black frame to the sink (not from the watchdog: the stuck loop may be inside the sink)

@@ -167,17 +167,20 @@ def test_sigkill_of_the_loop_process_idles_the_projector_and_reports_fault(show)
 
 
 def test_a_hung_loop_process_is_killed_and_the_projector_dark_within_the_stale_bound(show):
-    """SIGSTOP: the process neither dies nor answers. Its frame thread's heartbeat stops, and the
-    supervisor kills it and idles the projector. Goal: dark stale_after_ms + 100 ms after the last
-    present (on a quiet machine); asserted: within STALE_S + DARK_WITHIN_S of the SIGSTOP, as on
-    a loaded 2-core machine the supervisor's wake-up, the kill and the read-back can each wait
-    for the CPU."""
+    """SIGSTOP: the process neither dies nor answers. Its frame thread's next present never comes,
+    and the supervisor kills it and idles the projector. Goal: dark within stale_after_ms + 100 ms
+    of the last present (quiet machine, fast frames; here the 1 s watchdog caps the allowance
+    below the 2 s stale limit). Asserted: within 1.05 s + DARK_WITHIN_S of the SIGSTOP, as on a
+    loaded 2-core machine the supervisor's wake-up, the kill and the read-back can each wait for
+    the CPU."""
     s = show()
     s.lit()
     pid = s.loop_pid()
-    took = s.time_to_dark(lambda: os.kill(pid, signal.SIGSTOP), within_s=STALE_S + DARK_WITHIN_S)
-    hung = s.wait_line(r"is hung: its frame thread has not presented for (\d+) ms while lit \(limit (\d+) ms\)")[0]
-    assert int(hung.group(1)) > int(hung.group(2)) == STALE_S * 1e3 + 50
+    took = s.time_to_dark(lambda: os.kill(pid, signal.SIGSTOP), within_s=1.05 + DARK_WITHIN_S)
+    hung = s.wait_line(r"is hung: its frame thread has not presented for (\d+) ms while lit \(due within (\d+) ms\)")[0]
+    # the loop's allowance: the stale limit plus twice its frame time, at most the 1 s watchdog
+    # (here, with a 2 s stale limit, that), plus the 50 ms margin
+    assert int(hung.group(1)) > int(hung.group(2)) == 1050
     _assert_fault_reported(s, "hung (its frame thread has not presented")
     assert "was killed by SIGKILL" in s.status()["reason"]
     print(f"SIGSTOP → dark {took * 1e3:.0f} ms (stale {STALE_S * 1e3:.0f} ms)")
