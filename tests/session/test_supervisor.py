@@ -21,6 +21,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -41,10 +42,14 @@ ROOT = Path(__file__).resolve().parents[2]
 class Show:
     """One supervised `session start --mock` against an emulator this test reads back."""
 
-    def __init__(self, *sets: str, fault: str = ""):
-        self.emulator = EmulatorProcess.start()
-        env = {**os.environ, "DPMHW_API_TOKEN": "t", EMULATOR_ENV[0]: self.emulator.address,
-               EMULATOR_ENV[1]: self.emulator.authkey.hex()}
+    def __init__(self, *sets: str, fault: str = "", emulator: bool = True):
+        """`emulator=False`: the supervisor starts (and owns) its own, which the test cannot read."""
+        self.emulator = EmulatorProcess.start() if emulator else None
+        env = {**os.environ, "DPMHW_API_TOKEN": "t"}
+        for name in EMULATOR_ENV:
+            env.pop(name, None)
+        if emulator:
+            env.update({EMULATOR_ENV[0]: self.emulator.address, EMULATOR_ENV[1]: self.emulator.authkey.hex()})
         # api.priority=low: a SCHED_IDLE API process gets next to no CPU beside a CPU hog
         args = ["session", "start", "--mock", "--status-every", "0", "--port", "0", "--set", "render.width=32",
                 "--set", "render.height=24", "--set", f"safety.stale_after_ms={STALE_S * 1e3:g}",
@@ -128,7 +133,8 @@ class Show:
 
     def close(self) -> None:
         self.stop()
-        self.emulator.close()
+        if self.emulator is not None:
+            self.emulator.close()
 
 
 @pytest.fixture
@@ -343,3 +349,21 @@ def test_repeated_crashes_stop_restarting_after_the_limit_and_stay_dark(show):
     assert len(s.wait_line(r"killed by SIGABRT", count=2)) >= 2
     assert s.stop() == 1
     assert s.dark() and s.out.count("loop process pid") == 2  # no third start, to the end
+
+
+def test_a_killed_supervisor_leaves_neither_slots_nor_the_emulator_folder():
+    """SIGKILL of the supervisor: its loop process stops by itself and removes its shared-memory
+    slots; the emulator it owned exits and removes its socket folder (each named by its owner's
+    pid, so a later start could also tell them)."""
+    s = Show(emulator=False)
+    try:
+        s.api()
+        loop_pid, supervisor_pid = s.loop_pid(), s.proc.pid
+        slots = f"/dev/shm/dpmhw-slot-{loop_pid}-*"
+        folder = os.path.join(tempfile.gettempdir(), f"dpmhw-dlpc900-{supervisor_pid}-*")
+        assert glob.glob(slots) and glob.glob(folder), (glob.glob("/dev/shm/dpmhw-*"), s.out)
+        s.proc.kill()
+        assert wait_for(lambda: not glob.glob(slots) and not glob.glob(folder), 60), \
+            (glob.glob(slots), glob.glob(folder), s.out)
+    finally:
+        s.close()
