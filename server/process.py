@@ -19,8 +19,9 @@ reports `fault` with the age of the last snapshot; it exits by itself when this 
 If the API process dies (killed, crashed), a keeper thread here starts a new one on the same
 listening socket (still bound: clients queue rather than being refused) after a backoff
 (`restart_backoff_s`, doubling up to `restart_backoff_max_s`; back to the start once the last
-crash is `stable_after_s` old: `dpmhw.child_process.RestartPolicy`). The loop never notices: an API crash costs the show no frame. The
-status says how often this happened and why (`status["api"]`).
+crash is `stable_after_s` old: `dpmhw.child_process.RestartPolicy`). The loop never notices: an
+API crash costs the show no frame. The status says how often this happened and why
+(`status["api"]`).
 """
 
 from __future__ import annotations

@@ -673,6 +673,7 @@ class SessionLoop:
             self._output_on = False
             self.metrics.count("blanks")
             log.warning("projection dark: %s", reason)
+            black_shown = False
             if not from_watchdog:
                 black = np.zeros((self.output_size[1], self.output_size[0], 3), np.uint8)
                 black.setflags(write=False)
@@ -680,10 +681,13 @@ class SessionLoop:
                     t = self.parts.sink.present(black, self.clock())
                     with self._lock:
                         self._latest = LatestFrame(self._frame_number, t, black, self._settings, blank=True)
+                    black_shown = True
                 except Exception as exc:
                     self.safety.update("sink", True, f"cannot present a black frame: {type(exc).__name__}: {exc}", "fault")
             if self.parts.projector is None:
                 self._last_blank = "no projector"
+                if not black_shown:
+                    return  # the sink may still show the last frame: lit as far as a supervisor knows
             else:
                 try:
                     self._last_blank = self.parts.projector.blank()

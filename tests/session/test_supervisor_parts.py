@@ -211,3 +211,25 @@ def test_leftovers_of_dead_owners_are_swept_and_live_ones_kept(tmp_path):
     finally:
         slot.close()
     assert not os.path.exists(f"/dev/shm/{slot.name.lstrip('/')}")
+
+
+def test_the_loop_keeps_its_heartbeat_lit_while_projecting_and_dark_once_blanked(make_loop):
+    from dpmhw.session.heartbeat import Heartbeat
+    from dpmhw.tracking import wait_for
+
+    loop = make_loop()  # stale 200 ms, watchdog 1 s
+    beat = loop.heartbeat = Heartbeat()
+    loop.start()
+    later = 10_000_000_000  # 10 s on: past any deadline the loop could have set
+
+    def lit() -> bool:
+        return beat.overdue(time.monotonic_ns() + later)[0] is not None
+
+    assert wait_for(lambda: loop.status()["state"] == "running" and lit(), 30)
+    # each present moves the deadline: it stays ahead of now while frames come
+    assert wait_for(lambda: beat.overdue(time.monotonic_ns())[0] is None, 30)
+    due_ns = beat.overdue(time.monotonic_ns())[1]
+    assert 0 < due_ns <= 1_050_000_000  # at most the 1 s watchdog + the 50 ms margin
+    loop.blank()
+    assert wait_for(lambda: loop.status()["state"] == "blanked" and not lit(), 30)  # confirmed dark
+    assert loop.parts.projector.dark
