@@ -241,6 +241,11 @@ class _Pests:
 
 
 def test_slow_and_silent_clients_hold_up_neither_the_dark_nor_the_restart_nor_the_stop(show):
+    """Half requests and silent connections on the API port, silent ones on the emulator's socket,
+    throughout two SIGKILLs of the loop process (the second after a restart). Each is dark within
+    DARK_WITHIN_S, as for the deaths without them: a quiet machine measures tens of ms (the
+    printed figures), and the bound leaves room for a CPU hog beside the test; what it catches is
+    the supervisor held by a client, which waited until that client left (20 s and more)."""
     s = show("safety.restart=\"on-crash\"", "safety.restart_limit=1", "safety.restart_backoff_s=0.1",
              "safety.restart_window_s=86400")
     s.lit()
