@@ -273,7 +273,11 @@ class EmulatorProcess:
         try:
             process.start()
             theirs.close()
-            if not ours.poll(timeout_s) or ours.recv() != "ready":
+            try:
+                ready = ours.poll(timeout_s) and ours.recv() == "ready"
+            except EOFError:
+                ready = False  # it died: its error is printed above
+            if not ready:
                 raise RuntimeError(f"the DLPC900 emulator process did not start within {timeout_s:g} s")
         except BaseException:
             if process.pid is not None:
