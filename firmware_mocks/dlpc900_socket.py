@@ -23,8 +23,9 @@ No client can hold up another: each connection is served on its own thread (at m
 `MAX_REQUEST_BYTES` and a transfer at most `MAX_TRANSFER` bytes (wLength is 16 bits), and a
 malformed request gets an error reply. On the host side every exchange is bounded by
 `REPLY_TIMEOUT_S` (a stuck emulator reads as a USB timeout, as a stuck device would).
-The socket's folder is named by the owner's pid (`EMULATOR_DIRS`): a folder whose owner was
-killed is removed by the next `EmulatorProcess.start`.
+The socket's folder is named by the owner's pid (`EMULATOR_DIRS`): the emulator removes it when
+its owner dies, the owner when it closes the emulator, and `EmulatorProcess.start` any left by a
+dead owner (both killed).
 
 Never imports `drivers`.
 """
@@ -164,7 +165,7 @@ def _serve_client(conn: Connection, session: _Session) -> None:
             except ValueError as exc:  # malformed: say so, and wait for the next one
                 reply = ("error", ("ValueError", str(exc)))
             except OSError as exc:
-                if "bad message length" in str(exc):  # longer than MAX_REQUEST_BYTES: the stream is lost
+                if "bad message length" in str(exc):  # multiprocessing's words for over MAX_REQUEST_BYTES
                     with contextlib.suppress(OSError):
                         conn.send(("error", ("ValueError", f"request: longer than {MAX_REQUEST_BYTES} bytes")))
                 return

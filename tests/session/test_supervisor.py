@@ -245,7 +245,7 @@ def test_slow_and_silent_clients_hold_up_neither_the_dark_nor_the_restart_nor_th
     throughout two SIGKILLs of the loop process (the second after a restart). Each is dark within
     DARK_WITHIN_S, as for the deaths without them: a quiet machine measures tens of ms (the
     printed figures), and the bound leaves room for a CPU hog beside the test; what it catches is
-    the supervisor held by a client, which waited until that client left (20 s and more)."""
+    a supervisor held by a client, which would stay lit until that client left."""
     s = show("safety.restart=\"on-crash\"", "safety.restart_limit=1", "safety.restart_backoff_s=0.1",
              "safety.restart_window_s=86400")
     s.lit()
@@ -272,7 +272,8 @@ def test_slow_and_silent_clients_hold_up_neither_the_dark_nor_the_restart_nor_th
 def test_a_stop_during_start_up_is_answered_at_once_and_ends_dark(sig):
     """The loop process cannot see a stop before its start-up (imports, devices, kernels) returns;
     the supervisor ends it and idles the projector itself. Bound: 10 s from the signal to the
-    supervisor's exit (a quiet machine: well under a second; the old way waited out 30 s)."""
+    supervisor's exit (a quiet machine: well under a second; waiting for the start-up to return
+    instead would take as long as the start-up, and a first run compiles for minutes)."""
     s = Show()
     try:
         s.wait_line(r"loop process pid \d+ \(start 1\)")  # spawned: its start-up takes seconds
