@@ -124,6 +124,11 @@ class _Server(socketserver.ThreadingMixIn, HTTPServer):
             super().handle_error(request, client_address)
 
 
+# as the API's (server/app.py): JSON only here, so nothing may load or frame it
+_HEADERS = (("X-Content-Type-Options", "nosniff"), ("X-Frame-Options", "DENY"),
+            ("Content-Security-Policy", "default-src 'none'; frame-ancestors 'none'"))
+
+
 class FaultResponder:
     """Minimal HTTP on the supervisor's listening socket: `/status` says `fault` and why,
     `/readyz` 503, `/livez` 200, anything else 503. Serves only between `start()` and `stop()`.
@@ -169,7 +174,8 @@ class FaultResponder:
                 self.send_response(code)
                 self.send_header("Content-Type", "application/json")
                 self.send_header("Content-Length", str(len(data)))
-                self.send_header("X-Content-Type-Options", "nosniff")
+                for name, value in _HEADERS:
+                    self.send_header(name, value)
                 self.end_headers()
                 self.wfile.write(data)
 

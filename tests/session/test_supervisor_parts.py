@@ -53,6 +53,8 @@ def test_fault_responder_answers_only_while_started_and_keeps_the_socket():
         with httpx.Client(base_url=url, timeout=10.0) as client:
             st = client.get("/status")
             assert st.status_code == 200 and st.json()["state"] == "fault" and "SIGKILL" in st.json()["reason"]
+            assert st.headers["x-content-type-options"] == "nosniff" and st.headers["x-frame-options"] == "DENY"
+            assert st.headers["content-security-policy"] == "default-src 'none'; frame-ancestors 'none'"
             assert client.get("/readyz").status_code == 503 and client.get("/livez").json() == {"live": True}
             r = client.post("/session/resume")
             assert r.status_code == 503 and "the session is down" in r.json()["detail"]
