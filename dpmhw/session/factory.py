@@ -435,9 +435,10 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
 
 
 def build_session(config: SessionConfig, *, mock: bool = False, renderer: Any = None, frame_log: int = 0,
-                  usb: tuple[str, bytes] | None = None) -> SessionLoop:
-    """A ready-to-start loop over freshly opened parts."""
-    return SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer, usb=usb), frame_log=frame_log)
+                  usb: tuple[str, bytes] | None = None, heartbeat: Any = None) -> SessionLoop:
+    """A ready-to-start loop over freshly opened parts (`heartbeat`: see dpmhw.session.heartbeat)."""
+    return SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer, usb=usb), frame_log=frame_log,
+                       heartbeat=heartbeat)
 
 
 # ---- for the supervisor (dpmhw.session.supervisor), which outlives the loop's process -------------
@@ -457,11 +458,14 @@ def idle_projector(config: SessionConfig, usb: tuple[str, bytes] | None = None) 
     from drivers.dlpc900 import DLPC900
 
     with contextlib.ExitStack() as stack:
-        if usb is not None:
-            from firmware_mocks.dlpc900_socket import socket_usb
+        backend = None  # pyusb's default (libusb)
+        if usb is not None:  # the emulator, passed in (not put on the default bus: callers may be concurrent)
+            from firmware_mocks.dlpc900_socket import SocketBackend
 
-            stack.enter_context(socket_usb(*usb))
-        dlp = DLPC900.open(config.projector.serial or None, timeout_ms=config.projector.timeout_ms, settle_s=0.0)
+            backend = SocketBackend(*usb)
+            stack.callback(backend.close)
+        dlp = DLPC900.open(config.projector.serial or None, backend=backend, timeout_ms=config.projector.timeout_ms,
+                           settle_s=0.0)
         stack.callback(dlp.close)
         return dlp.blank().method
 

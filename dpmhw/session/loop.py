@@ -46,6 +46,7 @@ from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
+from dpmhw.session.heartbeat import Heartbeat
 from dpmhw.session.metrics import LoopMetrics
 from dpmhw.session.prediction import PosePredictor
 from dpmhw.session.safety import SafetyMonitor, SessionState
@@ -179,10 +180,11 @@ class SessionLoop:
     """Runs one projection session. `start()`, then `stop()` (idempotent) for a verified dark end."""
 
     def __init__(self, config: SessionConfig, parts: SessionParts, *, frame_log: int = 0,
-                 clock: Callable[[], int] = time.monotonic_ns):
+                 clock: Callable[[], int] = time.monotonic_ns, heartbeat: Heartbeat | None = None):
         self.config = config
         self.parts = parts
         self.clock = clock
+        self.heartbeat = heartbeat  # what the frame thread did, for a supervisor (clock: CLOCK_MONOTONIC)
         s = config.safety
         self.stale_ns = int(s.stale_after_ms * 1e6)
         self.watchdog_ns = int(s.watchdog_s * 1e9)
@@ -589,6 +591,8 @@ class SessionLoop:
         except Exception as exc:
             return self._stage_failed("sink", "present_errors", f"present failed: {type(exc).__name__}: {exc}")
         t5 = self.clock()
+        if self.heartbeat is not None:
+            self.heartbeat.presented(t5, self._present_allowance_ns())
         stages["present"] = (t5 - t4) / 1e9
         stages["frame"] = (t5 - t_start) / 1e9
         self.safety.mark_started()
@@ -652,9 +656,17 @@ class SessionLoop:
                     self.safety.update("projector", True, f"cannot light the projector: {type(exc).__name__}: {exc}", "fault")
                     return
             self.reconstruct.reset()  # history from before the dark spell describes another moment
+            if self.heartbeat is not None:
+                self.heartbeat.presented(self.clock(), self._present_allowance_ns())
             self._output_on = True
             self.metrics.count("resumes")
             log.warning("projection resumed")
+
+    def _present_allowance_ns(self) -> int:
+        """How long a lit frame may stand before a supervisor calls this process hung: the stale
+        limit plus twice the expected frame time (a slow but live loop presents within that), never
+        more than the watchdog's stall limit."""
+        return min(self.stale_ns + int(2e9 * self.metrics.expected_pipeline_s()), self.watchdog_ns)
 
     def _go_dark(self, reason: str, force: bool = False, from_watchdog: bool = False) -> None:
         """Black frame to the sink (not from the watchdog: the stuck loop may be inside the sink)
@@ -665,6 +677,7 @@ class SessionLoop:
             self._output_on = False
             self.metrics.count("blanks")
             log.warning("projection dark: %s", reason)
+            black_shown = False
             if not from_watchdog:
                 black = np.zeros((self.output_size[1], self.output_size[0], 3), np.uint8)
                 black.setflags(write=False)
@@ -672,18 +685,23 @@ class SessionLoop:
                     t = self.parts.sink.present(black, self.clock())
                     with self._lock:
                         self._latest = LatestFrame(self._frame_number, t, black, self._settings, blank=True)
+                    black_shown = True
                 except Exception as exc:
                     self.safety.update("sink", True, f"cannot present a black frame: {type(exc).__name__}: {exc}", "fault")
             if self.parts.projector is None:
                 self._last_blank = "no projector"
-                return
-            try:
-                self._last_blank = self.parts.projector.blank()
-            except Exception as exc:
-                self._last_blank = f"FAILED: {exc}"
-                self.safety.update("projector_blank", True, f"cannot confirm the projector is dark: {exc}", "fault")
+                if not black_shown:
+                    return  # the sink may still show the last frame: lit as far as a supervisor knows
             else:
+                try:
+                    self._last_blank = self.parts.projector.blank()
+                except Exception as exc:
+                    self._last_blank = f"FAILED: {exc}"
+                    self.safety.update("projector_blank", True, f"cannot confirm the projector is dark: {exc}", "fault")
+                    return  # still lit as far as a supervisor knows
                 self.safety.update("projector_blank", False)
+            if self.heartbeat is not None:
+                self.heartbeat.dark()
 
     # ---- watchdog and device health ---------------------------------------------------------
     def _watchdog(self) -> None:
