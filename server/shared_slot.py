@@ -82,7 +82,7 @@ class SharedSlot:
 
         A write in progress is waited out for up to `timeout_s`: a few bare yields, then short
         sleeps (a writer descheduled between its two sequence stores can be gone for milliseconds
-        on a loaded machine; 100 bare yields were not enough there)."""
+        on a loaded machine; bare yields alone can give up and turn /status into a 500)."""
         h = self._header
         deadline = time.monotonic() + timeout_s
         attempt = 0

@@ -363,7 +363,7 @@ def warm_up(renderer, scene: Scene, gbuffer=None) -> None:
                                      viewer=scene.viewer_position, gbuffer=gbuffer,
                                      adaptive=AdaptiveSampler(renderer, gbuffer) if gbuffer is not None else None,
                                      lod=TileRefiner(renderer, gbuffer, RefineSettings(rays=1 << 20, visible=True))
-                                     if gbuffer is not None else None)  # issue 13: its kernels too
+                                     if gbuffer is not None else None)  # the LOD refiner's kernels too
             for _ in range(2):  # the second frame takes the history path
                 stage.apply(frame, mode=mode, alpha=0.2, filter=filt, poses=poses, camera=renderer.camera)
     log.info("render and reconstruction kernels ready in %.1f s", time.monotonic() - t0)

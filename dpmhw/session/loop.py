@@ -13,7 +13,7 @@ its calls take turns (`OneCallAtATime`).
 
 One thread runs the frames; a watchdog thread blanks the projector if that thread stalls; a
 deadline thread makes the output dark the moment the newest tracking sample turns stale, whatever
-the frame thread is doing (issue 14: dark within `stale_after_ms`, not one frame's work later); a
+the frame thread is doing (dark within `stale_after_ms`, not one frame's work later); a
 health thread reads device status (USB reads can block) so the loop never waits on them. The
 loop publishes immutable snapshots (status, latest frame); readers (the HTTP service) only swap
 references under a short lock, and setting changes are validated by the caller and queued for
@@ -202,10 +202,10 @@ class SessionLoop:
                                             adaptive=AdaptiveSampler(self._renderer, parts.gbuffer, config.render.adaptive_rays,
                                                                      config.render.adaptive_threshold)
                                             if parts.gbuffer is not None and config.render.adaptive_rays > 0 else None,
-                                            lod=tile_refiner(self._renderer, parts.gbuffer, config.lod),  # issue 13
+                                            lod=tile_refiner(self._renderer, parts.gbuffer, config.lod),  # None: off
                                             analytic=(config.render.analytic_floor, config.render.analytic_specular_floor)
                                             if config.render.analytic else None)
-        self.mesh_lod = mesh_lod(parts.renderer, parts.gbuffer, config.lod)  # issue 13: mesh levels (None: off)
+        self.mesh_lod = mesh_lod(parts.renderer, parts.gbuffer, config.lod)  # mesh levels (None: off)
         self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
         # render frame n+1 beside frame n's reconstruction; not with mesh LOD, whose level switch must hold for
         # a whole frame (render, G-buffer, refinement)
@@ -375,7 +375,7 @@ class SessionLoop:
 
     def _idle_wait_s(self, poll_s: float) -> float:
         """Sleep after a dark turn: `poll_s`, but wake the resume lead before the hold-off ends,
-        so the first lit frame is rendered by then and presented on time (issue 14)."""
+        so the first lit frame is rendered by then and presented on time."""
         resume_at, now = self.safety.resume_at_ns(), self.clock()
         if resume_at is None or resume_at <= now:  # not holding off: nothing to wake for
             return poll_s
@@ -385,7 +385,7 @@ class SessionLoop:
         """How long before the hold-off ends the first lit frame is begun: its expected work twice
         (the first frame after a dark spell runs slower: cold caches and threads) plus the
         interpreter's thread switch interval (a waking thread may wait that long for the GIL).
-        With one pipeline only, it was lit up to a frame late (issue 14, serial unplug)."""
+        With one pipeline's lead only, the first frame could be lit up to a frame late."""
         return int((2 * self.metrics.expected_pipeline_s() + sys.getswitchinterval()) * 1e9)
 
     def _resume_due(self, now: int) -> int | None:
@@ -439,7 +439,7 @@ class SessionLoop:
                 problems.append(f"rigid body {body}: not tracked in tracker frame {s.frame_number}")
             elif age > self.stale_ns:
                 problems.append(self._stale_reason(body, age))
-                if status.details.get("last_implausible_ns", 0) > s.t_arrival_ns:  # plausibility gate (issue 14)
+                if status.details.get("last_implausible_ns", 0) > s.t_arrival_ns:  # dropped by the plausibility gate
                     problems[-1] += f"; newer samples dropped as implausible: {status.details['last_implausible']}"
             samples[body] = s
         # tracking became good when the last body's first fresh sample arrived: the hold-off counts from there
@@ -502,7 +502,7 @@ class SessionLoop:
 
     def _render(self, job: "_Job"):
         t = self.clock()
-        if self.mesh_lod is not None:  # issue 13: this frame's mesh levels, before its render
+        if self.mesh_lod is not None:  # this frame's mesh levels, before its render
             self.mesh_lod.choose(job.poses, self.parts.renderer.camera.pose)
             t1 = self.clock()
             job.stages["mesh_lod"], t = (t1 - t) / 1e9, t1
@@ -560,7 +560,7 @@ class SessionLoop:
         image = out.image
         image.setflags(write=False)
         stages.update(out.stages_s)
-        if self.mesh_lod is not None:  # issue 13: the output's visibility per object, for the next choice
+        if self.mesh_lod is not None:  # the output's visibility per object, for the next choice
             t3 = self.clock()
             g = self.parts.gbuffer
             H, W = image.shape[:2]
@@ -571,7 +571,7 @@ class SessionLoop:
             stages["mesh_lod"] += (self.clock() - t3) / 1e9
         t4 = self.clock()
         # the newest sample may have gone stale while this frame was made: never light it then
-        # (dark within stale_after_ms + one frame, issue 14), and take in what arrived meanwhile
+        # (dark within stale_after_ms + one frame), and take in what arrived meanwhile
         if self._check_tracking(t4) is None:
             self._sync_output()
             self.metrics.count("frames_withheld")
@@ -619,8 +619,8 @@ class SessionLoop:
     def _freeze_long_lived() -> None:
         """What exists once the session is built and warm (scene, kernels, buffers, the service) lives
         as long as the session: move it out of the collector's reach, or a full collection walks
-        ~160k objects every ~20 frames on the frame thread (73-78 CPU-ms, a late frame; issue 12's
-        perf profile). Collected first so no garbage is pinned; `stop` unfreezes (a service may run
+        ~160k objects every ~20 frames on the frame thread (73-78 CPU-ms, a late frame; measured with
+        perf). Collected first so no garbage is pinned; `stop` unfreezes (a service may run
         many sessions in one process). Once at start, while dark (that first collection took ~75 ms:
         done after frame 30 only, it made a late frame, a stale tracker sample and a dark spell
         right after going live), and again after `FREEZE_AFTER_FRAMES` for what the first frames made."""
@@ -724,8 +724,8 @@ class SessionLoop:
 
     def _stale_deadline(self) -> None:
         """Go dark at the newest sample's exposure + `stale_after_ms`, not at the frame thread's
-        next check (up to a frame's work later; one implausible burst went dark 1.7 ms past
-        `stale_after_ms` + one frame in a session-5 soak). Sleeps until the earliest body's
+        next check (up to a frame's work later, which can push dark past `stale_after_ms` + one
+        frame). Sleeps until the earliest body's
         deadline (at most 20 ms, so new samples move it) and only reads `tracker.latest`; the
         frame thread keeps owning the tracking cause and its clearing."""
         bodies = sorted(set(self.parts.bindings.values()))
