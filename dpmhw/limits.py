@@ -11,8 +11,7 @@ limit and the environment variable that raises it:
 - render buffers: `DPMHW_RENDER_MEMORY_MB` (default 4608). A render allocates per pixel its
   rays, path state, film lobes, G-buffer, the first vertices' surfaces, the rasterised camera
   hits and work arrays: measured here as 506 bytes per pixel (peak RSS of two 1-spp renders of
-  paper-static at 2048×1536 minus 512×384; session 9, 416 before its first-vertex surfaces
-  and rasteriser), taken as 520. The default admits 4K (3840×2160 ≈ 4.3 GB).
+  paper-static at 2048×1536 minus 512×384), taken as 520. The default admits 4K (3840×2160 ≈ 4.3 GB).
 - a session: `DPMHW_SESSION_MEMORY_MB` (default 8192). At its output (native) size a session
   holds the shading render and the native G-buffer, the reconstruction's guides, histories and
   output, the frame rendered ahead (pipelining) and the sink's frames. Measured as whole: the

@@ -1,4 +1,5 @@
-"""Triangle meshes: loading (OBJ/PLY through trimesh), primitive shapes, and a procedural bunny.
+"""Triangle meshes: loading (OBJ/PLY/STL through trimesh), shading normals, primitive shapes and
+the Stanford bunny.
 
 Every mesh is cleaned once at load: degenerate (zero-area) triangles are dropped and counted, so
 no stage downstream divides by a zero-length normal.
@@ -7,9 +8,7 @@ no stage downstream divides by a zero-length normal.
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass, field
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -83,6 +82,46 @@ def clean(vertices: np.ndarray, faces: np.ndarray, smooth: bool, source: str) ->
     return TriangleMesh(vertices, faces, normals, source, dropped)
 
 
+# Edges whose faces turn by more than this stay sharp in a mesh file's default shading: a box's
+# 90° edges do, a tessellated curve's few degrees per facet do not.
+DEFAULT_SMOOTH_ANGLE_DEG = 30.0
+
+
+def smooth_within(mesh: TriangleMesh, angle_deg: float) -> TriangleMesh:
+    """Smooth shading across the edges whose two face normals differ by at most `angle_deg`;
+    sharper edges (and faces wound against their neighbour) stay creases. Corners at the same
+    coordinates are one vertex here (STL stores none shared; OBJ splits them at UV seams). A vertex
+    is split into one copy per fan of faces joined by smooth edges around it, each copy with the
+    area-weighted normal of its fan (the same coordinates, so the surface stays closed)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from trimesh.graph import face_adjacency
+
+    _, at = np.unique(mesh.vertices, axis=0, return_inverse=True)
+    faces = at.reshape(-1)[mesh.faces]  # vertex indices by position
+    tri = mesh.triangles
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # nonzero: `clean` dropped degenerate faces
+    unit = cross / np.linalg.norm(cross, axis=1, keepdims=True)
+    pairs, edges = face_adjacency(faces=faces, return_edges=True)
+    smooth = np.einsum("ij,ij->i", unit[pairs[:, 0]], unit[pairs[:, 1]]) >= np.cos(np.radians(angle_deg))
+    pairs, edges = pairs[smooth], edges[smooth]
+
+    def corner(f, v):  # index into faces.ravel() of vertex v in face f
+        return 3 * f + np.argmax(faces[f] == v[:, None], axis=1)
+
+    a = np.concatenate([corner(pairs[:, 0], edges[:, 0]), corner(pairs[:, 0], edges[:, 1])])
+    b = np.concatenate([corner(pairs[:, 1], edges[:, 0]), corner(pairs[:, 1], edges[:, 1])])
+    n = faces.size
+    count, label = connected_components(coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)), directed=False)
+    first = np.empty(count, np.int64)
+    first[label] = np.arange(n)  # a corner of each group (all of its corners are one vertex)
+    normals = np.zeros((count, 3))
+    np.add.at(normals, label, np.repeat(cross, 3, axis=0))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    vertices = mesh.vertices[mesh.faces.ravel()[first]]
+    return TriangleMesh(vertices, label.reshape(-1, 3).astype(np.int32), normals, mesh.source, mesh.dropped_degenerate)
+
+
 def quad_mesh(size, segments=(1, 1)) -> TriangleMesh:
     """A size[0] × size[1] rectangle in the local XZ plane, centred, facing +Y; `segments`
     (nx, nz) > (1, 1) splits it into a grid of cells, two triangles each, so that per-face
@@ -140,7 +179,7 @@ def sphere_mesh(radius: float, subdivisions: int = 4, smooth: bool = True) -> Tr
 
 
 def load_mesh(path: Path, smooth: bool = True) -> TriangleMesh:
-    """Load an OBJ/PLY file. Raises FileNotFoundError / ValueError with the path in the message."""
+    """Load an OBJ/PLY/STL file. Raises FileNotFoundError / ValueError with the path in the message."""
     import trimesh
 
     path = Path(path)
@@ -163,44 +202,13 @@ def load_mesh(path: Path, smooth: bool = True) -> TriangleMesh:
     return clean(loaded.vertices, loaded.faces, smooth=smooth, source=str(path))
 
 
-def _shared_data_dir() -> Path:
-    # ../shared/data beside the checkout (present in CI and on developer machines, absent in a user's clone)
-    return Path(__file__).resolve().parents[2] / "shared" / "data"
+BUNNY_DATA = Path(__file__).parent / "data" / "stanford-bunny.npz"
 
 
-def find_bunny() -> Path | None:
-    """The Stanford bunny: $DPMHW_BUNNY, else ../shared/data/stanford-bunny.obj; None if neither exists."""
-    env = os.environ.get("DPMHW_BUNNY")
-    for candidate in ([Path(env)] if env else []) + [_shared_data_dir() / "stanford-bunny.obj"]:
-        if candidate.is_file():
-            return candidate
-    return None
-
-
-@lru_cache(maxsize=4)
-def procedural_bunny(resolution: int = 118) -> TriangleMesh:
-    """A bunny-like closed surface (body, head, ears, tail) of about the Stanford bunny's size
-    (≈0.15 wide) and triangle count (≈70k at the default resolution), from marching cubes on a
-    smooth union of ellipsoids. Used when the real scan is not available."""
-    from skimage.measure import marching_cubes
-
-    def ellipsoid(p, centre, radii):
-        q = (p - np.asarray(centre)) / np.asarray(radii)
-        return (np.linalg.norm(q, axis=-1) - 1.0) * min(radii)
-
-    def smooth_union(a, b, k=0.012):
-        h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
-        return b * (1 - h) + a * h - k * h * (1 - h)
-
-    lo, hi = np.array([-0.10, 0.0, -0.075]), np.array([0.10, 0.20, 0.075])
-    axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
-    p = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
-    d = ellipsoid(p, (0.0, 0.055, 0.0), (0.075, 0.052, 0.058))  # body
-    d = smooth_union(d, ellipsoid(p, (-0.055, 0.095, 0.0), (0.036, 0.034, 0.032)))  # head
-    d = smooth_union(d, ellipsoid(p, (-0.05, 0.15, 0.016), (0.011, 0.04, 0.008)), 0.006)  # ears
-    d = smooth_union(d, ellipsoid(p, (-0.045, 0.15, -0.016), (0.011, 0.04, 0.008)), 0.006)
-    d = smooth_union(d, ellipsoid(p, (0.075, 0.05, 0.0), (0.016, 0.016, 0.016)), 0.008)  # tail
-    spacing = (hi - lo) / (resolution - 1)
-    verts, faces, _, _ = marching_cubes(d, level=0.0, spacing=tuple(spacing))
-    verts = verts + lo
-    return clean(verts, faces, smooth=True, source="procedural bunny")
+def stanford_bunny(smooth: bool = True) -> TriangleMesh:
+    """The Stanford bunny shipped as package data (its credit and terms in dpmhw/data/README.md),
+    so every checkout renders the built-in scenes with the mesh their figures were measured on.
+    The coordinates are stored as integers × 10⁶: the scan's six decimals, restored exactly."""
+    with np.load(BUNNY_DATA) as data:
+        vertices, faces = data["vertices_e6"] / 1e6, data["faces"]
+    return clean(vertices, faces, smooth=smooth, source="builtin:bunny")

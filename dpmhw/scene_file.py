@@ -10,8 +10,9 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import os
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -19,7 +20,8 @@ import numpy as np
 
 from dpmhw.errors import CalibrationError, SceneError
 from dpmhw.limits import check_file_size, max_scene_bytes, render_memory_problem
-from dpmhw.meshes import TriangleMesh, box_mesh, find_bunny, load_mesh, procedural_bunny, quad_mesh, sphere_mesh, BOX_FACES
+from dpmhw.meshes import (DEFAULT_SMOOTH_ANGLE_DEG, TriangleMesh, box_mesh, load_mesh, quad_mesh, smooth_within, sphere_mesh,
+                           stanford_bunny, BOX_FACES)
 from dpmhw.motion import ScriptedMotion
 from dpmhw.transforms import Pose, look_at, rotation_from_euler_xyz_deg, rotation_from_quat_xyzw
 
@@ -196,11 +198,15 @@ def _rotation(f: _Fields, key: str = "rotation") -> np.ndarray:
     f.fail(key, f"expected Euler XYZ degrees [rx, ry, rz] or a quaternion [x, y, z, w], got {value!r}")
 
 
-def _parse_render(source: str, table: dict) -> RenderSettings:
+def _parse_render(source: str, table: dict, calibrated: bool) -> RenderSettings:
+    """`calibrated`: the camera comes from a calibration file, which gives the size (width and
+    height 0 here unless the file states them, and then they must agree)."""
     f = _Fields(source, table, "render", {"width", "height", "max_bounces", "background", "fps"})
-    width = f.number("width", lo=1, hi=16384, integer=True)
-    height = f.number("height", lo=1, hi=16384, integer=True)
-    problem = render_memory_problem(width, height)
+    width = f.number("width", default=0 if calibrated else None, lo=1, hi=16384, integer=True)
+    height = f.number("height", default=0 if calibrated else None, lo=1, hi=16384, integer=True)
+    if calibrated and (width == 0) != (height == 0):
+        f.fail("height" if height == 0 else "width", "give both width and height, or neither (the calibration's)")
+    problem = render_memory_problem(width, height) if width else None
     if problem is not None:
         f.fail("width", problem)
     return RenderSettings(
@@ -212,7 +218,8 @@ def _parse_render(source: str, table: dict) -> RenderSettings:
     )
 
 
-def _parse_camera(source: str, table: dict, base_dir: Path, render: RenderSettings) -> CameraSpec:
+def _parse_camera(source: str, table: dict, base_dir: Path, render: RenderSettings) -> tuple[CameraSpec, RenderSettings]:
+    """The camera, and `render` with the calibration's size where the file left it out."""
     f = _Fields(source, table, "camera", {"fx", "fy", "cx", "cy", "dist", "position", "look_at", "up", "calibration"})
     if f.has("calibration"):
         return _camera_from_calibration(f, base_dir, render)
@@ -228,10 +235,10 @@ def _parse_camera(source: str, table: dict, base_dir: Path, render: RenderSettin
         pose = look_at(f.vector("position"), f.vector("look_at"), f.vector("up", default=(0, 1, 0)))
     except ValueError as exc:
         f.fail("look_at", str(exc))
-    return CameraSpec(K, dist, pose)
+    return CameraSpec(K, dist, pose), render
 
 
-def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings) -> CameraSpec:
+def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings) -> tuple[CameraSpec, RenderSettings]:
     extra = sorted(set(f.table) - {"calibration"})
     if extra:
         f.fail(extra[0], "cannot be combined with 'calibration' (the calibration file gives intrinsics and pose)")
@@ -246,18 +253,23 @@ def _camera_from_calibration(f: _Fields, base_dir: Path, render: RenderSettings)
         f.fail("calibration", f"cannot load {path}: {exc}")
     except RecursionError:  # json nested too deeply to be a calibration file
         f.fail("calibration", f"cannot load {path}: JSON nested too deeply")
-    if (calib.width, calib.height) != (render.width, render.height):
+    if render.width == 0:
+        problem = render_memory_problem(calib.width, calib.height)
+        if problem is not None:
+            f.fail("calibration", f"{path}: {problem}")
+        render = replace(render, width=calib.width, height=calib.height)
+    elif (calib.width, calib.height) != (render.width, render.height):
         f.fail("calibration", f"{path} is for {calib.width}×{calib.height}, but [render] asks {render.width}×{render.height}")
     dist = np.zeros(5)
     coeffs = np.asarray(calib.dist, float).reshape(-1)
     if coeffs.size > 5 and np.any(coeffs[5:] != 0):
         f.fail("calibration", f"{path} uses a distortion model with {coeffs.size} terms; the renderer supports k1 k2 p1 p2 k3")
     dist[: min(5, coeffs.size)] = coeffs[:5]
-    return CameraSpec(np.asarray(calib.K, float), dist, Pose(np.asarray(calib.R, float), np.asarray(calib.t, float)))
+    return CameraSpec(np.asarray(calib.K, float), dist, Pose(np.asarray(calib.R, float), np.asarray(calib.t, float))), render
 
 
 OBJECT_FIELDS = {
-    "name", "shape", "size", "radius", "scale", "mesh", "smooth", "recentre", "open", "position", "rotation",
+    "name", "shape", "size", "radius", "scale", "mesh", "smooth", "smooth_angle", "recentre", "open", "position", "rotation",
     "albedo", "specular", "roughness", "roughness_map", "emission", "rigid_body", "motion", "segments",
 }
 ROUGHNESS_MAP_FIELDS = {"axis", "edges", "values"}
@@ -284,9 +296,13 @@ def _parse_motion(source: str, table, path: str) -> ScriptedMotion:
 
 
 def _parse_mesh_shape(f: _Fields, shape: str, base_dir: Path, notes: list[str], mesh_override: Path | None) -> TriangleMesh:
-    smooth = f.table.get("smooth", shape in ("sphere", "mesh"))
+    smooth = f.table.get("smooth", shape == "sphere")
     if not isinstance(smooth, bool):
         f.fail("smooth", f"expected true or false, got {smooth!r}")
+    if f.has("smooth_angle") and (shape != "mesh" or f.has("smooth")):
+        f.fail("smooth_angle", "only a mesh has one, and not together with smooth")
+    # a mesh file's default: smooth within smooth_angle, its sharper edges kept (a box stays a box)
+    angle = f.number("smooth_angle", default=DEFAULT_SMOOTH_ANGLE_DEG, lo=0.0, hi=180.0) if not f.has("smooth") else None
     if f.has("segments") and shape != "quad":
         f.fail("segments", "only a quad has segments")
     if shape == "quad":
@@ -303,14 +319,12 @@ def _parse_mesh_shape(f: _Fields, shape: str, base_dir: Path, notes: list[str], 
         return sphere_mesh(f.number("radius", lo=0.0, lo_open=True), smooth=smooth)
     name = f.string("mesh")
     if name == "builtin:bunny":
-        path = mesh_override or find_bunny()
-        if path is None:
-            notes.append("the Stanford bunny was not found (../shared/data or $DPMHW_BUNNY); using a procedural bunny")
-            mesh = procedural_bunny()
-        else:
-            mesh = _load_mesh_field(f, Path(path), smooth)
+        override = mesh_override or os.environ.get("DPMHW_BUNNY")
+        mesh = _load_mesh_field(f, Path(override), smooth) if override else stanford_bunny(smooth)
     else:
         mesh = _load_mesh_field(f, base_dir / name, smooth)
+    if angle is not None:
+        mesh = smooth_within(mesh, angle)
     scale = f.vector("scale", default=(1, 1, 1), lo=0.0, scalar_ok=True)
     if np.any(scale <= 0):
         f.fail("scale", "expected positive scale factors")
@@ -402,8 +416,9 @@ def parse_scene(text: str, source: str, base_dir: Path, mesh_override: Path | No
 
     # sections in file order, each parsed before the next is asked for: a typo in [render] is
     # reported as that typo, not as a missing [camera] further down
-    render = _parse_render(source, section("render"))
-    camera = _parse_camera(source, section("camera"), base_dir, render)
+    calibrated = isinstance(data.get("camera"), dict) and "calibration" in data["camera"]
+    render = _parse_render(source, section("render"), calibrated)
+    camera, render = _parse_camera(source, section("camera"), base_dir, render)
     viewer = camera.pose.t.copy()
     if top.has("viewer"):
         viewer = _Fields(source, data["viewer"], "viewer", {"position"}).vector("position")
@@ -449,11 +464,15 @@ def _scene_text(name_or_path: str | Path) -> tuple[str, str, Path]:
 
 def scene_size(name_or_path: str | Path) -> tuple[int, int]:
     """A scene's (width, height) from its [render] table alone: no mesh is read."""
-    text, source, _ = _scene_text(name_or_path)
+    text, source, base_dir = _scene_text(name_or_path)
     top = _Fields(source, _toml(text, source), "", SCENE_SECTIONS)
     if not top.has("render"):
         top.fail("render", "missing required section")
-    render = _parse_render(source, top.table["render"])
+    camera = top.table.get("camera")
+    calibrated = isinstance(camera, dict) and "calibration" in camera
+    render = _parse_render(source, top.table["render"], calibrated)
+    if calibrated and not render.width:  # the calibration file's size
+        render = _parse_camera(source, camera, base_dir, render)[1]
     return render.width, render.height
 
 

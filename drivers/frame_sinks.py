@@ -2,7 +2,7 @@
 
 Live frames reach a DLPC900 through its video input (HDMI / DisplayPort), so the projector sink
 is a borderless full-screen window on the display the projector is attached to (`WindowSink`,
-optional extra `dpmhw[display]`, pygame-ce). `FileSink` writes a PNG sequence or a video for
+pygame-ce). `FileSink` writes a PNG sequence or a video for
 review; `RecordingSink` keeps frames in memory for tests. All three reject frames of the wrong
 shape or dtype instead of resizing them.
 """
@@ -119,7 +119,7 @@ class FileSink:
 class WindowSink:
     """Borderless full-screen window on display `display`, fed to the projector's video input.
 
-    Needs pygame-ce (`pip install dpmhw[display]`). The window is always full-screen at the
+    Uses pygame-ce (a core dependency: the default sink). The window is always full-screen at the
     display's current mode, which must be the projector's native resolution: `size` is the
     session's output size, and a display of another size is refused here, at start (a frame
     of the wrong size would cover a corner of the projector's image). Nothing is scaled.
@@ -129,23 +129,16 @@ class WindowSink:
     def __init__(self, display: int = 0, *, size: tuple[int, int] | None = None, clock: Clock = time.monotonic_ns,
                  sleep: Callable[[float], None] = time.sleep, title: str = "dpmhw projector"):
         os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
-        try:
-            import pygame
-        except ImportError as exc:
-            raise ImportError("WindowSink needs pygame-ce: pip install 'dpmhw[display]'") from exc
+        import pygame
+
         self._pg = pygame
         self.clock, self.sleep = clock, sleep
         pygame.display.init()
-        n = pygame.display.get_num_displays()
-        if not 0 <= display < n:
+        try:
+            w, h = _display_size(pygame, display, size)
+        except ValueError:
             pygame.display.quit()
-            raise ValueError(f"display: {display} does not exist ({n} display(s) attached)")
-        native = tuple(pygame.display.get_desktop_sizes()[display])
-        w, h = size or native
-        if (w, h) != native:
-            pygame.display.quit()
-            raise ValueError(f"display {display} runs at {native[0]}×{native[1]}, but the session outputs {w}×{h} "
-                             "(set the display to the projector's native mode, or render.width/height to match)")
+            raise
         flags = pygame.NOFRAME | pygame.FULLSCREEN
         pygame.display.set_caption(title)
         self._surface = pygame.display.set_mode((w, h), flags, display=display)
@@ -173,6 +166,30 @@ class WindowSink:
         if not self.closed:
             self.closed = True
             self._pg.display.quit()
+
+
+def _display_size(pygame, display: int, size: tuple[int, int] | None) -> tuple[int, int]:
+    """Display `display`'s current mode, which must be `size` when given (ValueError otherwise)."""
+    n = pygame.display.get_num_displays()
+    if not 0 <= display < n:
+        raise ValueError(f"display: {display} does not exist ({n} display(s) attached)")
+    native = tuple(pygame.display.get_desktop_sizes()[display])
+    if size is not None and tuple(size) != native:
+        raise ValueError(f"display {display} runs at {native[0]}×{native[1]}, but the session outputs {size[0]}×{size[1]} "
+                         "(set the display to the projector's native mode, or render.width/height to match)")
+    return native
+
+
+def check_display(display: int, size: tuple[int, int] | None = None) -> None:
+    """`WindowSink`'s checks of the display, without opening a window (a config check)."""
+    os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+    import pygame
+
+    pygame.display.init()
+    try:
+        _display_size(pygame, display, size)
+    finally:
+        pygame.display.quit()
 
 
 def make_sink(kind: str, **kwargs):

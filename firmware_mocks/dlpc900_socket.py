@@ -18,6 +18,15 @@ the key, so no other local user can drive the projector). A client whose connect
 (its process died) loses its interface claims, as with the kernel's usbfs. If the emulator
 itself is gone, every transfer fails with ENODEV, as for an unplugged cable.
 
+No client can hold up another: each connection is served on its own thread (at most
+`MAX_CLIENTS`), its handshake must finish within `HANDSHAKE_TIMEOUT_S`, a request is at most
+`MAX_REQUEST_BYTES` and a transfer at most `MAX_TRANSFER` bytes (wLength is 16 bits), and a
+malformed request gets an error reply. On the host side every exchange is bounded by
+`REPLY_TIMEOUT_S` (a stuck emulator reads as a USB timeout, as a stuck device would).
+The socket's folder is named by the owner's pid (`EMULATOR_DIRS`): the emulator removes it when
+its owner dies, the owner when it closes the emulator, and `EmulatorProcess.start` any left by a
+dead owner (both killed).
+
 Never imports `drivers`.
 """
 
@@ -28,20 +37,26 @@ import errno
 import logging
 import multiprocessing
 import os
+import pickle
 import secrets
+import shutil
 import signal
+import socket
+import struct
 import tempfile
 import threading
-from multiprocessing.connection import Client, Listener
+import time
+from multiprocessing.connection import Connection, Listener, answer_challenge, deliver_challenge
 from typing import Any, Iterator
 
 import usb.backend
 import usb.core
 
+from dpmhw.child_process import OwnedNames
 from firmware_mocks.dlpc900_model import DLPC900Model
-from firmware_mocks.dlpc900_usb import DLPC900Backend, EmulatedDLPC900, _Desc, _Handle, _usb_error
+from firmware_mocks.dlpc900_usb import DLPC900Backend, EmulatedDLPC900, _Desc, _Handle, _timeout, _usb_error
 
-__all__ = ["EmulatorProcess", "SocketBackend", "serve", "socket_usb"]
+__all__ = ["EMULATOR_DIRS", "EmulatorProcess", "SocketBackend", "serve", "socket_usb"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +65,13 @@ _DESCRIPTORS = ("get_device_descriptor", "get_configuration_descriptor", "get_in
 _ON_HANDLE = ("close_device", "set_configuration", "get_configuration", "set_interface_altsetting",
               "claim_interface", "release_interface", "is_kernel_driver_active", "detach_kernel_driver",
               "attach_kernel_driver", "clear_halt", "reset_device", "intr_write")
+
+HANDSHAKE_TIMEOUT_S = 2.0  # a connection that has not authenticated by then is dropped
+REPLY_TIMEOUT_S = 5.0  # host side: an emulator that has not answered by then is a USB timeout
+MAX_CLIENTS = 64  # connections served at once (each has a thread); more are closed at once
+MAX_REQUEST_BYTES = 1 << 20  # one pickled request: a 16-bit transfer and its framing fit many times
+MAX_TRANSFER = 0xFFFF  # a control transfer's wLength is 16 bits; no interrupt report is longer
+EMULATOR_DIRS = OwnedNames(tempfile.gettempdir(), "dpmhw-dlpc900")
 
 
 # ---- the emulator process -------------------------------------------------------------------
@@ -80,15 +102,16 @@ class _Session:
         if op in _ON_HANDLE:
             return getattr(b, op)(handle, *args[1:])
         if op == "intr_read":  # (handle, ep, intf, size, timeout) -> bytes
-            buff = bytearray(args[3])
+            buff = bytearray(_transfer_size("intr_read", "size", args[3]))
             n = b.intr_read(handle, args[1], args[2], memoryview(buff), args[4])
             return bytes(buff[:n])
         if op == "ctrl_transfer":  # (handle, type, request, value, index, data or size, timeout)
             data = args[5]
             if isinstance(data, int):  # device-to-host: a buffer of that size
-                buff = bytearray(data)
+                buff = bytearray(_transfer_size("ctrl_transfer", "wLength", data))
                 n = b.ctrl_transfer(handle, *args[1:5], memoryview(buff), args[6])
                 return bytes(buff[:n])
+            _transfer_size("ctrl_transfer", "wLength", len(data))
             return b.ctrl_transfer(handle, *args[1:5], bytes(data), args[6])
         raise ValueError(f"unknown backend operation {op!r}")
 
@@ -100,26 +123,63 @@ class _Session:
             self.handles.clear()
 
 
+def _transfer_size(op: str, field: str, size: Any) -> int:
+    if type(size) is not int or not 0 <= size <= MAX_TRANSFER:
+        raise ValueError(f"{op}: {field} must be an integer 0..{MAX_TRANSFER}, not {size!r:.40}")
+    return size
+
+
 def _inspect(d: EmulatedDLPC900) -> dict:
     m = d.model
     return {"serial": d.serial, "plugged": d.plugged, "claimed": d.claimed, "dark": bool(m.dark),
             "idle": bool(m.idle), "standby": bool(m.standby), "parked": bool(m.parked)}
 
 
-def _serve_client(conn, session: _Session) -> None:
+def _set_timeout(conn: Connection, seconds: float) -> None:
+    """Bound every read and write on `conn` (0: none). SO_RCVTIMEO works on the descriptor, so
+    it also bounds `Connection`'s own reads (an expired one raises BlockingIOError)."""
+    sec = int(seconds)
+    value = struct.pack("ll", sec, int((seconds - sec) * 1e6))
+    with socket.socket(fileno=os.dup(conn.fileno())) as sock:  # options belong to the socket, not the fd
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, value)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, value)
+
+
+def _request(conn: Connection) -> tuple[str, tuple]:
+    """The next request; raises ValueError for one that is too long or not (operation, arguments)."""
+    data = conn.recv_bytes(MAX_REQUEST_BYTES)  # OSError for a longer one: its bytes stay unread
+    try:
+        request = pickle.loads(data)
+    except Exception as exc:
+        raise ValueError(f"request: not a pickled (operation, arguments) pair ({type(exc).__name__})") from None
+    if not (type(request) is tuple and len(request) == 2 and type(request[0]) is str and type(request[1]) is tuple):
+        raise ValueError(f"request: must be (operation: str, arguments: tuple), not {type(request).__name__}")
+    return request
+
+
+def _serve_client(conn: Connection, session: _Session) -> None:
     try:
         while True:
             try:
-                op, args = conn.recv()
-            except (EOFError, OSError):
+                op, args = _request(conn)
+            except ValueError as exc:  # malformed: say so, and wait for the next one
+                reply = ("error", ("ValueError", str(exc)))
+            except OSError as exc:
+                if "bad message length" in str(exc):  # multiprocessing's words for over MAX_REQUEST_BYTES
+                    with contextlib.suppress(OSError):
+                        conn.send(("error", ("ValueError", f"request: longer than {MAX_REQUEST_BYTES} bytes")))
                 return
-            try:
-                with session.lock:  # one controller: commands from all clients in one order
-                    reply = ("ok", session.call(op, args))
-            except usb.core.USBError as exc:
-                reply = ("usb", (type(exc) is usb.core.USBTimeoutError, exc.strerror, exc.backend_error_code, exc.errno))
-            except Exception as exc:  # IndexError from descriptor lookups, bad requests
-                reply = ("error", (type(exc).__name__, str(exc)))
+            except EOFError:
+                return
+            else:
+                try:
+                    with session.lock:  # one controller: commands from all clients in one order
+                        reply = ("ok", session.call(op, args))
+                except usb.core.USBError as exc:
+                    reply = ("usb", (type(exc) is usb.core.USBTimeoutError, exc.strerror, exc.backend_error_code,
+                                     exc.errno))
+                except Exception as exc:  # IndexError from descriptor lookups, bad arguments
+                    reply = ("error", (type(exc).__name__, str(exc)))
             try:
                 conn.send(reply)
             except OSError:
@@ -127,6 +187,27 @@ def _serve_client(conn, session: _Session) -> None:
     finally:
         session.release()
         conn.close()
+
+
+def _accept(conn: Connection, authkey: bytes, session: _Session, slots: threading.BoundedSemaphore) -> None:
+    """One connection's thread: the handshake within HANDSHAKE_TIMEOUT_S, then its requests."""
+    try:
+        try:
+            _set_timeout(conn, HANDSHAKE_TIMEOUT_S)
+            deliver_challenge(conn, authkey)
+            answer_challenge(conn, authkey)
+            _set_timeout(conn, 0)  # an authenticated client may stay quiet as long as it likes
+        except multiprocessing.AuthenticationError as exc:
+            log.warning("DLPC900 emulator: refused a connection: %s", exc)
+            conn.close()
+            return
+        except (OSError, EOFError) as exc:  # left, or silent past the timeout
+            log.info("DLPC900 emulator: dropped a connection during its handshake: %s", exc or type(exc).__name__)
+            conn.close()
+            return
+        _serve_client(conn, session)
+    finally:
+        slots.release()
 
 
 def serve(address: str, authkey: bytes, serials: tuple[str, ...] = ("EMU0001",), width: int = 1920,
@@ -138,7 +219,8 @@ def serve(address: str, authkey: bytes, serials: tuple[str, ...] = ("EMU0001",),
                for i, s in enumerate(serials)]
     backend = DLPC900Backend(devices)
     lock = threading.Lock()
-    with Listener(address, family="AF_UNIX", authkey=authkey) as listener:
+    slots = threading.BoundedSemaphore(MAX_CLIENTS)
+    with Listener(address, family="AF_UNIX", backlog=MAX_CLIENTS) as listener:  # authenticated per connection, on its thread
         if ready is not None:
             ready.send("ready")
             # the parent's end closing (it died or closed us) ends the emulator
@@ -146,10 +228,14 @@ def serve(address: str, authkey: bytes, serials: tuple[str, ...] = ("EMU0001",),
         while True:
             try:
                 conn = listener.accept()
-            except (OSError, EOFError, multiprocessing.AuthenticationError) as exc:
-                log.warning("DLPC900 emulator: refused a connection: %s", exc)
+            except OSError as exc:
+                log.warning("DLPC900 emulator: accept failed: %s", exc)
                 continue
-            threading.Thread(target=_serve_client, args=(conn, _Session(backend, lock)), daemon=True).start()
+            if not slots.acquire(blocking=False):
+                log.warning("DLPC900 emulator: %d connections already; refused one", MAX_CLIENTS)
+                conn.close()
+                continue
+            threading.Thread(target=_accept, args=(conn, authkey, _Session(backend, lock), slots), daemon=True).start()
 
 
 def _exit_when_closed(conn, address: str) -> None:
@@ -157,8 +243,12 @@ def _exit_when_closed(conn, address: str) -> None:
         conn.recv()
     except (EOFError, OSError):
         pass
-    with contextlib.suppress(OSError):
-        os.unlink(address)
+    folder = os.path.dirname(address)
+    if EMULATOR_DIRS.owner(os.path.basename(folder)) is not None:  # the owner's folder: it may be gone
+        shutil.rmtree(folder, ignore_errors=True)
+    else:
+        with contextlib.suppress(OSError):
+            os.unlink(address)
     os._exit(0)
 
 
@@ -172,23 +262,36 @@ class EmulatorProcess:
 
     @classmethod
     def start(cls, *serials: str, width: int = 1920, height: int = 1080, timeout_s: float = 60.0) -> "EmulatorProcess":
-        tmpdir = tempfile.mkdtemp(prefix="dpmhw-dlpc900-")
+        EMULATOR_DIRS.sweep()  # the folders of owners that were killed
+        tmpdir = os.path.join(EMULATOR_DIRS.directory, EMULATOR_DIRS.new_name())
+        os.mkdir(tmpdir, 0o700)  # only this user may reach the socket
         address = os.path.join(tmpdir, "usb.sock")
         authkey = secrets.token_bytes(16)
         ctx = multiprocessing.get_context("spawn")
         ours, theirs = ctx.Pipe()
         process = ctx.Process(target=serve, name="dpmhw-dlpc900-emulator", daemon=True,
                               args=(address, authkey, serials or ("EMU0001",), width, height, theirs))
-        process.start()
-        theirs.close()
-        if not ours.poll(timeout_s) or ours.recv() != "ready":
-            process.kill()
-            raise RuntimeError(f"the DLPC900 emulator process did not start within {timeout_s:g} s")
+        try:
+            process.start()
+            theirs.close()
+            try:
+                ready = ours.poll(timeout_s) and ours.recv() == "ready"
+            except EOFError:
+                ready = False  # it died: its error is printed above
+            if not ready:
+                raise RuntimeError(f"the DLPC900 emulator process did not start within {timeout_s:g} s")
+        except BaseException:
+            if process.pid is not None:
+                process.kill()
+                process.join(5)
+            ours.close()
+            shutil.rmtree(tmpdir, ignore_errors=True)
+            raise
         return cls(process, ours, address, authkey, tmpdir)
 
     def inspect(self) -> list[dict]:
         """Each emulated controller's state as the device holds it (dark, idle, claimed …)."""
-        with contextlib.closing(Client(self.address, family="AF_UNIX", authkey=self.authkey)) as conn:
+        with contextlib.closing(_connect(self.address, self.authkey)) as conn:
             conn.send(("inspect", ()))
             return conn.recv()[1]
 
@@ -198,10 +301,35 @@ class EmulatorProcess:
         if self.process.is_alive():
             self.process.kill()
             self.process.join(5)
-        with contextlib.suppress(OSError):
-            os.unlink(self.address)
-        with contextlib.suppress(OSError):
-            os.rmdir(self._tmpdir)
+        shutil.rmtree(self._tmpdir, ignore_errors=True)
+
+
+def _connect(address: str, authkey: bytes, timeout_s: float = REPLY_TIMEOUT_S) -> Connection:
+    """An authenticated connection whose every read and write is bounded by `timeout_s`."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    deadline = time.monotonic() + timeout_s
+    try:
+        sock.settimeout(timeout_s)
+        while True:
+            try:
+                sock.connect(address)
+                break
+            except BlockingIOError:  # its accept queue is full (Unix sockets say so at once): retry
+                if time.monotonic() >= deadline:
+                    raise TimeoutError(f"{address}: no room in the accept queue within {timeout_s:g} s") from None
+                time.sleep(0.005)
+        sock.settimeout(None)  # blocking again; the bound is SO_RCVTIMEO / SO_SNDTIMEO from here
+        conn = Connection(sock.detach())
+    finally:
+        sock.close()
+    try:
+        _set_timeout(conn, timeout_s)
+        answer_challenge(conn, authkey)
+        deliver_challenge(conn, authkey)
+    except BaseException:
+        conn.close()
+        raise
+    return conn
 
 
 # ---- the host side: a pyusb backend ---------------------------------------------------------
@@ -223,12 +351,16 @@ class SocketBackend(usb.backend.IBackend):
         with self._lock:
             try:
                 if self._conn is None:
-                    self._conn = Client(self.address, family="AF_UNIX", authkey=self.authkey)
+                    self._conn = _connect(self.address, self.authkey)
                 self._conn.send((op, args))
                 outcome, value = self._conn.recv()
-            except (OSError, EOFError):  # the device is gone (emulator process ended)
+            except (OSError, EOFError) as exc:
+                if self._conn is not None:  # a reply may still come: this connection is out of step
+                    self._conn.close()
                 self._conn = None
-                raise _usb_error(errno.ENODEV) from None
+                if isinstance(exc, (BlockingIOError, TimeoutError)):  # no answer within REPLY_TIMEOUT_S
+                    raise _timeout() from None
+                raise _usb_error(errno.ENODEV) from None  # the device is gone (emulator process ended)
         if outcome == "ok":
             return value
         if outcome == "usb":

@@ -11,6 +11,11 @@ Hostile input is refused where it enters, cheapest check first: a foreign `Host`
 then, on every mutating request, a bad token (401) before a byte of the body is read, then a body
 over `max_body_bytes` (413) before it is parsed; validation errors (422) name the field without
 echoing the input (which may be huge, or NaN that JSON cannot carry).
+
+Every response says how a browser may use it (`_SecurityHeaders`): never inside a frame
+(X-Frame-Options DENY, CSP frame-ancestors), never sniffed as another type (nosniff), and a
+Content-Security-Policy that lets a page run and load only this server's own files
+(`server.pages` gives the docs pages theirs).
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from dpmhw import __version__
 from server.deps import Runtime, RuntimeUnavailable, bearer_problem
-from server.pages import add_pages
+from server.pages import PAGE_CSP, add_pages
 from server.routers import session, settings, status
 
 __all__ = ["DEFAULT_TRUSTED_HOSTS", "MAX_BODY_BYTES", "build_app", "trusted_hosts_for"]
@@ -108,6 +113,33 @@ class _GuardMutations:
         await self.app(scope, replay, send)
 
 
+class _SecurityHeaders:
+    """ASGI middleware: the security headers on every response (a route's own CSP is kept)."""
+
+    HEADERS = ((b"x-frame-options", b"DENY"), (b"x-content-type-options", b"nosniff"),
+               (b"referrer-policy", b"no-referrer"))
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = list(message.get("headers", []))
+                present = {k.lower() for k, _ in headers}
+                headers += [(k, v) for k, v in self.HEADERS if k not in present]
+                if b"content-security-policy" not in present:
+                    headers.append((b"content-security-policy", PAGE_CSP.encode()))
+                message = {**message, "headers": headers}
+            await send(message)
+
+        await self.app(scope, receive, with_headers)
+
+
 async def _reply(send: Send, status_code: int, detail: str, headers: dict | None = None) -> None:
     response = JSONResponse({"detail": detail}, status_code=status_code, headers=headers)
     body = response.body
@@ -143,9 +175,11 @@ def build_app(runtime: Runtime, *, token: str | None = None, trusted_hosts: list
     if trusted_hosts is None:
         env = os.environ.get("DPMHW_API_HOSTS", "")
         trusted_hosts = [h.strip() for h in env.split(",") if h.strip()] or list(DEFAULT_TRUSTED_HOSTS)
-    # Starlette runs the middleware added last first: Host, then token and body size.
+    # Starlette runs the middleware added last first: the headers (on every answer, refusals too),
+    # Host, then token and body size.
     app.add_middleware(_GuardMutations, max_body_bytes=max_body_bytes)
     app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(trusted_hosts))
+    app.add_middleware(_SecurityHeaders)
 
     @app.exception_handler(RuntimeUnavailable)
     async def unavailable(request: Request, exc: RuntimeUnavailable) -> JSONResponse:

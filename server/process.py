@@ -18,9 +18,10 @@ reports `fault` with the age of the last snapshot; it exits by itself when this 
 
 If the API process dies (killed, crashed), a keeper thread here starts a new one on the same
 listening socket (still bound: clients queue rather than being refused) after a backoff
-(`restart_backoff_s`, doubling up to `restart_backoff_max_s`; back to the start after a process
-served `stable_after_s`). The loop never notices: an API crash costs the show no frame. The
-status says how often this happened and why (`status["api"]`).
+(`restart_backoff_s`, doubling up to `restart_backoff_max_s`; back to the start once the last
+crash is `stable_after_s` old: `dpmhw.child_process.RestartPolicy`). The loop never notices: an
+API crash costs the show no frame. The status says how often this happened and why
+(`status["api"]`).
 """
 
 from __future__ import annotations
@@ -39,9 +40,9 @@ from typing import Any
 
 import numpy as np
 
+from dpmhw.child_process import RestartPolicy, describe_exit, stop_process
 from dpmhw.session.config import LiveSettings
 from dpmhw.session.loop import LatestFrame, SettingsError
-from dpmhw.session.supervisor import describe_exit
 from server.app import trusted_hosts_for
 from server.deps import Runtime, RuntimeUnavailable
 from server.shared_slot import SharedSlot, SlotTornError
@@ -165,17 +166,15 @@ class ApiProcess:
 
     def _keep(self) -> None:
         """Restart the API process whenever it dies (not when we close it), with backoff."""
-        backoff = self.restart_backoff_s
+        policy = RestartPolicy(None, self.stable_after_s, self.restart_backoff_s, self.restart_backoff_max_s)
         while not self._stop.is_set():
             process = self.process
-            started = time.monotonic()
             while not self._stop.is_set() and process.is_alive():
                 multiprocessing.connection.wait([process.sentinel], timeout=0.5)
             if self._stop.is_set():
                 return
             process.join(1)
-            if time.monotonic() - started >= self.stable_after_s:
-                backoff = self.restart_backoff_s
+            backoff = policy.crashed(time.monotonic())
             self.last_exit = describe_exit(process.exitcode)
             self.restarts += 1
             self._state = "restarting"
@@ -191,8 +190,7 @@ class ApiProcess:
                 except Exception as exc:  # e.g. it died again while starting: try later
                     self.last_exit = f"restart failed: {exc}"
                     log.warning("restarting the API process failed: %s", exc)
-                    backoff = min(2 * backoff, self.restart_backoff_max_s)
-            backoff = min(2 * backoff, self.restart_backoff_max_s)
+                    backoff = policy.crashed(time.monotonic())
             with contextlib.suppress(Exception):
                 self.publish()
 
@@ -208,12 +206,8 @@ class ApiProcess:
             t.join(5)
         self._threads.clear()
         self._state = "closed"
-        if self.process is not None and self.process.is_alive():
-            self.process.terminate()  # SIGTERM: uvicorn finishes open requests and exits
-            self.process.join(5)
-            if self.process.is_alive():
-                self.process.kill()
-                self.process.join(5)
+        if self.process is not None:
+            stop_process(self.process, grace_s=5.0)  # SIGTERM: uvicorn finishes open requests and exits
         if self._conn is not None:
             self._conn.close()
         self.sock.close()

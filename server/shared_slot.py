@@ -8,6 +8,9 @@ across the copy (x86-64 and aarch64 Linux: the counter is a naturally aligned 8-
 
 Header (uint64): sequence, payload length, publish time (time.monotonic_ns, one clock for every
 process on the machine), then `META` caller-defined integers.
+
+Each slot is named by its creator's pid (`dpmhw.child_process.SHARED_SLOTS`): the creator removes
+it on close, and the slots of a creator that was killed are swept by the supervisor.
 """
 
 from __future__ import annotations
@@ -16,6 +19,8 @@ import time
 from multiprocessing import shared_memory
 
 import numpy as np
+
+from dpmhw.child_process import SHARED_SLOTS
 
 __all__ = ["SharedSlot", "SlotTornError"]
 
@@ -40,7 +45,8 @@ class SharedSlot:
 
     @classmethod
     def create(cls, capacity: int) -> "SharedSlot":
-        slot = cls(shared_memory.SharedMemory(create=True, size=_HEADER * 8 + int(capacity)), owner=True)
+        shm = shared_memory.SharedMemory(SHARED_SLOTS.new_name(), create=True, size=_HEADER * 8 + int(capacity))
+        slot = cls(shm, owner=True)
         slot._header[:] = 0
         return slot
 
@@ -76,7 +82,7 @@ class SharedSlot:
 
         A write in progress is waited out for up to `timeout_s`: a few bare yields, then short
         sleeps (a writer descheduled between its two sequence stores can be gone for milliseconds
-        on a loaded machine; 100 bare yields gave up and turned /status into a 500, issue 14)."""
+        on a loaded machine; bare yields alone can give up and turn /status into a 500)."""
         h = self._header
         deadline = time.monotonic() + timeout_s
         attempt = 0

@@ -4,6 +4,9 @@ wall-clock checks; a CPU hog beside the suite tripped neither only by luck)."""
 
 from __future__ import annotations
 
+import os
+
+import pytest
 from hypothesis import HealthCheck, settings
 
 settings.register_profile("dpmhw", deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -23,3 +26,10 @@ def pytest_sessionstart(session) -> None:
                              every_s=15.0)
     for group, why in result.failed.items():
         write(f"compiling the {group} kernels ahead failed ({why}); the tests compile them as they go")
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _own_runtime_dir(tmp_path_factory):
+    """Session lock files (dpmhw.session.instance) in a directory of this run's own, so a suite
+    run beside another one's mock sessions sees no 'another --mock session' warning."""
+    os.environ["DPMHW_RUNTIME_DIR"] = str(tmp_path_factory.mktemp("runtime"))

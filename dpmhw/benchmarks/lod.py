@@ -7,7 +7,7 @@ its own state; frames shared by methods (the same renderer, the same seed) are r
 
 - none: native shading, 1 spp everywhere + reuse, no filter (`shading_scale` 1: every pixel
   costs the same; the stage's exact path, the pipeline before reconstruction existed).
-- quarter: ¼ shading + reuse + lobe-aware filter + upsampling + adaptive sampling: issue 11's
+- quarter: ¼ shading + reuse + lobe-aware filter + upsampling + adaptive sampling: the session's
   default, no LOD (the floor every LOD method below builds on).
 - moving: quarter + native paths on the moving objects' pixels (`lod.refine`, `moving`, each
   pixel every `moving_every` frames: the `lod` section's default).
@@ -29,7 +29,7 @@ stage's ¼ branch runs on a helper thread beside the G-buffer, so summing its su
 `frame_ms_stage_sum`, counts that overlap twice); lod_ms the stage's "lod" part.
 Errors at the eval times against converged native references (`ReferenceCache`, shared with
 `bench quality`), on the 8-bit frames: PSNR, SSIM, mean FLIP (flip-evaluator, LDR) and PSNR
-inside the mesh objects (psnr_db_object, issue 11's mask). Rows also say how many tiles the
+inside the mesh objects (psnr_db_object, the reference's object mask). Rows also say how many tiles the
 map called visible (level ≥ ½ rate) against the map of the reference itself and of the raw
 1-spp native frame (noise robustness).
 """
@@ -314,7 +314,7 @@ def run_scene(name: str, cfg: LodBenchConfig, cache: ReferenceCache, progress: C
                 lod_ms=float(np.median(st["lod_ms"])),
                 tiles_full_rate=_median_or_none(st["full"]), tiles_half_rate=_median_or_none(st["half"]),
                 tiles_multi_spp=_median_or_none(st["multi"]),
-                frame_ms_stage_sum=float(np.median(st["stages_ms"])),  # the pre-session-7 frame_ms (overlapping sub-stage clocks summed)
+                frame_ms_stage_sum=float(np.median(st["stages_ms"])),  # sub-stage clocks summed: counts the overlapping branch twice
                 shading_scale=r.scale, ray_budget=r.settings.rays if r.settings else None,
                 visible_tiles=float(np.mean(st["vis"])) if st["vis"] else None,
                 visible_tiles_reference=float(np.mean(st["vis_ref"])) if st["vis_ref"] else None,

@@ -1,4 +1,4 @@
-"""`dpmhw bench mitsuba`: Mitsuba 3 (LLVM backend) on the same scene as dpmhw, the baseline of issue 12.
+"""`dpmhw bench mitsuba`: Mitsuba 3 (LLVM backend) on the same scene as dpmhw, the renderer's speed baseline.
 
 The scene is converted in memory (`scene_dict`): every object becomes an `mi.Mesh` in world space
 (its pose at t = 0), with a two-sided BSDF (dpmhw shades both faces; Mitsuba's BSDFs alone are

@@ -11,8 +11,8 @@ one object: the lobe- against normal-aware case). Every method runs the same tim
 - the same at ½ and ¼ with the lobe-aware filter and adaptive sampling (`reconstruct.adaptive`,
   `native_adaptive_rays` rays per frame; method names end in "+ adaptive");
 - paper-dynamic only: three of them again with per-frame pixel jitter instead of pixel centres
-  (names end in ", jitter"): issue 12's session default (jitter + reuse = temporal antialiasing,
-  against centre sampling with cached static hits);
+  (names end in ", jitter"): jitter + reuse as temporal antialiasing, against the session's
+  centre sampling with cached static hits;
 - glossy-roughness: the 1-spp and reuse rows at native and ¼ only.
 
 References: two independent halves A, B (seeds REFERENCE_SEED, REFERENCE_SEED + 1) of

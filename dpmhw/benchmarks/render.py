@@ -4,7 +4,7 @@ Frame time is measured on consecutive frames of the scene's timeline (frame k: t
 seed k), as the projection loop renders them, with the projector fixed (`frame_ms_*`: its
 camera hits on static objects are cached) and moved (`*_cold_camera_*`: panned by up to
 ±1° about the vertical, a different angle each frame, so camera rays and static hits are made
-anew every frame; before session 5 these frames only dropped the hit cache's key). With the
+anew every frame, not only the hit cache's key dropped). With the
 Embree C API one compiled call per render thread runs shading and every ray query of the image
 segments that thread takes. Inside that
 call nothing can be timed per stage, so the split is measured on the same frames rendered

@@ -464,8 +464,7 @@ def run_soak(minutes: float, *, seed: int = 0, tracker: str = "natnet", kinds: t
             # since the last fault ended, then 1.5–4 s of projecting (so the frame interval before the
             # fault is measured), and inject only into a projecting session. "running" alone turns
             # true as the hold-off ends, a frame before the first lit present: a fault injected then
-            # pre-empted the resume, and its clear was counted as the previous fault's (2 of the 5
-            # "late" serial unplugs of session 4)
+            # pre-empted the resume, and its clear was counted as the previous fault's
             since = faults[-1].t_clear_ns if faults else 0
             if not wait_for(lambda since=since: truth_check.lit_since(since), 30):
                 say(f"soak: no lit frame 30 s after the last fault: {loop.status()['reason']}")

@@ -82,11 +82,16 @@ def start(
     extra += [f"api.port={port}"] if port is not None else []
     extra += ["api.enabled=false"] if no_api else []
     extra += ["recording.enabled=true"] if record else []
+    from dpmhw.session.instance import SessionLock
+
     try:
         cfg = _load(config, sets, extra)
-    except DpmhwError as exc:
+        lock = SessionLock.claim(cfg, mock)  # held until this process ends
+    except (DpmhwError, OSError) as exc:
         _fail(exc)
     _vet(cfg)
+    if lock.warning:
+        typer.echo(lock.warning)
     from dpmhw.session.supervisor import Supervisor
 
     sock = token = None
@@ -101,6 +106,8 @@ def start(
             sock = bind_api_socket(cfg.api.host, cfg.api.port)  # held here for the whole show
         except OSError as exc:
             _fail(OSError(f"api.port: cannot listen on {cfg.api.host}:{cfg.api.port}: {exc.strerror or exc}"))
+        host = f"[{cfg.api.host}]" if ":" in cfg.api.host else cfg.api.host
+        typer.echo(f"operator page: http://{host}:{sock.getsockname()[1]}/ (once the session has started)")
     try:
         code = Supervisor(cfg, mock=mock, token=token or "", sock=sock, duration=duration,
                           status_every=status_every, echo=typer.echo).run()
@@ -109,17 +116,30 @@ def start(
     finally:
         if sock is not None:
             sock.close()
+        lock.release()
     raise typer.Exit(code=code)
 
 
 @session_app.command("config")
-def show_config(config: ConfigOpt = None, sets: SetOpt = None) -> None:
-    """Validate a session config (with overrides) and print it resolved, as JSON; the memory its
-    output size needs and what costly values cost go to stderr."""
+def show_config(
+    config: ConfigOpt = None,
+    sets: SetOpt = None,
+    offline: Annotated[bool, typer.Option("--offline", help="Skip the device checks (projector, tracker port or address, display).")] = False,
+) -> None:
+    """Validate a session config (with overrides) as a start would, and print it resolved, as JSON;
+    the memory its output size needs and what costly values cost go to stderr.
+
+    Loads the scene, its meshes and the calibration files, resolves the bindings, and (unless
+    --offline) reaches the devices without changing them."""
     from dpmhw.errors import DpmhwError
+    from dpmhw.session.factory import check_devices, prepare_scene, resolve_bindings
 
     try:
         cfg = _load(config, sets, [])
+        scene = prepare_scene(cfg)
+        resolve_bindings(cfg, scene)
+        if not offline:
+            check_devices(cfg, scene)
     except DpmhwError as exc:
         _fail(exc)
     _vet(cfg)

@@ -1,4 +1,4 @@
-"""Per-tile shading rate and samples per pixel inside the loop's reconstruction (issue 13).
+"""Per-tile shading rate and samples per pixel inside the loop's reconstruction (docs/lod.md).
 
 The loop shades a ¼-per-axis frame everywhere, reuses, filters and upsamples it to the native
 size (`reconstruct.stage`). That base is the cheapest level; on top of it `TileRefiner` spends a
@@ -12,7 +12,7 @@ per-frame ray budget on native-resolution paths where a viewer can see the diffe
    map (`MeshLod.observe(visibility=…)`): one map per frame for all three uses. With `moving`,
    tiles a moving object covers now are boosted (full rate, budget first; samples per pixel
    still from the map's level there) and only the moving objects' own pixels are traced in
-   them (their shading changes under the eye, and the ¼ base loses their detail: issue 11's
+   them (their shading changes under the eye, and the ¼ base loses their detail: the
    inside-object PSNR). `TilePolicy` turns V into a level per tile under the budget (¼-rate
    tiles are free: the base shades them), the most visible tiles first, the last frame's
    grants counting `keep` more (the base shades every tile anyway, and a tile refined in

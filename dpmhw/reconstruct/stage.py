@@ -96,7 +96,7 @@ class ReconstructStage:
     adaptive : a `reconstruct.adaptive.AdaptiveSampler` (None: no adaptive sampling): extra
         native paths for unresolved and under-supported pixels, merged before post
     lod : a `lod.refine.TileRefiner` (None: off, and the stage is exactly what it is without
-        it): per-tile native paths where the previous output is visible (issue 13); planned
+        it): per-tile native paths where the previous output is visible (docs/lod.md); planned
         before the upsampling, traced and blended after it, before adaptive sampling;
         its time is the sub-stage "lod"
     analytic : the (diffuse, specular) floor fractions of the analytic-direct demodulation
@@ -115,7 +115,7 @@ class ReconstructStage:
             raise ValueError("ReconstructStage: shading size differs from the native size but no native G-buffer was given")
         self.gbuffer = gbuffer
         self.adaptive = adaptive if gbuffer is not None else None
-        self.lod = lod if gbuffer is not None else None  # issue 13's hook (lod.refine)
+        self.lod = lod if gbuffer is not None else None  # per-tile refinement (lod.refine)
         self.clock = clock  # ns; the loop's injectable clock
         self.gbuffer_mode = gbuffer_mode
         self.background = np.asarray(background, np.float32).reshape(3)
@@ -354,7 +354,7 @@ class ReconstructStage:
         st.update(st_low)
         t3 = self._now()
 
-        if self.lod is not None:  # --- issue 13: plan from the previous output before the upsampling overwrites it
+        if self.lod is not None:  # --- LOD: plan from the previous output before the upsampling overwrites it
             self.lod.plan(self._radiance, box)
             t_lod = self._now() - t3
             t3 = self._now()
@@ -364,7 +364,7 @@ class ReconstructStage:
         t4 = self._now()
         st["upsample"] = t4 - t3
 
-        if self.lod is not None:  # --- issue 13: native paths in the planned tiles
+        if self.lod is not None:  # --- LOD: native paths in the planned tiles
             self.lod.refine(self._radiance, self._wsum, self._unresolved, box, poses if poses is not None else [],
                             frame.seed, 1.0 if mode == "off" else alpha)
             t5 = self._now()

@@ -39,15 +39,15 @@ RTC_BUFFER_TYPE_INDEX, RTC_BUFFER_TYPE_VERTEX = 0, 1
 RTC_FORMAT_UINT3, RTC_FORMAT_FLOAT3 = 0x5003, 0x9003
 RTC_SCENE_FLAG_ROBUST = 1 << 2
 # The robust flag (watertight traversal and Pluecker intersection) is off, by measurement
-# (session 7, paper-static, 2 threads, alternated): it cost 21 CPU-ms of a 232 CPU-ms fixed
+# (paper-static, 2 threads, alternated): it cost 21 CPU-ms of a 232 CPU-ms fixed
 # frame and 31 of 285 with the camera moving (9-11 %). On 3.0M continuation and 4.0M shadow rays
 # of four real frames, dropping it changed the primitive of 7 hits (neighbouring triangles across
 # an edge), let none escape and unblocked no shadow ray; the furnace, closed-box and grazing tests
 # hold. Rays aimed exactly at a closed box's edges from inside still escape without it (832 of
-# 60,000: tests/render/test_rtc.py::test_no_leak_out_of_a_closed_box), which is why sessions
-# 4-6 kept it. No accel of this build is both
+# 60,000: tests/render/test_rtc.py::test_no_leak_out_of_a_closed_box); paths never aim that
+# exactly, and random bounces do not leak (same test). No accel of this build is both
 # watertight and faster: "tri_accel=bvh8.triangle4v" (and every robust variant) is the Pluecker
-# test with robust traversal, as slow as the flag (session 6); the speed-up is the Moeller test's.
+# test with robust traversal, as slow as the flag; the speed-up is the Moeller test's.
 ROBUST = False
 
 _lib: ctypes.CDLL | None = None

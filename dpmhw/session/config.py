@@ -151,7 +151,7 @@ class ReuseSection(_Section):
     warmup: bool = Field(False, description="running mean for the first 1/alpha frames after a reset")
 
 
-# --- issue 13: contrast-driven level of detail in the reconstruction (dpmhw.lod.refine) ---
+# --- contrast-driven level of detail in the reconstruction (dpmhw.lod.refine) ---
 class LodSection(_Section):
     """Per-tile native paths on top of the shading-resolution frame (docs/lod.md). Off (rays = 0,
     or neither moving nor visible): the reconstruction is exactly what it is without it."""
@@ -284,7 +284,7 @@ class SessionConfig(_Section):
     scene: SceneSection = SceneSection()
     render: RenderSection = RenderSection()
     reuse: ReuseSection = ReuseSection()
-    lod: LodSection = LodSection()  # issue 13
+    lod: LodSection = LodSection()  # docs/lod.md
     prediction: PredictionSection = PredictionSection()
     bindings: list[Binding] = Field(default_factory=list, description="empty: every scene object with a rigid_body")
     tracker: TrackerSection = TrackerSection()

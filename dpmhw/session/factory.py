@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import os
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -24,8 +25,9 @@ from dpmhw.scene_file import Scene, load_scene
 from dpmhw.session.config import MAX_BODY_ID, SessionConfig, SessionConfigError
 from dpmhw.session.loop import SessionLoop, SessionParts
 
-__all__ = ["DLPC900Control", "MockRig", "build_session", "idle_projector", "memory_problem", "open_black_window",
-           "open_session_parts", "output_size", "prepare_scene", "resolve_bindings", "start_usb_emulator"]
+__all__ = ["DLPC900Control", "MockRig", "build_session", "check_devices", "idle_projector", "memory_problem",
+           "open_black_window", "open_session_parts", "output_size", "prepare_scene", "resolve_bindings",
+           "start_usb_emulator"]
 
 log = logging.getLogger(__name__)
 
@@ -249,10 +251,26 @@ def open_tracker(config: SessionConfig, command_port: int | None = None, port: s
                             **common)
     from drivers.serial_tracker import SerialTracker
 
-    port = port or t.port
+    return SerialTracker(_serial_port(config, port), baudrate=t.baudrate, **common)
+
+
+def _serial_port(config: SessionConfig, port: str | None = None) -> str:
+    port = port or config.tracker.port
     if not port:
         raise SessionConfigError("tracker.port: a serial tracker needs a port (e.g. /dev/ttyUSB0)")
-    return SerialTracker(port, baudrate=t.baudrate, **common)
+    return port
+
+
+def describe_tracker(config: SessionConfig, command_port: int | None = None, port: str | None = None) -> tuple[str, str]:
+    """Where the tracker reads from, and the `dpmhw tracker watch` command that checks it (for
+    messages; the arguments are `open_tracker`'s mock overrides)."""
+    t = config.tracker
+    if t.kind == "natnet":
+        command_port = command_port or t.command_port
+        return (f"NatNet server {t.server}:{command_port}",
+                f"dpmhw tracker watch --natnet {t.server} --command-port {command_port} --local-interface {t.local_interface}")
+    port = port or t.port
+    return f"serial port {port}", f"dpmhw tracker watch --serial {port} --baudrate {t.baudrate}"
 
 
 def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):
@@ -271,6 +289,38 @@ def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):
         return make_sink("window", display=config.sink.display, size=(shape[1], shape[0]))
     except ValueError as exc:  # e.g. the display's mode is not the projector's native size
         raise SessionConfigError(f"sink: {exc}") from None
+
+
+def check_devices(config: SessionConfig, scene: Scene) -> None:
+    """Reach every device a start would open, changing none of them (`session config`): the
+    projector over USB, the tracker's serial port or NatNet server address, the sink's display
+    and its mode. Raises SessionConfigError naming the section of the first one missing."""
+    if config.projector.kind == "dlpc900":
+        from drivers.dlpc900 import DLPC900
+
+        try:
+            DLPC900.open(config.projector.serial or None, timeout_ms=config.projector.timeout_ms, settle_s=0.0).close()
+        except Exception as exc:
+            raise SessionConfigError(f"projector: {exc}") from None
+    t = config.tracker
+    if t.kind == "serial":
+        port = _serial_port(config)
+        if "://" not in port and not os.path.exists(port):  # pyserial URLs (socket://…) are not files
+            raise SessionConfigError(f"tracker.port: {port} does not exist")
+    else:
+        import socket
+
+        try:
+            socket.getaddrinfo(t.server, None)
+        except OSError as exc:
+            raise SessionConfigError(f"tracker.server: cannot resolve {t.server!r}: {exc}") from None
+    if config.sink.kind == "window":
+        from drivers.frame_sinks import check_display
+
+        try:
+            check_display(config.sink.display, (scene.render.width, scene.render.height))
+        except Exception as exc:
+            raise SessionConfigError(f"sink: {exc}") from None
 
 
 def shading_scene(scene: Scene, scale: float) -> Scene:
@@ -300,19 +350,27 @@ def build_renderer(config: SessionConfig, scene: Scene, gbuffer: bool = True):
 
 def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: Any = None,
                        usb: tuple[str, bytes] | None = None) -> SessionParts:
-    """Open every part the config names (mocks first with `mock`); closes what it opened on error."""
-    scene = prepare_scene(config)
-    problem = memory_problem(config, (scene.render.width, scene.render.height))
-    if problem is not None:  # before anything allocates at that size
-        raise SessionConfigError(problem)
-    bindings = resolve_bindings(config, scene)
+    """Open every part the config names (mocks first with `mock`); closes what it opened on error.
+    The projector is opened before the renderer, a real one before the scene, so that a missing
+    one is reported at once, not after seconds of scene loading and kernel compiling."""
     closers: list = []
-    rig = None
+    rig = projector = None
     try:
+        if config.projector.kind == "dlpc900" and not mock:
+            projector = DLPC900Control.open(config)
+            closers.append(projector.close)
+        scene = prepare_scene(config)
+        problem = memory_problem(config, (scene.render.width, scene.render.height))
+        if problem is not None:  # before anything allocates at that size
+            raise SessionConfigError(problem)
+        bindings = resolve_bindings(config, scene)
         over: dict = {}
         if mock:
             rig, over = start_mock_rig(config, scene, bindings, usb)
             closers.append(rig.stack.close)
+            if config.projector.kind == "dlpc900":  # the rig's emulated one
+                projector = DLPC900Control.open(config)
+                closers.append(projector.close)
         gbuffer = None
         if renderer is None:
             renderer, gbuffer = build_renderer(config, scene)
@@ -320,10 +378,6 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
                 closers.append(gbuffer.close)
         if hasattr(renderer, "close"):
             closers.append(renderer.close)
-        projector = None
-        if config.projector.kind == "dlpc900":
-            projector = DLPC900Control.open(config)
-            closers.append(projector.close)
         sink = open_sink(config, mock, (scene.render.height, scene.render.width))
         closers.append(sink.close)
         tracker = open_tracker(config, **over)
@@ -343,8 +397,10 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
                 log.exception("cleanup after a failed start")
         raise
     # the loop closes tracker, sink, renderer and projector itself; the rig last
+    address, watch = describe_tracker(config, **over)
     return SessionParts(scene, renderer, tracker, sink, bindings, projector, recorder, rig, gbuffer,
-                        closers=([gbuffer.close] if gbuffer is not None else []) + ([rig.stack.close] if rig is not None else []))
+                        closers=([gbuffer.close] if gbuffer is not None else []) + ([rig.stack.close] if rig is not None else []),
+                        tracker_address=address, tracker_watch=watch)
 
 
 def build_session(config: SessionConfig, *, mock: bool = False, renderer: Any = None, frame_log: int = 0,
@@ -378,11 +434,14 @@ def idle_projector(config: SessionConfig, usb: tuple[str, bytes] | None = None) 
     from drivers.dlpc900 import DLPC900
 
     with contextlib.ExitStack() as stack:
-        if usb is not None:
-            from firmware_mocks.dlpc900_socket import socket_usb
+        backend = None  # pyusb's default (libusb)
+        if usb is not None:  # the emulator, passed in (not put on the default bus: callers may be concurrent)
+            from firmware_mocks.dlpc900_socket import SocketBackend
 
-            stack.enter_context(socket_usb(*usb))
-        dlp = DLPC900.open(config.projector.serial or None, timeout_ms=config.projector.timeout_ms, settle_s=0.0)
+            backend = SocketBackend(*usb)
+            stack.callback(backend.close)
+        dlp = DLPC900.open(config.projector.serial or None, backend=backend, timeout_ms=config.projector.timeout_ms,
+                           settle_s=0.0)
         stack.callback(dlp.close)
         return dlp.blank().method
 

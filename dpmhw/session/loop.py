@@ -13,7 +13,7 @@ its calls take turns (`OneCallAtATime`).
 
 One thread runs the frames; a watchdog thread blanks the projector if that thread stalls; a
 deadline thread makes the output dark the moment the newest tracking sample turns stale, whatever
-the frame thread is doing (issue 14: dark within `stale_after_ms`, not one frame's work later); a
+the frame thread is doing (dark within `stale_after_ms`, not one frame's work later); a
 health thread reads device status (USB reads can block) so the loop never waits on them. The
 loop publishes immutable snapshots (status, latest frame); readers (the HTTP service) only swap
 references under a short lock, and setting changes are validated by the caller and queued for
@@ -47,6 +47,7 @@ from dpmhw.reconstruct.settings import FILTER_MODES, REUSE_MODES
 from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
+from dpmhw.session.heartbeat import Heartbeat
 from dpmhw.session.metrics import LoopMetrics
 from dpmhw.session.prediction import PosePredictor
 from dpmhw.session.safety import SafetyMonitor, SessionState
@@ -102,6 +103,8 @@ class SessionParts:
     mock: Any = None  # the mock rig (world, servers, emulated devices) in --mock sessions
     gbuffer: Any = None  # dpmhw.render.gbuffer.NativeGBuffer when the renderer shades below the native size
     closers: list[Callable[[], None]] = field(default_factory=list)
+    tracker_address: str = ""  # where the tracker reads from, for messages: "NatNet server 10.0.0.5:1510"
+    tracker_watch: str = ""  # the `dpmhw tracker watch …` command that checks the same tracker
 
 
 @dataclass(frozen=True)
@@ -204,10 +207,11 @@ class SessionLoop:
     """Runs one projection session. `start()`, then `stop()` (idempotent) for a verified dark end."""
 
     def __init__(self, config: SessionConfig, parts: SessionParts, *, frame_log: int = 0,
-                 clock: Callable[[], int] = time.monotonic_ns):
+                 clock: Callable[[], int] = time.monotonic_ns, heartbeat: Heartbeat | None = None):
         self.config = config
         self.parts = parts
         self.clock = clock
+        self.heartbeat = heartbeat  # what the frame thread did, for a supervisor (clock: CLOCK_MONOTONIC)
         s = config.safety
         self.stale_ns = int(s.stale_after_ms * 1e6)
         self.watchdog_ns = int(s.watchdog_s * 1e9)
@@ -220,7 +224,7 @@ class SessionLoop:
         self.output_size = (scene.render.width, scene.render.height)  # the projector's native (W, H)
         self._renderer = OneCallAtATime(parts.renderer)  # pipelining renders on a second thread
         self.reconstruct = reconstruct_stage(config, scene, self._renderer, parts.gbuffer, clock)
-        self.mesh_lod = mesh_lod(parts.renderer, parts.gbuffer, config.lod)  # issue 13: mesh levels (None: off)
+        self.mesh_lod = mesh_lod(parts.renderer, parts.gbuffer, config.lod)  # mesh levels (None: off)
         self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
         # render frame n+1 beside frame n's reconstruction; not with mesh LOD, whose level switch must hold for
         # a whole frame (render, G-buffer, refinement)
@@ -417,7 +421,7 @@ class SessionLoop:
 
     def _idle_wait_s(self, poll_s: float) -> float:
         """Sleep after a dark turn: `poll_s`, but wake the resume lead before the hold-off ends,
-        so the first lit frame is rendered by then and presented on time (issue 14)."""
+        so the first lit frame is rendered by then and presented on time."""
         resume_at, now = self.safety.resume_at_ns(), self.clock()
         if resume_at is None or resume_at <= now:  # not holding off: nothing to wake for
             return poll_s
@@ -427,7 +431,7 @@ class SessionLoop:
         """How long before the hold-off ends the first lit frame is begun: its expected work twice
         (the first frame after a dark spell runs slower: cold caches and threads) plus the
         interpreter's thread switch interval (a waking thread may wait that long for the GIL).
-        With one pipeline only, it was lit up to a frame late (issue 14, serial unplug)."""
+        With one pipeline's lead only, the first frame could be lit up to a frame late."""
         return int((2 * self.metrics.expected_pipeline_s() + sys.getswitchinterval()) * 1e9)
 
     def _resume_due(self, now: int) -> int | None:
@@ -471,7 +475,9 @@ class SessionLoop:
         for body in sorted(bodies):
             s = tracker.latest(body)
             if s is None:
-                problems.append(f"rigid body {body}: no sample yet (tracker {status.state.value})")
+                where = f" from {self.parts.tracker_address}" if self.parts.tracker_address else ""
+                hint = f"; check it with `{self.parts.tracker_watch}`" if self.parts.tracker_watch else ""
+                problems.append(f"rigid body {body}: no sample yet{where} (tracker {status.state.value}){hint}")
                 continue
             self.predictor.observe(s)
             age = now - s.t_exposure_ns
@@ -479,7 +485,7 @@ class SessionLoop:
                 problems.append(f"rigid body {body}: not tracked in tracker frame {s.frame_number}")
             elif age > self.stale_ns:
                 problems.append(self._stale_reason(body, age))
-                if status.details.get("last_implausible_ns", 0) > s.t_arrival_ns:  # plausibility gate (issue 14)
+                if status.details.get("last_implausible_ns", 0) > s.t_arrival_ns:  # dropped by the plausibility gate
                     problems[-1] += f"; newer samples dropped as implausible: {status.details['last_implausible']}"
             samples[body] = s
         # tracking became good when the last body's first fresh sample arrived: the hold-off counts from there
@@ -542,7 +548,7 @@ class SessionLoop:
 
     def _render(self, job: "_Job"):
         t = self.clock()
-        if self.mesh_lod is not None:  # issue 13: this frame's mesh levels, before its render
+        if self.mesh_lod is not None:  # this frame's mesh levels, before its render
             self.mesh_lod.choose(job.poses, self.parts.renderer.camera.pose)
             t1 = self.clock()
             job.stages["mesh_lod"], t = (t1 - t) / 1e9, t1
@@ -606,7 +612,7 @@ class SessionLoop:
             stages["mesh_lod"] += (self.clock() - t3) / 1e9
         t4 = self.clock()
         # the newest sample may have gone stale while this frame was made: never light it then
-        # (dark within stale_after_ms + one frame, issue 14), and take in what arrived meanwhile
+        # (dark within stale_after_ms + one frame), and take in what arrived meanwhile
         if self._check_tracking(t4) is None:
             self._sync_output()
             self.metrics.count("frames_withheld")
@@ -626,6 +632,8 @@ class SessionLoop:
         except Exception as exc:
             return self._stage_failed("sink", "present_errors", f"present failed: {type(exc).__name__}: {exc}")
         t5 = self.clock()
+        if self.heartbeat is not None:
+            self.heartbeat.presented(t5, self._present_allowance_ns())
         stages["present"] = (t5 - t4) / 1e9
         stages["frame"] = (t5 - t_start) / 1e9
         self.safety.mark_started()
@@ -652,8 +660,8 @@ class SessionLoop:
     def _freeze_long_lived() -> None:
         """What exists once the session is built and warm (scene, kernels, buffers, the service) lives
         as long as the session: move it out of the collector's reach, or a full collection walks
-        ~160k objects every ~20 frames on the frame thread (73-78 CPU-ms, a late frame; issue 12's
-        perf profile). Collected first so no garbage is pinned; `stop` unfreezes (a service may run
+        ~160k objects every ~20 frames on the frame thread (73-78 CPU-ms, a late frame; measured with
+        perf). Collected first so no garbage is pinned; `stop` unfreezes (a service may run
         many sessions in one process). Once at start, while dark (that first collection took ~75 ms:
         done after frame 30 only, it made a late frame, a stale tracker sample and a dark spell
         right after going live), and again after `FREEZE_AFTER_FRAMES` for what the first frames made."""
@@ -689,12 +697,20 @@ class SessionLoop:
                     self.safety.update("projector", True, f"cannot light the projector: {type(exc).__name__}: {exc}", "fault")
                     return
             self.reconstruct.reset()  # history from before the dark spell describes another moment
+            if self.heartbeat is not None:
+                self.heartbeat.presented(self.clock(), self._present_allowance_ns())
             self._output_on = True
             if self.first_lit_at is None:
                 self.first_lit_at = time.monotonic()
                 self.first_lit.set()
             self.metrics.count("resumes")
             log.warning("projection resumed")
+
+    def _present_allowance_ns(self) -> int:
+        """How long a lit frame may stand before a supervisor calls this process hung: the stale
+        limit plus twice the expected frame time (a slow but live loop presents within that), never
+        more than the watchdog's stall limit."""
+        return min(self.stale_ns + int(2e9 * self.metrics.expected_pipeline_s()), self.watchdog_ns)
 
     def _go_dark(self, reason: str, force: bool = False, from_watchdog: bool = False) -> None:
         """Black frame to the sink (not from the watchdog: the stuck loop may be inside the sink)
@@ -705,6 +721,7 @@ class SessionLoop:
             self._output_on = False
             self.metrics.count("blanks")
             log.warning("projection dark: %s", reason)
+            black_shown = False
             if not from_watchdog:
                 black = np.zeros((self.output_size[1], self.output_size[0], 3), np.uint8)
                 black.setflags(write=False)
@@ -712,18 +729,23 @@ class SessionLoop:
                     t = self.parts.sink.present(black, self.clock())
                     with self._lock:
                         self._latest = LatestFrame(self._frame_number, t, black, self._settings, blank=True)
+                    black_shown = True
                 except Exception as exc:
                     self.safety.update("sink", True, f"cannot present a black frame: {type(exc).__name__}: {exc}", "fault")
             if self.parts.projector is None:
                 self._last_blank = "no projector"
-                return
-            try:
-                self._last_blank = self.parts.projector.blank()
-            except Exception as exc:
-                self._last_blank = f"FAILED: {exc}"
-                self.safety.update("projector_blank", True, f"cannot confirm the projector is dark: {exc}", "fault")
+                if not black_shown:
+                    return  # the sink may still show the last frame: lit as far as a supervisor knows
             else:
+                try:
+                    self._last_blank = self.parts.projector.blank()
+                except Exception as exc:
+                    self._last_blank = f"FAILED: {exc}"
+                    self.safety.update("projector_blank", True, f"cannot confirm the projector is dark: {exc}", "fault")
+                    return  # still lit as far as a supervisor knows
                 self.safety.update("projector_blank", False)
+            if self.heartbeat is not None:
+                self.heartbeat.dark()
 
     # ---- watchdog and device health ---------------------------------------------------------
     def _watchdog(self) -> None:
@@ -746,8 +768,8 @@ class SessionLoop:
 
     def _stale_deadline(self) -> None:
         """Go dark at the newest sample's exposure + `stale_after_ms`, not at the frame thread's
-        next check (up to a frame's work later; one implausible burst went dark 1.7 ms past
-        `stale_after_ms` + one frame in a session-5 soak). Sleeps until the earliest body's
+        next check (up to a frame's work later, which can push dark past `stale_after_ms` + one
+        frame). Sleeps until the earliest body's
         deadline (at most 20 ms, so new samples move it) and only reads `tracker.latest`; the
         frame thread keeps owning the tracking cause and its clearing."""
         bodies = sorted(set(self.parts.bindings.values()))

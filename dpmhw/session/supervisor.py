@@ -1,20 +1,31 @@
 """A thin supervising parent for a session: the loop runs in a child process, so that no way of
 ending that process (SIGKILL, a segfault in native code, the OOM killer, an exception escaping a
-thread) leaves the projector lit.
+thread) and no way of hanging it (SIGSTOP, a deadlock) leaves the projector lit.
 
     Supervisor(config, mock=True, echo=print).run()     # what `dpmhw session start` does
 
 The parent imports little and does little: it binds the API port, starts the loop process
-(`run_child`), and waits. When the child ends without being asked to, the parent
+(`run_child`), and watches it. While the output is lit, the loop's frame thread states in shared
+memory when its next present is due (`dpmhw.session.heartbeat`: `safety.stale_after_ms` plus
+twice its frame time plus 50 ms; a frame on a moving object older than that is as misregistered
+as a stale pose). A loop process that misses it is hung: it is SIGKILLed at once (the kernel
+releases its USB claim only when it is gone; a real device cannot be claimed by a second process
+before) and handled like one that died. When the loop process ends without being asked to, the
+parent
 
-- idles the projector over USB itself (the kernel freed the device with the child) and confirms
-  it by read-back (`factory.idle_projector`), retrying until it is confirmed;
+- idles the projector over USB itself and confirms it by read-back (`factory.idle_projector`),
+  each attempt on a thread of its own with a deadline (`idle_timeout_s`): a device or emulator
+  that does not answer gives "NOT confirmed dark", and the attempts go on while staying dark;
 - puts a black full-screen window on the projector's display if the session used one;
 - logs the exit status or the signal;
 - answers `/status` with `fault` and the reason on the API port (`FaultResponder`) while no
   loop process serves it;
 - restarts the loop process if `safety.restart = "on-crash"` (`RestartPolicy`: backoff, and at
   most `restart_limit` restarts within `restart_window_s`), else stays dark until stopped.
+
+Nothing from outside can hold the main thread: the loop process's messages are read on a relay
+thread (a message half-sent by a process that was then stopped blocks only that thread), and
+every HTTP connection to the fault responder is served on a thread of its own with a timeout.
 
 Who holds the API port: the parent binds it once and keeps it for the whole show; each loop
 process receives a copy and serves the full API from its own API process (server/process.py,
@@ -23,7 +34,12 @@ between restarts, clients queue instead of being refused, the full API sits next
 it reports, and the parent stays small (no web framework, no render code: little to crash).
 
 Stops are reported with their real reason: the `--duration` elapsed, SIGTERM, Ctrl-C, or the
-supervisor itself gone (the loop process stops dark when its parent dies).
+supervisor itself gone (the loop process stops dark when its parent dies). A stop while the loop
+process is still starting (opening devices, compiling kernels) ends it at once and idles the
+projector, rather than waiting for a start-up that cannot see the request.
+
+Shared-memory slots left by a loop process that was killed are removed after its end, and those
+of any dead owner when the supervisor starts (`dpmhw.child_process.SHARED_SLOTS`).
 """
 
 from __future__ import annotations
@@ -34,44 +50,34 @@ import logging
 import multiprocessing
 import multiprocessing.connection
 import os
+import queue
+import selectors
 import signal
 import socket
+import socketserver
 import sys
 import threading
 import time
-from collections import deque
+from concurrent.futures import Future
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, HTTPServer
 from typing import Any, Callable
 
 import numpy as np
 
+from dpmhw.child_process import EXIT_THREAD_EXCEPTION, SHARED_SLOTS, RestartPolicy, describe_exit
 from dpmhw.session.config import SessionConfig
+from dpmhw.session.heartbeat import Heartbeat
 
-__all__ = ["FaultResponder", "RestartPolicy", "Supervisor", "describe_exit", "run_child", "status_line"]
+__all__ = ["ChildArgs", "FaultResponder", "Supervisor", "run_child", "status_line"]
 
 log = logging.getLogger(__name__)
 
-EXIT_THREAD_EXCEPTION = 70  # EX_SOFTWARE: an exception escaped a thread of the loop process
 EXIT_START_FAILED = 2
-FAULT_ENV = "DPMHW_TEST_FAULT"  # tests only: "loop-exception" or "abort" once a frame was shown
+KILL_WAIT_S = 5.0  # after SIGKILL, for the process to be gone (it is, unless stuck in the kernel)
 # --mock: use this already running DLPC900 emulator ("address" and hex key) instead of starting one
 # (tests read the device back themselves; see firmware_mocks/dlpc900_socket.py)
 EMULATOR_ENV = ("DPMHW_MOCK_DLPC900_ADDRESS", "DPMHW_MOCK_DLPC900_KEY")
-
-
-def describe_exit(exitcode: int | None) -> str:
-    """A process's end in words: `exited with code 70`, `killed by SIGKILL`."""
-    if exitcode is None:
-        return "still running"
-    if exitcode < 0:
-        try:
-            return f"killed by {signal.Signals(-exitcode).name}"
-        except ValueError:
-            return f"killed by signal {-exitcode}"
-    if exitcode == EXIT_THREAD_EXCEPTION:
-        return f"exited with code {exitcode} (an exception escaped one of its threads)"
-    return f"exited with code {exitcode}"
 
 
 def status_line(status: dict) -> str:
@@ -85,50 +91,55 @@ def status_line(status: dict) -> str:
     return line + (f" — {status['reason']}" if status.get("reason") else "")
 
 
-def _process_age_s() -> float:
-    """Seconds since this process started (its imports included), 0 where /proc cannot tell."""
-    try:
-        with open("/proc/self/stat") as f:
-            ticks = int(f.read().rsplit(")", 1)[1].split()[19])
-        return max(0.0, time.clock_gettime(time.CLOCK_BOOTTIME) - ticks / os.sysconf("SC_CLK_TCK"))
-    except (OSError, ValueError, IndexError, AttributeError):
-        return 0.0
-
-
-class RestartPolicy:
-    """When to restart after a crash: at most `limit` restarts within `window_s`, each after a
-    backoff that doubles with every crash still inside the window. Pure; the clock is given."""
-
-    def __init__(self, limit: int, window_s: float, backoff_s: float):
-        self.limit, self.window_s, self.backoff_s = limit, window_s, backoff_s
-        self._crashes: deque[float] = deque()
-
-    def crashed(self, now_s: float) -> float | None:
-        """Record a crash at `now_s`; returns the seconds to wait before restarting, or None: give up."""
-        self._crashes.append(now_s)
-        while self._crashes and now_s - self._crashes[0] > self.window_s:
-            self._crashes.popleft()
-        restarts = len(self._crashes)  # the restart this crash would cost
-        if restarts > self.limit:
-            return None
-        return self.backoff_s * 2 ** (restarts - 1)
-
-
 # ---- what answers the API port while no loop process does ----------------------------------------
-class _Server(HTTPServer):
+class _Server(socketserver.ThreadingMixIn, HTTPServer):
+    """Each connection on a thread of its own (at most `max_connections`; more are closed unread),
+    never waited for on shutdown."""
+
+    daemon_threads = True
+    block_on_close = False
+
+    def __init__(self, *args, max_connections: int, **kw):
+        super().__init__(*args, **kw)
+        self._slots = threading.BoundedSemaphore(max_connections)
+
+    def process_request(self, request, client_address) -> None:
+        if not self._slots.acquire(blocking=False):
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request, client_address) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
     def handle_error(self, request, client_address) -> None:
-        if not isinstance(sys.exc_info()[1], ConnectionError):  # a client that left is no error
+        if not isinstance(sys.exc_info()[1], (ConnectionError, TimeoutError)):  # a client that left or stalled
             super().handle_error(request, client_address)
+
+
+# as the API's (server/app.py): JSON only here, so nothing may load or frame it
+_HEADERS = (("X-Content-Type-Options", "nosniff"), ("X-Frame-Options", "DENY"),
+            ("Content-Security-Policy", "default-src 'none'; frame-ancestors 'none'"))
 
 
 class FaultResponder:
     """Minimal HTTP on the supervisor's listening socket: `/status` says `fault` and why,
-    `/readyz` 503, `/livez` 200, anything else 503. Serves only between `start()` and `stop()`."""
+    `/readyz` 503, `/livez` 200, anything else 503. Serves only between `start()` and `stop()`.
+    A client has `timeout_s` for each read; neither a slow client nor many of them can hold up
+    `stop()` or another client (up to `max_connections` at once)."""
 
-    def __init__(self, sock: socket.socket):
+    def __init__(self, sock: socket.socket, *, timeout_s: float = 2.0, max_connections: int = 32):
         self.sock = sock
-        self._server: HTTPServer | None = None
+        self.timeout_s, self.max_connections = timeout_s, max_connections
         self._thread: threading.Thread | None = None
+        self._halt = threading.Event()
         self._lock = threading.Lock()
         self._status: dict = {}
 
@@ -141,11 +152,13 @@ class FaultResponder:
             return dict(self._status)
 
     def start(self) -> None:
-        if self._server is not None:
+        if self._thread is not None:
             return
         responder = self
 
         class Handler(BaseHTTPRequestHandler):
+            timeout = self.timeout_s  # per read: a half-sent request times out, its thread ends
+
             def _answer(self) -> None:
                 status = responder.status()
                 path = self.path.split("?", 1)[0]
@@ -161,6 +174,8 @@ class FaultResponder:
                 self.send_response(code)
                 self.send_header("Content-Type", "application/json")
                 self.send_header("Content-Length", str(len(data)))
+                for name, value in _HEADERS:
+                    self.send_header(name, value)
                 self.end_headers()
                 self.wfile.write(data)
 
@@ -169,21 +184,31 @@ class FaultResponder:
             def log_message(self, *args) -> None:  # quiet: the supervisor reports the fault itself
                 pass
 
-        server = _Server(self.sock.getsockname()[:2], Handler, bind_and_activate=False)
+        server = _Server(self.sock.getsockname()[:2], Handler, bind_and_activate=False,
+                         max_connections=self.max_connections)
         server.socket.close()  # the unbound one it made: we serve the supervisor's bound socket
         server.socket = self.sock  # (never closed here)
-        server.timeout = 2.0
-        self._server = server
-        self._thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05},
-                                        name="supervisor-fault-responder", daemon=True)
+        # non-blocking, as the API process's server makes it anyway (the two share it): a connection
+        # the other took first is no wait here
+        self.sock.setblocking(False)
+        halt = self._halt = threading.Event()
+
+        def serve() -> None:
+            with selectors.DefaultSelector() as selector:
+                selector.register(self.sock, selectors.EVENT_READ)
+                while not halt.is_set():
+                    if selector.select(0.05):  # 50 ms: how often `_halt` is looked at
+                        server._handle_request_noblock()  # accept (or nothing: the other took it), hand on
+
+        self._thread = threading.Thread(target=serve, name="supervisor-fault-responder", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
-        """Stop answering (the socket stays open for the next loop process)."""
-        server, self._server = self._server, None
-        if server is not None:
-            server.shutdown()
-            self._thread.join(5)
+        """Stop answering (the socket stays open for the next loop process); never waits for a client."""
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            self._halt.set()
+            thread.join(1.0)  # one poll interval; requests run on their own threads
 
 
 # ---- the loop process ----------------------------------------------------------------------------
@@ -196,6 +221,9 @@ class ChildArgs:
     token: str
     status_every: float
     supervisor: dict  # what the status reports about the supervision (pid, starts, last crash)
+    heartbeat: Heartbeat
+    # called with the started loop, in the loop process (a module-level function: it is pickled by name)
+    on_started: Callable[[Any], None] | None = None
 
 
 class _SupervisedRuntime:
@@ -235,27 +263,6 @@ def _fatal_thread_exception(args: threading.ExceptHookArgs) -> None:
     traceback.print_exception(args.exc_type, args.exc_value, args.exc_traceback, file=sys.stderr)
     sys.stderr.flush()
     os._exit(EXIT_THREAD_EXCEPTION)
-
-
-def _inject_fault(loop, kind: str) -> None:
-    """Tests: crash this process the way `kind` says once the loop has presented a frame."""
-    def arm() -> None:
-        while loop.status().get("frame_number", 0) < 1:
-            time.sleep(0.01)
-        # CLOCK_MONOTONIC is one clock for every process: the test measures time to dark from here
-        sys.stderr.write(f"injected {kind} at monotonic_ns {time.monotonic_ns()}\n")
-        sys.stderr.flush()
-        if kind == "abort":
-            os.abort()  # SIGABRT, as a native crash would end the process
-        publish = loop._publish
-
-        def failing(force: bool = False) -> None:
-            loop._publish = publish
-            raise RuntimeError("injected: an exception escaping the loop thread")
-
-        loop._publish = failing  # called outside the loop's per-iteration try
-
-    threading.Thread(target=arm, name="test-fault", daemon=True).start()
 
 
 def run_child(args: ChildArgs, conn) -> None:
@@ -299,7 +306,7 @@ def run_child(args: ChildArgs, conn) -> None:
     loop = api = None
     try:
         echo("opening devices, loading the scene and the render kernels …")
-        loop = build_session(config, mock=args.mock, usb=args.usb).start()
+        loop = build_session(config, mock=args.mock, usb=args.usb, heartbeat=args.heartbeat).start()
 
         def first_light() -> None:
             while not stop.is_set():
@@ -318,8 +325,8 @@ def run_child(args: ChildArgs, conn) -> None:
             api = ApiProcess(sock=args.sock, token=args.token, priority=config.api.priority).start(runtime)
             echo(f"API on {api.url} (docs at {api.url}/docs); API process pid {api.process.pid}")
         send("started", {"pid": os.getpid(), "api_pid": api.process.pid if api else None})
-        if os.environ.get(FAULT_ENV):
-            _inject_fault(loop, os.environ[FAULT_ENV])
+        if args.on_started is not None:
+            args.on_started(loop)
         while not stop.wait(args.status_every or None):
             echo(status_line(runtime.status()))
     except (DpmhwError, OSError, RuntimeError) as exc:
@@ -339,17 +346,66 @@ def run_child(args: ChildArgs, conn) -> None:
             api.close()
 
 
+class _Link:
+    """The loop process's messages, and then its end, as events on a queue. Read on a thread of
+    its own: a message half-sent by a process that was stopped mid-write holds only that thread."""
+
+    def __init__(self, child, conn, heartbeat: Heartbeat):
+        self.child, self.conn, self.heartbeat = child, conn, heartbeat
+        self.events: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+        threading.Thread(target=self._read, name="supervisor-relay", daemon=True).start()
+
+    def _read(self) -> None:
+        try:
+            watched = [self.child.sentinel, self.conn]
+            while watched:
+                ready = multiprocessing.connection.wait(watched)
+                if self.conn in ready:
+                    try:
+                        self.events.put(self.conn.recv())
+                        continue
+                    except (EOFError, OSError):  # it closed its end: it is ending
+                        watched = [self.child.sentinel]
+                        continue
+                if self.child.sentinel in ready:  # gone: what it sent before is all in the pipe
+                    with contextlib.suppress(EOFError, OSError):
+                        while self.conn in watched and self.conn.poll(0):
+                            self.events.put(self.conn.recv())
+                    break
+        finally:  # (the pipe is closed with the link: the main thread may still send "stop" on it)
+            self.events.put(("exited", None))
+
+    def get(self, timeout_s: float) -> tuple[str | None, Any]:
+        try:
+            return self.events.get(timeout=max(0.0, timeout_s))
+        except queue.Empty:
+            return None, None
+
+
 # ---- the supervising parent ---------------------------------------------------------------------
+def _process_age_s() -> float:
+    """Seconds since this process started (its imports included), 0 where /proc cannot tell."""
+    try:
+        with open("/proc/self/stat") as f:
+            ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+        return max(0.0, time.clock_gettime(time.CLOCK_BOOTTIME) - ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError, AttributeError):
+        return 0.0
+
+
 class Supervisor:
-    """Runs the session in a child process and keeps the projector dark whenever it is down."""
+    """Runs the session in a child process and keeps the projector dark whenever it is down or hung.
+    `on_loop_started` (a module-level function, called in the loop process with the started loop)
+    lets a caller add to the loop process, e.g. the tests' injected faults."""
 
     def __init__(self, config: SessionConfig, *, mock: bool = False, token: str = "",
                  sock: socket.socket | None = None, duration: float | None = None, status_every: float = 2.0,
                  echo: Callable[[str], None] = print, stop_timeout_s: float = 30.0,
-                 idle_timeout_s: float = 10.0):
+                 idle_timeout_s: float = 10.0, on_loop_started: Callable[[Any], None] | None = None):
         self.config, self.mock, self.token, self.sock = config, mock, token, sock
         self.duration, self.status_every, self.echo = duration, status_every, echo
         self.stop_timeout_s, self.idle_timeout_s = stop_timeout_s, idle_timeout_s
+        self.on_loop_started = on_loop_started
         s = config.safety
         self.policy = RestartPolicy(s.restart_limit if s.restart == "on-crash" else 0, s.restart_window_s,
                                     s.restart_backoff_s)
@@ -363,6 +419,7 @@ class Supervisor:
         self._stop_reason = ""
         self._deadline: float | None = None
         self._window = None
+        self._idle_job: Future | None = None  # the idle attempt in flight (at most one)
         self._unconfirmed = ""  # what left the projector without a confirmed dark (retried)
         self._t_start = time.monotonic() - _process_age_s()  # when the command started
         self._loop_started: float | None = None
@@ -384,6 +441,7 @@ class Supervisor:
             (signal.SIGINT, lambda *a: self.request_stop("interrupted (Ctrl-C)")))}
         code = 0
         try:
+            SHARED_SLOTS.sweep()  # what loop processes of an earlier show left when they were killed
             if self.mock and self.config.projector.kind == "dlpc900":
                 address, key = (os.environ.get(name, "") for name in EMULATOR_ENV)
                 if address:
@@ -392,15 +450,16 @@ class Supervisor:
                     self.emulator = factory.start_usb_emulator(self.config)
                     self.usb = (self.emulator.address, self.emulator.authkey)
             try:  # pre-flight: our own way to the projector works (and its code is loaded) before the show
-                factory.idle_projector(self.config, self.usb)
+                self._idle_attempt(self.idle_timeout_s)
             except Exception as exc:
-                self.echo(f"supervisor: warning: cannot reach the projector to idle it ({exc}); "
+                self.echo(f"supervisor: warning: cannot reach the projector to idle it ({exc or type(exc).__name__}); "
                           "after a crash of the loop process it may not be made dark")
             if not self._ready_kernels():
                 return 0
             while True:
-                child, conn = self._start_child()
-                outcome = self._watch(child, conn)
+                child, link = self._start_child()
+                outcome, what = self._watch(child, link)
+                SHARED_SLOTS.sweep()  # the slots of a loop process that could not close them
                 if outcome == "stopped":
                     break
                 if outcome == "failed" and self.starts == 1:  # it printed why (a config or device error)
@@ -408,7 +467,7 @@ class Supervisor:
                         self.echo(f"supervisor: the loop process {describe_exit(child.exitcode)} while starting; "
                                   f"projector {self._make_dark('a failed start')}")
                     return EXIT_START_FAILED
-                wait_s = self._after_crash(child)
+                wait_s = self._after_crash(what)
                 if wait_s is None or self._stop.wait(wait_s) or self._deadline_passed():
                     code = 1  # the show ended dark after a crash
                     self._stay_dark()
@@ -466,7 +525,8 @@ class Supervisor:
         ours, theirs = ctx.Pipe()
         args = ChildArgs(self.config.model_dump(), self.mock, self.usb, self.sock, self.token, self.status_every,
                          {"pid": os.getpid(), "starts": self.starts, "crashes": self.crashes,
-                          "last_crash": self.last_crash, "restart": self.config.safety.restart})
+                          "last_crash": self.last_crash, "restart": self.config.safety.restart},
+                         Heartbeat(), self.on_loop_started)
         child = ctx.Process(target=run_child, args=(args, theirs), name="dpmhw-loop")
         child.start()
         theirs.close()
@@ -474,14 +534,10 @@ class Supervisor:
         if self.starts > 1 and self.responder is not None:
             self._report_fault(f"{self.last_crash}; restarting: loop process pid {child.pid} is starting")
         self.echo(f"loop process pid {child.pid} (start {self.starts})")
-        return child, ours
+        return child, _Link(child, ours, args.heartbeat)
 
-    def _receive(self, conn) -> str | None:
-        """Handle one message of the loop process; returns its kind (None: the pipe closed)."""
-        try:
-            kind, payload = conn.recv()
-        except (EOFError, OSError):
-            return None
+    def _receive(self, kind: str, payload: Any) -> None:
+        """Handle one message of the loop process."""
         if kind == "line":  # its output: relayed, so that one process writes the session's lines
             self.echo(payload)
         elif kind == "started":
@@ -496,64 +552,82 @@ class Supervisor:
             self.echo(f"first lit frame {payload - self._t_start:.1f} s after the command started{compiled}"
                       + (f"; showing for {self.duration:g} s" if self.duration is not None else ""))
             self._set_deadline()
-        return kind
 
     def _set_deadline(self) -> None:
         """The --duration counts from the first lit frame, or from the loop's start while none came."""
         if self.duration is not None and self._loop_started is not None:
             self._deadline = (self._first_lit if self._first_lit is not None else self._loop_started) + self.duration
 
-    def _relay_until_exit(self, child, conn, timeout_s: float) -> None:
-        """Relay its messages until the loop process has exited (or `timeout_s`), then the rest."""
+    def _until_exit(self, child, link: _Link, timeout_s: float) -> bool:
+        """Relay its messages until the loop process has exited (True) or `timeout_s` passed."""
         deadline = time.monotonic() + timeout_s
-        while child.is_alive() and time.monotonic() < deadline:
-            if conn in multiprocessing.connection.wait([child.sentinel, conn], timeout=0.1):
-                if self._receive(conn) is None:
-                    child.join(max(0.0, deadline - time.monotonic()))
-                    break
-        while not child.is_alive() and conn.poll(0):
-            if self._receive(conn) is None:
-                break
+        while True:
+            kind, payload = link.get(deadline - time.monotonic())
+            if kind == "exited":
+                child.join(KILL_WAIT_S)  # it is gone: reaped at once
+                return True
+            if kind is None:
+                return False
+            self._receive(kind, payload)
 
-    def _watch(self, child, conn) -> str:
-        """Wait for the child to end or for a stop; returns "stopped", "failed" or "crashed"."""
+    def _watch(self, child, link: _Link) -> tuple[str, str]:
+        """Until the child ends, hangs or a stop is asked for; returns ("stopped" | "failed" |
+        "crashed", what happened to it)."""
         started = False
         while True:
-            if conn in multiprocessing.connection.wait([child.sentinel, conn], timeout=0.1):
-                kind = self._receive(conn)
-                started = started or kind == "started"
-                if kind is None:  # it is ending
-                    child.join(self.stop_timeout_s)
-            if not child.is_alive():
-                self._relay_until_exit(child, conn, 0.0)
-                child.join(5)
-                conn.close()
+            timeout_s = 0.1  # how often a stop and the --duration are looked at
+            if started:
+                hung, due_ns = link.heartbeat.overdue(time.monotonic_ns())
+                if hung:
+                    return "crashed", self._kill_hung(child, link, hung)
+                timeout_s = min(timeout_s, due_ns / 1e9 + 0.001)
+            kind, payload = link.get(timeout_s)
+            if kind == "exited":
+                child.join(KILL_WAIT_S)
                 if child.exitcode == 0 and self._stop.is_set():
-                    return "stopped"
-                return "crashed" if started else "failed"
+                    return "stopped", ""
+                return ("crashed" if started else "failed"), f"the loop process (pid {child.pid}) {describe_exit(child.exitcode)}"
+            if kind is not None:
+                started = started or kind == "started"
+                self._receive(kind, payload)
             if self._deadline_passed():
-                return self._stop_child(child, conn)
+                return self._stop_child(child, link, started), ""
 
-    def _stop_child(self, child, conn) -> str:
+    def _kill_hung(self, child, link: _Link, why: str) -> str:
+        """A hung loop process may still drive the projector: SIGKILL it (its USB claim goes with it)."""
+        t0 = time.monotonic()
+        self.echo(f"supervisor: the loop process (pid {child.pid}) is hung: {why}; killing it")
+        child.kill()
+        if not self._until_exit(child, link, KILL_WAIT_S):
+            self.echo(f"supervisor: the loop process (pid {child.pid}) outlived SIGKILL by {KILL_WAIT_S:g} s")
+        self.echo(f"supervisor: the hung loop process was gone {(time.monotonic() - t0) * 1e3:.0f} ms after the kill")
+        return f"the loop process (pid {child.pid}) hung ({why}) and was {describe_exit(child.exitcode)}"
+
+    def _stop_child(self, child, link: _Link, started: bool) -> str:
+        if not started:  # it cannot see a request before its start-up returns: end it now
+            self.echo(f"supervisor: stopping ({self._stop_reason}) while the loop process is still starting "
+                      "(opening devices, loading the scene, compiling kernels): ending it")
+            child.kill()
+            self._until_exit(child, link, KILL_WAIT_S)
+            self.echo(f"supervisor: projector {self._make_dark('a stop during start-up')}")
+            return "stopped"
+        self.echo(f"supervisor: stopping ({self._stop_reason}): asking the loop process to stop dark")
         with contextlib.suppress(OSError):
-            conn.send(("stop", self._stop_reason))
-        self._relay_until_exit(child, conn, self.stop_timeout_s)
-        if child.is_alive():
+            link.conn.send(("stop", self._stop_reason))
+        if not self._until_exit(child, link, self.stop_timeout_s):
             self.echo(f"supervisor: the loop process did not stop within {self.stop_timeout_s:g} s; killing it")
             child.kill()
-            child.join(5)
-        conn.close()
+            self._until_exit(child, link, KILL_WAIT_S)
         if child.exitcode != 0:
             what = f"the loop process {describe_exit(child.exitcode)} while stopping"
             self.echo(f"supervisor: {what}; projector {self._make_dark(what)}")
         return "stopped"
 
     # ---- a crash -------------------------------------------------------------------------------
-    def _after_crash(self, child) -> float | None:
+    def _after_crash(self, what: str) -> float | None:
         """Dark first, then report; returns the wait before a restart, or None to stay dark."""
         t_seen = time.monotonic()
         self.crashes += 1
-        what = f"the loop process (pid {child.pid}) {describe_exit(child.exitcode)}"
         self.last_crash = what
         self.echo(f"supervisor: {what}")
         how = self._make_dark(what)
@@ -578,21 +652,40 @@ class Supervisor:
 
     def _make_dark(self, what: str) -> str:
         """Idle the projector and confirm by read-back, retrying until `idle_timeout_s`; returns
-        "dark (idle, read back)" or "NOT confirmed dark (why)" (then `_stay_dark` keeps trying)."""
-        from dpmhw.session import factory
-
+        "dark (idle, read back)" or "NOT confirmed dark (why)" (then `_stay_dark` keeps trying).
+        Each attempt runs on a thread of its own: a device that never answers costs the deadline."""
         deadline = time.monotonic() + self.idle_timeout_s
         while True:
             try:
-                how = f"dark ({factory.idle_projector(self.config, self.usb)}, read back)"
+                how = f"dark ({self._idle_attempt(deadline - time.monotonic())}, read back)"
                 self._unconfirmed = ""
                 return how
             except Exception as exc:
+                why = (f"no answer within {self.idle_timeout_s:g} s" if isinstance(exc, TimeoutError)
+                       else str(exc) or type(exc).__name__)
                 if time.monotonic() >= deadline:
-                    self.echo(f"supervisor: CANNOT CONFIRM THE PROJECTOR IS DARK after {what}: {exc}")
+                    self.echo(f"supervisor: CANNOT CONFIRM THE PROJECTOR IS DARK after {what}: {why}")
                     self._unconfirmed = what
-                    return f"NOT confirmed dark ({exc})"
-                time.sleep(0.1)
+                    return f"NOT confirmed dark ({why})"
+                time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
+
+    def _idle_attempt(self, timeout_s: float) -> str:
+        """`factory.idle_projector` on a daemon thread, waited for `timeout_s` (TimeoutError). An
+        attempt still blocked is waited for again rather than joined by a second one."""
+        from dpmhw.session import factory
+
+        job = self._idle_job
+        if job is None or job.done():
+            job = self._idle_job = Future()
+
+            def attempt() -> None:
+                try:
+                    job.set_result(factory.idle_projector(self.config, self.usb))
+                except BaseException as exc:
+                    job.set_exception(exc)
+
+            threading.Thread(target=attempt, name="supervisor-idle", daemon=True).start()
+        return job.result(timeout=max(0.0, timeout_s))
 
     def _report_fault(self, reason: str) -> None:
         if self.responder is None:

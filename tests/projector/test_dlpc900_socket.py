@@ -3,6 +3,7 @@ backend: the device keeps its state when a host process dies and loses that host
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import signal
@@ -83,3 +84,90 @@ def test_a_gone_emulator_is_an_unplugged_device_and_a_wrong_key_is_refused(emula
         backend._call("enumerate")
     assert err.value.errno == 19  # ENODEV, as for a pulled cable
     assert list(backend.enumerate_devices()) == []
+
+
+def test_silent_clients_do_not_hold_up_the_emulator_and_are_dropped_after_the_handshake_timeout(emulator):
+    import socket
+    import time
+
+    from firmware_mocks.dlpc900_socket import HANDSHAKE_TIMEOUT_S
+
+    silent = [socket.socket(socket.AF_UNIX) for _ in range(8)]
+    try:
+        for s in silent:
+            s.connect(emulator.address)  # and never answer the challenge
+        t0 = time.monotonic()
+        assert emulator.inspect()[0]["serial"] == "EMU0001"  # served beside them
+        # bound: the emulator answers without waiting out a silent handshake (2 s), with room for a loaded machine
+        assert time.monotonic() - t0 < HANDSHAKE_TIMEOUT_S
+        for s in silent:  # each was dropped after the handshake timeout: EOF, not a hang
+            s.settimeout(WAIT_S)
+            while s.recv(4096):  # the challenge, then EOF
+                pass
+    finally:
+        for s in silent:
+            s.close()
+
+
+def test_oversized_and_malformed_requests_get_an_error_reply_and_the_connection_stays_usable(emulator):
+    from firmware_mocks.dlpc900_socket import MAX_REQUEST_BYTES, _connect
+
+    conn = _connect(emulator.address, emulator.authkey)
+    try:
+        conn.send(("open_device", (0,)))
+        outcome, handle = conn.recv()
+        assert outcome == "ok"
+        for size in (256 << 20, -1, 65536):  # 256 MB would be allocated as asked; wLength is 16 bits
+            conn.send(("ctrl_transfer", (handle, 0xC0, 0, 0, 0, size, 100)))
+            assert conn.recv() == ("error", ("ValueError", f"ctrl_transfer: wLength must be an integer 0..65535, "
+                                                           f"not {size!r}"))
+        conn.send(("intr_read", (handle, 0x81, 0, 1 << 30, 100)))
+        assert conn.recv()[1][1].startswith("intr_read: size must be an integer 0..65535")
+        for bad in ("enumerate", ["enumerate", ()], ("enumerate",), (1, ()), ("enumerate", "x")):
+            conn.send(bad)
+            outcome, (kind, text) = conn.recv()
+            assert outcome == "error" and kind == "ValueError" and "request: must be (operation: str" in text
+        conn.send_bytes(b"not a pickle")
+        assert conn.recv()[1][1].startswith("request: not a pickled")
+        conn.send(("enumerate", ()))
+        assert conn.recv() == ("ok", [0, 1])  # the same connection still works
+        with contextlib.suppress(BrokenPipeError):  # longer than any request: refused unread, then closed
+            conn.send_bytes(b"x" * (MAX_REQUEST_BYTES + 1))
+        assert conn.recv() == ("error", ("ValueError", f"request: longer than {MAX_REQUEST_BYTES} bytes"))
+        with pytest.raises(EOFError):
+            conn.recv()
+    finally:
+        conn.close()
+    assert emulator.inspect()[0]["serial"] == "EMU0001" and emulator.process.is_alive()
+
+
+def test_a_killed_owner_leaves_no_folder_and_stale_folders_are_swept(tmp_path, monkeypatch):
+    from firmware_mocks import dlpc900_socket as mod
+
+    dirs = mod.OwnedNames(str(tmp_path), "dpmhw-dlpc900")
+    monkeypatch.setattr(mod, "EMULATOR_DIRS", dirs)
+    dead = subprocess_pid_that_exited()
+    stale = tmp_path / f"dpmhw-dlpc900-{dead}-abc123"
+    stale.mkdir()
+    (stale / "usb.sock").write_bytes(b"")
+    ours = tmp_path / f"dpmhw-dlpc900-{os.getpid()}-def456"  # a live owner's: kept
+    ours.mkdir()
+    em = EmulatorProcess.start()
+    try:
+        assert not stale.exists() and ours.exists()
+        assert os.path.dirname(em.address).startswith(str(tmp_path / f"dpmhw-dlpc900-{os.getpid()}-"))
+        em._conn.close()  # as when the owner dies: the emulator exits and removes its folder
+        em.process.join(WAIT_S)
+        assert not os.path.exists(os.path.dirname(em.address))
+    finally:
+        em.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [ours.name]
+
+
+def subprocess_pid_that_exited() -> int:
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid

@@ -1,12 +1,9 @@
 import textwrap
-from pathlib import Path
 
 import pytest
 
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene
-
-SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 @pytest.fixture

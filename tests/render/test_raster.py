@@ -1,7 +1,6 @@
 """Camera hits by rasterisation (dpmhw.render.raster) against Embree's traced camera rays."""
 
 import os
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -177,15 +176,11 @@ def test_no_holes_along_shared_edges_of_a_large_quad_at_grazing_angles():
         accel.close()
 
 
-BUNNY = Path(os.environ.get("DPMHW_BUNNY", Path(__file__).resolve().parents[3] / "shared" / "data" / "stanford-bunny.obj"))
-
-
-@pytest.mark.skipif(not BUNNY.exists(), reason="the Stanford bunny is not available")
 def test_paper_static_matches_embree():
     from dpmhw.benchmarks.render import panned_pose
     from dpmhw.scene_file import load_scene
 
-    scene = load_scene("paper-static", mesh_override=BUNNY)
+    scene = load_scene("paper-static")
     geometry = SceneGeometry(scene, threads=2)
     try:
         raster = CameraHits(scene.objects, geometry.tri_offsets)

@@ -79,26 +79,37 @@ def test_missing_scene_file_lists_builtins(tmp_path):
         load_scene(tmp_path / "nope.toml")
 
 
-def test_builtin_scenes_load_and_use_the_real_bunny_when_present(monkeypatch):
+def test_builtin_scenes_load_with_the_packaged_bunny():
     for name in BUILTIN_SCENES:
         scene = load_scene(name)
         assert scene.render.width == 1024 and scene.render.height == 768
         bunnies = [o for o in scene.objects if o.shape == "mesh"]
-        assert name == "glossy-roughness" or (bunnies and all(len(o.mesh.faces) > 60_000 for o in bunnies))
+        assert name == "glossy-roughness" or (bunnies and all(len(o.mesh.faces) == 69_451 for o in bunnies))
     assert load_scene("paper-dynamic").objects[3].is_dynamic
     assert load_scene("dpm-bunny").objects[0].rigid_body == 1
 
 
-def test_builtin_scene_falls_back_to_procedural_bunny(monkeypatch, caplog):
-    import dpmhw.scene_file as sf
+def test_packaged_bunny_is_its_obj_read_back_bit_for_bit(tmp_path):
+    """The package stores coordinates × 10⁶; the six-decimal OBJ they came from parses to the
+    same float64 values, so the built-in scenes equal the OBJ's figures."""
+    from dpmhw.meshes import load_mesh, stanford_bunny
 
-    monkeypatch.setattr(sf, "find_bunny", lambda: None)
-    scene = load_scene("dpm-bunny")
-    assert any("procedural bunny" in note for note in scene.notes)
-    mesh = scene.objects[0].mesh
-    assert 50_000 < len(mesh.faces) < 100_000
-    extent = mesh.vertices.max(0) - mesh.vertices.min(0)
-    assert 0.15 < extent.max() < 0.35  # bunny-sized after the scene's scale of 1.3
+    packaged = stanford_bunny()
+    obj = tmp_path / "bunny.obj"
+    with obj.open("w") as out:
+        np.savetxt(out, packaged.vertices, fmt="v %.6f %.6f %.6f")
+        np.savetxt(out, packaged.faces + 1, fmt="f %d %d %d")
+    read = load_mesh(obj)
+    assert len(packaged.faces) == 69_451 and packaged.dropped_degenerate == 0
+    np.testing.assert_array_equal(read.vertices, packaged.vertices)
+    np.testing.assert_array_equal(read.faces, packaged.faces)
+    np.testing.assert_array_equal(read.vertex_normals, packaged.vertex_normals)
+
+
+def test_bunny_override_from_the_environment_names_a_missing_file(monkeypatch, tmp_path):
+    monkeypatch.setenv("DPMHW_BUNNY", str(tmp_path / "absent.obj"))
+    with pytest.raises(SceneError, match="absent.obj"):
+        load_scene("dpm-bunny")
 
 
 def test_quaternion_and_euler_agree(tmp_path):
@@ -139,3 +150,74 @@ def test_calibration_for_another_resolution_is_rejected(tmp_path):
     )
     with pytest.raises(SceneError, match="1920×1080"):
         load_scene(write(tmp_path, text))
+
+
+def test_a_calibrated_camera_gives_the_size_and_a_mesh_is_no_calibration(tmp_path):
+    from dpmhw.projector_calibration import ProjectorCalibration
+
+    ProjectorCalibration(width=20, height=10, K=np.eye(3) * [30, 30, 1], dist=np.zeros(5)).save(tmp_path / "p.json")
+    camera = "fx = 10.0\nfy = 10.0\ncx = 8.0\ncy = 3.0\nposition = [0.0, 0.0, 2.0]\nlook_at = [0.0, 0.0, 0.0]"
+    text = GOOD.replace(camera, 'calibration = "p.json"').replace("width = 16\nheight = 12\n", "")
+    render = load_scene(write(tmp_path, text)).render
+    assert (render.width, render.height) == (20, 10)
+    with pytest.raises(SceneError, match=r"render\.width: give both"):
+        load_scene(write(tmp_path, text.replace("[render]\n", "[render]\nheight = 10\n")))
+    (tmp_path / "box.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(SceneError, match=r"camera\.calibration: cannot load .*box\.obj"):
+        load_scene(write(tmp_path, text.replace("p.json", "box.obj")))
+
+
+BOX_OBJ = "".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1)) + """\
+f 1 2 4
+f 1 4 3
+f 5 7 8
+f 5 8 6
+f 1 5 6
+f 1 6 2
+f 3 4 8
+f 3 8 7
+f 1 3 7
+f 1 7 5
+f 2 6 8
+f 2 8 4
+"""
+
+
+@pytest.mark.parametrize("fields, corners, flat", [
+    ("", 24, True),  # default: 90° edges are sharper than the 30° default, each face is flat
+    ("smooth_angle = 95.0\n", 8, False),  # every edge smooth: one averaged normal per corner
+    ("smooth = true\n", 8, False),
+    ("smooth = false\n", 8, True),  # flat shading has no vertex normals at all
+])
+def test_a_shared_vertex_box_mesh_has_sharp_edges_by_default(tmp_path, fields, corners, flat):
+    (tmp_path / "box.obj").write_text(BOX_OBJ)
+    scene = load_scene(write(tmp_path, GOOD + '[[objects]]\nname = "box"\nshape = "mesh"\nmesh = "box.obj"\n' + fields))
+    mesh = scene.objects[1].mesh
+    assert len(mesh.vertices) == corners
+    tri = mesh.triangles
+    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    face_n /= np.linalg.norm(face_n, axis=1, keepdims=True)
+    if mesh.vertex_normals is None:
+        assert flat
+    else:
+        agree = np.einsum("fkj,fj->fk", mesh.vertex_normals[mesh.faces], face_n)
+        assert np.allclose(agree, 1.0) == flat and np.all(agree > 0.3)  # outward, wound consistently
+
+
+def test_smooth_angle_keeps_a_sphere_smooth_and_names_misuse(tmp_path):
+    import trimesh
+
+    from dpmhw.meshes import DEFAULT_SMOOTH_ANGLE_DEG, load_mesh, smooth_within, sphere_mesh
+
+    sphere = smooth_within(sphere_mesh(1.0, smooth=False), DEFAULT_SMOOTH_ANGLE_DEG)
+    assert len(sphere.vertices) == 2562  # no vertex split
+    np.testing.assert_allclose(np.einsum("ij,ij->i", sphere.vertex_normals, sphere.vertices), 1.0, atol=1e-4)
+    (tmp_path / "box.obj").write_text(BOX_OBJ)
+    base = GOOD + '[[objects]]\nname = "box"\nshape = "mesh"\nmesh = "box.obj"\n'
+    stl = tmp_path / "sphere.stl"  # an STL shares no vertex: corners at one position are joined
+    trimesh.creation.icosphere(subdivisions=3).export(stl)
+    assert len(smooth_within(load_mesh(stl, smooth=False), DEFAULT_SMOOTH_ANGLE_DEG).vertices) == 642
+    with pytest.raises(SceneError, match=r"objects\[1\]\.smooth_angle: only a mesh"):
+        load_scene(write(tmp_path, base + "smooth = true\nsmooth_angle = 10.0\n"))
+    with pytest.raises(SceneError, match=r"objects\[1\]\.smooth_angle: expected a number in \[0.0, 180.0\]"):
+        load_scene(write(tmp_path, base + "smooth_angle = 200.0\n"))

@@ -39,3 +39,44 @@ def test_docs_and_redoc_load_their_assets_locally(client):
             assert client.get(url).status_code == 200, url
         assert "fonts.googleapis" not in html
     assert client.get("/openapi.json").json()["components"]["schemas"]["SettingsModel"]["properties"]["alpha"]
+
+
+def _policy(response) -> dict[str, list[str]]:
+    return {d.split()[0]: d.split()[1:] for d in response.headers["content-security-policy"].split(";") if d.strip()}
+
+
+def test_every_response_carries_the_security_headers(client):
+    """The page, its files, API answers and refusals alike: never framed, never sniffed, and a CSP
+    allowing only this server's files (the page shows frames as blob: images)."""
+    answers = [client.get("/"), client.get("/static/app.js"), client.get("/status"), client.get("/openapi.json"),
+               client.get("/no-such-route"), client.post("/session/blank"),  # 404, 401 (no token)
+               client.get("/status", headers={"Host": "evil.example"})]  # 400 from the Host check
+    assert [r.status_code for r in answers][-3:] == [404, 401, 400]
+    for r in answers:
+        assert r.headers["x-frame-options"] == "DENY" and r.headers["x-content-type-options"] == "nosniff", r.url
+        policy = _policy(r)
+        assert policy["default-src"] == ["'self'"] and policy["frame-ancestors"] == ["'none'"], r.url
+        assert "script-src" not in policy and "style-src" not in policy  # nothing inline, nothing foreign
+        assert policy["img-src"] == ["'self'", "blob:", "data:"] and policy["object-src"] == ["'none'"]
+
+
+def test_the_page_needs_nothing_its_policy_forbids():
+    html = (STATIC_DIR / "index.html").read_text()
+    assert not re.search(r"<script>|<style|\sstyle=|\son[a-z]+=|javascript:", html)  # no inline script or style
+    js = (STATIC_DIR / "app.js").read_text()
+    assert not re.search(r"\beval\(|new Function|innerHTML|setAttribute\(\s*[\"']style|\.cssText", js)
+
+
+def test_docs_pages_allow_their_own_inline_script_by_hash_only(client):
+    import base64
+    import hashlib
+
+    for path, evals in (("/docs", False), ("/docs/oauth2-redirect", False), ("/redoc", True)):
+        r = client.get(path)
+        policy = _policy(r)
+        inline = re.findall(r"<script>(.*?)</script>", r.text, re.S)
+        hashes = [f"'sha256-{base64.b64encode(hashlib.sha256(s.encode()).digest()).decode()}'" for s in inline]
+        assert policy["script-src"] == ["'self'", *hashes, *(["'unsafe-eval'"] if evals else [])], path
+        assert "'unsafe-inline'" not in policy["script-src"] and policy["frame-ancestors"] == ["'none'"]
+        assert r.headers["x-frame-options"] == "DENY" and r.headers["x-content-type-options"] == "nosniff"
+    assert len(re.findall(r"<script>", client.get("/docs").text)) == 1  # Swagger UI's start-up script

@@ -24,7 +24,7 @@ def runner():
 
 
 def test_config_command_validates_and_masks_the_token(runner, tmp_path):
-    r = runner.invoke(app, ["session", "config", "--set", "api.token=abc", "--set", "render.spp=3"])
+    r = runner.invoke(app, ["session", "config", "--offline", "--set", "api.token=abc", "--set", "render.spp=3"])
     assert r.exit_code == 0, r.output
     data = json.loads(r.output)
     assert data["render"]["spp"] == 3 and data["api"]["token"] == "***"
@@ -32,6 +32,51 @@ def test_config_command_validates_and_masks_the_token(runner, tmp_path):
     bad.write_text("[reuse]\nalpha = 2\n")
     r = runner.invoke(app, ["session", "config", "--config", str(bad)])
     assert r.exit_code == 2 and "reuse.alpha" in r.output and str(bad) in r.output
+
+
+def test_config_command_checks_what_a_start_would(runner, tmp_path):
+    """The scene's files and the devices: a mesh given as the calibration and an absent projector
+    are refused here, not at start; --offline skips the devices only."""
+    (tmp_path / "box.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "lab.toml").write_text('[scene]\ncalibration = "box.obj"\n')
+    r = runner.invoke(app, ["session", "config", "--offline", "--config", str(tmp_path / "lab.toml")])
+    assert r.exit_code == 2 and "scene.calibration: cannot load" in r.output and "box.obj" in r.output
+    no_projector = ["--set", 'projector.serial="NO-SUCH-SERIAL"']  # absent on any machine
+    r = runner.invoke(app, ["session", "config", *no_projector])
+    assert r.exit_code == 2 and r.output.startswith("error: projector: ") and r.output.count("\n") == 1, r.output
+    assert runner.invoke(app, ["session", "config", "--offline", *no_projector]).exit_code == 0
+
+
+def test_device_checks_name_the_missing_device(monkeypatch, tmp_path):
+    from dpmhw.session.config import SessionConfigError, load_session_config
+    from dpmhw.session.factory import check_devices, prepare_scene
+
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    cfg = load_session_config(overrides=["projector.kind=\"none\"", "tracker.kind=\"serial\"",
+                                         f"tracker.port={json.dumps(str(tmp_path / 'ttyUSB9'))}"])
+    scene = prepare_scene(cfg)
+    with pytest.raises(SessionConfigError, match=r"^tracker\.port: .*ttyUSB9 does not exist$"):
+        check_devices(cfg, scene)
+    cfg = load_session_config(overrides=["projector.kind=\"none\"", "tracker.server=\"no-such-host.invalid\""])
+    with pytest.raises(SessionConfigError, match=r"^tracker\.server: cannot resolve 'no-such-host\.invalid'"):
+        check_devices(cfg, scene)
+    cfg = load_session_config(overrides=["projector.kind=\"none\"", "sink.display=7"])
+    with pytest.raises(SessionConfigError, match=r"^sink: display: 7 does not exist"):
+        check_devices(cfg, scene)
+
+
+def test_a_missing_projector_is_reported_before_the_scene_loads(monkeypatch):
+    from drivers.dlpc900_wire import DLPC900NotFound
+    from dpmhw.session import factory
+    from dpmhw.session.config import load_session_config
+
+    def no_scene_yet(config):
+        raise AssertionError("the scene was loaded before the projector was opened")
+
+    monkeypatch.setattr(factory, "prepare_scene", no_scene_yet)
+    cfg = load_session_config(overrides=['projector.serial="NO-SUCH-SERIAL"', 'sink.kind="none"'])
+    with pytest.raises(DLPC900NotFound):
+        factory.open_session_parts(cfg)
 
 
 @pytest.mark.realtime
@@ -104,3 +149,15 @@ def test_bench_session_command(runner, tmp_path):
     for load in results["api_load"]:
         assert load["requests"] > 0 and load["errors"] == 0 and load["loaded_frames"] > 0 and load["unloaded_frames"] > 0
     assert "API in its own process: 2 clients" in r.output and "API in its thread of the session process" in r.output
+
+
+def test_the_tracker_hint_is_a_command_the_cli_accepts(runner):
+    from dpmhw.session.config import load_session_config
+    from dpmhw.session.factory import describe_tracker
+
+    for overrides, address in (([], "NatNet server 127.0.0.1:1510"),
+                               (['tracker.kind="serial"', 'tracker.port="/dev/null"'], "serial port /dev/null")):
+        got, watch = describe_tracker(load_session_config(overrides=overrides))
+        assert got == address and watch.startswith("dpmhw tracker watch ")
+        r = runner.invoke(app, [*watch.split()[1:], "--seconds", "0.2", "--every", "0.1"])
+        assert r.exit_code == 1 and "Usage" not in r.output, r.output  # 1: no frame arrived (not 2: bad options)

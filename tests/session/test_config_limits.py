@@ -100,7 +100,7 @@ def special_cases() -> list[tuple[list[str], str | None]]:
         ([f"bindings=[{{rigid_body={MAX_BODY_ID},{bunny}}}]"], None),
         ([f"bindings=[{{rigid_body={MAX_BODY_ID + 1},{bunny}}}]"], "bindings[0].rigid_body"),
         ([f"bindings=[{{rigid_body=-1,{bunny}}}]"], "bindings[0].rigid_body"),
-        ([f"bindings=[{{rigid_body=1,object=''}}]"], "bindings[0].object"),
+        (["bindings=[{rigid_body=1,object=''}]"], "bindings[0].object"),
         (["tracker.kind=serial", f"bindings=[{{rigid_body={MAX_STATIONS},{bunny}}}]"], None),
         (["tracker.kind=serial", f"bindings=[{{rigid_body={MAX_STATIONS + 1},{bunny}}}]"], "bindings[0].rigid_body"),
         (["tracker.kind=serial", f"bindings=[{{rigid_body=0,{bunny}}}]"], "bindings[0].rigid_body"),
@@ -118,7 +118,7 @@ def special_cases() -> list[tuple[list[str], str | None]]:
 
 def _config(overrides: list[str]):
     _register()
-    return CliRunner().invoke(app, ["session", "config", *(a for o in overrides for a in ("--set", o))])
+    return CliRunner().invoke(app, ["session", "config", "--offline", *(a for o in overrides for a in ("--set", o))])
 
 
 def _check(output: str, code: int, refused: str | None, where: str) -> None:

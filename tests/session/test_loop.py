@@ -444,3 +444,14 @@ def test_long_lived_objects_are_frozen_once_warm_and_unfrozen_at_stop(make_loop)
     assert gc.get_freeze_count() >= at_start
     loop.stop()
     assert gc.get_freeze_count() == 0
+
+
+def test_no_sample_names_the_tracker_address_and_the_watch_command(make_loop):
+    loop = make_loop(['bindings=[{rigid_body = 7, object = "bunny"}]'])  # the fake tracker publishes body 1 only
+    loop.parts.tracker_address = "NatNet server 10.0.0.5:1510"
+    loop.parts.tracker_watch = "dpmhw tracker watch --natnet 10.0.0.5"
+    loop.start()
+    assert wait_for(lambda: loop.safety.active("tracking"), WAIT_S)
+    reason = next(c.reason for c in loop.safety.view().causes if c.name == "tracking")
+    assert reason == ("rigid body 7: no sample yet from NatNet server 10.0.0.5:1510 (tracker streaming); "
+                      "check it with `dpmhw tracker watch --natnet 10.0.0.5`")

@@ -59,6 +59,7 @@ def test_sigterm_shuts_down_dark(api):
     try:
         if api:
             assert not _port_closed(port)
+            assert f"operator page: http://127.0.0.1:{port}/ " in "".join(lines)
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=60)
     finally:

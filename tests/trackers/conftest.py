@@ -6,17 +6,12 @@ import socket
 import time
 from pathlib import Path
 
-import pytest
-
-NATNET_CAPTURES = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "natnet"
+NATNET_CAPTURES = Path(__file__).parent / "data" / "natnet"
 
 
 def captured(name: str) -> bytes:
-    """A real Motive datagram from `../shared/data/natnet/` (the test is skipped without it)."""
-    path = NATNET_CAPTURES / name
-    if not path.exists():
-        pytest.skip(f"captured NatNet packets not found at {NATNET_CAPTURES}")
-    return path.read_bytes()
+    """A real Motive datagram from `data/natnet/` (its provenance in the README there)."""
+    return (NATNET_CAPTURES / name).read_bytes()
 
 
 def free_udp_port() -> int:
