@@ -45,6 +45,7 @@ of any dead owner when the supervisor starts (`dpmhw.child_process.SHARED_SLOTS`
 from __future__ import annotations
 
 import contextlib
+import html
 import json
 import logging
 import multiprocessing
@@ -129,9 +130,19 @@ _HEADERS = (("X-Content-Type-Options", "nosniff"), ("X-Frame-Options", "DENY"),
             ("Content-Security-Policy", "default-src 'none'; frame-ancestors 'none'"))
 
 
+def _down_page(status: dict) -> bytes:
+    """What the operator page's address shows while no loop process serves it (compiling,
+    restarting, a fault): the state and reason as text, reloaded every 2 s until the page is back."""
+    state, reason = (html.escape(str(status.get(k, ""))) for k in ("state", "reason"))
+    return (f'<!doctype html><html><head><meta charset="utf-8"><meta http-equiv="refresh" content="2">'
+            f"<title>dpmhw: {state}</title></head><body><h1>Projector dark: {state}</h1><p>{reason}</p>"
+            f"<p>This page reloads by itself; the operator page comes back when the session is up.</p>"
+            f"</body></html>").encode()
+
+
 class FaultResponder:
-    """Minimal HTTP on the supervisor's listening socket: `/status` says `fault` and why,
-    `/readyz` 503, `/livez` 200, anything else 503. Serves only between `start()` and `stop()`.
+    """Minimal HTTP on the supervisor's listening socket: `/status` says `fault` (or `compiling`)
+    and why, `/readyz` 503, `/livez` 200, `/` a page saying so in words, anything else 503. Serves only between `start()` and `stop()`.
     A client has `timeout_s` for each read; neither a slow client nor many of them can hold up
     `stop()` or another client (up to `max_connections` at once)."""
 
@@ -170,9 +181,12 @@ class FaultResponder:
                     code, body = 503, {"ready": False, "state": status.get("state"), "reason": status.get("reason")}
                 else:
                     code, body = 503, {"detail": f"the session is down: {status.get('reason', '')}"}
+                kind = "application/json"
                 data = json.dumps(body).encode()
+                if path == "/" and self.command == "GET":  # the operator page's address: say why in words
+                    kind, data = "text/html; charset=utf-8", _down_page(status)
                 self.send_response(code)
-                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Type", kind)
                 self.send_header("Content-Length", str(len(data)))
                 for name, value in _HEADERS:
                     self.send_header(name, value)

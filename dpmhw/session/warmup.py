@@ -67,7 +67,11 @@ def cache_dir() -> str:
 
 
 def cache_is_warm() -> bool:
-    """Whether the path tracer, the longest compile by far, is cached for this CPU and source."""
+    """Whether the path tracer, the longest compile by far, is cached for this CPU and its
+    source. A new install, numba version or CPU misses it with everything else; a kernel whose
+    source alone was edited since is compiled by the loop process's warm-up instead (a slower
+    start, never a late frame). Checking every kernel would import them all here, about a
+    second of every start."""
     from dpmhw.render import kernels
 
     try:
