@@ -18,8 +18,9 @@ hold at their peak, not for the bytes it is stored in:
 - Compressed files (.zip, .tar.gz, .tar.bz2, .gz, .bz2) are expanded here, through a reader
   that stops at `DPMHW_MAX_MESH_MB` of output; Draco or meshopt compressed glTF is refused
   (trimesh cannot decode it without optional packages).
-- Text is UTF-8, or Latin-1 where it is not (scanner software writes `©` and accented names
-  into comments), decoded here rather than by trimesh's optional charset guesser.
+- Text (an OBJ, a PLY header) is UTF-8, or Latin-1 where it is not (scanner software writes `©`
+  and accented names into comments), re-encoded here rather than left to trimesh's optional
+  charset guesser.
 
 Every refusal is a `ValueError` of one line naming the file and the reason.
 """
@@ -51,6 +52,7 @@ BYTES_PER_VERTEX = 150
 MESH_FORMATS = ("obj", "ply", "stl", "off", "glb", "gltf")
 ARCHIVE_FORMATS = ("zip", "tar.gz", "tar.bz2", "gz", "bz2")
 MAX_ARCHIVE_MEMBERS = 10_000  # a zip's central directory or a tar's headers are held whole
+MAX_ZIP_DIRECTORY = 4 << 20  # bytes of a zip's central directory (46 or more an entry)
 MAX_JSON_VALUES = 1_000_000  # a glTF header names buffers, not vertices: a few thousand values
 MAX_HEADER_BYTES = 1 << 16  # a PLY header, or the lines before an OFF's counts
 CHUNK = 4 << 20  # bytes read at a time from a compressed stream or an ASCII STL
@@ -79,7 +81,7 @@ class MeshPart:
     data: bytes | None
     path: Path | None = None
     files: dict[str, bytes] | None = None
-    encoding: str = "utf-8"
+    latin_1: int = 0  # leading bytes of text that are Latin-1, not UTF-8 (the OBJ, the PLY header)
 
     def open(self):
         return io.BytesIO(self.data) if self.data is not None else open(self.path, "rb")
@@ -139,8 +141,9 @@ def _read_capped(stream, budget: list[int], what: str) -> bytes:
     return out.getvalue()
 
 
-def _zip_entries(path: Path) -> int:
-    """The entry count in a zip's end-of-central-directory record, read before zipfile lists them all."""
+def _check_zip_directory(path: Path) -> None:
+    """Refuse a zip whose end-of-central-directory record declares too many entries or too
+    large a directory, before zipfile lists them all (it reads the directory by its size)."""
     with open(path, "rb") as f:
         f.seek(0, io.SEEK_END)
         size = f.tell()
@@ -149,15 +152,18 @@ def _zip_entries(path: Path) -> int:
     at = tail.rfind(b"PK\x05\x06")
     if at < 0 or at + 22 > len(tail):
         raise ValueError("not a zip archive (no end-of-central-directory record)")
-    return struct.unpack_from("<H", tail, at + 10)[0]
+    entries, directory = struct.unpack_from("<HI", tail, at + 10)
+    if entries >= MAX_ARCHIVE_MEMBERS:
+        raise ValueError(f"the archive lists {entries:,} entries, over {MAX_ARCHIVE_MEMBERS:,}")
+    if directory > MAX_ZIP_DIRECTORY:
+        raise ValueError(f"the archive's directory is {directory:,} bytes, over {MAX_ZIP_DIRECTORY:,}")
 
 
 def _unpack(path: Path, kind: str) -> dict[str, bytes]:
     """The regular files in the archive or compressed file at `path`, at most DPMHW_MAX_MESH_MB in all."""
     budget = [max_mesh_bytes()]
     if kind == "zip":
-        if (entries := _zip_entries(path)) >= MAX_ARCHIVE_MEMBERS:
-            raise ValueError(f"the archive lists {entries:,} entries, over {MAX_ARCHIVE_MEMBERS:,}")
+        _check_zip_directory(path)
         files = {}
         with zipfile.ZipFile(path) as archive:
             for info in archive.infolist():
@@ -216,8 +222,6 @@ def mesh_parts(path: Path) -> list[MeshPart]:
 def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(vertices, faces) of the mesh file at `path`, all its meshes concatenated, each counted
     and charged to the budget before trimesh decodes it. Raises ValueError with the reason."""
-    import trimesh
-
     parts = mesh_parts(path)
     counts = []
     for part in parts:
@@ -225,16 +229,21 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
             counts.append(count_mesh(part))
         except ValueError as exc:
             raise ValueError(_member(parts, part) + describe(exc)) from None
+        except Exception as exc:  # a header of the right syntax and the wrong shape (a list for a number, ...)
+            raise ValueError(f"{_member(parts, part)}the {part.file_type.upper()} header is malformed: "
+                             f"{type(exc).__name__}: {describe(exc)}") from exc
     total = counts[0]
     for more in counts[1:]:
         total = total + more
     if problem := budget_problem(total):
         raise ValueError(problem)
+    import trimesh
+
     meshes = []
     for part in parts:
         resolver = trimesh.resolvers.ZipResolver(part.files) if part.files else None
         try:
-            with io.BytesIO(latin_1_as_utf8(part)) if part.encoding != "utf-8" else part.open() as f:
+            with io.BytesIO(latin_1_as_utf8(part)) if part.latin_1 else part.open() as f:
                 meshes.append(trimesh.load(f, file_type=part.file_type, resolver=resolver, force="mesh", process=False,
                                            skip_materials=True))
         except Exception as exc:  # trimesh raises many types for broken files
@@ -273,7 +282,7 @@ def describe(exc: BaseException) -> str:
 
 def count_mesh(part: MeshPart) -> MeshCounts:
     """What `part` decodes to, from its header or a streaming count; checks that declared sizes
-    fit what is stored. Sets `part.encoding` for text formats."""
+    fit what is stored. Sets `part.latin_1` where text is not UTF-8."""
     with part.open() as f:
         size = f.seek(0, io.SEEK_END)
         f.seek(0)
@@ -309,7 +318,7 @@ def _count_obj(f, size: int, part: MeshPart) -> MeshCounts:
             triangles += t
         if not chunk:
             break
-    part.encoding = "utf-8" if utf8 else "latin-1"
+    part.latin_1 = 0 if utf8 else size
     return MeshCounts(vertices, triangles, "counted in the OBJ's v/vt/vn and f lines")
 
 
@@ -350,6 +359,11 @@ def _count_ply(f, size: int, part: MeshPart) -> MeshCounts:
     """The PLY header's element counts; each element's rows must fit in the bytes after the header
     (binary: the smallest row, lists at their shortest; ASCII: two bytes a value)."""
     lines, start = _header_lines(f, b"end_header", "PLY")
+    f.seek(0)
+    try:
+        f.read(start).decode("utf-8")
+    except UnicodeDecodeError:
+        part.latin_1 = start
     if not lines or lines[0].strip() != "ply":
         raise ValueError("no 'ply' magic line")
     fmt = None
@@ -427,15 +441,14 @@ def _count_stl(f, size: int, part: MeshPart) -> MeshCounts:
 def _count_gltf(f, size: int, part: MeshPart) -> MeshCounts:
     data = f.read()
     if part.file_type == "glb":
-        tree, chunks = _glb_chunks(data)
-        buffers = [len(chunks[0])] if chunks else []
+        tree, buffers = _glb_chunks(data)
     else:
         tree, buffers = _json(data, "glTF"), []
     return _count_gltf_tree(tree, buffers, part.files or {})
 
 
-def _glb_chunks(data: bytes) -> tuple[dict, list[bytes]]:
-    """The GLB's JSON and its BIN chunks; every length checked against the bytes present."""
+def _glb_chunks(data: bytes) -> tuple[dict, list[int]]:
+    """The GLB's JSON and the lengths of its BIN chunks; every length checked against the bytes present."""
     if len(data) < 20:
         raise ValueError(f"a GLB file needs a 12-byte header and a chunk, this one is {len(data)} bytes")
     magic, version, length = struct.unpack_from("<4sII", data)
@@ -450,13 +463,12 @@ def _glb_chunks(data: bytes) -> tuple[dict, list[bytes]]:
         chunk_length, kind = struct.unpack_from("<II", data, at)
         if at + 8 + chunk_length > length:
             raise ValueError(f"a GLB chunk at byte {at} declares {chunk_length:,} bytes, {length - at - 8:,} follow it")
-        body = data[at + 8: at + 8 + chunk_length]
         if tree is None:
             if kind != 0x4E4F534A:
                 raise ValueError("the GLB's first chunk is not JSON")
-            tree = _json(body, "GLB JSON chunk")
+            tree = _json(data[at + 8: at + 8 + chunk_length], "GLB JSON chunk")
         elif kind == 0x004E4942:
-            bins.append(body)
+            bins.append(chunk_length)
         at += 8 + chunk_length
     if tree is None:
         raise ValueError("the GLB has no JSON chunk")
@@ -522,7 +534,7 @@ def _items(tree: dict, key: str) -> list:
 def _count_gltf_tree(tree: dict, bin_chunks: list[int], files: dict[str, bytes]) -> MeshCounts:
     """Vertices and triangles as trimesh will decode them: every accessor decoded (bounded by
     DPMHW_MAX_MESH_MB in all), each mesh once per node path that instances it."""
-    used = [e for e in (tree.get("extensionsUsed") or []) + (tree.get("extensionsRequired") or []) if e in _GLTF_COMPRESSION]
+    used = [e for e in _items(tree, "extensionsUsed") + _items(tree, "extensionsRequired") if e in _GLTF_COMPRESSION]
     if used:
         raise ValueError(f"compressed glTF ({used[0]}) cannot be decoded without optional packages: export it uncompressed")
     stored = []
@@ -653,9 +665,10 @@ def _decode(data: bytes) -> str:
 
 
 def latin_1_as_utf8(part: MeshPart) -> bytes:
-    """A Latin-1 text mesh as UTF-8 (what trimesh decodes without its optional charset guesser)."""
+    """`part` with its Latin-1 text re-encoded as UTF-8 (which trimesh decodes without its
+    optional charset guesser); binary data after a PLY header is unchanged."""
     with part.open() as f:
-        return f.read().decode("latin-1").encode("utf-8")
+        return f.read(part.latin_1).decode("latin-1").encode("utf-8") + f.read()
 
 
 _COUNTERS = {"obj": _count_obj, "ply": _count_ply, "off": _count_off, "stl": _count_stl, "glb": _count_gltf,

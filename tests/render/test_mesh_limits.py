@@ -265,6 +265,16 @@ def test_an_obj_with_a_latin_1_comment_loads(tmp_path):
     assert len(mesh.faces) == 4
 
 
+def test_a_binary_ply_with_a_latin_1_header_comment_loads(tmp_path):
+    import trimesh
+
+    data = trimesh.exchange.ply.export_ply(trimesh.creation.icosphere(subdivisions=1), encoding="binary")
+    path = tmp_path / "scan.ply"
+    path.write_bytes(data.replace(b"format binary_little_endian 1.0\n",
+                                  "format binary_little_endian 1.0\ncomment café © 2003 Autodesk\n".encode("latin-1")))
+    assert len(load_mesh(path).faces) == 80
+
+
 def test_a_utf8_obj_with_a_byte_order_mark_and_accents_loads(tmp_path):
     path = tmp_path / "scan.obj"
     path.write_bytes("\ufeff# café © 2003\n".encode("utf-8") + TETRA.encode())
@@ -325,3 +335,39 @@ def test_a_glb_loads_with_its_node_transforms_and_a_zipped_gltf_with_its_buffer(
         archive.writestr("model/tri.gltf", json.dumps(tree))
         archive.writestr("model/tri.bin", binary)
     assert len(load_mesh(archive_path).faces) == 3
+
+
+def test_mangled_headers_load_or_are_refused_in_one_line(tmp_path):
+    """Seeded byte mutations of small files of each format: each loads, or raises a one-line
+    ValueError naming the file; nothing else escapes (no KeyError, TypeError, empty reason)."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    tree, binary = triangle_glb(nodes=2)
+    originals = {
+        "m.obj": TETRA.encode(),
+        "m.ply": trimesh.exchange.ply.export_ply(mesh, encoding="binary"),
+        "a.ply": trimesh.exchange.ply.export_ply(mesh, encoding="ascii"),
+        "m.stl": trimesh.exchange.stl.export_stl(mesh),
+        "m.off": trimesh.exchange.off.export_off(mesh).encode(),
+        "m.glb": glb(tree, binary),
+        "j.glb": glb({**tree, "nodes": [{"mesh": [0]}, {"children": {"a": 1}}], "extensionsUsed": "x"}, binary),
+    }
+    rng = np.random.default_rng(33)
+    outcomes = {"loaded": 0, "refused": 0}
+    for name, data in originals.items():
+        head = min(len(data), 400)  # the headers: where a count or a length is declared
+        for trial in range(60):
+            mutated = bytearray(data)
+            for at in rng.integers(0, head, size=rng.integers(1, 4)):
+                mutated[at] = int(rng.integers(0, 256))
+            path = tmp_path / f"{trial}-{name}"
+            path.write_bytes(bytes(mutated))
+            try:
+                load_mesh(path)
+                outcomes["loaded"] += 1
+            except ValueError as exc:
+                message = str(exc)
+                assert str(path) in message and "\n" not in message and not message.rstrip().endswith(":"), message
+                outcomes["refused"] += 1
+    assert min(outcomes.values()) > 20, outcomes  # else the mutations exercise only one side
