@@ -2,13 +2,19 @@
 limits makes the process allocate without bound.
 
 A mesh is charged for what trimesh, `meshes.clean` and the renderer (triangle table, Embree BVH)
-hold at their peak, not for the bytes it is stored in:
+hold at their peak, not for the bytes it is stored in, against `DPMHW_RENDER_MEMORY_MB`
+(default 4608, see `limits`):
 
-- `BYTES_PER_TRIANGLE` and `BYTES_PER_VERTEX`: the growth of the peak RSS of
-  `dpmhw render SCENE --spp 1` at 64×48 (load, clean, triangle rows, BVH, one pass) with a mesh
-  of about 200k and 1M triangles, over the growth in triangles: a wavy grid OBJ with normals
-  (V ≈ T/2) gives the per-triangle cost, a triangle soup (V = 3T, as STL stores it) adds the
-  per-vertex one. The budget is `DPMHW_RENDER_MEMORY_MB` (default 4608, see `limits`).
+- `BYTES_PER_TRIANGLE` and `BYTES_PER_VERTEX`: the peak RSS of `dpmhw render SCENE --spp 1` at
+  64×48 (OBJ parse, clean, triangle rows, BVH, one pass) with a mesh of 0.2M, 1M and 2M
+  triangles, its growth over the growth in triangles. A wavy grid OBJ with normals (one `v` and
+  one `vn` row per triangle) grew 557 (0.2M→1M) and 585 (0.2M→2M) bytes per triangle; the same
+  triangles unshared (three `v` rows each, as STL stores them) 944 and 939. Solved for the two
+  costs: 360–410 bytes per triangle and 177–194 per vertex row, taken as 420 and 200. OBJ text
+  is the costliest decode; binary formats cost less.
+- `PROCESS_BYTES`: that render's peak RSS with a 2-triangle mesh (interpreter, trimesh, the
+  compiled kernels, the buffers of a small render): 247 MiB, taken as 256, so that a mesh at
+  the budget and a small render together stay under the limit.
 - What is counted before the decode: a PLY or OFF header's element counts, a binary STL's
   triangle count (an ASCII STL's `vertex` lines), a streaming count of an OBJ's `v`/`vt`/`vn`
   lines and of the triangles its `f` lines fan into (a few MiB at a time), and a glTF's
@@ -43,11 +49,12 @@ import numpy as np
 
 from dpmhw.limits import check_file_size, max_mesh_bytes, render_memory_limit
 
-__all__ = ["BYTES_PER_TRIANGLE", "BYTES_PER_VERTEX", "MESH_FORMATS", "ARCHIVE_FORMATS", "MeshCounts", "MeshPart",
+__all__ = ["BYTES_PER_TRIANGLE", "BYTES_PER_VERTEX", "PROCESS_BYTES", "MESH_FORMATS", "ARCHIVE_FORMATS", "MeshCounts", "MeshPart",
            "budget_problem", "count_mesh", "mesh_parts", "read_mesh"]
 
-BYTES_PER_TRIANGLE = 400
-BYTES_PER_VERTEX = 150
+BYTES_PER_TRIANGLE = 420
+BYTES_PER_VERTEX = 200
+PROCESS_BYTES = 256 << 20
 
 MESH_FORMATS = ("obj", "ply", "stl", "off", "glb", "gltf")
 ARCHIVE_FORMATS = ("zip", "tar.gz", "tar.bz2", "gz", "bz2")
@@ -101,12 +108,12 @@ def file_type(name: str) -> str:
 def budget_problem(counts: MeshCounts) -> str | None:
     """Why a mesh of `counts` would take too much memory to load and trace, or None when it fits."""
     limit = render_memory_limit()
-    need = counts.vertices * BYTES_PER_VERTEX + counts.triangles * BYTES_PER_TRIANGLE
+    need = PROCESS_BYTES + counts.vertices * BYTES_PER_VERTEX + counts.triangles * BYTES_PER_TRIANGLE
     if need <= limit:
         return None
     return (f"{counts.triangles:,} triangles and {counts.vertices:,} vertices ({counts.how}) need about "
             f"{need / 2**20:,.0f} MiB to load and trace ({BYTES_PER_TRIANGLE} bytes per triangle, {BYTES_PER_VERTEX} per "
-            f"vertex), over the render memory limit of {limit / 2**20:,.0f} MiB (raise it with DPMHW_RENDER_MEMORY_MB)")
+            f"vertex, {PROCESS_BYTES >> 20} MiB for the process), over the render memory limit of {limit / 2**20:,.0f} MiB (raise it with DPMHW_RENDER_MEMORY_MB)")
 
 
 # ------------------------------------------------------------------ compressed containers

@@ -17,7 +17,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from dpmhw.mesh_limits import BYTES_PER_TRIANGLE, BYTES_PER_VERTEX, MeshPart, count_mesh
+from dpmhw.mesh_limits import BYTES_PER_TRIANGLE, BYTES_PER_VERTEX, PROCESS_BYTES, MeshCounts, MeshPart, budget_problem, count_mesh
 from dpmhw.meshes import load_mesh
 
 TETRA = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
@@ -94,7 +94,7 @@ def test_a_ply_whose_declared_rows_are_present_is_charged_to_the_budget(tmp_path
                      b"property float z\nelement face %d\nproperty list uchar int vertex_indices\nend_header\n" % faces
                      + np.eye(3, dtype=np.float32).tobytes()
                      + (b"\x03" + np.arange(3, dtype=np.int32).tobytes()) * faces)
-    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", "1")
+    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", "260")  # the process's 256 MiB and 8 MiB for the triangles
     refused(path, "20,000 triangles", "PLY header", "DPMHW_RENDER_MEMORY_MB")
     monkeypatch.delenv("DPMHW_RENDER_MEMORY_MB")
     assert len(load_mesh(path).faces) == faces  # within the default budget it loads
@@ -121,7 +121,7 @@ def test_a_glb_instancing_one_mesh_many_times_is_charged_per_instance(tmp_path, 
     path = tmp_path / "instanced.glb"
     path.write_bytes(glb(tree, binary))
     assert count_mesh(MeshPart(path.name, "glb", path.read_bytes())).triangles == 2000
-    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", "1")
+    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", "257")  # 2,000 triangles and 6,000 vertices: 2 MiB over 256
     refused(path, "2,000 triangles", "nodes instancing")
 
 
@@ -182,13 +182,20 @@ def test_a_zip_listing_too_many_entries_is_refused_before_listing_them(tmp_path)
 def test_an_obj_over_the_triangle_budget_is_refused_by_its_streaming_count(tmp_path, monkeypatch):
     path = tmp_path / "grid.obj"
     path.write_text(grid_obj(100))  # 10,201 vertices, 20,000 triangles (quads fan into two)
-    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", "5")  # 5 MiB: about 12k triangles
+    need = (PROCESS_BYTES + 10_201 * BYTES_PER_VERTEX + 20_000 * BYTES_PER_TRIANGLE) / 2**20
+    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", str(int(need) - 1))
     message = refused(path, "20,000 triangles", "10,201 vertices", "counted in the OBJ", "DPMHW_RENDER_MEMORY_MB")
-    need = (10_201 * BYTES_PER_VERTEX + 20_000 * BYTES_PER_TRIANGLE) / 2**20
     assert f"about {need:,.0f} MiB" in message
-    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", "64")
+    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", str(int(need) + 1))
     mesh = load_mesh(path)
     assert len(mesh.faces) == 20_000 - mesh.dropped_degenerate
+
+
+def test_the_default_budget_admits_the_bunny_and_refuses_a_ten_million_triangle_scan():
+    """A 10M-triangle scan peaked at 4.65 GB loaded and rendered: over the default 4608 MiB."""
+    assert budget_problem(MeshCounts(35_947, 69_451, "the Stanford bunny")) is None
+    assert budget_problem(MeshCounts(2_000_000, 4_000_000, "a 4M-triangle scan")) is None
+    assert "4,608 MiB" in budget_problem(MeshCounts(5_000_000, 9_990_000, "a 10M-triangle scan"))
 
 
 def test_the_obj_count_matches_trimesh_across_chunk_boundaries(tmp_path, monkeypatch):
@@ -229,7 +236,7 @@ def test_refusing_the_bombs_holds_little_memory(tmp_path, monkeypatch):
     OBJ's per-byte masks) are far below what the bombs would decode to (gigabytes; 900k
     triangles are about 400 MiB)."""
     monkeypatch.setenv("DPMHW_MAX_MESH_MB", "1")
-    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", "64")
+    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", "320")  # 900k triangles need about 620
     ply = tmp_path / "bomb.ply"
     ply.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
                     b"element face 1000000000\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
