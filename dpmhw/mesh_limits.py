@@ -49,8 +49,19 @@ import numpy as np
 
 from dpmhw.limits import check_file_size, max_mesh_bytes, render_memory_limit
 
-__all__ = ["BYTES_PER_TRIANGLE", "BYTES_PER_VERTEX", "PROCESS_BYTES", "MESH_FORMATS", "ARCHIVE_FORMATS", "MeshCounts", "MeshPart",
-           "budget_problem", "count_mesh", "mesh_parts", "read_mesh"]
+__all__ = [
+    "ARCHIVE_FORMATS",
+    "BYTES_PER_TRIANGLE",
+    "BYTES_PER_VERTEX",
+    "MESH_FORMATS",
+    "PROCESS_BYTES",
+    "MeshCounts",
+    "MeshPart",
+    "budget_problem",
+    "count_mesh",
+    "mesh_parts",
+    "read_mesh",
+]
 
 BYTES_PER_TRIANGLE = 420
 BYTES_PER_VERTEX = 200
@@ -74,8 +85,9 @@ class MeshCounts:
     triangles: int
     how: str
 
-    def __add__(self, other: "MeshCounts") -> "MeshCounts":
-        return MeshCounts(self.vertices + other.vertices, self.triangles + other.triangles, f"{self.how}; {other.how}")
+    def __add__(self, other: MeshCounts) -> MeshCounts:
+        how = "; ".join(dict.fromkeys(self.how.split("; ") + other.how.split("; ")))  # each way of counting once
+        return MeshCounts(self.vertices + other.vertices, self.triangles + other.triangles, how)
 
 
 @dataclass
@@ -219,7 +231,7 @@ def mesh_parts(path: Path) -> list[MeshPart]:
             part = MeshPart(name, file_type(name), data)
             if part.file_type == "gltf":
                 folder = posixpath.dirname(name)
-                part.files = _gltf_sidecars(data, lambda uri: files.get(posixpath.normpath(posixpath.join(folder, uri))))
+                part.files = _gltf_sidecars(data, lambda uri, folder=folder: files.get(posixpath.normpath(posixpath.join(folder, uri))))
             parts.append(part)
     if not parts:
         raise ValueError(f"the {kind} file holds no {'/'.join(MESH_FORMATS)} mesh (it holds {len(files)} files)")
@@ -491,7 +503,7 @@ def _json(data: bytes, what: str) -> dict:
     except (ValueError, RecursionError) as exc:
         raise ValueError(f"the {what} is not JSON: {describe(exc)}") from None
     if not isinstance(tree, dict):
-        raise ValueError(f"the {what} is not a JSON object")
+        raise ValueError(f"the {what} is not a JSON object")  # noqa: TRY004
     return tree
 
 
@@ -534,7 +546,7 @@ def _whole(table: dict, key: str, where: str, default: int | None = None, least:
 def _items(tree: dict, key: str) -> list:
     value = tree.get(key, [])
     if not isinstance(value, list):
-        raise ValueError(f"glTF {key} is not a list")
+        raise ValueError(f"glTF {key} is not a list")  # noqa: TRY004
     return value
 
 

@@ -17,7 +17,15 @@ import zipfile
 import numpy as np
 import pytest
 
-from dpmhw.mesh_limits import BYTES_PER_TRIANGLE, BYTES_PER_VERTEX, PROCESS_BYTES, MeshCounts, MeshPart, budget_problem, count_mesh
+from dpmhw.mesh_limits import (
+    BYTES_PER_TRIANGLE,
+    BYTES_PER_VERTEX,
+    PROCESS_BYTES,
+    MeshCounts,
+    MeshPart,
+    budget_problem,
+    count_mesh,
+)
 from dpmhw.meshes import load_mesh
 
 TETRA = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
@@ -200,7 +208,7 @@ def test_the_default_budget_admits_the_bunny_and_refuses_a_ten_million_triangle_
 
 def test_the_obj_count_matches_trimesh_across_chunk_boundaries(tmp_path, monkeypatch):
     """Counts equal what trimesh decodes, with lines cut at every chunk boundary."""
-    import dpmhw.mesh_limits as mesh_limits
+    from dpmhw import mesh_limits
 
     text = "# comment\n" + grid_obj(30).replace("\nf", "\r\nf\t") + "vn 0 1 0\nvt 0 0\nf 1 2 3 4 5\n"
     path = tmp_path / "grid.obj"
