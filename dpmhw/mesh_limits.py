@@ -13,6 +13,9 @@ hold at their peak, not for the bytes it is stored in, against `DPMHW_RENDER_MEM
   stores them) 944, 939 and 934. Solved for the two costs: 360–445 bytes per triangle and
   163–194 per vertex row, taken as 450 and 200. OBJ text is the costliest decode; binary
   formats cost less.
+- `BYTES_PER_OTHER_BYTE`: an OBJ's lines that decode to nothing (comments, names) still pass
+  through trimesh's text handling: 200 MiB of comment lines raised the peak RSS of `load_mesh`
+  by 613 MiB, 3.1 bytes per byte, taken as 3.5.
 - `PROCESS_BYTES`: that render's peak RSS with a 2-triangle mesh (interpreter, trimesh, the
   compiled kernels, the buffers of a small render): 247 MiB, taken as 256, so that a mesh at
   the budget and a small render together stay under the limit.
@@ -50,22 +53,12 @@ import numpy as np
 
 from dpmhw.limits import check_file_size, max_mesh_bytes, render_memory_limit
 
-__all__ = [
-    "ARCHIVE_FORMATS",
-    "BYTES_PER_TRIANGLE",
-    "BYTES_PER_VERTEX",
-    "MESH_FORMATS",
-    "PROCESS_BYTES",
-    "MeshCounts",
-    "MeshPart",
-    "budget_problem",
-    "count_mesh",
-    "mesh_parts",
-    "read_mesh",
-]
+__all__ = ["ARCHIVE_FORMATS", "BYTES_PER_OTHER_BYTE", "BYTES_PER_TRIANGLE", "BYTES_PER_VERTEX", "MESH_FORMATS",
+           "PROCESS_BYTES", "MeshCounts", "MeshPart", "budget_problem", "count_mesh", "mesh_parts", "read_mesh"]
 
 BYTES_PER_TRIANGLE = 450
 BYTES_PER_VERTEX = 200
+BYTES_PER_OTHER_BYTE = 3.5
 PROCESS_BYTES = 256 << 20
 
 MESH_FORMATS = ("obj", "ply", "stl", "off", "glb", "gltf")
@@ -80,15 +73,18 @@ OBJ_CHUNK = 1 << 20  # an OBJ is counted a MiB at a time: about 20 bytes of mask
 
 @dataclass
 class MeshCounts:
-    """What a mesh decodes to: `vertices` (rows of vertex data), `triangles`, and where the counts were read."""
+    """What a mesh decodes to: `vertices` (rows of vertex data), `triangles`, where the counts
+    were read, and `other_bytes` of text that decodes to nothing (an OBJ's comments)."""
 
     vertices: int
     triangles: int
     how: str
+    other_bytes: int = 0
 
     def __add__(self, other: MeshCounts) -> MeshCounts:
         how = "; ".join(dict.fromkeys(self.how.split("; ") + other.how.split("; ")))  # each way of counting once
-        return MeshCounts(self.vertices + other.vertices, self.triangles + other.triangles, how)
+        return MeshCounts(self.vertices + other.vertices, self.triangles + other.triangles, how,
+                          self.other_bytes + other.other_bytes)
 
 
 @dataclass
@@ -121,12 +117,15 @@ def file_type(name: str) -> str:
 def budget_problem(counts: MeshCounts) -> str | None:
     """Why a mesh of `counts` would take too much memory to load and trace, or None when it fits."""
     limit = render_memory_limit()
-    need = PROCESS_BYTES + counts.vertices * BYTES_PER_VERTEX + counts.triangles * BYTES_PER_TRIANGLE
+    need = (PROCESS_BYTES + counts.vertices * BYTES_PER_VERTEX + counts.triangles * BYTES_PER_TRIANGLE
+            + int(counts.other_bytes * BYTES_PER_OTHER_BYTE))
     if need <= limit:
         return None
-    return (f"{counts.triangles:,} triangles and {counts.vertices:,} vertices ({counts.how}) need about "
+    other = f" and {counts.other_bytes / 2**20:,.0f} MiB of other text" if counts.other_bytes >= 2**20 else ""
+    return (f"{counts.triangles:,} triangles and {counts.vertices:,} vertices{other} ({counts.how}) need about "
             f"{need / 2**20:,.0f} MiB to load and trace ({BYTES_PER_TRIANGLE} bytes per triangle, {BYTES_PER_VERTEX} per "
-            f"vertex, {PROCESS_BYTES >> 20} MiB for the process), over the render memory limit of {limit / 2**20:,.0f} MiB (raise it with DPMHW_RENDER_MEMORY_MB)")
+            f"vertex, {PROCESS_BYTES >> 20} MiB for the process), over the render memory limit of "
+            f"{limit / 2**20:,.0f} MiB (raise it with DPMHW_RENDER_MEMORY_MB)")
 
 
 # ------------------------------------------------------------------ compressed containers
@@ -314,7 +313,7 @@ def _count_obj(f, size: int, part: MeshPart) -> MeshCounts:
     (k corners: k − 2), OBJ_CHUNK at a time; also decides the text encoding."""
     decoder = codecs.getincrementaldecoder("utf-8")()
     utf8 = True
-    vertices = triangles = 0
+    vertices = triangles = other = 0
     carry = b""
     while True:
         chunk = f.read(OBJ_CHUNK)
@@ -333,17 +332,18 @@ def _count_obj(f, size: int, part: MeshPart) -> MeshCounts:
             if len(carry) > OBJ_CHUNK:
                 raise ValueError(f"a line is over {OBJ_CHUNK >> 20} MiB long: not an OBJ file")
         if text:
-            v, t = _count_obj_lines(np.frombuffer(text, np.uint8))
+            v, t, o = _count_obj_lines(np.frombuffer(text, np.uint8))
             vertices += v
             triangles += t
+            other += o
         if not chunk:
             break
     part.latin_1 = 0 if utf8 else size
-    return MeshCounts(vertices, triangles, "counted in the OBJ's v/vt/vn and f lines")
+    return MeshCounts(vertices, triangles, "counted in the OBJ's v/vt/vn and f lines", other)
 
 
-def _count_obj_lines(a: np.ndarray) -> tuple[int, int]:
-    """(vertex rows, triangles) in whole lines `a` (ending in a newline)."""
+def _count_obj_lines(a: np.ndarray) -> tuple[int, int, int]:
+    """(vertex rows, triangles, bytes of other lines) in whole lines `a` (ending in a newline)."""
     space = (a == 32) | (a == 9) | (a == 13) | (a == 10)
     ends = np.flatnonzero(a == 10)
     starts = np.concatenate(([0], ends[:-1] + 1))
@@ -353,13 +353,14 @@ def _count_obj_lines(a: np.ndarray) -> tuple[int, int]:
     blank_after_two = space[np.minimum(starts + 2, len(a) - 1)]
     vertex = (first == ord("v")) & (blank | (((second == ord("t")) | (second == ord("n"))) & blank_after_two))
     face = (first == ord("f")) & blank
+    other = int((ends - starts + 1)[~(vertex | face)].sum())
     if not face.any():
-        return int(vertex.sum()), 0
+        return int(vertex.sum()), 0, other
     token = ~space
     token[1:] &= space[:-1]  # a token starts where a non-space follows a space
     before = np.concatenate(([0], np.cumsum(token, dtype=np.int32)))
     tokens = before[ends + 1] - before[starts]  # tokens on each line, the keyword included
-    return int(vertex.sum()), int(np.maximum(tokens[face] - 3, 0).sum())
+    return int(vertex.sum()), int(np.maximum(tokens[face] - 3, 0).sum()), other
 
 
 _PLY_TYPES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,

@@ -210,13 +210,25 @@ def test_the_obj_count_matches_trimesh_across_chunk_boundaries(tmp_path, monkeyp
     """Counts equal what trimesh decodes, with lines cut at every chunk boundary."""
     from dpmhw import mesh_limits
 
-    text = "# comment\n" + grid_obj(30).replace("\nf", "\r\nf\t") + "vn 0 1 0\nvt 0 0\nf 1 2 3 4 5\n"
+    text = "# comment\n" + grid_obj(30).replace("\nf", "\r\nf\t") + "vn 0 1 0\nvt 0 0\nf 1 2 3 4 5\ng name\n"
     path = tmp_path / "grid.obj"
     path.write_text(text)
     monkeypatch.setattr(mesh_limits, "OBJ_CHUNK", 97)  # a prime, so boundaries fall everywhere
     counts = count_mesh(MeshPart(path.name, "obj", None, path=path))
     assert counts.triangles == 2 * 30 * 30 + 3
     assert counts.vertices == 31 * 31 + 2  # v rows, and the vn and vt rows trimesh also parses
+    assert counts.other_bytes == len("# comment\n") + len("g name\n")
+
+
+def test_an_obj_of_comments_is_charged_for_its_text(tmp_path, monkeypatch):
+    """Comment lines decode to nothing but pass through trimesh's text handling (about three
+    bytes per byte): a file of them is charged for that, not only for its four triangles."""
+    path = tmp_path / "comments.obj"
+    path.write_bytes(TETRA.encode() + (b"# " + b"x" * 1021 + b"\n") * 4096)  # 4 MiB of comments
+    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", "265")  # 256 for the process, the comments need 14
+    refused(path, "4 MiB of other text", "DPMHW_RENDER_MEMORY_MB")
+    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", "271")
+    assert len(load_mesh(path).faces) == 4
 
 
 def test_an_ascii_and_a_binary_stl_and_an_off_are_counted_from_their_headers(tmp_path):
