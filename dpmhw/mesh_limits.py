@@ -15,7 +15,10 @@ hold at their peak, not for the bytes it is stored in, against `DPMHW_RENDER_MEM
   formats cost less.
 - `BYTES_PER_OTHER_BYTE`: an OBJ's lines that decode to nothing (comments, names) still pass
   through trimesh's text handling: 200 MiB of comment lines raised the peak RSS of `load_mesh`
-  by 613 MiB, 3.1 bytes per byte, taken as 3.5.
+  by 613 MiB, 3.1 bytes per byte, taken as 3.5. ASCII PLY and STL carry more text per triangle
+  than an OBJ (an ASCII STL about 200 bytes): all their data is charged at this rate too, on
+  top of their rows (a 1M-triangle grid rendered as above peaked at 1,661 MiB from ASCII STL and
+  844 MiB from ASCII PLY, charged 1,942 and 913).
 - `PROCESS_BYTES`: that render's peak RSS with a 2-triangle mesh (interpreter, trimesh, the
   compiled kernels, the buffers of a small render): 247 MiB, taken as 256, so that a mesh at
   the budget and a small render together stay under the limit.
@@ -74,7 +77,8 @@ OBJ_CHUNK = 1 << 20  # an OBJ is counted a MiB at a time: about 20 bytes of mask
 @dataclass
 class MeshCounts:
     """What a mesh decodes to: `vertices` (rows of vertex data), `triangles`, where the counts
-    were read, and `other_bytes` of text that decodes to nothing (an OBJ's comments)."""
+    were read, and `other_bytes` of text charged apart from the rows (an OBJ's comments, all of
+    an ASCII PLY's or STL's data)."""
 
     vertices: int
     triangles: int
@@ -423,7 +427,8 @@ def _count_ply(f, size: int, part: MeshPart) -> MeshCounts:
         raise ValueError(f"the PLY header declares {count:,} {name} rows (and others) needing at least {least:,} bytes, "
                          f"but {stored:,} follow the header")
     counts = {e[0]: e[1] for e in elements}
-    return MeshCounts(counts.get("vertex", 0), counts.get("face", 0), "declared in the PLY header")
+    return MeshCounts(counts.get("vertex", 0), counts.get("face", 0), "declared in the PLY header",
+                      stored if fmt == "ascii" else 0)
 
 
 def _count_off(f, size: int, part: MeshPart) -> MeshCounts:
@@ -456,7 +461,7 @@ def _count_stl(f, size: int, part: MeshPart) -> MeshCounts:
         text = (carry + chunk).lower()
         words += text.count(b"vertex")
         carry = text[-5:]  # shorter than the word: a word split across chunks is counted once
-    return MeshCounts(words, words // 3, "counted in the ASCII STL's vertex lines")
+    return MeshCounts(words, words // 3, "counted in the ASCII STL's vertex lines", size)
 
 
 def _count_gltf(f, size: int, part: MeshPart) -> MeshCounts:

@@ -240,6 +240,7 @@ def test_an_ascii_and_a_binary_stl_and_an_off_are_counted_from_their_headers(tmp
                        ("c.off", trimesh.exchange.off.export_off(mesh).encode())):
         counts = count_mesh(MeshPart(name, name[-3:], data))
         assert counts.triangles == len(mesh.faces), name
+        assert counts.other_bytes == (len(data) if name == "a.stl" else 0), name  # ASCII STL: its text is charged too
         (tmp_path / name).write_bytes(data)
         assert len(load_mesh(tmp_path / name).faces) == len(mesh.faces), name
 
