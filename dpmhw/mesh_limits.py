@@ -24,7 +24,7 @@ hold at their peak, not for the bytes it is stored in, against `DPMHW_RENDER_MEM
   the budget and a small render together stay under the limit.
 - What is counted before the decode: a PLY or OFF header's element counts, a binary STL's
   triangle count (an ASCII STL's `vertex` lines), a streaming count of an OBJ's `v`/`vt`/`vn`
-  lines and of the triangles its `f` lines fan into (a few MiB at a time), and a glTF's
+  lines and of the triangles its `f` lines fan into (a MiB at a time), and a glTF's
   accessor counts times the nodes that instance each mesh. Declared sizes are checked against
   what is stored (a PLY's rows, a GLB's buffers and chunks), so a header cannot promise more
   than the file holds; the decoded arrays are checked again after the decode, before the BVH.
@@ -517,13 +517,10 @@ def _json(data: bytes, what: str) -> dict:
 def _gltf_sidecars(data: bytes, lookup) -> dict[str, bytes]:
     """The files a glTF's buffers name, from `lookup(uri)` (bytes, or None when absent),
     DPMHW_MAX_MESH_MB in all; trimesh is given only these, so it reads no other path."""
-    try:
-        tree = json.loads(_decode(data))
-    except (ValueError, RecursionError):
-        return {}  # count_mesh reports the broken JSON
+    tree = _json(data, "glTF")
     budget = max_mesh_bytes()
     files = {}
-    for i, buffer in enumerate(tree.get("buffers", []) if isinstance(tree, dict) else []):
+    for i, buffer in enumerate(_items(tree, "buffers")):
         uri = buffer.get("uri") if isinstance(buffer, dict) else None
         if not isinstance(uri, str) or uri.startswith("data:") or uri in files:
             continue

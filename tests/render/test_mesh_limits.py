@@ -324,6 +324,8 @@ def test_an_obj_with_a_latin_1_material_library_loads_without_reading_it(tmp_pat
     ("nohead.ply", b"ply\n" + b"comment x\n" * 10_000, "no 'end_header'"),
     ("bad.off", b"OFF\n3 lots 0\n", "OFF counts"),
     ("mesh.xyz", b"0 0 0\n", "unsupported mesh format .xyz"),
+    ("values.gltf", b"[" + b"0," * 1_000_001 + b"0]", "1,000,002 values"),
+    ("shape.gltf", b'{"buffers": 5}', "buffers is not a list"),
     ("broken.zip", b"PK\x03\x04 not really", "end-of-central-directory"),
     ("broken.obj.gz", b"\x1f\x8b\x08\x00 truncated", "cannot expand"),
     ("empty.zip", None, "holds no"),
