@@ -266,7 +266,7 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     for part in parts:
         resolver = trimesh.resolvers.ZipResolver(part.files) if part.files else None
         try:
-            with io.BytesIO(latin_1_as_utf8(part)) if part.latin_1 else part.open() as f:
+            with io.BytesIO(_latin_1_as_utf8(part)) if part.latin_1 else part.open() as f:
                 meshes.append(trimesh.load(f, file_type=part.file_type, resolver=resolver, force="mesh", process=False,
                                            skip_materials=True))
         except Exception as exc:  # trimesh raises many types for broken files
@@ -687,7 +687,7 @@ def _decode(data: bytes) -> str:
         return data.decode("latin-1")
 
 
-def latin_1_as_utf8(part: MeshPart) -> bytes:
+def _latin_1_as_utf8(part: MeshPart) -> bytes:
     """`part` with its Latin-1 text re-encoded as UTF-8 (which trimesh decodes without its
     optional charset guesser); binary data after a PLY header is unchanged."""
     with part.open() as f:
