@@ -7,7 +7,8 @@ limit and the environment variable that raises it:
 
 - scene files: `DPMHW_MAX_SCENE_KB` (default 1024: hand-written scenes are a few kilobytes);
 - mesh files: `DPMHW_MAX_MESH_MB` (default 512: the Stanford bunny's OBJ is 3 MB, a 10-million-
-  triangle scan about 500 MB);
+  triangle scan about 500 MB), for the file as stored and for what a compressed one expands to;
+  what a mesh decodes to is charged to the render memory limit (`mesh_limits`);
 - render buffers: `DPMHW_RENDER_MEMORY_MB` (default 4608). A render allocates per pixel its
   rays, path state, film lobes, G-buffer, the first vertices' surfaces, the rasterised camera
   hits and work arrays: measured here as 506 bytes per pixel (peak RSS of two 1-spp renders of
@@ -30,7 +31,7 @@ import os
 from pathlib import Path
 
 __all__ = ["RENDER_BYTES_PER_PIXEL", "SESSION_BASE_BYTES", "SESSION_BYTES_PER_PIXEL", "check_file_size", "max_mesh_bytes",
-           "max_scene_bytes", "render_memory_problem", "session_memory", "session_memory_problem"]
+           "max_scene_bytes", "render_memory_limit", "render_memory_problem", "session_memory", "session_memory_problem"]
 
 RENDER_BYTES_PER_PIXEL = 520
 SESSION_BYTES_PER_PIXEL = {1.0: 960, 0.5: 960, 0.25: 740}  # per output pixel, by shading scale
@@ -64,9 +65,14 @@ def check_file_size(path: Path, limit: int, what: str, env: str) -> None:
                          f"(raise it with {env})")
 
 
+def render_memory_limit() -> int:
+    """Bytes a render may hold: its pixel buffers (`render_memory_problem`), and a mesh's arrays and BVH (`mesh_limits`)."""
+    return _limit("DPMHW_RENDER_MEMORY_MB", 4608, 1024 * 1024)
+
+
 def render_memory_problem(width: int, height: int) -> str | None:
     """Why a `width`×`height` render would allocate too much memory, or None when it fits."""
-    limit = _limit("DPMHW_RENDER_MEMORY_MB", 4608, 1024 * 1024)
+    limit = render_memory_limit()
     need = int(width) * int(height) * RENDER_BYTES_PER_PIXEL
     if need <= limit:
         return None

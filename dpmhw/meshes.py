@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from dpmhw.limits import check_file_size, max_mesh_bytes
+from dpmhw.mesh_limits import describe, read_mesh
 
 log = logging.getLogger(__name__)
 
@@ -179,27 +180,26 @@ def sphere_mesh(radius: float, subdivisions: int = 4, smooth: bool = True) -> Tr
 
 
 def load_mesh(path: Path, smooth: bool = True) -> TriangleMesh:
-    """Load an OBJ/PLY/STL file. Raises FileNotFoundError / ValueError with the path in the message."""
-    import trimesh
-
+    """Load a mesh file (see `mesh_limits` for the formats and the bounds on what is decoded).
+    Raises FileNotFoundError / ValueError with the path in the message."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
     check_file_size(path, max_mesh_bytes(), "mesh file", "DPMHW_MAX_MESH_MB")
     try:
-        loaded = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for broken files
-        raise ValueError(f"cannot read mesh {path}: {exc}") from exc
-    if len(loaded.faces) == 0:
+        vertices, faces = read_mesh(path)
+    except (ValueError, OSError) as exc:
+        raise ValueError(f"cannot read mesh {path}: {describe(exc)}") from exc
+    if len(faces) == 0:
         raise ValueError(f"mesh {path} has no triangles")
-    if not np.all(np.isfinite(loaded.vertices)):
+    if not np.all(np.isfinite(vertices)):
         raise ValueError(f"mesh {path} has non-finite vertex coordinates")
-    largest = float(np.abs(loaded.vertices).max())
+    largest = float(np.abs(vertices).max())
     if largest > MAX_COORDINATE:
         raise ValueError(f"mesh {path} has a vertex coordinate of {largest:.3g}, over {MAX_COORDINATE:g} (wrong units?)")
-    if loaded.faces.min() < 0 or loaded.faces.max() >= len(loaded.vertices):
+    if faces.min() < 0 or faces.max() >= len(vertices):
         raise ValueError(f"mesh {path} has faces that index missing vertices")
-    return clean(loaded.vertices, loaded.faces, smooth=smooth, source=str(path))
+    return clean(vertices, faces, smooth=smooth, source=str(path))
 
 
 BUNNY_DATA = Path(__file__).parent / "data" / "stanford-bunny.npz"
