@@ -404,10 +404,12 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
 
 
 def build_session(config: SessionConfig, *, mock: bool = False, renderer: Any = None, frame_log: int = 0,
-                  usb: tuple[str, bytes] | None = None) -> SessionLoop:
+                  usb: tuple[str, bytes] | None = None, heartbeat: Any = None) -> SessionLoop:
     """A ready-to-start loop over freshly opened parts, every per-frame kernel ready (compiled
-    now if the cache lacks it: `warmup.compile_kernels` fills it ahead, in parallel)."""
-    loop = SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer, usb=usb), frame_log=frame_log)
+    now if the cache lacks it: `warmup.compile_kernels` fills it ahead, in parallel).
+    `heartbeat`: see dpmhw.session.heartbeat."""
+    loop = SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer, usb=usb), frame_log=frame_log,
+                       heartbeat=heartbeat)
     if renderer is None:
         try:
             loop.warm()
