@@ -273,7 +273,8 @@ class RecordingSection(_Section):
 
 class MockSection(_Section):
     trajectory: Literal["static", "linear", "rotate-oscillate"] = "rotate-oscillate"
-    rate_hz: float = Field(360.0, gt=0.0, le=10000.0)
+    rate_hz: float = Field(360.0, ge=1.0, le=10000.0, description="samples per second (below 1 Hz every pose is "
+                           "stale)")
     latency_ms: float = Field(4.5, ge=0.0, le=1000.0)
     speed: float = Field(1.0, gt=0.0, le=100.0, description="scales every velocity of the trajectory")
 
