@@ -309,7 +309,9 @@ class SessionConfig(_Section):
         return bindings
 
     @model_validator(mode="after")
-    def _stations(self) -> "SessionConfig":
+    def _consistent(self) -> "SessionConfig":
+        if self.sink.kind == "file" and not self.sink.path:
+            raise ValueError("sink.path: a file sink needs a path (a folder for PNGs or a video file)")
         if self.tracker.kind == "serial":
             for i, b in enumerate(self.bindings):
                 if not 1 <= b.rigid_body <= MAX_STATIONS:

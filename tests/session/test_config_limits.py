@@ -108,6 +108,7 @@ def special_cases() -> list[tuple[list[str], str | None]]:
         ([f'recording.path="{"x" * MAX_TEXT}"'], None), (['tracker.server="host\\nname"'], "tracker.server"),
         (['api.token="a b"'], "api.token"), (['api.token="abc-_.~+/=="'], None), (['api.token="tök"'], "api.token"),
         (["scene.source=no-such-scene.toml"], "scene"), (["scene.calibration=nope.json"], "scene.calibration"),
+        (["sink.kind=file"], "sink.path"), (["sink.kind=file", "sink.path=out"], None),
         (["render.filter=magic"], "render.filter"), (["lod.moving_every=3"], "lod.moving_every"),
         (["render.analytic=maybe"], "render.analytic"), (["mock.trajectory=[1]"], "mock.trajectory"),
         (["render.spp=" + "[" * 5000 + "]" * 5000], "--set render.spp"),
@@ -211,3 +212,15 @@ def sweep_cases() -> list[list[str]]:
 def test_every_accepted_bound_starts_with_the_mocks(overrides):
     code, output = _start(overrides)
     _check(output, code, None, output[-3000:])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("overrides, refused", [
+    (["sink.kind=file", "sink.path=/proc/no-such-folder/out.mp4"], "sink.path"),
+    (["recording.enabled=true", "recording.path=/proc/no-such-folder"], "recording.path"),
+    (['scene.mesh="/no-such-mesh.obj"'], "objects[0].mesh"),
+    (['tracker.server="no.such.host.invalid"'], None),  # dark: the tracker says it is lost
+], ids=lambda v: " ".join(v)[:60] if isinstance(v, list) else str(v))
+def test_paths_and_hosts_that_only_a_start_can_check_fail_in_one_line(overrides, refused):
+    code, output = _start(overrides)
+    _check(output, code, refused, output[-3000:])
