@@ -444,3 +444,23 @@ def test_long_lived_objects_are_frozen_once_warm_and_unfrozen_at_stop(make_loop)
     assert gc.get_freeze_count() >= at_start
     loop.stop()
     assert gc.get_freeze_count() == 0
+
+
+def test_render_seed_offsets_every_frames_seed(make_loop):
+    from dpmhw.session.testing import FlatRenderer
+
+    class Seeds(FlatRenderer):
+        seen: list = []
+
+        def render(self, **kw):
+            self.seen.append(kw["seed"])
+            return super().render(**kw)
+
+    seed = 2**32 - 1  # the largest: frame numbers add to it (Python ints; the renderer hashes 64 bits)
+    renderer = Seeds()
+    loop = make_loop(overrides=[f"render.seed={seed}", "render.pipeline=false"], renderer=renderer)
+    loop.start()
+    assert wait_for(lambda: len(loop.frame_log) >= 5, 30)
+    loop.stop()
+    assert renderer.seen and min(renderer.seen) >= seed
+    assert len(set(renderer.seen)) > 1  # a new seed per frame
