@@ -8,8 +8,9 @@ not pass silently as a default).
 Each field's bounds are what its consumer can honour: the wire format's integer width (NatNet
 packs a body id into a marker's int32 id), the device's limits (the baud rates pyserial
 offers), a finite normal float, text without control characters. The memory the output size
-needs is checked where that size is known (`dpmhw.session.factory.memory_problem`). Values that are legal but cost much (`SessionConfig.warnings`) are
-accepted and named, with what they cost.
+needs is checked where that size is known (`dpmhw.session.factory.memory_problem`). Values
+that are legal but cost much are accepted and named, with what they cost
+(`SessionConfig.warnings`).
 
 `LiveSettings` is the subset the operator may change while the loop runs (over HTTP): the loop
 applies a validated change on its next frame. It is derived from the section fields named in
@@ -26,9 +27,8 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from serial import SerialBase
-
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
+from serial import SerialBase
 
 from dpmhw.errors import DpmhwError
 from dpmhw.limits import check_file_size, max_scene_bytes
@@ -54,6 +54,7 @@ BAUDRATES = SerialBase.BAUDRATES  # the rates pyserial sets on every platform it
 MAX_STATIONS = 16  # a Polhemus tracker numbers its stations 1…16 (docs/protocols.md)
 WORKSPACE_LIMIT_M = 1e4  # no capture volume reaches 10 km from its origin
 NS_PER_RAY = 250  # wall time per native ray on the bunny's 69k triangles, 2 render threads (docs/lod.md)
+METRICS_WINDOW_COSTLY = 16384  # frames: a status update's percentiles over more take milliseconds of the loop
 
 
 class SessionConfigError(DpmhwError, ValueError):
@@ -235,6 +236,12 @@ class SinkSection(_Section):
     path: str = Field("", description="output path (kind = file)")
     display: int = Field(0, ge=0, le=INT32_MAX, description="display index (kind = window)")
 
+    @model_validator(mode="after")
+    def _file_has_a_path(self) -> "SinkSection":
+        if self.kind == "file" and not self.path:
+            raise ValueError("sink.path: a file sink needs a path (a folder for PNGs or a video file)")
+        return self
+
 
 class SafetySection(_Section):
     stale_after_ms: float = Field(50.0, gt=0.0, le=10000.0, description="tracking older than this blanks the output")
@@ -309,9 +316,7 @@ class SessionConfig(_Section):
         return bindings
 
     @model_validator(mode="after")
-    def _consistent(self) -> "SessionConfig":
-        if self.sink.kind == "file" and not self.sink.path:
-            raise ValueError("sink.path: a file sink needs a path (a folder for PNGs or a video file)")
+    def _stations(self) -> "SessionConfig":
         if self.tracker.kind == "serial":
             for i, b in enumerate(self.bindings):
                 if not 1 <= b.rigid_body <= MAX_STATIONS:
@@ -333,10 +338,11 @@ class SessionConfig(_Section):
         if r.threads > cpus:
             out.append(f"render.threads={r.threads} on {cpus} CPU(s): each render pool starts {r.threads} threads; "
                        "beyond the CPU count they add switching and memory, not speed")
-        if self.metrics.window > 16384:
-            out.append(f"metrics.window={self.metrics.window}: keeps {WINDOWS * 8 * self.metrics.window / 2**20:.0f} "
-                       f"MiB of timings and takes percentiles over {len(STAGES) + 1} windows of that many frames on "
-                       "the loop thread at every status update (every 50 ms)")
+        window = self.metrics.window
+        if window > METRICS_WINDOW_COSTLY:
+            out.append(f"metrics.window={window}: keeps {WINDOWS * 8 * window / 2**20:.0f} MiB of timings, and every "
+                       f"status update (each 50 ms, on the loop thread) takes percentiles over up to "
+                       f"{(len(STAGES) + 1) * window} values; once the windows fill, that can take longer than a frame")
         budgets = [("render.adaptive_rays", r.adaptive_rays, r.shading_scale < 1)]
         budgets.append(("lod.rays", self.lod.rays, r.shading_scale < 1 and (self.lod.moving or self.lod.visible)))
         for name, rays, active in budgets:
