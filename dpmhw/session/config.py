@@ -195,18 +195,11 @@ class TrackerSection(_Section):
     command_port: int = Field(1510, ge=1, le=65535)
     local_interface: str = "127.0.0.1"
     port: str = Field("", description="serial port (kind = serial): a device path or a pyserial URL")
-    baudrate: int = Field(115200, description="serial line rate (kind = serial): one of pyserial's standard rates")
+    baudrate: Literal[BAUDRATES] = Field(115200, description="serial line rate (kind = serial): one of pyserial's standard rates")
     # the plausibility gate (dpmhw.plausibility): samples breaking these are dropped, never projected
     max_speed_m_s: float = Field(20.0, gt=0.0, le=1000.0, description="fastest a tracked body can move")
     workspace_min: tuple[float, float, float] = Field((-20.0, -20.0, -20.0), description="capture volume, metres")
     workspace_max: tuple[float, float, float] = Field((20.0, 20.0, 20.0), description="capture volume, metres")
-
-    @field_validator("baudrate")
-    @classmethod
-    def _standard_rate(cls, v: int) -> int:
-        if v not in BAUDRATES:
-            raise ValueError(f"expected a standard baud rate ({', '.join(map(str, BAUDRATES))})")
-        return v
 
     @field_validator("workspace_min", "workspace_max")
     @classmethod
