@@ -384,6 +384,10 @@ LiveSettings = create_model(
 )
 
 
+def _short(text: str, most: int = 80) -> str:
+    return text if len(text) <= most else f"{text[:most]}…"
+
+
 def format_validation_error(source: str, exc: ValidationError) -> str:
     """One line per bad field: `source: a.b[0].c: what was expected (got value)`."""
     lines = []
@@ -392,7 +396,7 @@ def format_validation_error(source: str, exc: ValidationError) -> str:
         for part in err["loc"]:
             path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
         got = err.get("input")
-        shown = "" if isinstance(got, (dict, list)) or got is None else f" (got {got!r})"
+        shown = "" if isinstance(got, (dict, list)) or got is None else f" (got {_short(repr(got))})"
         lines.append(f"{source}: {path or '(top level)'}: {err['msg']}{shown}")
     return "\n".join(lines)
 
