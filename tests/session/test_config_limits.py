@@ -197,6 +197,9 @@ def test_what_session_config_accepts_starts_with_the_mocks(overrides, refused):
     _check(output, code, refused, output[-3000:])
     if refused is not None:
         assert "loop process" not in output  # refused before the loop process (or anything at that size) started
+    else:  # the start names what `session config` names
+        said = [line for line in _config([*SMALL, *overrides]).output.splitlines() if line.startswith(("warning:", "memory:"))]
+        assert said and all(line in output.splitlines() for line in said), output[-3000:]
 
 
 def sweep_cases() -> list[list[str]]:
