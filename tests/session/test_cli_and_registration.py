@@ -26,7 +26,7 @@ def runner():
 def test_config_command_validates_and_masks_the_token(runner, tmp_path):
     r = runner.invoke(app, ["session", "config", "--set", "api.token=abc", "--set", "render.spp=3"])
     assert r.exit_code == 0, r.output
-    data = json.loads(r.output)
+    data = json.loads(r.stdout)  # the memory estimate goes to stderr
     assert data["render"]["spp"] == 3 and data["api"]["token"] == "***"
     bad = tmp_path / "s.toml"
     bad.write_text("[reuse]\nalpha = 2\n")
