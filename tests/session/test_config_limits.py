@@ -227,3 +227,25 @@ def test_every_accepted_bound_starts_with_the_mocks(overrides):
 def test_paths_and_hosts_that_only_a_start_can_check_fail_in_one_line(overrides, refused):
     code, output = _start(overrides)
     _check(output, code, refused, output[-3000:])
+
+
+def test_a_scene_whose_own_size_needs_too_much_is_refused_by_session_config_and_by_a_start(tmp_path, monkeypatch):
+    """Output size 0×0 is the scene's: the estimate reads it from the scene file (no mesh loaded),
+    and opening the parts checks the loaded scene again. A small scene under a small limit: were
+    the check gone, the start would allocate only that much."""
+    from scene_texts import lit_room
+
+    from dpmhw.limits import SESSION_BASE_BYTES, SESSION_BYTES_PER_PIXEL
+    from dpmhw.session.config import SessionConfigError, load_session_config
+    from dpmhw.session.factory import open_session_parts
+
+    scene = tmp_path / "room.toml"
+    scene.write_text(lit_room("", width=640, height=480, f=500.0, cx=319.5, cy=239.5, max_bounces=0))
+    need_mib = {s: (SESSION_BASE_BYTES + 640 * 480 * b) / 2**20 for s, b in SESSION_BYTES_PER_PIXEL.items()}
+    monkeypatch.setenv("DPMHW_SESSION_MEMORY_MB", str(int((need_mib[0.25] + need_mib[1.0]) / 2)))  # ¼ fits, 1 not
+    overrides = [f"scene.source={scene}", "render.shading_scale=1"]
+    result = _config(overrides)
+    _check(result.output, result.exit_code, "render.width, render.height (0: scene.source's size)", result.output)
+    assert _config([f"scene.source={scene}"]).exit_code == 0
+    with pytest.raises(SessionConfigError, match="over the limit"):
+        open_session_parts(load_session_config(overrides=overrides), mock=True)
