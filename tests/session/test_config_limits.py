@@ -249,3 +249,22 @@ def test_a_scene_whose_own_size_needs_too_much_is_refused_by_session_config_and_
     assert _config([f"scene.source={scene}"]).exit_code == 0
     with pytest.raises(SessionConfigError, match="over the limit"):
         open_session_parts(load_session_config(overrides=overrides), mock=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scale", [1.0, 0.25])
+def test_the_memory_estimate_covers_a_started_sessions_peak(scale):
+    """The peak RSS of a mock start (its loop process included) stays below the estimate."""
+    from dpmhw.limits import session_memory
+
+    width, height = 1280, 960
+    args = ["session", "start", "--mock", "--no-api", "--duration", "3", "--status-every", "0",
+            "--set", f"render.width={width}", "--set", f"render.height={height}", "--set", f"render.shading_scale={scale}"]
+    probe = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, check=True); "
+             "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")  # KiB, the largest descendant
+    out = subprocess.run([sys.executable, "-c", probe, sys.executable, "-c", "from dpmhw.cli import main; main()", *args],
+                         capture_output=True, text=True, timeout=START_TIMEOUT_S, check=True)
+    peak = int(out.stdout.split()[-1]) * 1024
+    need, _ = session_memory(width, height, scale)
+    assert peak <= need, (peak / 2**20, need / 2**20)
+    assert peak > need / 2  # the estimate is of this session, not a bound anything meets
