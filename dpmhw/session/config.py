@@ -8,8 +8,9 @@ not pass silently as a default).
 Each field's bounds are what its consumer can honour: the wire format's integer width (NatNet
 packs a body id into a marker's int32 id), the device's limits (the baud rates pyserial
 offers), a finite normal float, text without control characters. The memory the output size
-needs is checked where that size is known (`dpmhw.session.factory.memory_problem`). Values that are legal but cost much (`SessionConfig.warnings`) are
-accepted and named, with what they cost.
+needs is checked where that size is known (`dpmhw.session.factory.memory_problem`). Values
+that are legal but cost much are accepted and named, with what they cost
+(`SessionConfig.warnings`).
 
 `LiveSettings` is the subset the operator may change while the loop runs (over HTTP): the loop
 applies a validated change on its next frame. It is derived from the section fields named in
@@ -26,9 +27,8 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from serial import SerialBase
-
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
+from serial import SerialBase
 
 from dpmhw.errors import DpmhwError
 from dpmhw.limits import check_file_size, max_scene_bytes
@@ -54,6 +54,7 @@ BAUDRATES = SerialBase.BAUDRATES  # the rates pyserial sets on every platform it
 MAX_STATIONS = 16  # a Polhemus tracker numbers its stations 1…16 (docs/protocols.md)
 WORKSPACE_LIMIT_M = 1e4  # no capture volume reaches 10 km from its origin
 NS_PER_RAY = 250  # wall time per native ray on the bunny's 69k triangles, 2 render threads (docs/lod.md)
+METRICS_WINDOW_COSTLY = 16384  # frames: a status update's percentiles over more take milliseconds of the loop
 
 
 class SessionConfigError(DpmhwError, ValueError):
@@ -194,18 +195,11 @@ class TrackerSection(_Section):
     command_port: int = Field(1510, ge=1, le=65535)
     local_interface: str = "127.0.0.1"
     port: str = Field("", description="serial port (kind = serial): a device path or a pyserial URL")
-    baudrate: int = Field(115200, description="serial line rate (kind = serial): one of pyserial's standard rates")
+    baudrate: Literal[BAUDRATES] = Field(115200, description="serial line rate (kind = serial): one of pyserial's standard rates")
     # the plausibility gate (dpmhw.plausibility): samples breaking these are dropped, never projected
     max_speed_m_s: float = Field(20.0, gt=0.0, le=1000.0, description="fastest a tracked body can move")
     workspace_min: tuple[float, float, float] = Field((-20.0, -20.0, -20.0), description="capture volume, metres")
     workspace_max: tuple[float, float, float] = Field((20.0, 20.0, 20.0), description="capture volume, metres")
-
-    @field_validator("baudrate")
-    @classmethod
-    def _standard_rate(cls, v: int) -> int:
-        if v not in BAUDRATES:
-            raise ValueError(f"expected a standard baud rate ({', '.join(map(str, BAUDRATES))})")
-        return v
 
     @field_validator("workspace_min", "workspace_max")
     @classmethod
@@ -234,6 +228,12 @@ class SinkSection(_Section):
     kind: Literal["window", "file", "recording", "none"] = "window"
     path: str = Field("", description="output path (kind = file)")
     display: int = Field(0, ge=0, le=INT32_MAX, description="display index (kind = window)")
+
+    @model_validator(mode="after")
+    def _file_has_a_path(self) -> "SinkSection":
+        if self.kind == "file" and not self.path:
+            raise ValueError("sink.path: a file sink needs a path (a folder for PNGs or a video file)")
+        return self
 
 
 class SafetySection(_Section):
@@ -273,7 +273,8 @@ class RecordingSection(_Section):
 
 class MockSection(_Section):
     trajectory: Literal["static", "linear", "rotate-oscillate"] = "rotate-oscillate"
-    rate_hz: float = Field(360.0, gt=0.0, le=10000.0)
+    rate_hz: float = Field(360.0, ge=1.0, le=10000.0, description="samples per second (below 1 Hz every pose is "
+                           "stale)")
     latency_ms: float = Field(4.5, ge=0.0, le=1000.0)
     speed: float = Field(1.0, gt=0.0, le=100.0, description="scales every velocity of the trajectory")
 
@@ -330,10 +331,11 @@ class SessionConfig(_Section):
         if r.threads > cpus:
             out.append(f"render.threads={r.threads} on {cpus} CPU(s): each render pool starts {r.threads} threads; "
                        "beyond the CPU count they add switching and memory, not speed")
-        if self.metrics.window > 16384:
-            out.append(f"metrics.window={self.metrics.window}: keeps {WINDOWS * 8 * self.metrics.window / 2**20:.0f} "
-                       f"MiB of timings and takes percentiles over {len(STAGES) + 1} windows of that many frames on "
-                       "the loop thread at every status update (every 50 ms)")
+        window = self.metrics.window
+        if window > METRICS_WINDOW_COSTLY:
+            out.append(f"metrics.window={window}: keeps {WINDOWS * 8 * window / 2**20:.0f} MiB of timings, and every "
+                       f"status update (each 50 ms, on the loop thread) takes percentiles over up to "
+                       f"{(len(STAGES) + 1) * window} values; once the windows fill, that can take longer than a frame")
         budgets = [("render.adaptive_rays", r.adaptive_rays, r.shading_scale < 1)]
         budgets.append(("lod.rays", self.lod.rays, r.shading_scale < 1 and (self.lod.moving or self.lod.visible)))
         for name, rays, active in budgets:
@@ -382,6 +384,10 @@ LiveSettings = create_model(
 )
 
 
+def _short(text: str, most: int = 80) -> str:
+    return text if len(text) <= most else f"{text[:most]}…"
+
+
 def format_validation_error(source: str, exc: ValidationError) -> str:
     """One line per bad field: `source: a.b[0].c: what was expected (got value)`."""
     lines = []
@@ -390,7 +396,7 @@ def format_validation_error(source: str, exc: ValidationError) -> str:
         for part in err["loc"]:
             path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
         got = err.get("input")
-        shown = "" if isinstance(got, (dict, list)) or got is None else f" (got {got!r})"
+        shown = "" if isinstance(got, (dict, list)) or got is None else f" (got {_short(repr(got))})"
         lines.append(f"{source}: {path or '(top level)'}: {err['msg']}{shown}")
     return "\n".join(lines)
 

@@ -282,9 +282,10 @@ def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):
     if kind == "none" or kind == "recording":
         return make_sink("recording", shape=shape, max_frames=8)
     if kind == "file":
-        if not config.sink.path:
-            raise SessionConfigError("sink.path: a file sink needs a path (a folder for PNGs or a video file)")
-        return make_sink("file", path=str(config.resolve(config.sink.path)), fps=config.render.target_fps)
+        try:
+            return make_sink("file", path=str(config.resolve(config.sink.path)), fps=config.render.target_fps)
+        except (ValueError, OSError) as exc:  # e.g. its folder does not exist
+            raise SessionConfigError(f"sink.path: {exc}") from None
     try:
         return make_sink("window", display=config.sink.display, size=(shape[1], shape[0]))
     except ValueError as exc:  # e.g. the display's mode is not the projector's native size
@@ -387,7 +388,11 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
         if config.recording.enabled:
             from dpmhw.session.recording import SessionRecorder
 
-            recorder = SessionRecorder.create(config.resolve(config.recording.path), config, tracker)
+            try:
+                recorder = SessionRecorder.create(config.resolve(config.recording.path), config, tracker)
+            except OSError as exc:
+                raise SessionConfigError(f"recording.path: cannot create a session folder in {exc.filename or ''}: "
+                                         f"{exc.strerror or exc}") from None
             closers.append(recorder.close)
     except BaseException:
         for close in reversed(closers):

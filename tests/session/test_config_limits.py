@@ -108,6 +108,7 @@ def special_cases() -> list[tuple[list[str], str | None]]:
         ([f'recording.path="{"x" * MAX_TEXT}"'], None), (['tracker.server="host\\nname"'], "tracker.server"),
         (['api.token="a b"'], "api.token"), (['api.token="abc-_.~+/=="'], None), (['api.token="tök"'], "api.token"),
         (["scene.source=no-such-scene.toml"], "scene"), (["scene.calibration=nope.json"], "scene.calibration"),
+        (["sink.kind=file"], "sink.path"), (["sink.kind=file", "sink.path=out"], None),
         (["render.filter=magic"], "render.filter"), (["lod.moving_every=3"], "lod.moving_every"),
         (["render.analytic=maybe"], "render.analytic"), (["mock.trajectory=[1]"], "mock.trajectory"),
         (["render.spp=" + "[" * 5000 + "]" * 5000], "--set render.spp"),
@@ -128,7 +129,7 @@ def _check(output: str, code: int, refused: str | None, where: str) -> None:
         assert code == 0 and not errors, where
     else:
         assert code == 2 and len(errors) == 1, where
-        assert refused in errors[0], where
+        assert refused in errors[0] and len(errors[0]) <= 600, where  # a long value is shown cut
 
 
 @pytest.mark.parametrize("overrides, refused", numeric_cases() + special_cases(),
@@ -196,12 +197,16 @@ def test_what_session_config_accepts_starts_with_the_mocks(overrides, refused):
     _check(output, code, refused, output[-3000:])
     if refused is not None:
         assert "loop process" not in output  # refused before the loop process (or anything at that size) started
+    else:  # the start names what `session config` names
+        said = [line for line in _config([*SMALL, *overrides]).output.splitlines() if line.startswith(("warning:", "memory:"))]
+        assert said and all(line in output.splitlines() for line in said), output[-3000:]
 
 
 def sweep_cases() -> list[list[str]]:
-    """Every numeric field at each accepted bound, one start each."""
+    """Every numeric field at each accepted bound, one start each (the serial mock numbers its
+    stations 1…n, so a start binds station 1: START_CASES)."""
     return [overrides for overrides, refused in numeric_cases() + special_cases()
-            if refused is None and not any(o.startswith(("render.width", "render.height")) for o in overrides)
+            if refused is None and not any(o.startswith(("render.width", "render.height", "tracker.kind")) for o in overrides)
             and not any('"' in o for o in overrides)]
 
 
@@ -210,3 +215,56 @@ def sweep_cases() -> list[list[str]]:
 def test_every_accepted_bound_starts_with_the_mocks(overrides):
     code, output = _start(overrides)
     _check(output, code, None, output[-3000:])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("overrides, refused", [
+    (["sink.kind=file", "sink.path=/proc/no-such-folder/out.mp4"], "sink.path"),
+    (["recording.enabled=true", "recording.path=/proc/no-such-folder"], "recording.path"),
+    (['scene.mesh="/no-such-mesh.obj"'], "objects[0].mesh"),
+    (['tracker.server="no.such.host.invalid"'], None),  # dark: the tracker says it is lost
+], ids=lambda v: " ".join(v)[:60] if isinstance(v, list) else str(v))
+def test_paths_and_hosts_that_only_a_start_can_check_fail_in_one_line(overrides, refused):
+    code, output = _start(overrides)
+    _check(output, code, refused, output[-3000:])
+
+
+def test_a_scene_whose_own_size_needs_too_much_is_refused_by_session_config_and_by_a_start(tmp_path, monkeypatch):
+    """Output size 0×0 is the scene's: the estimate reads it from the scene file (no mesh loaded),
+    and opening the parts checks the loaded scene again. A small scene under a small limit: were
+    the check gone, the start would allocate only that much."""
+    from scene_texts import lit_room
+
+    from dpmhw.limits import SESSION_BASE_BYTES, SESSION_BYTES_PER_PIXEL
+    from dpmhw.session.config import SessionConfigError, load_session_config
+    from dpmhw.session.factory import open_session_parts
+
+    scene = tmp_path / "room.toml"
+    scene.write_text(lit_room("", width=640, height=480, f=500.0, cx=319.5, cy=239.5, max_bounces=0))
+    need_mib = {s: (SESSION_BASE_BYTES + 640 * 480 * b) / 2**20 for s, b in SESSION_BYTES_PER_PIXEL.items()}
+    monkeypatch.setenv("DPMHW_SESSION_MEMORY_MB", str(int((need_mib[0.25] + need_mib[1.0]) / 2)))  # ¼ fits, 1 not
+    overrides = [f"scene.source={scene}", "render.shading_scale=1"]
+    result = _config(overrides)
+    _check(result.output, result.exit_code, "render.width, render.height (0: scene.source's size)", result.output)
+    assert _config([f"scene.source={scene}"]).exit_code == 0
+    with pytest.raises(SessionConfigError, match="over the limit"):
+        open_session_parts(load_session_config(overrides=overrides), mock=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scale", [1.0, 0.25])
+def test_the_memory_estimate_covers_a_started_sessions_peak(scale):
+    """The peak RSS of a mock start (its loop process included) stays below the estimate."""
+    from dpmhw.limits import session_memory
+
+    width, height = 1280, 960
+    args = ["session", "start", "--mock", "--no-api", "--duration", "3", "--status-every", "0",
+            "--set", f"render.width={width}", "--set", f"render.height={height}", "--set", f"render.shading_scale={scale}"]
+    probe = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, check=True); "
+             "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")  # KiB, the largest descendant
+    out = subprocess.run([sys.executable, "-c", probe, sys.executable, "-c", "from dpmhw.cli import main; main()", *args],
+                         capture_output=True, text=True, timeout=START_TIMEOUT_S, check=True)
+    peak = int(out.stdout.split()[-1]) * 1024
+    need, _ = session_memory(width, height, scale)
+    assert peak <= need, (peak / 2**20, need / 2**20)
+    assert peak > need / 2  # the estimate is of this session, not a bound anything meets

@@ -455,3 +455,23 @@ def test_no_sample_names_the_tracker_address_and_the_watch_command(make_loop):
     reason = next(c.reason for c in loop.safety.view().causes if c.name == "tracking")
     assert reason == ("rigid body 7: no sample yet from NatNet server 10.0.0.5:1510 (tracker streaming); "
                       "check it with `dpmhw tracker watch --natnet 10.0.0.5`")
+
+
+def test_render_seed_offsets_every_frames_seed(make_loop):
+    from dpmhw.session.testing import FlatRenderer
+
+    class Seeds(FlatRenderer):
+        seen: list = []
+
+        def render(self, **kw):
+            self.seen.append(kw["seed"])
+            return super().render(**kw)
+
+    seed = 2**32 - 1  # the largest: frame numbers add to it (Python ints; the renderer hashes 64 bits)
+    renderer = Seeds()
+    loop = make_loop(overrides=[f"render.seed={seed}", "render.pipeline=false"], renderer=renderer)
+    loop.start()
+    assert wait_for(lambda: len(loop.frame_log) >= 5, 30)
+    loop.stop()
+    assert renderer.seen and min(renderer.seen) >= seed
+    assert len(set(renderer.seen)) > 1  # a new seed per frame
