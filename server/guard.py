@@ -73,6 +73,11 @@ class ConnectionGuard:
         self.waiting: dict[GuardedH11Protocol, None] = {}  # insertion order: the longest waiting first
         self.evicted = self.refused = self.timed_out = 0
 
+    def stats(self) -> dict:
+        """What the status reports (`status["api"]["connections"]`)."""
+        return {"cap": self.cap, "waiting": len(self.waiting), "evicted": self.evicted, "timed_out": self.timed_out,
+                "refused": self.refused}
+
 
 class GuardedH11Protocol(H11Protocol):
     """uvicorn's h11 protocol with a request deadline and a connection cap (see module doc)."""

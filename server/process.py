@@ -305,7 +305,7 @@ class RemoteRuntime:
 
     def __init__(self, status_slot: SharedSlot, frame_slot: SharedSlot, conn, *, stale_after_s: float = 1.0,
                  command_timeout_s: float = 2.0, session_alive=None, command_rate: tuple[float, int] = (20.0, 10),
-                 clock=time.monotonic):
+                 clock=time.monotonic, connection_stats=None):
         self.status_slot = status_slot
         # whether the session process still exists, asked per request (None: assumed so). Its last
         # snapshot stays fresh for stale_after_s after it dies; without this, a crashed session
@@ -322,6 +322,7 @@ class RemoteRuntime:
         self._frame: tuple[int, LatestFrame] | None = None
         self._own_settings: tuple[int, LiveSettings] | None = None  # from our last accepted PATCH
         self._bucket = _TokenBucket(*command_rate, clock=clock)  # every command but blank
+        self.connection_stats = connection_stats  # this process's connections (`server.guard`), or None
 
     def _read(self) -> tuple[dict, float]:
         """The latest published payload (decoded once per publish) and seconds since it was published."""
@@ -349,6 +350,8 @@ class RemoteRuntime:
         payload, silent_s = self._read()
         last = payload["status"]
         out = dict(last, snapshot_age_s=round(silent_s, 3))
+        if self.connection_stats is not None:
+            out["api"] = {**out.get("api", {}), "connections": self.connection_stats()}
         if self._gone() and last.get("state") != "stopped":
             out.update(state="fault", output_on=False,
                        reason=f"the session process is gone; last state {last.get('state')}: {last.get('reason', '')}")
@@ -471,13 +474,14 @@ def _serve_child(sock: socket.socket, conn, status_name: str, frame_name: str, t
 
     lower_priority(priority)
     parent = multiprocessing.parent_process()
+    options = limits.uvicorn_options()
     runtime = RemoteRuntime(SharedSlot.attach(status_name), SharedSlot.attach(frame_name), conn,
                             stale_after_s=stale_after_s, session_alive=parent.is_alive if parent is not None else None,
-                            command_rate=command_rate)
+                            command_rate=command_rate, connection_stats=options["http"].guard.stats)
     app = build_app(runtime=runtime, token=token, trusted_hosts=trusted_hosts, max_headers=limits.max_headers,
                     max_header_bytes=limits.max_header_bytes)
     server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on", timeout_graceful_shutdown=2,
-                                           **limits.uvicorn_options()))
+                                           **options))
 
     def watch_parent() -> None:
         if parent is not None:

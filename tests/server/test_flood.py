@@ -101,6 +101,8 @@ def test_blank_and_status_answer_through_a_flood_beyond_the_descriptor_limit():
                 assert wait_for(lambda: loop.parts.projector.dark, WAIT_S)  # read back from the projector
                 status = fresh.get("/status")
                 assert status.status_code == 200 and status.json()["state"] == "blanked"
+                connections = status.json()["api"]["connections"]
+                assert connections["cap"] == cap and connections["evicted"] >= FLOOD - cap
             assert api.process.is_alive() and loop.status()["state"] == "blanked"
         finally:
             for s in socks:
@@ -131,6 +133,7 @@ def test_idle_half_sent_and_oversized_requests_are_cut_off():
                     trickle.send(b"G")
                 time.sleep(0.1)
             assert [_closed_by_server(s) for s in socks] == [True] * len(socks)
+            assert client.get("/status").json()["api"]["connections"]["timed_out"] >= 4  # keep-alive: uvicorn's own
             assert loop.settings().alpha != 100  # the half-sent body was never applied
         finally:
             for s in socks:
