@@ -15,12 +15,12 @@ What uvicorn lacks, `GuardedH11Protocol` adds:
   descriptor for that long at most (trickling bytes does not extend it);
 - a connection cap below the process's descriptor limit (RLIMIT_NOFILE less `reserved_fds` for the
   process's own files), so accepting never fails for want of a descriptor. At the cap, a new
-  connection evicts the one that has waited longest without a whole request; a connection whose
-  request has arrived is never evicted. So a flood of idle or half-sent connections cannot keep
-  out a client that sends its request promptly: the operator's `POST /session/blank` and
+  connection evicts the one that has waited longest without a whole request, or, when every
+  connection has one in progress, the longest-running request (a status stream: the others end
+  within a command's timeout). So no flood of connections, idle, half-sent or streaming, can
+  keep out a client that sends its request promptly: the operator's `POST /session/blank` and
   `GET /status` are answered on the same port and page as ever. (uvicorn's `limit_concurrency`
-  does not help here: it answers 503 but still accepts, and keeps, every connection.) Only when
-  every connection holds a request in progress is a new one closed unread.
+  does not help here: it answers 503 but still accepts, and keeps, every connection.)
 
 The app bounds the headers it is handed (`server.app`: count and size, 431).
 """
@@ -65,18 +65,20 @@ class ConnectionLimits:
 
 
 class ConnectionGuard:
-    """The connections of one server that wait for a request (oldest first), and what was cut."""
+    """The connections of one server, those waiting for a request and those serving one (each
+    longest first), and what was cut."""
 
     def __init__(self, limits: ConnectionLimits):
         self.limits = limits
         self.cap = limits.connection_cap()
         self.waiting: dict[GuardedH11Protocol, None] = {}  # insertion order: the longest waiting first
+        self.busy: dict[GuardedH11Protocol, None] = {}  # request arrived, response not yet complete
         self.evicted = self.refused = self.timed_out = 0
 
     def stats(self) -> dict:
         """What the status reports (`status["api"]["connections"]`)."""
-        return {"cap": self.cap, "waiting": len(self.waiting), "evicted": self.evicted, "timed_out": self.timed_out,
-                "refused": self.refused}
+        return {"cap": self.cap, "waiting": len(self.waiting), "busy": len(self.busy), "evicted": self.evicted,
+                "timed_out": self.timed_out, "refused": self.refused}
 
 
 class GuardedH11Protocol(H11Protocol):
@@ -89,8 +91,8 @@ class GuardedH11Protocol(H11Protocol):
         super().connection_made(transport)
         guard = self.guard
         if len(self.connections) > guard.cap:
-            victim = next(iter(guard.waiting), None)
-            if victim is None:  # every connection is being served: this one waits for none of them
+            victim = next(iter(guard.waiting), None) or next(iter(guard.busy), None)
+            if victim is None:  # none that is ours (an upgraded one): this one waits for none of them
                 guard.refused += 1
                 self.connections.discard(self)
                 transport.abort()
@@ -104,13 +106,13 @@ class GuardedH11Protocol(H11Protocol):
         self._track()
 
     def on_response_complete(self) -> None:
-        self._arrived()  # each request gets a fresh deadline, from the end of the response before
+        self._forget()  # each request gets a fresh deadline, from the end of the response before
         super().on_response_complete()
         if not self.transport.is_closing():
             self._track()
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self._arrived()
+        self._forget()
         super().connection_lost(exc)
 
     def _track(self) -> None:
@@ -120,15 +122,22 @@ class GuardedH11Protocol(H11Protocol):
             self._arrived()
 
     def _wait(self) -> None:
+        self.guard.busy.pop(self, None)
         if self._deadline is None:
             self._deadline = self.loop.call_later(self.guard.limits.request_timeout_s, self._expire)
             self.guard.waiting[self] = None
 
     def _arrived(self) -> None:
+        if self not in self.guard.busy:  # its place is kept while it is served, whatever it sends
+            self._forget()
+            self.guard.busy[self] = None
+
+    def _forget(self) -> None:
         if self._deadline is not None:
             self._deadline.cancel()
             self._deadline = None
         self.guard.waiting.pop(self, None)
+        self.guard.busy.pop(self, None)
 
     def _expire(self) -> None:
         self._deadline = None
@@ -137,5 +146,5 @@ class GuardedH11Protocol(H11Protocol):
 
     def _close(self) -> None:
         """Drop the connection (its request, if begun, sees a disconnect)."""
-        self._arrived()
+        self._forget()
         self.transport.abort()

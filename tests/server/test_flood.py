@@ -109,8 +109,9 @@ def test_blank_and_status_answer_through_a_flood_beyond_the_descriptor_limit():
                 s.close()
 
 
-def test_idle_half_sent_and_oversized_requests_are_cut_off():
-    limits = ConnectionLimits(request_timeout_s=0.5, keep_alive_s=0.5, max_header_bytes=4096, max_headers=32)
+def test_idle_half_sent_streaming_and_oversized_requests_are_cut_off():
+    limits = ConnectionLimits(request_timeout_s=0.5, keep_alive_s=0.5, max_header_bytes=4096, max_headers=32,
+                              max_connections=8)
     with _session_and_api(limits=limits) as (loop, api, client):
         sends = (b"", b"GET /sta", b"GET /status HTTP/1.1\r\nHost: 127.0.0.1\r\n",
                  b"PATCH /settings HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer " + TOKEN.encode()
@@ -137,6 +138,24 @@ def test_idle_half_sent_and_oversized_requests_are_cut_off():
             assert loop.settings().alpha != 100  # the half-sent body was never applied
         finally:
             for s in socks:
+                s.close()
+        # streams whose requests have all arrived: at the cap the longest-running one gives way
+        streams = []
+        try:
+            for _ in range(12):  # each serving (its first event read) before the next connects
+                s = socket.create_connection((api.host, api.port), timeout=WAIT_S)
+                streams.append(s)
+                s.sendall(b"GET /status/stream?interval=10 HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+                got = b""
+                while b"event: status" not in got:
+                    chunk = s.recv(65536)
+                    assert chunk, "a stream was closed before its first event"
+                    got += chunk
+            with httpx.Client(base_url=api.url, timeout=WAIT_S) as fresh:
+                assert fresh.get("/status").status_code == 200
+            assert wait_for(lambda: all(_closed_by_server(s) for s in streams[:4]), WAIT_S)
+        finally:
+            for s in streams:
                 s.close()
         r = client.get("/status", headers={f"x-h{i}": "1" for i in range(40)})
         assert r.status_code == 431 and "the limit is 32" in r.json()["detail"] and r.headers["x-frame-options"] == "DENY"
