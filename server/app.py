@@ -9,8 +9,9 @@ Bind it to 127.0.0.1 unless the lab network needs more (then list the name clien
 
 Hostile input is refused where it enters, cheapest check first: more than `max_headers` headers
 or `max_header_bytes` of them (431; the HTTP server bounds a head that arrives in pieces the same,
-`server.guard`), a foreign `Host` header (400), then, on every mutating request, a bad token (401) before a byte of the body is read, then a body
-over `max_body_bytes` (413) before it is parsed; validation errors (422) name the field without
+`server.guard`), a foreign `Host` header (400), then, on every mutating request, a bad token
+(401) before a byte of the body is read, then a body over `max_body_bytes` (413) before it is
+parsed; validation errors (422) name the field without
 echoing the input (which may be huge, or NaN that JSON cannot carry).
 
 Every response says how a browser may use it (`_SecurityHeaders`): never inside a frame
@@ -35,8 +36,14 @@ from server.deps import Runtime, RuntimeBusy, RuntimeUnavailable, bearer_problem
 from server.pages import PAGE_CSP, add_pages
 from server.routers import session, settings, status
 
-__all__ = ["DEFAULT_TRUSTED_HOSTS", "MAX_BODY_BYTES", "MAX_HEADER_BYTES", "MAX_HEADERS", "build_app",
-           "trusted_hosts_for"]
+__all__ = [
+    "DEFAULT_TRUSTED_HOSTS",
+    "MAX_BODY_BYTES",
+    "MAX_HEADERS",
+    "MAX_HEADER_BYTES",
+    "build_app",
+    "trusted_hosts_for",
+]
 
 # The largest body any route takes is a settings patch of a few hundred bytes.
 MAX_BODY_BYTES = 16 * 1024
@@ -203,7 +210,7 @@ def build_app(runtime: Runtime, *, token: str | None = None, trusted_hosts: list
         env = os.environ.get("DPMHW_API_HOSTS", "")
         trusted_hosts = [h.strip() for h in env.split(",") if h.strip()] or list(DEFAULT_TRUSTED_HOSTS)
     # Starlette runs the middleware added last first: the headers (on every answer, refusals too),
-    # header count, Host, then token and body size.
+    # header count and size, Host, then token and body size.
     app.add_middleware(_GuardMutations, max_body_bytes=max_body_bytes)
     app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(trusted_hosts))
     app.add_middleware(_LimitHeaders, max_headers=max_headers, max_bytes=max_header_bytes)

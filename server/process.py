@@ -14,8 +14,9 @@ period, plus one per command that changed something. A settings patch that chang
 answered by the API process without a command; the other commands but blank are limited to
 `commands_per_s` (bursts of `command_burst`; beyond: 429 with Retry-After), so a command storm
 cannot make the loop publish more; the blank is never limited. What each client can hold in the
-API process (connections, time, header size) is bounded by `server.guard` (`limits`), and the API process runs at a lower CPU priority (by default Linux's SCHED_IDLE: it gets
-the CPU time the loop leaves idle, so requests wait for the loop rather than the other way round).
+API process (connections, time, header size) is bounded by `server.guard` (`limits`). The API
+process runs at a lower CPU priority (by default Linux's SCHED_IDLE: it gets the CPU time the
+loop leaves idle, so requests wait for the loop rather than the other way round).
 
 If the session process stops publishing (wedged, or gone), the API process keeps answering and
 reports `fault` with the age of the last snapshot; it exits by itself when this process dies.
@@ -82,7 +83,7 @@ class ApiProcess:
                  publish_period_s: float = 0.05, stale_after_s: float = 1.0, status_capacity: int = 1 << 20,
                  start_timeout_s: float = 60.0, restart_backoff_s: float = 0.5, restart_backoff_max_s: float = 8.0,
                  stable_after_s: float = 30.0, sock: socket.socket | None = None,
-                 limits: ConnectionLimits = ConnectionLimits(), commands_per_s: float = 20.0, command_burst: int = 10):
+                 limits: ConnectionLimits | None = None, commands_per_s: float = 20.0, command_burst: int = 10):
         self.runtime: Runtime | None = None
         self.token = token
         if priority not in _PRIORITIES:
@@ -93,7 +94,7 @@ class ApiProcess:
         self.start_timeout_s = start_timeout_s
         self.restart_backoff_s, self.restart_backoff_max_s = restart_backoff_s, restart_backoff_max_s
         self.stable_after_s = stable_after_s
-        self.limits = limits
+        self.limits = limits or ConnectionLimits()
         self.command_rate = (commands_per_s, command_burst)
         # bound here (or by the caller, who keeps it across sessions): a busy port fails in the
         # caller with the OS's message, and port 0 is resolved
@@ -305,7 +306,7 @@ class RemoteRuntime:
 
     def __init__(self, status_slot: SharedSlot, frame_slot: SharedSlot, conn, *, stale_after_s: float = 1.0,
                  command_timeout_s: float = 2.0, session_alive=None, command_rate: tuple[float, int] = (20.0, 10),
-                 clock=time.monotonic, connection_stats=None):
+                 connection_stats=None):
         self.status_slot = status_slot
         # whether the session process still exists, asked per request (None: assumed so). Its last
         # snapshot stays fresh for stale_after_s after it dies; without this, a crashed session
@@ -321,7 +322,7 @@ class RemoteRuntime:
         self._payload: tuple[int, int, dict] | None = None  # (sequence, published ns, decoded)
         self._frame: tuple[int, LatestFrame] | None = None
         self._own_settings: tuple[int, LiveSettings] | None = None  # from our last accepted PATCH
-        self._bucket = _TokenBucket(*command_rate, clock=clock)  # every command but blank
+        self._bucket = _TokenBucket(*command_rate)  # every command but blank
         self.connection_stats = connection_stats  # this process's connections (`server.guard`), or None
 
     def _read(self) -> tuple[dict, float]:
@@ -448,14 +449,14 @@ class _TokenBucket:
     """At most `burst` at once, refilled at `rate` per second; `take()` returns 0 when admitted,
     else the seconds until the next would be."""
 
-    def __init__(self, rate: float, burst: int, clock=time.monotonic):
-        self.rate, self.burst, self.clock = rate, burst, clock
-        self._tokens, self._t = float(burst), clock()
+    def __init__(self, rate: float, burst: int):
+        self.rate, self.burst = rate, burst
+        self._tokens, self._t = float(burst), time.monotonic()
         self._lock = threading.Lock()
 
     def take(self) -> float:
         with self._lock:
-            now = self.clock()
+            now = time.monotonic()
             self._tokens = min(self.burst, self._tokens + (now - self._t) * self.rate)
             self._t = now
             if self._tokens >= 1:

@@ -86,7 +86,7 @@ def test_blank_and_status_answer_through_a_flood_beyond_the_descriptor_limit():
             pytest.skip(f"needs {FLOOD + 256} descriptors for the flood's client ends; the hard limit is {hard}")
     # requests never time out here: the connection cap alone must keep the port reachable
     limits = ConnectionLimits(request_timeout_s=600, keep_alive_s=600)
-    with _session_and_api(FD_LIMIT, limits=limits) as (loop, api, client):
+    with _session_and_api(FD_LIMIT, limits=limits) as (loop, api, _client):
         socks = _flood(api, FLOOD)
         try:
             # the cap is below the API process's descriptor limit: it never ran out of them
