@@ -7,9 +7,11 @@ The service only reads the session's published snapshots and queues validated se
 Bind it to 127.0.0.1 unless the lab network needs more (then list the name clients use in
 `trusted_hosts` or DPMHW_API_HOSTS).
 
-Hostile input is refused where it enters, cheapest check first: a foreign `Host` header (400),
-then, on every mutating request, a bad token (401) before a byte of the body is read, then a body
-over `max_body_bytes` (413) before it is parsed; validation errors (422) name the field without
+Hostile input is refused where it enters, cheapest check first: more than `max_headers` headers
+or `max_header_bytes` of them (431; the HTTP server bounds a head that arrives in pieces the same,
+`server.guard`), a foreign `Host` header (400), then, on every mutating request, a bad token
+(401) before a byte of the body is read, then a body over `max_body_bytes` (413) before it is
+parsed; validation errors (422) name the field without
 echoing the input (which may be huge, or NaN that JSON cannot carry).
 
 Every response says how a browser may use it (`_SecurityHeaders`): never inside a frame
@@ -30,14 +32,23 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from dpmhw import __version__
-from server.deps import Runtime, RuntimeUnavailable, bearer_problem
+from server.deps import Runtime, RuntimeBusy, RuntimeUnavailable, bearer_problem
 from server.pages import PAGE_CSP, add_pages
 from server.routers import session, settings, status
 
-__all__ = ["DEFAULT_TRUSTED_HOSTS", "MAX_BODY_BYTES", "build_app", "trusted_hosts_for"]
+__all__ = [
+    "DEFAULT_TRUSTED_HOSTS",
+    "MAX_BODY_BYTES",
+    "MAX_HEADERS",
+    "MAX_HEADER_BYTES",
+    "build_app",
+    "trusted_hosts_for",
+]
 
 # The largest body any route takes is a settings patch of a few hundred bytes.
 MAX_BODY_BYTES = 16 * 1024
+MAX_HEADERS = 64  # a browser sends about 20
+MAX_HEADER_BYTES = 8 * 1024  # request line and headers together
 DEFAULT_TRUSTED_HOSTS = ("127.0.0.1", "localhost")
 _SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 
@@ -113,6 +124,28 @@ class _GuardMutations:
         await self.app(scope, replay, send)
 
 
+class _LimitHeaders:
+    """ASGI middleware: 431 for a request with more than `max_headers` headers or more than
+    `max_bytes` of names and values."""
+
+    def __init__(self, app: ASGIApp, max_headers: int, max_bytes: int):
+        self.app = app
+        self.max_headers, self.max_bytes = max_headers, max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            headers = scope["headers"]
+            size = sum(len(k) + len(v) for k, v in headers)
+            problem = (f"the request has {len(headers)} headers; the limit is {self.max_headers}"
+                       if len(headers) > self.max_headers else
+                       f"the request's headers have {size} bytes; the limit is {self.max_bytes}"
+                       if size > self.max_bytes else None)
+            if problem is not None:
+                await _reply(send, 431, problem, {"Connection": "close"})
+                return
+        await self.app(scope, receive, send)
+
+
 class _SecurityHeaders:
     """ASGI middleware: the security headers on every response (a route's own CSP is kept)."""
 
@@ -161,7 +194,8 @@ def _validation_errors(exc: RequestValidationError) -> list[dict]:
 
 
 def build_app(runtime: Runtime, *, token: str | None = None, trusted_hosts: list[str] | tuple[str, ...] | None = None,
-              max_body_bytes: int = MAX_BODY_BYTES) -> FastAPI:
+              max_body_bytes: int = MAX_BODY_BYTES, max_headers: int = MAX_HEADERS,
+              max_header_bytes: int = MAX_HEADER_BYTES) -> FastAPI:
     """The service over `runtime`; `token` guards the mutating routes (None reads DPMHW_API_TOKEN;
     no token at all: they all answer 401). `trusted_hosts` are the Host names clients may use
     (None: DPMHW_API_HOSTS, comma-separated, else loopback names only). The caller owns the
@@ -176,14 +210,19 @@ def build_app(runtime: Runtime, *, token: str | None = None, trusted_hosts: list
         env = os.environ.get("DPMHW_API_HOSTS", "")
         trusted_hosts = [h.strip() for h in env.split(",") if h.strip()] or list(DEFAULT_TRUSTED_HOSTS)
     # Starlette runs the middleware added last first: the headers (on every answer, refusals too),
-    # Host, then token and body size.
+    # header count and size, Host, then token and body size.
     app.add_middleware(_GuardMutations, max_body_bytes=max_body_bytes)
     app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(trusted_hosts))
+    app.add_middleware(_LimitHeaders, max_headers=max_headers, max_bytes=max_header_bytes)
     app.add_middleware(_SecurityHeaders)
 
     @app.exception_handler(RuntimeUnavailable)
     async def unavailable(request: Request, exc: RuntimeUnavailable) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=503)
+
+    @app.exception_handler(RuntimeBusy)
+    async def busy(request: Request, exc: RuntimeBusy) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=429, headers={"Retry-After": str(exc.retry_after_s)})
 
     @app.exception_handler(RequestValidationError)
     async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -8,11 +8,19 @@ from typing import Annotated, Any, Protocol
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-__all__ = ["Runtime", "RuntimeUnavailable", "bearer_problem", "get_runtime", "require_token"]
+__all__ = ["Runtime", "RuntimeBusy", "RuntimeUnavailable", "bearer_problem", "get_runtime", "require_token"]
 
 
 class RuntimeUnavailable(RuntimeError):
     """The session cannot be reached right now (answered as 503 with this message)."""
+
+
+class RuntimeBusy(RuntimeError):
+    """Too many commands in a short time (answered as 429, Retry-After whole seconds)."""
+
+    def __init__(self, message: str, retry_after_s: int):
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
 
 
 class Runtime(Protocol):

@@ -9,9 +9,14 @@ loop's status (every `publish_period_s`, and at once after a command) and its la
 two shared-memory slots (`shared_slot.py`); the API process answers reads from those slots alone,
 and sends the few mutating requests (settings, blank, resume, reset-history) over a pipe to a
 command thread here, which applies them exactly as an in-process request would. The work this
-process does for the service is therefore fixed (one publish per period) whatever the request
-load, and the API process runs at a lower CPU priority (by default Linux's SCHED_IDLE: it gets
-the CPU time the loop leaves idle, so requests wait for the loop rather than the other way round).
+process does for the service is therefore bounded whatever the request load: one publish per
+period, plus one per command that changed something. A settings patch that changes no value is
+answered by the API process without a command; the other commands but blank are limited to
+`commands_per_s` (bursts of `command_burst`; beyond: 429 with Retry-After), so a command storm
+cannot make the loop publish more; the blank is never limited. What each client can hold in the
+API process (connections, time, header size) is bounded by `server.guard` (`limits`). The API
+process runs at a lower CPU priority (by default Linux's SCHED_IDLE: it gets the CPU time the
+loop leaves idle, so requests wait for the loop rather than the other way round).
 
 If the session process stops publishing (wedged, or gone), the API process keeps answering and
 reports `fault` with the age of the last snapshot; it exits by itself when this process dies.
@@ -30,6 +35,7 @@ import contextlib
 import itertools
 import json
 import logging
+import math
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -44,7 +50,8 @@ from dpmhw.child_process import RestartPolicy, describe_exit, stop_process
 from dpmhw.session.config import LiveSettings
 from dpmhw.session.loop import LatestFrame, SettingsError
 from server.app import trusted_hosts_for
-from server.deps import Runtime, RuntimeUnavailable
+from server.deps import Runtime, RuntimeBusy, RuntimeUnavailable
+from server.guard import ConnectionLimits
 from server.shared_slot import SharedSlot, SlotTornError
 
 __all__ = ["ApiProcess", "RemoteRuntime", "bind_api_socket", "lower_priority"]
@@ -75,7 +82,8 @@ class ApiProcess:
     def __init__(self, *, host: str = "127.0.0.1", port: int = 8765, token: str = "", priority: str = "idle",
                  publish_period_s: float = 0.05, stale_after_s: float = 1.0, status_capacity: int = 1 << 20,
                  start_timeout_s: float = 60.0, restart_backoff_s: float = 0.5, restart_backoff_max_s: float = 8.0,
-                 stable_after_s: float = 30.0, sock: socket.socket | None = None):
+                 stable_after_s: float = 30.0, sock: socket.socket | None = None,
+                 limits: ConnectionLimits | None = None, commands_per_s: float = 20.0, command_burst: int = 10):
         self.runtime: Runtime | None = None
         self.token = token
         if priority not in _PRIORITIES:
@@ -86,6 +94,8 @@ class ApiProcess:
         self.start_timeout_s = start_timeout_s
         self.restart_backoff_s, self.restart_backoff_max_s = restart_backoff_s, restart_backoff_max_s
         self.stable_after_s = stable_after_s
+        self.limits = limits or ConnectionLimits()
+        self.command_rate = (commands_per_s, command_burst)
         # bound here (or by the caller, who keeps it across sessions): a busy port fails in the
         # caller with the OS's message, and port 0 is resolved
         self.sock = sock if sock is not None else bind_api_socket(host, port)
@@ -137,7 +147,7 @@ class ApiProcess:
         process = ctx.Process(
             target=_serve_child, name="dpmhw-api", daemon=True,
             args=(self.sock, child_conn, self.status_slot.name, self.frame_slot.name, self.token, self.priority,
-                  self.stale_after_s, self.trusted_hosts))
+                  self.stale_after_s, self.trusted_hosts, self.limits, self.command_rate))
         process.start()
         child_conn.close()
         self.process = process
@@ -256,9 +266,10 @@ class ApiProcess:
             except (EOFError, OSError):  # that API process is gone; the keeper starts another
                 self._stop.wait(0.1)
                 continue
-            reply = self._execute(name, args)
+            reply, changed = self._execute(name, args)
             try:
-                self.publish()  # the reply's sender reads its own write in the next status
+                if changed:
+                    self.publish()  # the reply's sender reads its own write in the next status
             except Exception:
                 log.exception("publishing the session status for the API failed")
             try:
@@ -266,19 +277,22 @@ class ApiProcess:
             except OSError:
                 continue
 
-    def _execute(self, name: str, args: tuple) -> tuple[str, Any]:
+    def _execute(self, name: str, args: tuple) -> tuple[tuple[str, Any], bool]:
+        """The reply, and whether the command may have changed what the status says."""
         if name not in _COMMANDS:
-            return "error", f"unknown command {name!r}"
+            return ("error", f"unknown command {name!r}"), False
         try:
             if name == "update_settings":
-                return "ok", (self.runtime.update_settings(dict(args[0])).model_dump(), time.monotonic_ns())
+                before = self.runtime.settings()
+                new = self.runtime.update_settings(dict(args[0]))
+                return ("ok", (new.model_dump(), time.monotonic_ns())), new != before
             result = getattr(self.runtime, name)()
-            return "ok", None if result is None else list(result)
+            return ("ok", None if result is None else list(result)), True
         except ValueError as exc:  # SettingsError: the loop refused the value
-            return "refused", str(exc)
+            return ("refused", str(exc)), False
         except Exception as exc:
             log.exception("API command %s failed", name)
-            return "error", f"{type(exc).__name__}: {exc}"
+            return ("error", f"{type(exc).__name__}: {exc}"), True
 
 
 def bind_api_socket(host: str, port: int) -> socket.socket:
@@ -291,7 +305,8 @@ class RemoteRuntime:
     """The `Runtime` the API process serves: reads from the shared slots, commands over the pipe."""
 
     def __init__(self, status_slot: SharedSlot, frame_slot: SharedSlot, conn, *, stale_after_s: float = 1.0,
-                 command_timeout_s: float = 2.0, session_alive=None):
+                 command_timeout_s: float = 2.0, session_alive=None, command_rate: tuple[float, int] = (20.0, 10),
+                 connection_stats=None):
         self.status_slot = status_slot
         # whether the session process still exists, asked per request (None: assumed so). Its last
         # snapshot stays fresh for stale_after_s after it dies; without this, a crashed session
@@ -307,6 +322,8 @@ class RemoteRuntime:
         self._payload: tuple[int, int, dict] | None = None  # (sequence, published ns, decoded)
         self._frame: tuple[int, LatestFrame] | None = None
         self._own_settings: tuple[int, LiveSettings] | None = None  # from our last accepted PATCH
+        self._bucket = _TokenBucket(*command_rate)  # every command but blank
+        self.connection_stats = connection_stats  # this process's connections (`server.guard`), or None
 
     def _read(self) -> tuple[dict, float]:
         """The latest published payload (decoded once per publish) and seconds since it was published."""
@@ -334,6 +351,8 @@ class RemoteRuntime:
         payload, silent_s = self._read()
         last = payload["status"]
         out = dict(last, snapshot_age_s=round(silent_s, 3))
+        if self.connection_stats is not None:
+            out["api"] = {**out.get("api", {}), "connections": self.connection_stats()}
         if self._gone() and last.get("state") != "stopped":
             out.update(state="fault", output_on=False,
                        reason=f"the session process is gone; last state {last.get('state')}: {last.get('reason', '')}")
@@ -355,6 +374,10 @@ class RemoteRuntime:
         return LiveSettings.model_validate(payload["settings"])
 
     def update_settings(self, patch: dict) -> LiveSettings:
+        current = self.settings()  # what this process last had accepted, or the newer snapshot
+        if all(getattr(current, k, _MISSING) == v for k, v in patch.items()):
+            return current  # changes nothing: the session is not asked (nor made to publish)
+        self._admit("update_settings")
         settings, accepted_ns = self._call("update_settings", dict(patch))
         new = LiveSettings.model_validate(settings)
         self._own_settings = (accepted_ns, new)
@@ -364,11 +387,20 @@ class RemoteRuntime:
         self._call("blank")
 
     def resume(self) -> tuple[bool, str]:
+        self._admit("resume")
         ok, message = self._call("resume")
         return bool(ok), str(message)
 
     def reset_history(self) -> None:
+        self._admit("reset_history")
         self._call("reset_history")
+
+    def _admit(self, name: str) -> None:
+        wait_s = self._bucket.take()
+        if wait_s > 0:
+            rate, burst = self._bucket.rate, self._bucket.burst
+            raise RuntimeBusy(f"too many commands ({name}): at most {rate:g} per second, in bursts of {burst}; "
+                              f"retry in {wait_s:.2f} s", retry_after_s=max(1, math.ceil(wait_s)))
 
     def latest_frame(self) -> LatestFrame | None:
         seq = self.frame_slot.sequence()
@@ -410,8 +442,32 @@ class RemoteRuntime:
         return value
 
 
+_MISSING = object()
+
+
+class _TokenBucket:
+    """At most `burst` at once, refilled at `rate` per second; `take()` returns 0 when admitted,
+    else the seconds until the next would be."""
+
+    def __init__(self, rate: float, burst: int):
+        self.rate, self.burst = rate, burst
+        self._tokens, self._t = float(burst), time.monotonic()
+        self._lock = threading.Lock()
+
+    def take(self) -> float:
+        with self._lock:
+            now = time.monotonic()
+            self._tokens = min(self.burst, self._tokens + (now - self._t) * self.rate)
+            self._t = now
+            if self._tokens >= 1:
+                self._tokens -= 1
+                return 0.0
+            return (1 - self._tokens) / self.rate
+
+
 def _serve_child(sock: socket.socket, conn, status_name: str, frame_name: str, token: str, priority: str,
-                 stale_after_s: float, trusted_hosts: list[str]) -> None:
+                 stale_after_s: float, trusted_hosts: list[str], limits: ConnectionLimits,
+                 command_rate: tuple[float, int]) -> None:
     """The API process: uvicorn on the inherited socket, serving a `RemoteRuntime`."""
     import uvicorn
 
@@ -419,10 +475,14 @@ def _serve_child(sock: socket.socket, conn, status_name: str, frame_name: str, t
 
     lower_priority(priority)
     parent = multiprocessing.parent_process()
+    options = limits.uvicorn_options()
     runtime = RemoteRuntime(SharedSlot.attach(status_name), SharedSlot.attach(frame_name), conn,
-                            stale_after_s=stale_after_s, session_alive=parent.is_alive if parent is not None else None)
-    server = uvicorn.Server(uvicorn.Config(build_app(runtime=runtime, token=token, trusted_hosts=trusted_hosts), log_level="warning",
-                                           lifespan="on", timeout_graceful_shutdown=2))
+                            stale_after_s=stale_after_s, session_alive=parent.is_alive if parent is not None else None,
+                            command_rate=command_rate, connection_stats=options["http"].guard.stats)
+    app = build_app(runtime=runtime, token=token, trusted_hosts=trusted_hosts, max_headers=limits.max_headers,
+                    max_header_bytes=limits.max_header_bytes)
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on", timeout_graceful_shutdown=2,
+                                           **options))
 
     def watch_parent() -> None:
         if parent is not None:

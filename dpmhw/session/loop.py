@@ -370,7 +370,8 @@ class SessionLoop:
             return self._accepted
 
     def update_settings(self, patch: dict) -> LiveSettings:
-        """Validate `patch` against the accepted settings and queue it for the next frame."""
+        """Validate `patch` against the accepted settings and queue it for the next frame (a patch
+        that changes no value queues nothing: the loop applies only real changes)."""
         from pydantic import ValidationError
 
         with self._lock:
@@ -379,6 +380,8 @@ class SessionLoop:
             new = LiveSettings.model_validate({**base.model_dump(), **patch})
         except ValidationError as exc:
             raise SettingsError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+        if new == base:
+            return base
         with self._lock:
             self._accepted = new
             self._pending = new
@@ -446,6 +449,7 @@ class SessionLoop:
             reset, self._reset_requested = self._reset_requested, False
         if pending is not None:
             self._settings = pending
+            self.metrics.count("settings_changes_applied")
         if reset:
             self.reconstruct.reset()
             self.predictor.reset()
