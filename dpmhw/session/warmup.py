@@ -138,26 +138,27 @@ def _reconstruction(config_data: dict) -> None:
 
 
 # Each group's kernels and their cold compile time in seconds (exclusive of the callees listed
-# beside them), from `dpmhw warmup --profile` with an empty cache on the reference machine of
-# docs/warmup.md. They weigh the progress and its ETA (a kernel not listed is not counted).
+# beside them), from `dpmhw warmup --profile --workers 1` with an empty cache on the machine of
+# docs/first-run.md. They weigh the progress and its ETA (a kernel not listed is not counted).
 EXPECTED_S: dict[str, dict[str, float]] = {
     "path tracing": {
-        "render.kernels.trace_segments": 3.0, "render.kernels.trace_segment": 4.1, "render.kernels.sample_first": 12.3,
-        "render.kernels.shade": 11.3, "render.traversal.closest_range": 4.7, "render.traversal.closest_tiles": 2.4,
-        "render.traversal.occluded_range": 1.7, "render.kernels.first_surface": 1.6,
-        "render.kernels.jittered_directions": 0.4, "render.raster.resolve_range": 0.3, "render.kernels.camera_rays": 0.1,
-        "render.kernels.add_unoccluded": 0.2, "render.raster._raster": 1.6, "render.raster._setup": 1.5,
-        "render.raster._bin": 0.8, "render.raster._to_camera": 0.5,
+        "render.kernels.sample_first": 14.6, "render.kernels.shade": 12.4, "render.traversal._closest_rows": 7.0,
+        "render.kernels.trace_segment": 4.0, "render.kernels.trace_segments": 3.7,
+        "render.traversal.occluded_range": 1.8, "render.kernels.first_surface": 1.7, "render.raster._raster": 1.5,
+        "render.raster._setup": 1.4, "render.traversal.closest_rows": 1.2, "render.traversal.closest_range": 0.8,
+        "render.raster.resolve_range": 0.5, "render.kernels.jittered_directions": 0.5,
+        "render.raster._to_camera": 0.4, "render.traversal.tile_order_range": 0.4,
+        "render.traversal.closest_tiles": 0.4,
     },
     "G-buffer and reconstruction": {
-        "reconstruct.analytic._products_kernel": 8.4, "reconstruct.upsample._upsample_kernel": 4.9,
-        "lod.visibility._visibility_kernel": 4.2, "render.gbuffer._restore_kernel": 4.0,
-        "reconstruct.reuse._motion_py": 2.5, "reconstruct.filter._filter_kernel": 2.5, "render.gbuffer._classify": 2.2,
-        "render.gbuffer._trace_pixels": 1.8, "render.traversal.closest_rows": 1.8, "render.gbuffer._attributes_py": 1.7,
-        "reconstruct.reuse._same_pixel_py": 1.5, "reconstruct.guides._guides_kernel": 1.0,
-        "reconstruct.analytic._row_counts": 1.0, "postprocess._encode_kernel": 0.9, "lod.refine._fill": 0.9,
-        "reconstruct.reuse._reproject_py": 0.8, "render.gbuffer._attributes_py_serial": 0.7, "lod.refine._fetch": 0.4,
-        "render.traversal.tile_order": 0.4, "lod.refine._select": 0.4, "reconstruct.adaptive._merge": 0.3,
+        "reconstruct.analytic._evaluate_block": 5.6, "reconstruct.upsample._upsample_kernel": 4.6,
+        "reconstruct.analytic._products_kernel": 3.1, "reconstruct.reuse._motion_py": 3.1,
+        "render.gbuffer._classify": 2.9, "render.gbuffer._attributes_py": 2.3,
+        "reconstruct.filter._filter_kernel": 2.1, "reconstruct.guides._guides_kernel": 1.3,
+        "reconstruct.reuse._reproject_py": 1.2, "reconstruct.reuse._same_pixel_py": 1.2,
+        "render.gbuffer._restore_kernel": 1.1, "reconstruct.analytic._row_counts": 0.8,
+        "render.gbuffer._trace_pixels": 0.7, "postprocess._encode_kernel": 0.6,
+        "reconstruct.adaptive._candidates": 0.4, "render.gbuffer._tile_order": 0.3,
     },
 }
 
