@@ -116,7 +116,7 @@ class _NoPaths:
         return getattr(self._renderer, name)
 
 
-def _synthetic_frame(scene, renderer, t: float):
+def _synthetic_frame(renderer, t: float):
     """A shading-size `Frame` with the renderer's types: zero light on object 0 everywhere."""
     from dpmhw.render.frame import Frame
 
@@ -133,7 +133,7 @@ def _reconstruction(config_data: dict) -> None:
 
     config, scene, renderer, gbuffer = _build(config_data)
     stage = reconstruct_stage(config, scene, _NoPaths(renderer), gbuffer, time.monotonic_ns)
-    frames = [(scene.object_poses(t), _synthetic_frame(scene, renderer, t)) for t in (0.0, 0.25)]
+    frames = [(scene.object_poses(t), _synthetic_frame(renderer, t)) for t in (0.0, 0.25)]
     exercise_stage(stage, frames, renderer.camera)
 
 
