@@ -23,6 +23,7 @@ import numpy as np
 
 from calibration.board import BoardSpec
 from calibration.patterns import PatternSet, gray_encode
+from dpmhw.render.distortion import distort
 
 
 @dataclass
@@ -39,11 +40,7 @@ class Lens:
         pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
         x = pts[:, 0] / pts[:, 2]
         y = pts[:, 1] / pts[:, 2]
-        k1, k2, p1, p2, k3 = self.dist
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        xd, yd = distort(x, y, *self.dist)
         K = self.K
         return np.column_stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]])
 

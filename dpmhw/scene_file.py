@@ -7,6 +7,7 @@ silently as a default.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -92,6 +93,25 @@ class Scene:
 
     def object_poses(self, t: float) -> list[Pose]:
         return [obj.pose_at(t) for obj in self.objects]
+
+    def at_size(self, width: int, height: int) -> "Scene":
+        """The same scene rendered at another size: a point lands on the same place of the
+        picture (intrinsics scaled about pixel centres, lens shift kept)."""
+        r = self.render
+        if (width, height) == (r.width, r.height):
+            return self
+        K = scale_intrinsics(self.camera.K, width / r.width, height / r.height)
+        return dataclasses.replace(self, render=dataclasses.replace(r, width=width, height=height),
+                                   camera=dataclasses.replace(self.camera, K=K))
+
+
+def scale_intrinsics(K, sx: float, sy: float) -> np.ndarray:
+    """K of the same camera with its image scaled by (sx, sy) about pixel centres (pixel x's
+    centre is at x, so c' = (c + 0.5)·s − 0.5); the skew scales with x, as fx does."""
+    K = np.array(K, dtype=np.float64, copy=True)
+    K[0, 0], K[0, 1], K[0, 2] = K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5
+    K[1, 1], K[1, 2] = K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5
+    return K
 
 
 class _Fields:

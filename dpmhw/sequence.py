@@ -19,18 +19,9 @@ from dpmhw.scene_file import Scene
 
 
 def scaled_scene(scene: Scene, scale: float) -> Scene:
-    """The same scene rendered at `scale` × its resolution (intrinsics scaled about the
-    pixel-centre convention: c' = (c + 0.5)·s − 0.5), for quick runs."""
-    if scale == 1:
-        return scene
+    """The same scene rendered at `scale` × its resolution (at least 1 px), for quick runs."""
     r = scene.render
-    width, height = max(1, round(r.width * scale)), max(1, round(r.height * scale))
-    sx, sy = width / r.width, height / r.height
-    K = np.array(scene.camera.K, dtype=np.float64, copy=True)
-    K[0, 0], K[0, 1], K[0, 2] = K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5
-    K[1, 1], K[1, 2] = K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5
-    return dataclasses.replace(scene, render=dataclasses.replace(r, width=width, height=height),
-                               camera=dataclasses.replace(scene.camera, K=K))
+    return scene.at_size(max(1, round(r.width * scale)), max(1, round(r.height * scale)))
 
 
 def with_fps(scene: Scene, fps: float) -> Scene:

@@ -13,6 +13,21 @@ settings.register_profile("dpmhw", deadline=None, suppress_health_check=[HealthC
 settings.load_profile("dpmhw")
 
 
+def pytest_sessionstart(session) -> None:
+    """Compile the session's kernels once, up front and in parallel, with progress in the log:
+    otherwise the first test to render pays for it inside its own time limit, and a fixture that
+    starts a session waits minutes on a fresh clone. Nothing to do when the cache is warm."""
+    from dpmhw.session.config import load_session_config
+    from dpmhw.session.warmup import compile_kernels
+
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    write = (lambda line: reporter.write_line(line)) if reporter is not None else print
+    result = compile_kernels(load_session_config(None), progress=lambda p: None if p.warm else write(p.line()),
+                             every_s=15.0)
+    for group, why in result.failed.items():
+        write(f"compiling the {group} kernels ahead failed ({why}); the tests compile them as they go")
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _own_runtime_dir(tmp_path_factory):
     """Session lock files (dpmhw.session.instance) in a directory of this run's own, so a suite

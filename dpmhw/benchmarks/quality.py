@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import math
 import os
-import platform
 import time as _time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -44,6 +43,7 @@ from dpmhw.benchmarks.figures import labelled, save_figure
 from dpmhw.benchmarks.references import ReferenceCache
 from dpmhw.metrics import equivalent_spp, masked_psnr, psnr, ssim
 from dpmhw.postprocess import postprocess
+from dpmhw.machine import machine_info
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.reconstruct.adaptive import DEFAULT_BUDGET_RAYS
 from dpmhw.reconstruct.reuse import TemporalReuse
@@ -319,7 +319,7 @@ def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path
     load0 = os.getloadavg()
     images: dict = {}
     result = dict(config=asdict(cfg), dpmhw=__version__, renderer=cache.renderer,
-                  machine=dict(cpus=os.cpu_count(), python=platform.python_version(), processor=platform.processor() or platform.machine()),
+                  machine=machine_info(),
                   metrics="PSNR on uint8 sRGB (exposure 1, clip), all channels; SSIM Wang et al. 2004 on Rec.601 luma, 11×11 Gaussian σ=1.5, K1=0.01, K2=0.03, data range 255",
                   paper_table1=[dict(label=l, psnr=p, ssim=s) for l, p, s in PAPER_TABLE1])
     outcomes, units_cpu = (run_units or run_units_here)(sweep_units(cfg), cache, progress)

@@ -21,8 +21,6 @@ Mrays per second of wall time and per CPU-second.
 
 from __future__ import annotations
 
-import os
-import platform
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -31,6 +29,7 @@ import numpy as np
 
 from dpmhw.render import kernels
 from dpmhw.render.accel import empty_hits
+from dpmhw.machine import machine_info
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene
 from dpmhw.transforms import Pose, rotation_about_axis
@@ -112,7 +111,7 @@ def bench_render(scene_name: str = "paper-static", frames: int = 9, threads: int
         "shade_ns_per_vertex": split["shade_ns_per_vertex"],
         "rays_per_frame": {"camera": int(med["camera"]), "continuation": int(med["continuation"]), "shadow": int(med["shadow"]), "total": int(rays)},
         "raw_embree": raw, "raw_embree_ms_for_frame_rays": embree_only_ms,
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "processor": platform.processor() or platform.machine()},
+        "machine": machine_info(),
         "per_frame": rows,
     }
     for q in ("camera", "continuation", "shadow"):  # flat per-query rates

@@ -16,7 +16,7 @@ def _register() -> None:
     import importlib
 
     for optional in ("dpmhw.cli.mock", "dpmhw.cli.calibrate", "dpmhw.cli.projector", "dpmhw.cli.session",
-                     "dpmhw.cli.tracker"):
+                     "dpmhw.cli.tracker", "dpmhw.cli.warmup"):
         try:
             importlib.import_module(optional)
         except ModuleNotFoundError as exc:  # a group another issue has not landed yet

@@ -18,7 +18,16 @@ app.add_typer(mock_app, name="mock")
 
 
 def write_json(data, path: Path) -> Path:
-    """Write a benchmark's result as indented JSON (making the folder); returns the path."""
+    """Write a benchmark's result as indented JSON (making the folder); returns the path. Every
+    result records its machine (`dpmhw.machine.machine_info`): a dict under "machine", flat rows
+    each with its keys prefixed `machine_`."""
+    from dpmhw.machine import machine_info
+
+    m = machine_info()
+    if isinstance(data, dict):
+        data = {**data, "machine": m}
+    elif isinstance(data, list):
+        data = [{**row, **{f"machine_{k}": v for k, v in m.items()}} if isinstance(row, dict) else row for row in data]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2))
     return path
@@ -28,6 +37,14 @@ def _version(value: bool) -> None:
     if value:
         typer.echo(f"dpmhw {__version__}")
         raise typer.Exit()
+
+
+@bench_app.callback()
+def _bench() -> None:
+    """Benchmarks that print and save their tables, each with the machine it ran on."""
+    from dpmhw.machine import machine_line
+
+    typer.echo(machine_line())
 
 
 @app.callback()

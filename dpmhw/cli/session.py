@@ -136,13 +136,16 @@ def show_config(
 
     try:
         cfg = _load(config, sets, [])
+    except DpmhwError as exc:
+        _fail(exc)
+    _vet(cfg)  # from the sizes alone: a session over the memory limit is refused before its scene loads
+    try:
         scene = prepare_scene(cfg)
         resolve_bindings(cfg, scene)
         if not offline:
             check_devices(cfg, scene)
     except DpmhwError as exc:
         _fail(exc)
-    _vet(cfg)
     data = cfg.model_dump()
     data["api"]["token"] = "***" if data["api"]["token"] else ""
     typer.echo(json.dumps(data, indent=2))

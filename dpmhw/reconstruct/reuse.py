@@ -58,6 +58,7 @@ import numba as nb
 import numpy as np
 
 from dpmhw.errors import DpmhwError
+from dpmhw.render.distortion import distort_inline
 from dpmhw.reconstruct.settings import ALPHA_MAX, ALPHA_MIN, MAX_HISTORY_LENGTH, REUSE_MODES
 
 MIN_BILINEAR_WEIGHT = 1e-6
@@ -270,10 +271,7 @@ def _reproject_py(ids, xm, R, T, cam_R, cam_t, K, dist, width, bg_still, xy, ok)
             continue
         x = c0 / c2
         y = c1 / c2
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        xd, yd = distort_inline(x, y, k1, k2, p1, p2, k3)
         xy[p, 0] = K[0, 0] * xd + K[0, 2]  # no skew, as PinholeCamera.project
         xy[p, 1] = K[1, 1] * yd + K[1, 2]
         ok[p] = True

@@ -1,7 +1,7 @@
 """Joint bilateral upsampling: shading-resolution light → native frame, guided by the native G-buffer.
 
 For a native pixel X the shading-resolution position is u = (X + ½)·(w/W) − ½ (pixel centres
-map onto each other as in `session.factory.scale_to`); its 2×2 neighbours j get
+map onto each other as in `Scene.at_size`); its 2×2 neighbours j get
 
     W(X, j) = bilinear(u, j) · [id_j = id_X] · g_z(X, j) · w(X, j)
 

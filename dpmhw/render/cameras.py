@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from dpmhw.render import kernels
+from dpmhw.render.distortion import distort
 from dpmhw.transforms import Pose
 
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -86,10 +87,6 @@ class PinholeCamera:
         z = cam[:, 2]
         safe_z = np.where(z > 1e-12, z, 1.0)
         x, y = cam[:, 0] / safe_z, cam[:, 1] / safe_z
-        k1, k2, p1, p2, k3 = self.dist
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        xd, yd = distort(x, y, *self.dist)
         px = np.stack([self.K[0, 0] * xd + self.K[0, 2], self.K[1, 1] * yd + self.K[1, 2]], axis=1)
         return px, z > 1e-12

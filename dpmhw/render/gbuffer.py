@@ -49,6 +49,7 @@ import numpy as np
 from dpmhw.render import kernels, traversal
 from dpmhw.render.accel import empty_hits
 from dpmhw.render.cameras import PinholeCamera
+from dpmhw.render.distortion import distort_inline
 from dpmhw.render.geometry import SceneGeometry
 from dpmhw.render.traversal import RtcAccel
 from dpmhw.scene_file import Scene
@@ -214,10 +215,9 @@ def _project_vertices(verts, R, T, cam_R, cam_t, fx, fy, cx, cy, dist, cam, pix)
         cam[i, 0], cam[i, 1], cam[i, 2] = c0, c1, c2
         z = c2 if c2 > 1e-12 else 1e-12
         x, y = c0 / z, c1 / z
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        pix[i, 0] = fx * (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)) + cx
-        pix[i, 1] = fy * (y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y) + cy
+        xd, yd = distort_inline(x, y, k1, k2, p1, p2, k3)
+        pix[i, 0] = fx * xd + cx
+        pix[i, 1] = fy * yd + cy
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
@@ -339,14 +339,8 @@ class NativeGBuffer:
         self.scene = scene
         self.geometry = geometry
         self.width, self.height = int(width), int(height)
-        r = scene.render
-        sx, sy = self.width / r.width, self.height / r.height
-        K = np.array(scene.camera.K, dtype=float)
-        K[0, 0] *= sx
-        K[1, 1] *= sy
-        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-        self.camera = PinholeCamera(K, scene.camera.dist, self.width, self.height, scene.camera.pose)
+        cam = scene.at_size(self.width, self.height).camera
+        self.camera = PinholeCamera(cam.K, cam.dist, self.width, self.height, cam.pose)
         self.viewer = np.asarray(scene.viewer_position, np.float32)
         self.use_viewer = not np.allclose(scene.viewer_position, scene.camera.pose.t)
         self.cam_fwd = self.camera.pose.R[:, 2].astype(np.float32)

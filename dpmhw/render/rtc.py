@@ -86,7 +86,8 @@ def load() -> bool:
             llvm.load_library_permanently(path)
             lib = ctypes.CDLL(path)
             _declare(lib)
-            device = lib.rtcNewDevice(None)
+            isa = os.environ.get("DPMHW_EMBREE_ISA")  # e.g. avx2: what an AVX2 machine runs (dpmhw.machine)
+            device = lib.rtcNewDevice(f"isa={isa}".encode() if isa else None)
             if not device:
                 raise OSError(f"rtcNewDevice failed (error {lib.rtcGetDeviceError(None)})")
             _lib, _device = lib, device

@@ -32,22 +32,6 @@ __all__ = ["DLPC900Control", "MockRig", "build_session", "check_devices", "idle_
 log = logging.getLogger(__name__)
 
 
-def scale_to(scene: Scene, width: int, height: int) -> Scene:
-    """The same scene rendered at another size: intrinsics scaled about pixel centres, so a
-    point lands on the same place of the picture (lens shift kept)."""
-    r = scene.render
-    if (width, height) == (r.width, r.height):
-        return scene
-    sx, sy = width / r.width, height / r.height
-    K = np.array(scene.camera.K, dtype=float)
-    K[0, 0] *= sx
-    K[1, 1] *= sy
-    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return dataclasses.replace(scene, render=dataclasses.replace(r, width=width, height=height),
-                               camera=dataclasses.replace(scene.camera, K=K))
-
-
 def _scene_source(config: SessionConfig) -> str:
     from dpmhw.scene_file import BUILTIN_SCENES
 
@@ -116,7 +100,7 @@ def prepare_scene(config: SessionConfig) -> Scene:
                                     render=dataclasses.replace(scene.render, width=calib.width, height=calib.height))
     r = config.render
     if r.width and r.height:
-        scene = scale_to(scene, r.width, r.height)
+        scene = scene.at_size(r.width, r.height)
     return scene
 
 
@@ -343,31 +327,26 @@ def check_devices(config: SessionConfig, scene: Scene) -> None:
 def shading_scene(scene: Scene, scale: float) -> Scene:
     """The scene at the shading resolution: `scale` of the native size per axis (at least 1 px)."""
     r = scene.render
-    return scale_to(scene, max(1, round(r.width * scale)), max(1, round(r.height * scale)))
+    return scene.at_size(max(1, round(r.width * scale)), max(1, round(r.height * scale)))
 
 
-def warm_up(renderer, scene: Scene, gbuffer=None) -> None:
-    """Run every per-frame kernel once before the loop starts. On a fresh install the first call
-    compiles them (numba; tens of seconds, then cached on disk): inside the loop that would be a
-    stall the watchdog reports as a fault. `scene` is the native one."""
-    from dpmhw.lod.refine import RefineSettings, TileRefiner
-    from dpmhw.reconstruct.adaptive import AdaptiveSampler
-    from dpmhw.reconstruct.stage import ReconstructStage
+def build_renderer(config: SessionConfig, scene: Scene, gbuffer: bool = True):
+    """The path tracer at the shading size and, when that differs from the native (output) size
+    and `gbuffer`, the native G-buffer (else None)."""
+    from dpmhw.render.integrator import PathIntegrator
 
-    t0 = time.monotonic()
-    poses = scene.object_poses(0.0)
-    frame = renderer.render(time=0.0, seed=0, spp=1, poses=poses)
-    native = (scene.render.width, scene.render.height)
-    for mode in ("same-pixel", "motion"):
-        for filt in ("off", "lobe"):
-            stage = ReconstructStage(native, (renderer.width, renderer.height), background=scene.render.background,
-                                     viewer=scene.viewer_position, gbuffer=gbuffer,
-                                     adaptive=AdaptiveSampler(renderer, gbuffer) if gbuffer is not None else None,
-                                     lod=TileRefiner(renderer, gbuffer, RefineSettings(rays=1 << 20, visible=True))
-                                     if gbuffer is not None else None)  # the LOD refiner's kernels too
-            for _ in range(2):  # the second frame takes the history path
-                stage.apply(frame, mode=mode, alpha=0.2, filter=filt, poses=poses, camera=renderer.camera)
-    log.info("render and reconstruction kernels ready in %.1f s", time.monotonic() - t0)
+    renderer = PathIntegrator(shading_scene(scene, config.render.shading_scale), threads=config.render.threads,
+                              pixel_sampling=config.render.pixel_sampling)
+    if not gbuffer or (renderer.width, renderer.height) == (scene.render.width, scene.render.height):
+        return renderer, None
+    from dpmhw.render.gbuffer import NativeGBuffer
+
+    try:
+        return renderer, NativeGBuffer(scene, renderer.geometry, scene.render.width, scene.render.height,
+                                       threads=config.render.threads)
+    except BaseException:
+        renderer.close()
+        raise
 
 
 def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: Any = None,
@@ -395,20 +374,10 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
                 closers.append(projector.close)
         gbuffer = None
         if renderer is None:
-            from dpmhw.render.integrator import PathIntegrator
-
-            renderer = PathIntegrator(shading_scene(scene, config.render.shading_scale), threads=config.render.threads,
-                                      pixel_sampling=config.render.pixel_sampling)
-            if hasattr(renderer, "close"):
-                closers.append(renderer.close)
-            if (renderer.width, renderer.height) != (scene.render.width, scene.render.height):
-                from dpmhw.render.gbuffer import NativeGBuffer
-
-                gbuffer = NativeGBuffer(scene, renderer.geometry, scene.render.width, scene.render.height,
-                                        threads=config.render.threads)
+            renderer, gbuffer = build_renderer(config, scene)
+            if gbuffer is not None:
                 closers.append(gbuffer.close)
-            warm_up(renderer, scene, gbuffer)
-        elif hasattr(renderer, "close"):
+        if hasattr(renderer, "close"):
             closers.append(renderer.close)
         sink = open_sink(config, mock, (scene.render.height, scene.render.width))
         closers.append(sink.close)
@@ -441,9 +410,18 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
 
 def build_session(config: SessionConfig, *, mock: bool = False, renderer: Any = None, frame_log: int = 0,
                   usb: tuple[str, bytes] | None = None, heartbeat: Any = None) -> SessionLoop:
-    """A ready-to-start loop over freshly opened parts (`heartbeat`: see dpmhw.session.heartbeat)."""
-    return SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer, usb=usb), frame_log=frame_log,
+    """A ready-to-start loop over freshly opened parts, every per-frame kernel ready (compiled
+    now if the cache lacks it: `warmup.compile_kernels` fills it ahead, in parallel).
+    `heartbeat`: see dpmhw.session.heartbeat."""
+    loop = SessionLoop(config, open_session_parts(config, mock=mock, renderer=renderer, usb=usb), frame_log=frame_log,
                        heartbeat=heartbeat)
+    if renderer is None:
+        try:
+            loop.warm()
+        except BaseException:
+            loop.stop("the render kernels could not be readied")
+            raise
+    return loop
 
 
 # ---- for the supervisor (dpmhw.session.supervisor), which outlives the loop's process -------------

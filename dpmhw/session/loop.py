@@ -43,6 +43,7 @@ from dpmhw.postprocess import NonFiniteFrameError
 from dpmhw.lod.mesh_loop import mesh_lod
 from dpmhw.lod.refine import tile_refiner
 from dpmhw.reconstruct.adaptive import AdaptiveSampler
+from dpmhw.reconstruct.settings import FILTER_MODES, REUSE_MODES
 from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
@@ -176,6 +177,32 @@ class _Job:
     frame: Any = None
 
 
+def reconstruct_stage(config: SessionConfig, scene, renderer, gbuffer, clock) -> ReconstructStage:
+    """The session's reconstruction from its config: `renderer` at the shading size (it also
+    serves the adaptive and LOD paths), `gbuffer` the native one (None at equal sizes)."""
+    r = config.render
+    return ReconstructStage((scene.render.width, scene.render.height), (renderer.width, renderer.height),
+                            background=scene.render.background, viewer=scene.viewer_position,
+                            warmup=config.reuse.warmup, gbuffer=gbuffer, clock=clock,
+                            adaptive=AdaptiveSampler(renderer, gbuffer, r.adaptive_rays, r.adaptive_threshold)
+                            if gbuffer is not None and r.adaptive_rays > 0 else None,
+                            lod=tile_refiner(renderer, gbuffer, config.lod),
+                            analytic=(r.analytic_floor, r.analytic_specular_floor) if r.analytic else None)
+
+
+def exercise_stage(stage: ReconstructStage, frames, camera):
+    """Every reuse mode and filter an operator can switch to, each over `frames` ((poses, Frame)
+    at two poses: the second takes the history and the moved region), then a clean history:
+    what a stage calls, called once (numba compiles or loads it now, not in a frame). Returns
+    the last output."""
+    for mode in REUSE_MODES:
+        for filt in FILTER_MODES:
+            for poses, frame in frames:
+                out = stage.apply(frame, mode=mode, alpha=0.2, filter=filt, poses=poses, camera=camera)
+    stage.reset()
+    return out
+
+
 class SessionLoop:
     """Runs one projection session. `start()`, then `stop()` (idempotent) for a verified dark end."""
 
@@ -196,15 +223,7 @@ class SessionLoop:
         scene = parts.scene
         self.output_size = (scene.render.width, scene.render.height)  # the projector's native (W, H)
         self._renderer = OneCallAtATime(parts.renderer)  # pipelining renders on a second thread
-        self.reconstruct = ReconstructStage(self.output_size, (parts.renderer.width, parts.renderer.height),
-                                            background=scene.render.background, viewer=scene.viewer_position,
-                                            warmup=config.reuse.warmup, gbuffer=parts.gbuffer, clock=clock,
-                                            adaptive=AdaptiveSampler(self._renderer, parts.gbuffer, config.render.adaptive_rays,
-                                                                     config.render.adaptive_threshold)
-                                            if parts.gbuffer is not None and config.render.adaptive_rays > 0 else None,
-                                            lod=tile_refiner(self._renderer, parts.gbuffer, config.lod),  # None: off
-                                            analytic=(config.render.analytic_floor, config.render.analytic_specular_floor)
-                                            if config.render.analytic else None)
+        self.reconstruct = reconstruct_stage(config, scene, self._renderer, parts.gbuffer, clock)
         self.mesh_lod = mesh_lod(parts.renderer, parts.gbuffer, config.lod)  # mesh levels (None: off)
         self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
         # render frame n+1 beside frame n's reconstruction; not with mesh LOD, whose level switch must hold for
@@ -221,6 +240,8 @@ class SessionLoop:
         self._lock = threading.Lock()  # guards the published references and the queue only
         self._output_lock = threading.Lock()  # serialises going dark / going live
         self._output_on = False
+        self.first_lit = threading.Event()  # set when the output first goes on (the show's clock starts)
+        self.first_lit_at: float | None = None  # time.monotonic() then (one clock for every process here)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._heartbeat_ns = clock()
@@ -239,6 +260,31 @@ class SessionLoop:
         self._publish(force=True)
 
     # ---- lifecycle -------------------------------------------------------------------------
+    def warm(self) -> float:
+        """Run each per-frame path once, on this loop's own renderer and stage, before it goes
+        live (a pose twice, its camera hits then kept, and a move); returns the seconds taken.
+        With a warm kernel cache this loads code; otherwise it compiles it."""
+        t0 = time.monotonic()
+        scene, renderer = self.parts.scene, self.parts.renderer
+        frames = []
+        for k, t in enumerate((0.0, 0.0, 0.25)):
+            poses = scene.object_poses(t)
+            frames.append((poses, renderer.render(time=t, seed=k, spp=1, poses=poses)))
+        out = exercise_stage(self.reconstruct, frames[1:], renderer.camera)
+        if self.mesh_lod is not None:
+            self._observe_mesh_lod(out.image, frames[-1][1])
+        took = time.monotonic() - t0
+        log.info("render and reconstruction kernels ready in %.1f s", took)
+        return took
+
+    def _observe_mesh_lod(self, image: np.ndarray, frame) -> None:
+        g = self.parts.gbuffer
+        H, W = image.shape[:2]
+        refiner = self.reconstruct.lod  # its map of this output, when tiles are refined: one map for both uses
+        self.mesh_lod.observe(image, g.depth.reshape(H, W) if g is not None else frame.depth,
+                              g.id.reshape(H, W) if g is not None else frame.object_id,
+                              visibility=refiner.output_map if refiner is not None else None)
+
     def start(self) -> "SessionLoop":
         # every tracker sample feeds the predictor, not only the newest one per frame: at 10 fps
         # `history` newest-per-frame samples would span a second instead of a few milliseconds
@@ -566,12 +612,7 @@ class SessionLoop:
         stages.update(out.stages_s)
         if self.mesh_lod is not None:  # the output's visibility per object, for the next choice
             t3 = self.clock()
-            g = self.parts.gbuffer
-            H, W = image.shape[:2]
-            refiner = self.reconstruct.lod  # its map of this output, when tiles are refined: one map for both uses
-            self.mesh_lod.observe(image, g.depth.reshape(H, W) if g is not None else frame.depth,
-                                  g.id.reshape(H, W) if g is not None else frame.object_id,
-                                  visibility=refiner.output_map if refiner is not None else None)
+            self._observe_mesh_lod(image, frame)
             stages["mesh_lod"] += (self.clock() - t3) / 1e9
         t4 = self.clock()
         # the newest sample may have gone stale while this frame was made: never light it then
@@ -663,6 +704,9 @@ class SessionLoop:
             if self.heartbeat is not None:
                 self.heartbeat.presented(self.clock(), self._present_allowance_ns())
             self._output_on = True
+            if self.first_lit_at is None:
+                self.first_lit_at = time.monotonic()
+                self.first_lit.set()
             self.metrics.count("resumes")
             log.warning("projection resumed")
 

@@ -45,6 +45,7 @@ of any dead owner when the supervisor starts (`dpmhw.child_process.SHARED_SLOTS`
 from __future__ import annotations
 
 import contextlib
+import html
 import json
 import logging
 import multiprocessing
@@ -129,9 +130,19 @@ _HEADERS = (("X-Content-Type-Options", "nosniff"), ("X-Frame-Options", "DENY"),
             ("Content-Security-Policy", "default-src 'none'; frame-ancestors 'none'"))
 
 
+def _down_page(status: dict) -> bytes:
+    """What the operator page's address shows while no loop process serves it (compiling,
+    restarting, a fault): the state and reason as text, reloaded every 2 s until the page is back."""
+    state, reason = (html.escape(str(status.get(k, ""))) for k in ("state", "reason"))
+    return (f'<!doctype html><html><head><meta charset="utf-8"><meta http-equiv="refresh" content="2">'
+            f"<title>dpmhw: {state}</title></head><body><h1>Projector dark: {state}</h1><p>{reason}</p>"
+            f"<p>This page reloads by itself; the operator page comes back when the session is up.</p>"
+            f"</body></html>").encode()
+
+
 class FaultResponder:
-    """Minimal HTTP on the supervisor's listening socket: `/status` says `fault` and why,
-    `/readyz` 503, `/livez` 200, anything else 503. Serves only between `start()` and `stop()`.
+    """Minimal HTTP on the supervisor's listening socket: `/status` says `fault` (or `compiling`)
+    and why, `/readyz` 503, `/livez` 200, `/` a page saying so in words, anything else 503. Serves only between `start()` and `stop()`.
     A client has `timeout_s` for each read; neither a slow client nor many of them can hold up
     `stop()` or another client (up to `max_connections` at once)."""
 
@@ -170,9 +181,12 @@ class FaultResponder:
                     code, body = 503, {"ready": False, "state": status.get("state"), "reason": status.get("reason")}
                 else:
                     code, body = 503, {"detail": f"the session is down: {status.get('reason', '')}"}
+                kind = "application/json"
                 data = json.dumps(body).encode()
+                if path == "/" and self.command == "GET":  # the operator page's address: say why in words
+                    kind, data = "text/html; charset=utf-8", _down_page(status)
                 self.send_response(code)
-                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Type", kind)
                 self.send_header("Content-Length", str(len(data)))
                 for name, value in _HEADERS:
                     self.send_header(name, value)
@@ -305,8 +319,16 @@ def run_child(args: ChildArgs, conn) -> None:
     logging.getLogger().addHandler(_Relay(echo))
     loop = api = None
     try:
-        echo("opening devices, loading the scene, readying the render kernels (a first run compiles them) …")
+        echo("opening devices, loading the scene and the render kernels …")
         loop = build_session(config, mock=args.mock, usb=args.usb, heartbeat=args.heartbeat).start()
+
+        def first_light() -> None:
+            while not stop.is_set():
+                if loop.first_lit.wait(0.1):
+                    send("lit", loop.first_lit_at)
+                    return
+
+        threading.Thread(target=first_light, name="first-light", daemon=True).start()
         echo(f"session started ({'mock devices' if args.mock else 'hardware'}); scene {config.scene.source}, "
              f"render {loop.parts.renderer.width}×{loop.parts.renderer.height}")
         threading.Thread(target=listen, name="supervisor-link", daemon=True).start()
@@ -375,6 +397,16 @@ class _Link:
 
 
 # ---- the supervising parent ---------------------------------------------------------------------
+def _process_age_s() -> float:
+    """Seconds since this process started (its imports included), 0 where /proc cannot tell."""
+    try:
+        with open("/proc/self/stat") as f:
+            ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+        return max(0.0, time.clock_gettime(time.CLOCK_BOOTTIME) - ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError, AttributeError):
+        return 0.0
+
+
 class Supervisor:
     """Runs the session in a child process and keeps the projector dark whenever it is down or hung.
     `on_loop_started` (a module-level function, called in the loop process with the started loop)
@@ -403,6 +435,10 @@ class Supervisor:
         self._window = None
         self._idle_job: Future | None = None  # the idle attempt in flight (at most one)
         self._unconfirmed = ""  # what left the projector without a confirmed dark (retried)
+        self._t_start = time.monotonic() - _process_age_s()  # when the command started
+        self._loop_started: float | None = None
+        self._first_lit: float | None = None
+        self.compile_s = 0.0
 
     def request_stop(self, reason: str) -> None:
         if not self._stop.is_set():
@@ -432,6 +468,8 @@ class Supervisor:
             except Exception as exc:
                 self.echo(f"supervisor: warning: cannot reach the projector to idle it ({exc or type(exc).__name__}); "
                           "after a crash of the loop process it may not be made dark")
+            if not self._ready_kernels():
+                return 0
             while True:
                 child, link = self._start_child()
                 outcome, what = self._watch(child, link)
@@ -462,8 +500,35 @@ class Supervisor:
             if self.emulator is not None:
                 self.emulator.close()
 
+    def _ready_kernels(self) -> bool:
+        """Compile the session's kernels in worker processes before the loop process starts (a
+        first run on this machine), with progress on the console and `/status`; False if stopped
+        meanwhile. The loop process then loads them from the cache in seconds."""
+        from dpmhw.session.warmup import compile_kernels
+
+        printed = [-1e9]
+
+        def show(p) -> None:
+            if p.warm:
+                return
+            now = time.monotonic()
+            if now - printed[0] >= 5.0 or not p.groups_left:  # a line every 5 s, and the last
+                printed[0] = now
+                self.echo(p.line())
+            if self.responder is not None:
+                self.responder.set_status({"state": "compiling", "reason": p.line(), "output_on": False,
+                                           "compile": p.as_status(), "supervisor": {"pid": os.getpid(), "starts": 0}})
+                self.responder.start()
+
+        result = compile_kernels(self.config, progress=show, should_stop=self._stop.is_set)
+        for group, why in result.failed.items():
+            self.echo(f"supervisor: compiling the {group} kernels ahead failed ({why}); the loop process compiles them")
+        self.compile_s = 0.0 if result.warm else result.elapsed_s
+        return not result.stopped
+
     def _deadline_passed(self) -> bool:
-        """The --duration counts from the first start of the loop (as before supervision)."""
+        """The --duration counts from the first lit frame; a show that never lights ends
+        `duration` after its loop process started."""
         if self._deadline is not None and time.monotonic() >= self._deadline:
             self.request_stop(f"the --duration of {self.duration:g} s elapsed")
         return self._stop.is_set()
@@ -490,10 +555,22 @@ class Supervisor:
         if kind == "line":  # its output: relayed, so that one process writes the session's lines
             self.echo(payload)
         elif kind == "started":
-            if self._deadline is None and self.duration is not None:
-                self._deadline = time.monotonic() + self.duration
+            if self._loop_started is None:
+                self._loop_started = time.monotonic()
+                self._set_deadline()
             if self.responder is not None:
                 self.responder.stop()  # the loop process's own API serves the port now
+        elif kind == "lit" and self._first_lit is None:
+            self._first_lit = payload
+            compiled = f", {self.compile_s:.1f} s of it compiling the render kernels" if self.compile_s else ""
+            self.echo(f"first lit frame {payload - self._t_start:.1f} s after the command started{compiled}"
+                      + (f"; showing for {self.duration:g} s" if self.duration is not None else ""))
+            self._set_deadline()
+
+    def _set_deadline(self) -> None:
+        """The --duration counts from the first lit frame, or from the loop's start while none came."""
+        if self.duration is not None and self._loop_started is not None:
+            self._deadline = (self._first_lit if self._first_lit is not None else self._loop_started) + self.duration
 
     def _until_exit(self, child, link: _Link, timeout_s: float) -> bool:
         """Relay its messages until the loop process has exited (True) or `timeout_s` passed."""

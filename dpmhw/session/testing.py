@@ -137,10 +137,10 @@ def fake_session(overrides=(), renderer=None, projector=True, tracker=None, fram
     from drivers.frame_sinks import RecordingSink
     from dpmhw.scene_file import load_scene
     from dpmhw.session.config import load_session_config
-    from dpmhw.session.factory import resolve_bindings, scale_to
+    from dpmhw.session.factory import resolve_bindings
     from dpmhw.session.loop import SessionLoop, SessionParts
 
-    scene = scale_to(load_scene("dpm-bunny"), 32, 24)
+    scene = load_scene("dpm-bunny").at_size(32, 24)
     cfg = load_session_config(overrides=["safety.holdoff_s=0.1", "safety.stale_after_ms=200", "safety.watchdog_s=1.0",
                                          "projector.poll_interval_s=0.02", "reuse.mode=same-pixel", *overrides])
     parts = SessionParts(scene, renderer or FlatRenderer(), tracker or FakeTracker(), RecordingSink(max_frames=4096),

@@ -50,8 +50,11 @@ def session_url():
     reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
     reader.start()
     try:
-        if not wait_for(lambda: any("API on http://" in line for line in lines), 120):
+        # ready when it says so, however long a first compile takes; a start that ends is a failure
+        if not wait_for(lambda: any("API on http://" in line for line in lines) or proc.poll() is not None, 900):
             pytest.fail("session did not start:\n" + "".join(lines))
+        if proc.poll() is not None:
+            pytest.fail(f"session exited with {proc.returncode} before its API was up:\n" + "".join(lines))
         url = next(m.group(1) for line in lines if (m := re.search(r"API on (http://\S+)", line)))
         if not wait_for(lambda: _get(url, "/status").get("state") == "running", 60):
             pytest.fail(f"session never ran: {_get(url, '/status')}")

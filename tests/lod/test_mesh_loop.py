@@ -192,11 +192,10 @@ def test_the_session_loop_chooses_levels_every_frame():
     """`lod.mesh=true`: the loop installs the levels, chooses before each render (stage
     "mesh_lod" timed), reads the output's visibility after it; the lit bunny 1 m away stays at
     level 0; `lod.mesh=false` (default): no MeshLod at all."""
-    from dpmhw.session.factory import scale_to
     from dpmhw.session.testing import fake_session
     from dpmhw.tracking import wait_for
 
-    scene = scale_to(load_scene("dpm-bunny"), 32, 24)
+    scene = load_scene("dpm-bunny").at_size(32, 24)
     for on in (True, False):
         renderer = PathIntegrator(scene, threads=1)
         loop = fake_session(["lod.mesh=true"] if on else [], renderer=renderer)

@@ -15,14 +15,14 @@ from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene
 from dpmhw.session.config import LodSection, load_session_config
-from dpmhw.session.factory import scale_to, shading_scene
+from dpmhw.session.factory import shading_scene
 
 W, H = 128, 96
 
 
 @pytest.fixture(scope="module")
 def rig():
-    native = scale_to(load_scene("paper-dynamic"), W, H)
+    native = load_scene("paper-dynamic").at_size(W, H)
     r = PathIntegrator(shading_scene(native, 0.25), threads=2)
     g = NativeGBuffer(native, r.geometry, W, H, threads=2)
     yield native, r, g

@@ -11,7 +11,7 @@ from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene, parse_scene
-from dpmhw.session.factory import scale_to, shading_scene
+from dpmhw.session.factory import shading_scene
 
 
 def test_select_takes_unresolved_first_then_the_smallest_weight_sums_within_the_limit():
@@ -71,7 +71,7 @@ def test_merge_replaces_unresolved_blends_weak_and_keeps_non_finite_samples_out(
 
 
 def test_render_pixels_is_deterministic_per_seed_and_finite():
-    scene = scale_to(load_scene("dpm-bunny"), 64, 48)
+    scene = load_scene("dpm-bunny").at_size(64, 48)
     r = PathIntegrator(scene, threads=2)
     try:
         pixels = np.arange(0, 64 * 48, 7)
@@ -90,7 +90,7 @@ def test_render_pixels_is_deterministic_per_seed_and_finite():
 
 
 def _session(budget, W=128, H=96):
-    native = scale_to(load_scene("dpm-bunny"), W, H)  # a moving bunny in front of a static wall
+    native = load_scene("dpm-bunny").at_size(W, H)  # a moving bunny in front of a static wall
     r = PathIntegrator(shading_scene(native, 0.25), threads=2)
     g = NativeGBuffer(native, r.geometry, W, H, threads=2)
     sampler = AdaptiveSampler(r, g, budget) if budget is not None else None

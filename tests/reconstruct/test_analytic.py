@@ -16,7 +16,7 @@ from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene
 from dpmhw.session.config import SessionConfig
-from dpmhw.session.factory import scale_to, shading_scene
+from dpmhw.session.factory import shading_scene
 
 # a 0.5 m square emitter at y = 1, emitting downwards (corners wound so that their normal is −y)
 CORNERS = np.array([[-0.25, 1.0, -0.25], [0.25, 1.0, -0.25], [0.25, 1.0, 0.25], [-0.25, 1.0, 0.25]])
@@ -241,7 +241,7 @@ def _with_albedo(g: Guides, albedo) -> Guides:
 
 def test_the_quad_light_is_one_polygon_emitting_on_the_renderers_side():
     scene = load_scene("dpm-bunny")
-    r = PathIntegrator(scale_to(scene, 32, 24), threads=1)
+    r = PathIntegrator(scene.at_size(32, 24), threads=1)
     try:
         poly, lum = emitter_polygons(r.geometry, scene.object_poses(0.0))
         assert poly.shape == (1, 20) and poly[0, 15] == 4
@@ -255,7 +255,7 @@ def test_the_quad_light_is_one_polygon_emitting_on_the_renderers_side():
 
 
 def _stage_frames(analytic, n=3, size=(128, 96)):
-    native = scale_to(load_scene("dpm-bunny"), *size)
+    native = load_scene("dpm-bunny").at_size(*size)
     r = PathIntegrator(shading_scene(native, 0.25), threads=1)
     g = NativeGBuffer(native, r.geometry, *size, threads=1)
     try:
@@ -303,7 +303,7 @@ def test_off_passes_the_native_guides_and_albedos_through_unchanged(monkeypatch)
 
 
 def test_stage_refuses_bad_floors():
-    native = scale_to(load_scene("dpm-bunny"), 64, 48)
+    native = load_scene("dpm-bunny").at_size(64, 48)
     r = PathIntegrator(shading_scene(native, 0.25), threads=1)
     g = NativeGBuffer(native, r.geometry, 64, 48, threads=1)
     try:

@@ -13,7 +13,7 @@ from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene
-from dpmhw.session.factory import scale_to, shading_scene
+from dpmhw.session.factory import shading_scene
 
 
 @pytest.mark.parametrize("exposure", [1.0, 0.6, 3.0])
@@ -43,7 +43,7 @@ def _frames(scene, n):
 
 @pytest.mark.parametrize("mode", ["same-pixel", "motion"])
 def test_scale_one_with_the_filter_off_equals_the_old_pipeline_bit_for_bit(mode):
-    scene = scale_to(load_scene("dpm-bunny"), 64, 48)
+    scene = load_scene("dpm-bunny").at_size(64, 48)
     stage = ReconstructStage((64, 48), (64, 48), background=scene.render.background, viewer=scene.viewer_position)
     old = TemporalReuse(64, 48, alpha=0.2, mode=mode)
     for frame, poses, camera in _frames(scene, 4):
@@ -54,7 +54,7 @@ def test_scale_one_with_the_filter_off_equals_the_old_pipeline_bit_for_bit(mode)
 
 @pytest.mark.parametrize("filt", ["off", "normal", "lobe"])
 def test_quarter_shading_gives_native_frames_that_follow_the_object(filt):
-    native = scale_to(load_scene("dpm-bunny"), 128, 96)
+    native = load_scene("dpm-bunny").at_size(128, 96)
     low = shading_scene(native, 0.25)
     r = PathIntegrator(low, threads=1)
     g = NativeGBuffer(native, r.geometry, 128, 96, threads=1)
@@ -78,7 +78,7 @@ def test_quarter_shading_gives_native_frames_that_follow_the_object(filt):
 
 
 def test_native_gbuffer_matches_the_renderers_and_retraces_only_the_roi():
-    native = scale_to(load_scene("dpm-bunny"), 160, 120)
+    native = load_scene("dpm-bunny").at_size(160, 120)
     r = PathIntegrator(native, threads=1)
     g = NativeGBuffer(native, r.geometry, 160, 120, threads=1)
     try:
@@ -97,7 +97,7 @@ def test_native_gbuffer_matches_the_renderers_and_retraces_only_the_roi():
 
 
 def test_edges_mode_traces_only_near_discontinuities_and_agrees_with_full_tracing():
-    native = scale_to(load_scene("dpm-bunny"), 256, 192)
+    native = load_scene("dpm-bunny").at_size(256, 192)
     r = PathIntegrator(shading_scene(native, 0.25), threads=1)
     edges = NativeGBuffer(native, r.geometry, 256, 192, threads=1)
     full = NativeGBuffer(native, r.geometry, 256, 192, threads=1)
@@ -124,7 +124,7 @@ def test_edges_mode_traces_only_near_discontinuities_and_agrees_with_full_tracin
 def test_stages_sharing_one_native_gbuffer_each_see_the_static_scene():
     """The session warms up with throw-away stages on the loop's G-buffer; the loop's own stage
     must still see every static pixel (a static scene has no moving region to refresh)."""
-    native = scale_to(load_scene("paper-static"), 64, 48)
+    native = load_scene("paper-static").at_size(64, 48)
     r = PathIntegrator(shading_scene(native, 0.5), threads=1)
     g = NativeGBuffer(native, r.geometry, 64, 48, threads=1)
     try:
@@ -142,7 +142,7 @@ def test_stages_sharing_one_native_gbuffer_each_see_the_static_scene():
 
 
 def test_switching_the_filter_live_restarts_the_history_of_the_other_path():
-    scene = scale_to(load_scene("dpm-bunny"), 64, 48)
+    scene = load_scene("dpm-bunny").at_size(64, 48)
     stage = ReconstructStage((64, 48), (64, 48), background=scene.render.background, viewer=scene.viewer_position)
     frames = _frames(scene, 3)
     for (frame, poses, camera), filt in zip(frames, ("off", "lobe", "off")):
@@ -158,7 +158,7 @@ def test_native_gbuffer_packet_path_equals_the_embreex_path():
     from dpmhw.render.accel import EmbreeAccel
     from dpmhw.render.traversal import RtcAccel
 
-    native = scale_to(load_scene("dpm-bunny"), 96, 72)
+    native = load_scene("dpm-bunny").at_size(96, 72)
     r = PathIntegrator(native, threads=1)
     if not isinstance(r.geometry.accel, RtcAccel):
         r.close()
@@ -192,7 +192,7 @@ def test_raster_mode_gives_the_ray_cast_gbuffer_except_at_ties(dist):
     centres on a shared edge or a silhouette may differ. With and without lens distortion."""
     from dataclasses import replace
 
-    base = scale_to(load_scene("dpm-bunny"), 256, 192)
+    base = load_scene("dpm-bunny").at_size(256, 192)
     native = replace(base, camera=replace(base.camera, dist=np.array(dist)))
     r = PathIntegrator(shading_scene(native, 0.25), threads=1)
     ras = NativeGBuffer(native, r.geometry, 256, 192, threads=2)
@@ -234,7 +234,7 @@ def test_the_shading_branch_on_the_helper_thread_gives_the_same_frames_as_in_lin
         def shutdown(self, wait=True):
             pass
 
-    native = scale_to(load_scene("dpm-bunny"), 256, 192)
+    native = load_scene("dpm-bunny").at_size(256, 192)
     r = PathIntegrator(shading_scene(native, 0.25), threads=2)
     gs = [NativeGBuffer(native, r.geometry, 256, 192, threads=2) for _ in range(2)]
     stages = [ReconstructStage((256, 192), (64, 48), background=native.render.background, viewer=native.viewer_position,
@@ -262,7 +262,7 @@ def test_native_guides_recomputed_only_where_the_gbuffer_changed_equal_guides_fr
     the whole native G-buffer computed afresh."""
     from dpmhw.reconstruct.guides import Guides
 
-    native = scale_to(load_scene("dpm-bunny"), 256, 192)
+    native = load_scene("dpm-bunny").at_size(256, 192)
     r = PathIntegrator(shading_scene(native, 0.25), threads=1)
     g = NativeGBuffer(native, r.geometry, 256, 192, threads=1)
     stage = ReconstructStage((256, 192), (64, 48), background=native.render.background, viewer=native.viewer_position,
@@ -294,7 +294,7 @@ def test_two_stages_sharing_a_moving_native_gbuffer_each_keep_guides_equal_to_fr
     stage that did not see the previous update must not trust `changed` (it recomputes the region)."""
     from dpmhw.reconstruct.guides import Guides
 
-    native = scale_to(load_scene("dpm-bunny"), 256, 192)
+    native = load_scene("dpm-bunny").at_size(256, 192)
     r = PathIntegrator(shading_scene(native, 0.25), threads=1)
     g = NativeGBuffer(native, r.geometry, 256, 192, threads=1)
     stages = [ReconstructStage((256, 192), (64, 48), background=native.render.background,
@@ -331,7 +331,7 @@ def test_the_next_frames_gbuffer_brought_ahead_gives_the_same_frames():
     for bit, also when a frame announced ahead never comes (a dropped prefetch)."""
     from dpmhw.reconstruct.adaptive import AdaptiveSampler
 
-    native = scale_to(load_scene("dpm-bunny"), 256, 192)
+    native = load_scene("dpm-bunny").at_size(256, 192)
     r = PathIntegrator(shading_scene(native, 0.25), threads=2)
     gs = [NativeGBuffer(native, r.geometry, 256, 192, threads=2) for _ in range(2)]
     stages = [ReconstructStage((256, 192), (64, 48), background=native.render.background, viewer=native.viewer_position,
@@ -363,7 +363,7 @@ def test_the_next_frames_gbuffer_brought_ahead_gives_the_same_frames():
 
 
 def test_a_failure_of_the_early_gbuffer_update_is_the_next_frames_and_the_stage_recovers():
-    native = scale_to(load_scene("dpm-bunny"), 128, 96)
+    native = load_scene("dpm-bunny").at_size(128, 96)
     r = PathIntegrator(shading_scene(native, 0.25), threads=1)
     g = NativeGBuffer(native, r.geometry, 128, 96, threads=1)
     stage = ReconstructStage((128, 96), (32, 24), background=native.render.background, viewer=native.viewer_position,

@@ -7,12 +7,11 @@ import pytest
 
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene
-from dpmhw.session.factory import scale_to
 
 
 @pytest.fixture(scope="module")
 def bunny():
-    scene = scale_to(load_scene("dpm-bunny"), 64, 48)  # a moving bunny in front of a static wall
+    scene = load_scene("dpm-bunny").at_size(64, 48)  # a moving bunny in front of a static wall
     return scene, scene.object_poses(0.3)
 
 

@@ -100,7 +100,7 @@ def special_cases() -> list[tuple[list[str], str | None]]:
         ([f"bindings=[{{rigid_body={MAX_BODY_ID},{bunny}}}]"], None),
         ([f"bindings=[{{rigid_body={MAX_BODY_ID + 1},{bunny}}}]"], "bindings[0].rigid_body"),
         ([f"bindings=[{{rigid_body=-1,{bunny}}}]"], "bindings[0].rigid_body"),
-        ([f"bindings=[{{rigid_body=1,object=''}}]"], "bindings[0].object"),
+        (["bindings=[{rigid_body=1,object=''}]"], "bindings[0].object"),
         (["tracker.kind=serial", f"bindings=[{{rigid_body={MAX_STATIONS},{bunny}}}]"], None),
         (["tracker.kind=serial", f"bindings=[{{rigid_body={MAX_STATIONS + 1},{bunny}}}]"], "bindings[0].rigid_body"),
         (["tracker.kind=serial", f"bindings=[{{rigid_body=0,{bunny}}}]"], "bindings[0].rigid_body"),
@@ -243,10 +243,11 @@ def test_a_scene_whose_own_size_needs_too_much_is_refused_by_session_config_and_
     scene.write_text(lit_room("", width=640, height=480, f=500.0, cx=319.5, cy=239.5, max_bounces=0))
     need_mib = {s: (SESSION_BASE_BYTES + 640 * 480 * b) / 2**20 for s, b in SESSION_BYTES_PER_PIXEL.items()}
     monkeypatch.setenv("DPMHW_SESSION_MEMORY_MB", str(int((need_mib[0.25] + need_mib[1.0]) / 2)))  # ¼ fits, 1 not
-    overrides = [f"scene.source={scene}", "render.shading_scale=1"]
+    bound = [f"scene.source={scene}", 'bindings=[{rigid_body=1,object="room"}]']  # a session needs a tracked object
+    overrides = [*bound, "render.shading_scale=1"]
     result = _config(overrides)
     _check(result.output, result.exit_code, "render.width, render.height (0: scene.source's size)", result.output)
-    assert _config([f"scene.source={scene}"]).exit_code == 0
+    assert _config(bound).exit_code == 0
     with pytest.raises(SessionConfigError, match="over the limit"):
         open_session_parts(load_session_config(overrides=overrides), mock=True)
 

@@ -53,19 +53,20 @@ def test_bindings_default_to_the_scene_and_unknown_objects_are_named():
 
 
 def test_real_renderer_is_warmed_up_before_the_loop_starts(monkeypatch):
-    """The first kernel calls compile (numba): they must happen before the loop, not as its first
-    frame, which the watchdog would report as a stall."""
+    """The first kernel calls compile (numba): they must happen while the session is built, not as
+    the loop's first frames, which the watchdog would report as a stall (tests/session/test_warmup.py
+    checks that no frame compiles anything)."""
     from dpmhw.render.integrator import PathIntegrator
     from dpmhw.session.config import load_session_config
-    from dpmhw.session.factory import open_session_parts
+    from dpmhw.session.factory import build_session
 
     calls = []
     original = PathIntegrator.render
     monkeypatch.setattr(PathIntegrator, "render", lambda self, *a, **kw: calls.append(kw) or original(self, *a, **kw))
     cfg = load_session_config(overrides=["render.width=32", "render.height=24", "projector.kind=none", "sink.kind=none"])
-    parts = open_session_parts(cfg, mock=True)
+    loop = build_session(cfg, mock=True)
     try:
-        assert len(calls) == 1 and calls[0]["spp"] == 1
+        assert not loop.running and len(calls) == 3 and {c["spp"] for c in calls} == {1}
+        assert len({c["time"] for c in calls}) == 2  # a pose, then a move
     finally:
-        for close in (parts.tracker.stop, parts.sink.close, parts.renderer.close, *reversed(parts.closers)):
-            close()
+        loop.stop()
