@@ -107,7 +107,7 @@ def start(
         except OSError as exc:
             _fail(OSError(f"api.port: cannot listen on {cfg.api.host}:{cfg.api.port}: {exc.strerror or exc}"))
         host = f"[{cfg.api.host}]" if ":" in cfg.api.host else cfg.api.host
-        typer.echo(f"operator page: http://{host}:{sock.getsockname()[1]}/ (once the session has started)")
+        typer.echo(f"operator page: http://{host}:{sock.getsockname()[1]}/ (it says why while the session is not up yet)")
     try:
         code = Supervisor(cfg, mock=mock, token=token or "", sock=sock, duration=duration,
                           status_every=status_every, echo=typer.echo).run()

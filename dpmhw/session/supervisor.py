@@ -506,6 +506,10 @@ class Supervisor:
         meanwhile. The loop process then loads them from the cache in seconds."""
         from dpmhw.session.warmup import compile_kernels
 
+        if self.responder is not None:  # the port answers from the start: why the projector is dark
+            self.responder.set_status({"state": "starting", "reason": "the session is starting", "output_on": False,
+                                       "supervisor": {"pid": os.getpid(), "starts": 0}})
+            self.responder.start()
         printed = [-1e9]
 
         def show(p) -> None:

@@ -28,6 +28,7 @@ def test_the_api_port_says_compiling_with_progress(monkeypatch):
     seen: dict = {}
 
     def compile_kernels(config, *, progress, should_stop, **kw):
+        seen["before"] = json.loads(_get(port, "/status")[2])  # answered before any progress
         p = CompileProgress(done=3, expected=37, elapsed_s=4.2, eta_s=20.0, groups_left=["path tracing"])
         progress(p)
         seen["status"] = _get(port, "/status")
@@ -44,6 +45,7 @@ def test_the_api_port_says_compiling_with_progress(monkeypatch):
     finally:
         sup.responder.stop()
         sock.close()
+    assert seen["before"]["state"] == "starting" and not seen["before"]["output_on"]
     code, kind, body = seen["status"]
     status = json.loads(body)
     assert code == 200 and status["state"] == "compiling" and not status["output_on"]
