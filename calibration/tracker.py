@@ -25,7 +25,13 @@ import numpy as np
 
 from calibration.board import BoardSpec
 from calibration.errors import CaptureError, DegenerateViewsError
-from calibration.procam import Observation, corner_spacing, projector_corners, undistortion_grid
+from calibration.procam import (
+    Observation,
+    corner_spacing,
+    projector_corners,
+    undistortion_grid,
+)
+from dpmhw.transforms import rotation_from_quat_xyzw
 
 UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
 
@@ -43,16 +49,6 @@ class TrackerPose:
     residuals_px: np.ndarray
     inliers: np.ndarray
     per_view_rms_px: dict[str, float]
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(x, y, z, w) quaternion (NatNet order) to a rotation matrix."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 def projector_pose_from_points(
@@ -132,7 +128,7 @@ def load_tracker_poses(path: str | Path) -> dict[str, tuple[np.ndarray, np.ndarr
 
 def _pose(e: dict, field: str, src: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
     try:
-        R = quat_to_matrix(np.array(e["q"], dtype=np.float64)) if "q" in e else np.array(e["R"], dtype=np.float64)
+        R = rotation_from_quat_xyzw(e["q"]) if "q" in e else np.array(e["R"], dtype=np.float64)
         t = np.array(e["t"], dtype=np.float64).reshape(3) * scale
     except (KeyError, TypeError, ValueError):
         raise CaptureError(src, field, "expected R (3x3) or q (x, y, z, w) and t (3 numbers)") from None

@@ -12,7 +12,6 @@ Drivers live in `drivers/`; this module imports none of them.
 from __future__ import annotations
 
 import enum
-import math
 import threading
 import time
 from collections import deque
@@ -24,6 +23,7 @@ import numpy as np
 
 from dpmhw.errors import DpmhwError
 from dpmhw.plausibility import PlausibilityGate
+from dpmhw.transforms import quaternion_xyzw_to_rotation
 
 __all__ = [
     "ClockMapping",
@@ -35,7 +35,6 @@ __all__ = [
     "TrackerError",
     "TrackerState",
     "TrackerStatus",
-    "quaternion_xyzw_to_rotation",
     "quaternions_xyzw_to_matrices",
 ]
 
@@ -176,27 +175,6 @@ class Tracker(Protocol):
 
     def subscribe(self, maxlen: int = 4096) -> "SampleSubscription":
         """A bounded stream of every sample from now on, for recording."""
-
-
-_NAN_ROTATION = (math.nan,) * 9
-
-
-def quaternion_xyzw_to_rotation(x: float, y: float, z: float, w: float) -> tuple[float, ...]:
-    """Rotation matrix, row-major as 9 floats, of one (x, y, z, w) quaternion (not necessarily
-    normalised); all NaN where the quaternion is zero, huge or not finite.
-
-    Plain floats: a tracker frame carries a handful of bodies and arrives hundreds of times a
-    second on the receiver thread, where numpy's per-call cost on 4-element arrays dominated."""
-    n2 = x * x + y * y + z * z + w * w  # inf for huge or non-finite entries, nan for nan
-    if not (1e-12 < n2 < math.inf):
-        return _NAN_ROTATION
-    s = 2.0 / n2  # normalises and doubles in one factor
-    xx, yy, zz = s * x * x, s * y * y, s * z * z
-    xy, xz, yz = s * x * y, s * x * z, s * y * z
-    wx, wy, wz = s * w * x, s * w * y, s * w * z
-    return (1.0 - (yy + zz), xy - wz, xz + wy,
-            xy + wz, 1.0 - (xx + zz), yz - wx,
-            xz - wy, yz + wx, 1.0 - (xx + yy))
 
 
 def quaternions_xyzw_to_matrices(quaternions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -32,7 +32,8 @@ import time
 from collections import Counter, deque
 
 from dpmhw.plausibility import PlausibilityLimits
-from dpmhw.tracking import ClockMapping, PoseSample, TrackerError, TrackerState, quaternion_xyzw_to_rotation
+from dpmhw.tracking import ClockMapping, PoseSample, TrackerError, TrackerState
+from dpmhw.transforms import quaternion_xyzw_to_rotation
 from drivers.natnet_protocol import (
     FramePoses,
     MessageId,

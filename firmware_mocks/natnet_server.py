@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dpmhw.transforms import quat_xyzw_of_rows
 from firmware_mocks.world import World
 
 __all__ = ["FrameContent", "NatNetServer", "NatNetServerConfig", "encode_frame", "encode_model_definitions"]
@@ -499,7 +500,7 @@ class NatNetServer:
                 markers, residuals = ideal, [0.0] * len(ideal)
             tracked = not (cfg.dropout_prob > 0 and rng.random() < cfg.dropout_prob)
             if tracked:
-                quat = _quat_xyzw_of(r00, r01, r02, r10, r11, r12, r20, r21, r22)
+                quat = quat_xyzw_of_rows(r00, r01, r02, r10, r11, r12, r20, r21, r22)
                 mean_residual = sum(residuals) / len(residuals) if residuals else math.nan
                 rbs.append((obj.rigid_body_id, (px, py, pz), quat, mean_residual, 1))
                 for i, (m, res) in enumerate(zip(markers, residuals)):
@@ -583,35 +584,3 @@ class NatNetServer:
                 struct.pack_into("<i", buf, 8, 0x7FFF0000)
             return bytes(buf)
         return datagram
-
-
-def _matrix_to_quat_xyzw(r: np.ndarray) -> tuple[float, float, float, float]:
-    """Unit quaternion (x, y, z, w) of a (3, 3) rotation matrix, w >= 0 (Motive's convention)."""
-    return _quat_xyzw_of(*np.asarray(r, np.float64).ravel().tolist())
-
-
-def _quat_xyzw_of(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float,
-                  m20: float, m21: float, m22: float) -> tuple[float, float, float, float]:
-    """`_matrix_to_quat_xyzw` of a matrix given row by row as 9 floats.
-
-    Shepperd's method in plain floats (branch on the largest of w², x², y², z², so the square
-    root is never of a small number): it runs for every body of every frame, 360 times a second
-    on the streaming thread, where scipy's `Rotation` took ~100 µs of the ~250 µs a frame cost."""
-    trace = m00 + m11 + m22
-    if trace >= max(m00, m11, m22):
-        s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))
-        q = ((m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, 0.25 * s)
-    elif m00 >= m11 and m00 >= m22:
-        s = 2.0 * math.sqrt(max(1.0 + m00 - m11 - m22, 0.0))
-        q = (0.25 * s, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s)
-    elif m11 >= m22:
-        s = 2.0 * math.sqrt(max(1.0 - m00 + m11 - m22, 0.0))
-        q = ((m01 + m10) / s, 0.25 * s, (m12 + m21) / s, (m02 - m20) / s)
-    else:
-        s = 2.0 * math.sqrt(max(1.0 - m00 - m11 + m22, 0.0))
-        q = ((m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s)
-    x, y, z, w = q
-    norm = math.sqrt(x * x + y * y + z * z + w * w)
-    if w < 0:
-        norm = -norm
-    return x / norm, y / norm, z / norm, w / norm

@@ -34,8 +34,8 @@ import time
 import tty
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from dpmhw.transforms import quat_xyzw_from_matrix
 from firmware_mocks.world import World
 
 __all__ = ["PolhemusEmulator"]
@@ -216,7 +216,7 @@ class PolhemusEmulator:
     def _record(self, station: int, ms: int, command: int) -> bytes:
         rot, pos = self.world.pose(self.stations[station], self.device_ms_to_host_ns(ms) / 1e9)
         pos = (pos + self.pose_offset_m) / (0.01 if self.metric else _INCH_M)
-        qx, qy, qz, qw = _quat_xyzw(rot)
+        qx, qy, qz, qw = quat_xyzw_from_matrix(rot)
         error = 1 if self.error_prob > 0 and self._rng.random() < self.error_prob else 0
         if not self.binary:
             return (
@@ -316,9 +316,3 @@ class PolhemusEmulator:
                     continue
                 self._emit_all(ms, ord("C"))
                 j += 1
-
-
-def _quat_xyzw(r: np.ndarray) -> tuple[float, float, float, float]:
-    """Unit quaternion (x, y, z, w) of a rotation matrix, w >= 0."""
-    q = Rotation.from_matrix(r).as_quat()
-    return tuple(float(v) for v in (-q if q[3] < 0 else q))

@@ -13,8 +13,8 @@ from calibration.tracker import (
     load_tracker_poses,
     projector_pose_from_points,
     projector_pose_from_tracked_board,
-    quat_to_matrix,
 )
+from dpmhw.transforms import rotation_from_quat_xyzw
 
 
 def _truth_world_from_projector(rig):
@@ -42,7 +42,7 @@ def test_pose_from_markers_rejects_a_mistracked_marker():
     rng = np.random.default_rng(1)
     K = np.array([[1500.0, 0, 640], [0, 1500.0, 880], [0, 0, 1]])
     dist = np.array([0.02, -0.01, 0, 0, 0])
-    R_wp = quat_to_matrix(np.array([0.1, -0.7, 0.05, 0.7]))
+    R_wp = rotation_from_quat_xyzw([0.1, -0.7, 0.05, 0.7])
     t_wp = np.array([1.0, 2.2, -0.5])
     P_p = np.column_stack([rng.uniform(-0.4, 0.4, 40), rng.uniform(-0.5, 0.0, 40), rng.uniform(1.5, 2.5, 40)])
     world = P_p @ R_wp.T + t_wp

@@ -15,9 +15,9 @@ from dpmhw.tracking import (
     LatestPoses,
     PoseSample,
     Tracker,
-    quaternion_xyzw_to_rotation,
     quaternions_xyzw_to_matrices,
 )
+from dpmhw.transforms import quaternion_xyzw_to_rotation
 from drivers.natnet import NatNetClient
 from firmware_mocks.world import (
     TRAJECTORY_NAMES,
@@ -236,11 +236,11 @@ def test_core_and_mocks_do_not_import_drivers():
 
 @settings(deadline=None)
 @given(st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 1e-3))
-def test_mock_matrix_to_quaternion_matches_scipy_with_w_non_negative(q):
-    from firmware_mocks.natnet_server import _matrix_to_quat_xyzw
+def test_matrix_to_quaternion_matches_scipy_with_w_non_negative(q):
+    from dpmhw.transforms import quat_xyzw_from_matrix
 
     rot = Rotation.from_quat(q)
-    got = np.array(_matrix_to_quat_xyzw(rot.as_matrix()))
+    got = np.array(quat_xyzw_from_matrix(rot.as_matrix()))
     want = rot.as_quat()
     want = -want if want[3] < 0 else want
     assert got[3] >= 0 and abs(np.linalg.norm(got) - 1) < 1e-12
