@@ -31,14 +31,14 @@ import numpy as np
 
 from dpmhw.lod.mesh_lod import MeshLevels, MeshLodSelector, MeshLodSettings, object_visibility
 from dpmhw.lod.visibility import VisibilityMap, VisibilitySettings, visibility_map
+from dpmhw.postprocess import srgb_decode
 from dpmhw.transforms import Pose
 
 log = logging.getLogger(__name__)
 MIN_FACES = 1000  # smaller meshes cost too little to be worth levels
 
-# sRGB 8-bit code → linear light (IEC 61966-2-1): the projector's output, before its gamma
-_codes = np.arange(256) / 255.0
-SRGB8_TO_LINEAR = np.where(_codes <= 0.04045, _codes / 12.92, ((_codes + 0.055) / 1.055) ** 2.4).astype(np.float32)
+# sRGB 8-bit code → linear light: the projector's output, before its gamma
+SRGB8_TO_LINEAR = srgb_decode(np.arange(256) / 255.0).astype(np.float32)
 
 
 def build_levels(scene, reductions=None) -> list[MeshLevels | None]:
