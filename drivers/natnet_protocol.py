@@ -1,6 +1,6 @@
 """NatNet wire format, host side: decode what Motive sends, encode what a client sends.
 
-Written from OptiTrack's public description of the bitstream (see `../shared/protocols.md`):
+Written from OptiTrack's public description of the bitstream (see `docs/protocols.md`):
 every message is `u16 id, u16 payload bytes, payload`, little-endian. Frames of data for
 NatNet 3.0, 3.1, 4.0 (identical layouts), 4.1 and 4.2 (per-section byte counts, assets and a
 precision timestamp). Model definitions for the same versions (4.0 adds rigid-body marker

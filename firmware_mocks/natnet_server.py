@@ -1,6 +1,6 @@
 """An emulated OptiTrack Motive NatNet server on loopback, streaming a simulated `World`.
 
-Device side of the wire, written from the NatNet description in `../shared/protocols.md`
+Device side of the wire, written from the NatNet description in `docs/protocols.md`
 (never from `drivers/`): it answers connect, keep-alive, server info, model definitions,
 discovery and echo requests on the command port, and streams frames of data at a fixed rate,
 either to the multicast group (default) or to every unicast client that keeps itself alive.

@@ -1,6 +1,6 @@
 """An emulated Polhemus Liberty / Patriot class tracker on a pseudo-terminal.
 
-Device side of the serial wire, written from the record description in `../shared/protocols.md`
+Device side of the serial wire, written from the record description in `docs/protocols.md`
 (never from `drivers/`). `os.openpty()` gives a master (the device's end, served by a thread)
 and a slave path that any client opens like a serial port (pyserial: `serial.Serial(path)`).
 

@@ -1,8 +1,8 @@
 """Mannos–Sakrison contrast sensitivity function (CSF), scaled to a sensitivity.
 
 Source: J. L. Mannos and D. J. Sakrison, "The effects of a visual fidelity criterion on the
-encoding of images", IEEE Trans. Inf. Theory 20(4), 1974, as used by Miza & Saito
-(`shared/methods.md` §3):
+encoding of images", IEEE Trans. Inf. Theory 20(4), 1974, as used by Miza & Saito for
+contrast-driven level of detail (docs/lod.md):
 
     A(f) = 2.6 · (0.0192 + 0.114 f) · exp(−(0.114 f)^1.1),   f in cycles per degree
 
