@@ -322,13 +322,8 @@ def run_child(args: ChildArgs, conn) -> None:
         echo("opening devices, loading the scene and the render kernels …")
         loop = build_session(config, mock=args.mock, usb=args.usb, heartbeat=args.heartbeat).start()
 
-        def first_light() -> None:
-            while not stop.is_set():
-                if loop.first_lit.wait(0.1):
-                    send("lit", loop.first_lit_at)
-                    return
-
-        threading.Thread(target=first_light, name="first-light", daemon=True).start()
+        threading.Thread(target=lambda: loop.first_lit.wait() and send("lit", loop.first_lit_at),
+                         name="first-light", daemon=True).start()
         echo(f"session started ({'mock devices' if args.mock else 'hardware'}); scene {config.scene.source}, "
              f"render {loop.parts.renderer.width}×{loop.parts.renderer.height}")
         threading.Thread(target=listen, name="supervisor-link", daemon=True).start()
@@ -506,23 +501,18 @@ class Supervisor:
         meanwhile. The loop process then loads them from the cache in seconds."""
         from dpmhw.session.warmup import compile_kernels
 
-        if self.responder is not None:  # the port answers from the start: why the projector is dark
-            self.responder.set_status({"state": "starting", "reason": "the session is starting", "output_on": False,
-                                       "supervisor": {"pid": os.getpid(), "starts": 0}})
-            self.responder.start()
-        printed = [-1e9]
+        self._serve_status("starting", "the session is starting")  # the port says why it is dark from the start
+        printed = -1e9
 
         def show(p) -> None:
+            nonlocal printed
             if p.warm:
                 return
             now = time.monotonic()
-            if now - printed[0] >= 5.0 or not p.groups_left:  # a line every 5 s, and the last
-                printed[0] = now
+            if now - printed >= 5.0 or not p.groups_left:  # a line every 5 s, and the last
+                printed = now
                 self.echo(p.line())
-            if self.responder is not None:
-                self.responder.set_status({"state": "compiling", "reason": p.line(), "output_on": False,
-                                           "compile": p.as_status(), "supervisor": {"pid": os.getpid(), "starts": 0}})
-                self.responder.start()
+            self._serve_status("compiling", p.line(), compile=p.as_status())
 
         result = compile_kernels(self.config, progress=show, should_stop=self._stop.is_set)
         for group, why in result.failed.items():
@@ -706,10 +696,14 @@ class Supervisor:
         return job.result(timeout=max(0.0, timeout_s))
 
     def _report_fault(self, reason: str) -> None:
+        self._serve_status("fault", reason)
+
+    def _serve_status(self, state: str, reason: str, **extra) -> None:
+        """What the API port answers while no loop process serves it (starting, compiling, a fault)."""
         if self.responder is None:
             return
         self.responder.set_status({
-            "state": "fault", "reason": reason, "output_on": False,
+            "state": state, "reason": reason, "output_on": False, **extra,
             "supervisor": {"pid": os.getpid(), "starts": self.starts, "crashes": self.crashes,
                            "last_crash": self.last_crash, "restart": self.config.safety.restart, "loop_pid": None},
         })

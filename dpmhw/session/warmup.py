@@ -248,7 +248,7 @@ def compile_kernels(config, *, progress: Callable[[CompileProgress], None] | Non
     config_data = config.model_dump() if hasattr(config, "model_dump") else dict(config)
     pending = list(groups)
     running: dict[str, multiprocessing.Process] = {}
-    t0, done_s, last, seen, reported_end = clock(), 0.0, -every_s, set(), False
+    t0, done_s, last = clock(), 0.0, -every_s
     try:
         while pending or running:
             while pending and len(running) < n:
@@ -270,8 +270,7 @@ def compile_kernels(config, *, progress: Callable[[CompileProgress], None] | Non
                 took["seconds"] += times[0]
                 took["llvm_seconds"] += times[1]
                 took["signatures"] += 1
-                if what in weights and what not in seen:  # a listed kernel, counted once
-                    seen.add(what)
+                if what in weights and took["signatures"] == 1:  # a listed kernel, counted once
                     state.done += 1
                     done_s += weights[what]
             elif kind in ("done", "failed"):
@@ -290,16 +289,15 @@ def compile_kernels(config, *, progress: Callable[[CompileProgress], None] | Non
             if should_stop():
                 state.stopped = True
                 break
-            if progress is not None and (kind in ("done", "failed") or now - last >= every_s):
-                last = now
+            if progress is not None and state.groups_left and (kind in ("done", "failed") or now - last >= every_s):
+                last = now  # (the last report comes after the loop)
                 progress(state)
-                reported_end = not state.groups_left
     finally:
         for proc in running.values():
             proc.kill()
             proc.join(5)
         out.close()
     state.elapsed_s = clock() - t0
-    if progress is not None and not state.stopped and not reported_end:
+    if progress is not None and not state.stopped:
         progress(state)
     return state
