@@ -11,19 +11,28 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from dpmhw.display import DisplayTiming
+
 
 @runtime_checkable
 class FrameSink(Protocol):
     """Consumer of output frames.
 
     `present(frame, t_target_ns)` shows `frame`, a (H, W, 3) uint8 sRGB image with row 0 at
-    the top, as close as possible to `t_target_ns` on the `time.monotonic_ns()` clock and
-    returns the monotonic time (ns) at which it was actually handed to the display (or
-    written). A sink never silently drops or resizes a frame: a wrong shape or dtype raises
-    `ValueError`.
+    the top, at the first refresh at or after `t_target_ns` (monotonic clock) and returns
+    that refresh's scan-out instant (ns): the frame's light follows as `timing` says. A sink
+    without a refresh (a file writer) returns when it wrote the frame. A sink never silently
+    drops or resizes a frame: a wrong shape or dtype raises `ValueError`.
+
+    `timing` is the display's model; `vsync_phase_ns()` one refresh instant it has seen or
+    keeps (the refreshes are `timing.period_ns` apart from there).
     """
 
+    timing: DisplayTiming
+
     def present(self, frame: np.ndarray, t_target_ns: int) -> int: ...
+
+    def vsync_phase_ns(self) -> int: ...
 
     def close(self) -> None: ...
 
