@@ -17,6 +17,7 @@ from typing import Callable
 
 import numpy as np
 
+from dpmhw.display import DisplayTiming
 from dpmhw.frame_sink import check_frame
 
 Clock = Callable[[], int]
@@ -42,6 +43,8 @@ class RecordingSink:
     With `pace=True` it waits for each target time like a display would (via `sleep`).
     """
 
+    timing = DisplayTiming()  # no refresh model yet: frames go out when presented
+
     def __init__(self, *, shape: tuple[int, int] | None = None, clock: Clock = time.monotonic_ns,
                  sleep: Callable[[float], None] = time.sleep, pace: bool = False, max_frames: int | None = None):
         self.shape = shape
@@ -62,6 +65,9 @@ class RecordingSink:
             del self.frames[0]
         return now
 
+    def vsync_phase_ns(self) -> int:
+        return 0
+
     def close(self) -> None:
         self.closed = True
 
@@ -74,6 +80,8 @@ class FileSink:
     """
 
     VIDEO_CODECS = {".avi": "MJPG", ".mp4": "mp4v", ".mkv": "MJPG"}
+
+    timing = DisplayTiming()  # no refresh model yet: frames go out when presented
 
     def __init__(self, path: str | os.PathLike, *, fps: float = 60.0, clock: Clock = time.monotonic_ns):
         import cv2  # a core dependency; imported here so the module loads fast
@@ -110,6 +118,9 @@ class FileSink:
         self.count += 1
         return self.clock()
 
+    def vsync_phase_ns(self) -> int:
+        return 0
+
     def close(self) -> None:
         if self._writer is not None:
             self._writer.release()
@@ -125,6 +136,8 @@ class WindowSink:
     of the wrong size would cover a corner of the projector's image). Nothing is scaled.
     `present` waits for the target time, blits and flips, and returns the time the flip returned.
     """
+
+    timing = DisplayTiming()  # no refresh model yet: frames go out when presented
 
     def __init__(self, display: int = 0, *, size: tuple[int, int] | None = None, clock: Clock = time.monotonic_ns,
                  sleep: Callable[[float], None] = time.sleep, title: str = "dpmhw projector"):
@@ -161,6 +174,9 @@ class WindowSink:
     def snapshot(self) -> np.ndarray:
         """(H, W, 3) uint8 of what the window holds now (for tests and diagnostics)."""
         return self._pg.surfarray.array3d(self._surface).swapaxes(0, 1).copy()
+
+    def vsync_phase_ns(self) -> int:
+        return 0
 
     def close(self) -> None:
         if not self.closed:
