@@ -179,7 +179,8 @@ class PredictionSection(_Section):
     enabled: bool = Field(True, description="extrapolate tracked poses to the display time")
     model: Literal["velocity", "acceleration"] = Field("velocity", description="constant velocity, or constant linear acceleration")
     history: int = Field(8, ge=2, le=64, description="recent samples used to estimate the derivatives")
-    display_latency_ms: float = Field(0.0, ge=0.0, le=1000.0, description="present() to photons (the projector's own delay)")
+    late_reprojection: bool = Field(True, description="at each present, move the newest rendered frame to the poses "
+                                    "predicted for its photon windows from the newest tracker sample (dpmhw.reconstruct.reproject)")
     max_horizon_ms: float = Field(150.0, gt=0.0, le=2000.0, description="never extrapolate further than this")
 
 

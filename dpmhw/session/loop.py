@@ -38,6 +38,7 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
+from dpmhw.display import DisplayTiming
 from dpmhw.frame_sink import FrameSink
 from dpmhw.postprocess import NonFiniteFrameError
 from dpmhw.lod.mesh_loop import mesh_lod
@@ -58,6 +59,8 @@ __all__ = ["FrameRecord", "LatestFrame", "ProjectorControl", "Renderer", "Sessio
 
 log = logging.getLogger(__name__)
 
+PRESENT_LEAD_MIN_NS = 3_000_000  # a present begins this long before its refresh at least
+PRESENT_LEAD_STEP_NS = 1_000_000  # added after a present that missed its refresh
 FREEZE_AFTER_FRAMES = 30  # frames presented before what they made is frozen too (gc.freeze; see _freeze_long_lived)
 
 
@@ -109,18 +112,20 @@ class SessionParts:
 
 @dataclass(frozen=True)
 class FrameRecord:
-    """What one presented frame was made from (for tests, the benchmark and recording)."""
+    """What one present showed and what it was made from (for tests, the benchmark and recording)."""
 
-    number: int
-    t_start_ns: int
-    t_present_ns: int
-    t_target_ns: int
-    poses: dict  # rigid body id -> Pose used (predicted or measured)
-    sample_t_ns: dict  # rigid body id -> t_exposure_ns of the sample used
-    measured: dict  # rigid body id -> Pose of that sample (what the frame shows without prediction)
+    number: int  # presents so far
+    t_start_ns: int  # when the frame it shows began (its tracking check)
+    t_present_ns: int  # the refresh it was scanned out at (the sink's answer)
+    t_target_ns: int  # the photon time its middle window was predicted to
+    poses: dict  # rigid body id -> Pose shown in the middle window (predicted or measured)
+    sample_t_ns: dict  # rigid body id -> t_exposure_ns of the newest sample used
+    measured: dict  # rigid body id -> Pose of that sample (what it shows without prediction)
     sample_age_s: float  # oldest sample's age when the frame started
     settings: LiveSettings
     stages_s: dict
+    windows: tuple = ()  # per photon window: (photon mid ns, {rigid body id: Pose shown})
+    rendered: int = 0  # the number of the rendered frame it shows (several presents may show one)
 
 
 @dataclass(frozen=True)
@@ -155,6 +160,18 @@ class OneCallAtATime:
 
     def __getattr__(self, name):
         return getattr(self._r, name)
+
+
+@dataclass(frozen=True)
+class _Capture:
+    """A rendered native frame kept for the presents: the image, the poses it was rendered at, and
+    the reprojection's capture of its moving pixels (None: presented as rendered)."""
+
+    number: int
+    job: "_Job"
+    image: np.ndarray  # (H, W, 3) uint8, read-only
+    poses: list  # scene object index -> Pose rendered
+    reprojection: Any
 
 
 @dataclass
@@ -225,7 +242,16 @@ class SessionLoop:
         self._renderer = OneCallAtATime(parts.renderer)  # pipelining renders on a second thread
         self.reconstruct = reconstruct_stage(config, scene, self._renderer, parts.gbuffer, clock)
         self.mesh_lod = mesh_lod(parts.renderer, parts.gbuffer, config.lod)  # mesh levels (None: off)
-        self.display_latency_ns = int(config.prediction.display_latency_ms * 1e6)
+        # the display: when each present becomes light (refresh grid, controller delay, photon windows)
+        self.timing: DisplayTiming = getattr(parts.sink, "timing", None) or DisplayTiming()
+        self._vsync_phase = parts.sink.vsync_phase_ns() if hasattr(parts.sink, "vsync_phase_ns") else 0
+        self.reprojector = self._reprojector() if config.prediction.late_reprojection else None
+        self._capture: _Capture | None = None  # the newest rendered frame, for the present thread
+        self._predict_lock = threading.Lock()  # the predictor is fed and read by both threads
+        self._first_valid: dict[int, int] = {}  # body -> arrival of its first fresh sample since the frame thread last looked
+        self._present_lead_ns = PRESENT_LEAD_MIN_NS  # how long before a refresh its present begins
+        self._present_number = 0
+        self._present_heartbeat_ns = clock()
         # render frame n+1 beside frame n's reconstruction; not with mesh LOD, whose level switch must hold for
         # a whole frame (render, G-buffer, refinement)
         self.pipeline = bool(config.render.pipeline) and self.mesh_lod is None
@@ -292,7 +318,8 @@ class SessionLoop:
         self._samples = subscribe(maxlen=4096) if subscribe is not None else None
         self._go_dark("starting: dark until tracking and devices are ready")
         self._freeze_long_lived()  # the full collection's cost is paid here, while dark
-        for name, target in (("session-loop", self._run), ("session-watchdog", self._watchdog),
+        for name, target in (("session-loop", self._run), ("session-present", self._present_loop),
+                             ("session-watchdog", self._watchdog),
                              ("session-deadline", self._stale_deadline), ("session-health", self._health)):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -461,13 +488,9 @@ class SessionLoop:
         tracker = self.parts.tracker
         status = tracker.status()
         bodies = set(self.parts.bindings.values())
-        first_valid: dict[int, int] = {}  # body -> arrival of its first valid, fresh sample since the last turn
-        if self._samples is not None:
-            for sample in self._samples.drain():
-                if sample.rigid_body_id in bodies:
-                    self.predictor.observe(sample)
-                    if sample.valid and sample.t_arrival_ns - sample.t_exposure_ns <= self.stale_ns:  # fresh on arrival
-                        first_valid.setdefault(sample.rigid_body_id, sample.t_arrival_ns)
+        with self._predict_lock:
+            self._drain_samples()
+            first_valid, self._first_valid = self._first_valid, {}  # body -> arrival of its first fresh sample since the last turn
         if status.state in (TrackerState.STREAMING, TrackerState.STALE):
             self._ever_streamed = True
             # the link was back when its first sample arrived (the hold-off counts from there)
@@ -483,7 +506,8 @@ class SessionLoop:
                 hint = f"; check it with `{self.parts.tracker_watch}`" if self.parts.tracker_watch else ""
                 problems.append(f"rigid body {body}: no sample yet{where} (tracker {status.state.value}){hint}")
                 continue
-            self.predictor.observe(s)
+            with self._predict_lock:
+                self.predictor.observe(s)
             age = now - s.t_exposure_ns
             if not s.valid:
                 problems.append(f"rigid body {body}: not tracked in tracker frame {s.frame_number}")
@@ -500,6 +524,25 @@ class SessionLoop:
         oldest = min((s.t_exposure_ns for s in samples.values()), default=now)
         return samples, (now - oldest) / 1e9
 
+    def _drain_samples(self) -> None:
+        """Every tracker sample since the last drain into the predictor (caller holds `_predict_lock`);
+        remembers when each body's first fresh sample arrived, for the frame thread's hold-off."""
+        if self._samples is None:
+            return
+        bodies = set(self.parts.bindings.values())
+        for sample in self._samples.drain():
+            if sample.rigid_body_id in bodies:
+                self.predictor.observe(sample)
+                if sample.valid and sample.t_arrival_ns - sample.t_exposure_ns <= self.stale_ns:  # fresh on arrival
+                    self._first_valid.setdefault(sample.rigid_body_id, sample.t_arrival_ns)
+
+    def _photon_target(self, t_ready: int) -> int:
+        """The photon time of the first refresh a frame ready at `t_ready` can reach: the middle of
+        its photon windows (the late reprojection then moves it to each window's own instant)."""
+        vsync = self.timing.next_vsync(t_ready + self._present_lead_ns, self._vsync_phase)
+        mids = self.timing.photon_mid_ns(vsync)
+        return mids[len(mids) // 2]
+
     def _prepare(self, settings: LiveSettings, ahead: bool) -> "_Job | bool":
         """Tracking check, prediction and the dark-state decisions of one frame; returns the job to
         render, or False (nothing to present this turn). `ahead`: prepared while the previous
@@ -513,16 +556,18 @@ class SessionLoop:
             return False
         samples, age_s = tracking
         stages["tracker_age"] = age_s
-        # predict to the instant this frame will be lit: now + measured pipeline + display delay, or,
-        # for the first frame after a hold-off (begun ahead of it), the hold-off's end + display delay
+        # predict to the instant this frame will be lit: the photon time of the first refresh after
+        # now + the measured pipeline, or, for the first frame after a hold-off (begun ahead of it),
+        # after the hold-off's end
         resume_due = self._resume_due(t_start)
-        t_target = max(t_start + int(self.metrics.expected_pipeline_s() * 1e9), resume_due or 0) + self.display_latency_ns
+        t_target = self._photon_target(max(t_start + int(self.metrics.expected_pipeline_s() * 1e9), resume_due or 0))
         scene_time = (t_start - self._t0_ns) / 1e9
         poses = self.parts.scene.object_poses(scene_time)
         used: dict[int, Pose] = {}
         horizon_ns = 0
         for index, body in self.parts.bindings.items():
-            predicted = self.predictor.predict(body, t_target, enabled=settings.prediction)
+            with self._predict_lock:
+                predicted = self.predictor.predict(body, t_target, enabled=settings.prediction)
             if predicted is None:  # no valid sample kept yet (only invalid ones arrived)
                 if not ahead:
                     self._sync_output()
@@ -621,44 +666,150 @@ class SessionLoop:
             self._sync_output()
             self.metrics.count("frames_withheld")
             return False
-        if resume_at is not None and resume_at > t4:
-            self._stop.wait((resume_at - t4) / 1e9)  # less than one frame's work
-        if not self._sync_output():
-            self.metrics.count("frames_withheld")  # rendered while dark (keeps causes observable)
-            return False
-        try:
-            with self._output_lock:  # the deadline thread may have gone dark since: never light after it
-                if not self._output_on:
-                    self.metrics.count("frames_withheld")
-                    return False
-                t_present = self.parts.sink.present(image, t_target)
-            self.safety.update("sink", False)
-        except Exception as exc:
-            return self._stage_failed("sink", "present_errors", f"present failed: {type(exc).__name__}: {exc}")
+        capture = self._capture_frame(job, image, out.lit_box, frame)
         t5 = self.clock()
-        if self.heartbeat is not None:
-            self.heartbeat.presented(t5, self._present_allowance_ns())
-        stages["present"] = (t5 - t4) / 1e9
+        stages["capture"] = (t5 - t4) / 1e9
         stages["frame"] = (t5 - t_start) / 1e9
-        self.safety.mark_started()
         self._frame_number += 1
         if self._frame_number == FREEZE_AFTER_FRAMES:
             self._freeze_long_lived()  # what the first frames made (cheap: the rest is frozen since start)
-        latency_s = (t_present + self.display_latency_ns - min(s.t_exposure_ns for s in samples.values())) / 1e9
-        self.metrics.record_frame(stages, t_present, latency_s, horizon_ns / 1e9)
+        self.metrics.record_render(stages, t5)
+        if resume_at is not None and resume_at > t5:
+            self._stop.wait((resume_at - t5) / 1e9)  # less than one frame's work
         with self._lock:
-            self._latest = LatestFrame(self._frame_number, t_present, image, settings, blank=False)
-        record = FrameRecord(self._frame_number, t_start, t_present, t_target, used,
+            self._capture = capture
+            self._latest = LatestFrame(self._frame_number, t5, image, settings, blank=False)
+        if not self._sync_output():
+            self.metrics.count("frames_withheld")  # rendered while dark (keeps causes observable)
+            return False
+        return True
+
+    # ---- the present thread: one present per refresh, never waiting for a render ----------
+    def _reprojector(self):
+        """The late reprojection over the native camera (the native G-buffer's, or the renderer's
+        when it renders at the native size)."""
+        camera = getattr(self.parts.gbuffer, "camera", None) or getattr(self.parts.renderer, "camera", None)
+        if camera is None:
+            return None
+        from dpmhw.reconstruct.reproject import Reprojector  # numba kernels: not for renderer-less test doubles
+
+        return Reprojector(camera, [o.is_dynamic for o in self.parts.scene.objects])
+
+    def _capture_frame(self, job: "_Job", image: np.ndarray, lit_box, frame) -> _Capture:
+        """Keep a finished frame for the presents; with the late reprojection, its moving pixels
+        (the native G-buffer's ids and depths of this frame: the stage keeps them until its next
+        `apply`) are captured in their objects' own frames."""
+        reprojection = None
+        if self.reprojector is not None:
+            native = self.reconstruct.native if self.parts.gbuffer is not None else None
+            if native is not None:
+                ids, depth = native.id, native.depth
+            else:
+                ids, depth = frame.object_id.reshape(-1), frame.depth.reshape(-1)
+            reprojection = self.reprojector.capture(image, ids, depth, list(job.poses), lit_box)
+        return _Capture(self._frame_number + 1, job, image, list(job.poses), reprojection)
+
+    def _present_loop(self) -> None:
+        """Wake `_present_lead_ns` before each refresh and present the newest capture, moved to
+        each photon window's predicted poses. A present that misses its refresh widens the lead."""
+        period = self.timing.period_ns
+        last = None
+        while not self._stop.is_set():
+            now = self.clock()
+            vsync = self.timing.next_vsync(now + self._present_lead_ns, self._vsync_phase)
+            if last is not None and vsync <= last:
+                vsync = last + period
+            wake = vsync - self._present_lead_ns
+            if wake > now and self._stop.wait((wake - now) / 1e9):
+                break
+            self._present_heartbeat_ns = self.clock()
+            try:
+                self._present(vsync)
+                self.safety.update("present", False)
+            except Exception as exc:  # a bug in the present path: dark, visible, keep going
+                log.exception("present failed")
+                self.safety.update("present", True, f"present failed: {type(exc).__name__}: {exc}", "fault")
+                self._go_dark(f"present failed: {exc}")
+            last = vsync
+
+    def _present(self, vsync: int) -> None:
+        """One refresh: the newest capture, if the output is lit and tracking is fresh, reprojected
+        per photon window and handed to the sink for `vsync`."""
+        with self._lock:
+            cap = self._capture
+        if cap is None or not self._output_on:
+            return
+        t0 = self.clock()
+        samples = {}
+        for body in sorted(set(self.parts.bindings.values())):
+            s = self.parts.tracker.latest(body)
+            if s is None or not s.valid or t0 - s.t_exposure_ns > self.stale_ns:
+                self.metrics.count("presents_withheld")  # the frame thread or the deadline goes dark
+                return
+            samples[body] = s
+        settings = cap.job.settings
+        mids = self.timing.photon_mid_ns(vsync)
+        windows = []
+        horizon_ns = cap.job.horizon_ns
+        if cap.reprojection is not None:
+            image = self._present_buffer()
+            with self._predict_lock:
+                self._drain_samples()
+                for w, t in zip(self.timing.windows, mids):
+                    poses, used = list(cap.poses), {}
+                    for index, body in self.parts.bindings.items():
+                        predicted = self.predictor.predict(body, t, enabled=settings.prediction)
+                        if predicted is None:
+                            return
+                        poses[index], horizon_ns = predicted
+                        used[body] = predicted[0]
+                    windows.append((t, used, poses, w.channel))
+            for _, _, poses, channel in windows:
+                self.reprojector.reproject(cap.reprojection, poses, image, channel=channel)
+        else:  # as rendered: every window shows the poses the frame was predicted to
+            image = cap.image
+            windows = [(t, cap.job.used, None, None) for t in mids]
+            samples = cap.job.samples
+        t1 = self.clock()
+        with self._output_lock:  # the deadline thread may have gone dark since: never light after it
+            if not self._output_on:
+                self.metrics.count("presents_withheld")
+                return
+            t_present = self.parts.sink.present(image, vsync)
+        t2 = self.clock()
+        if self.heartbeat is not None:
+            self.heartbeat.presented(t2, self._present_allowance_ns())
+        if t_present > vsync:  # missed its refresh: shown a period late, at other poses than predicted
+            self.metrics.count("late_presents")
+            self._present_lead_ns = min(self._present_lead_ns + PRESENT_LEAD_STEP_NS, self.timing.period_ns // 2)
+        self.safety.mark_started()
+        self._present_number += 1
+        shown = self.timing.photon_mid_ns(max(t_present, vsync))  # a sink without a refresh answers early
+        windows = tuple((t, used) for t, (_, used, _, _) in zip(shown, windows))
+        oldest = min(s.t_exposure_ns for s in samples.values())
+        latency_s = (sum(shown) / len(shown) - oldest) / 1e9
+        stages = {"reproject": (t1 - t0) / 1e9, "present": (t2 - t1) / 1e9}
+        self.metrics.record_present(stages, t_present, latency_s, horizon_ns / 1e9)
+        mid = len(windows) // 2
+        record = FrameRecord(self._present_number, cap.job.t_start, t_present, windows[mid][0], windows[mid][1],
                              {b: s.t_exposure_ns for b, s in samples.items()},
                              {b: Pose(np.array(s.rotation), np.array(s.translation)) for b, s in samples.items()},
-                             age_s, settings, stages)
+                             cap.job.age_s, settings, {**cap.job.stages, **stages}, windows, cap.number)
         if self.frame_log is not None:
             self.frame_log.append(record)
             if len(self.frame_log) > self._frame_log_max:
                 del self.frame_log[0]
         if self.parts.recorder is not None:
-            self.parts.recorder.frame(record, image)
-        return True
+            self.parts.recorder.frame(record, cap.image)
+
+    def _present_buffer(self) -> np.ndarray:
+        """The next of a few output buffers in turn (a sink may still read the one before)."""
+        if not hasattr(self, "_buffers"):
+            H, W = self.output_size[1], self.output_size[0]
+            self._buffers = [np.zeros((H, W, 3), np.uint8) for _ in range(3)]
+            self._buffer_turn = 0
+        self._buffer_turn = (self._buffer_turn + 1) % len(self._buffers)
+        return self._buffers[self._buffer_turn]
 
     @staticmethod
     def _freeze_long_lived() -> None:
@@ -723,6 +874,7 @@ class SessionLoop:
             if not self._output_on and not force and self._last_blank:
                 return
             self._output_on = False
+            self._capture = None  # nothing from before the dark spell is presented after it
             self.metrics.count("blanks")
             log.warning("projection dark: %s", reason)
             black_shown = False
@@ -755,7 +907,10 @@ class SessionLoop:
     def _watchdog(self) -> None:
         period = min(self.watchdog_ns / 4e9, 0.1)
         while not self._stop.wait(period):
-            age = self.clock() - self._heartbeat_ns
+            now = self.clock()
+            age = now - self._heartbeat_ns
+            if self._output_on:  # a lit output needs its present thread as well
+                age = max(age, now - self._present_heartbeat_ns)
             if age > self.watchdog_ns:
                 if not self.safety.active("watchdog"):
                     self.metrics.count("watchdog_trips")
@@ -836,7 +991,8 @@ class SessionLoop:
         with self._lock:
             accepted, applied = self._accepted, self._settings
         snap = {
-            "frame_number": self._frame_number,
+            "frame_number": self._present_number,  # presents (the display's frames)
+            "frames_rendered": self._frame_number,
             "uptime_s": round((now - self._t0_ns) / 1e9, 3),
             **self.metrics.summary(),
             "settings": accepted.model_dump(),

@@ -8,19 +8,25 @@ plain data the loop publishes as an immutable snapshot.
 
 from __future__ import annotations
 
+import threading
 from collections import Counter
 
 import numpy as np
 
 __all__ = ["STAGES", "WINDOWS", "Histogram", "LoopMetrics", "RollingWindow"]
 
-# tracker_age: newest sample's age when the frame started; render: shading at the shading
-# resolution; gbuffer: the native G-buffer update; filter / upsample: reconstruction
-# (dpmhw.reconstruct); frame: the whole iteration
-STAGES = ("tracker_age", "predict", "render", "gbuffer", "reuse", "filter", "upsample", "adaptive", "lod", "mesh_lod", "post", "present", "frame")
+# Rendered frames (the frame thread): tracker_age: newest sample's age when the frame started;
+# render: shading at the shading resolution; gbuffer: the native G-buffer update; filter /
+# upsample: reconstruction (dpmhw.reconstruct); capture: keeping it for the presents; frame: the
+# whole iteration. Presents (the present thread, once per refresh): reproject: moving the last
+# frame to each photon window's predicted poses; present: handing it to the sink.
+RENDER_STAGES = ("tracker_age", "predict", "render", "gbuffer", "reuse", "filter", "upsample", "adaptive", "lod",
+                 "mesh_lod", "post", "capture", "frame")
+PRESENT_STAGES = ("reproject", "present")
+STAGES = RENDER_STAGES + PRESENT_STAGES
 LATENCY_BUCKETS_S = (0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0)
 FRAME_BUCKETS_S = (0.002, 0.005, 0.01, 0.02, 0.033, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0)
-WINDOWS = len(STAGES) + 3  # the rolling windows a LoopMetrics keeps: the stages, latency, present times, horizon
+WINDOWS = len(STAGES) + 4  # the rolling windows a LoopMetrics keeps: the stages, latency, present and render times, horizon
 
 
 class RollingWindow:
@@ -79,44 +85,58 @@ class Histogram:
 
 
 class LoopMetrics:
-    """Written by the loop thread once per frame; `summary()` is a plain-data copy."""
+    """Written by the frame thread once per rendered frame (`record_render`) and by the present
+    thread once per present (`record_present`): each writes its own windows. `summary()` is a
+    plain-data copy."""
 
     def __init__(self, window: int = 512, deadline_s: float = 1 / 30):
         self.window = window
         self.deadline_s = deadline_s
         self.stages = {name: RollingWindow(window) for name in STAGES}
         self.latency = RollingWindow(window)  # motion-to-photon, seconds
-        self.present_times = RollingWindow(window)  # monotonic seconds of each presented frame
+        self.present_times = RollingWindow(window)  # monotonic seconds of each present
+        self.render_times = RollingWindow(window)  # monotonic seconds each rendered frame was ready
         self.horizon = RollingWindow(window)  # prediction horizon used, seconds
         self.latency_hist = Histogram(LATENCY_BUCKETS_S)
         self.frame_hist = Histogram(FRAME_BUCKETS_S)
         self.counters: Counter[str] = Counter()
+        self._count_lock = threading.Lock()  # both threads count
 
-    def record_frame(self, stages_s: dict[str, float], t_present_ns: int, latency_s: float, horizon_s: float) -> None:
-        """One presented frame: stage durations (seconds), when it was presented, its latency."""
+    def record_render(self, stages_s: dict[str, float], t_done_ns: int) -> None:
+        """One rendered frame: its stage durations (seconds) and when it was ready to present."""
         for name, value in stages_s.items():
             self.stages[name].add(value)
         frame_s = stages_s.get("frame", 0.0)
         self.frame_hist.observe(frame_s)
+        self.render_times.add(t_done_ns * 1e-9)
+        self.count("frames_rendered")
+        if frame_s > self.deadline_s:
+            self.count("deadline_misses")
+
+    def record_present(self, stages_s: dict[str, float], t_present_ns: int, latency_s: float, horizon_s: float) -> None:
+        """One present: its stage durations, its refresh, its motion-to-photon latency and horizon."""
+        for name, value in stages_s.items():
+            self.stages[name].add(value)
         self.latency.add(latency_s)
         self.latency_hist.observe(latency_s)
         self.horizon.add(horizon_s)
         self.present_times.add(t_present_ns * 1e-9)
-        self.counters["frames_presented"] += 1
-        if frame_s > self.deadline_s:
-            self.counters["deadline_misses"] += 1
+        self.count("frames_presented")
 
     def count(self, name: str, n: int = 1) -> None:
-        self.counters[name] += n
+        with self._count_lock:
+            self.counters[name] += n
 
     def fps(self) -> float:
-        t = self.present_times.values()
-        if len(t) < 2 or t[-1] <= t[0]:
-            return 0.0
-        return (len(t) - 1) / (t[-1] - t[0])
+        """Presents per second (the display's rate while lit)."""
+        return _rate(self.present_times.values())
+
+    def render_fps(self) -> float:
+        """Rendered frames per second (the machine's rate)."""
+        return _rate(self.render_times.values())
 
     def expected_pipeline_s(self, recent: int = 16) -> float:
-        """Median time from frame start to present over the last `recent` frames: the prediction
+        """Median time from frame start to capture (ready to present) over the last `recent` frames: the prediction
         look-ahead. Short, so it follows a change of spp or machine load within a second."""
         frames = self.stages["frame"]
         return float(np.median(frames.values()[-recent:])) if len(frames) else 0.0
@@ -129,6 +149,7 @@ class LoopMetrics:
         p50, p95, p99 = self.latency.percentiles()
         return {
             "fps": round(self.fps(), 3),
+            "render_fps": round(self.render_fps(), 3),
             "window_frames": len(self.latency),
             "latency_ms": {"p50": _ms(p50), "p95": _ms(p95), "p99": _ms(p99)},
             "prediction_horizon_ms": {"mean": _ms(self.horizon.mean())},
@@ -137,6 +158,12 @@ class LoopMetrics:
             "counters": dict(self.counters),
             "histograms": {"latency_seconds": self.latency_hist.as_dict(), "frame_seconds": self.frame_hist.as_dict()},
         }
+
+
+def _rate(t: np.ndarray) -> float:
+    if len(t) < 2 or t[-1] <= t[0]:
+        return 0.0
+    return (len(t) - 1) / (t[-1] - t[0])
 
 
 def _ms(seconds: float | None) -> float | None:

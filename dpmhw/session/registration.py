@@ -26,12 +26,15 @@ __all__ = ["RegistrationError", "registration_error", "silhouette"]
 _SHIFT = 4  # fixed-point bits for cv2.fillPoly: sub-pixel vertex positions
 
 
-def silhouette(camera: PinholeCamera, vertices: np.ndarray, faces: np.ndarray, pose: Pose) -> np.ndarray:
-    """(H, W) bool: pixels covered by the mesh at `pose` (object→world) seen by `camera`."""
+def silhouette(camera: PinholeCamera, vertices: np.ndarray, faces: np.ndarray, pose: Pose,
+               window: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """(H, W) bool: pixels covered by the mesh at `pose` (object→world) seen by `camera`; with
+    `window` (y0, y1, x0, x1) only that part of the image (the same pixels, cropped)."""
     px, in_front = camera.project(pose.apply(vertices))
     keep = in_front[faces].all(axis=1)
-    tri = np.round(px[faces[keep]] * (1 << _SHIFT)).astype(np.int32)
-    mask = np.zeros((camera.height, camera.width), np.uint8)
+    y0, y1, x0, x1 = window if window is not None else (0, camera.height, 0, camera.width)
+    tri = np.round((px[faces[keep]] - (x0, y0)) * (1 << _SHIFT)).astype(np.int32)
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
     if len(tri):
         cv2.fillPoly(mask, tri, 1, lineType=cv2.LINE_8, shift=_SHIFT)
     return mask.astype(bool)
@@ -53,13 +56,30 @@ class RegistrationError:
     vertex_px: float
 
 
+def _window(camera: PinholeCamera, *pixels: np.ndarray, margin: int = 4) -> tuple[int, int, int, int]:
+    """The image part holding every projected vertex plus a margin (clipped to the image): the
+    silhouettes, their outlines and distances there are those of the whole image."""
+    p = np.concatenate(pixels)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if not len(p):
+        return 0, camera.height, 0, camera.width
+    x0, y0 = np.floor(p.min(axis=0)).astype(int) - margin
+    x1, y1 = np.ceil(p.max(axis=0)).astype(int) + margin + 1
+    return max(0, y0), min(camera.height, max(y1, 1)), max(0, x0), min(camera.width, max(x1, 1))
+
+
 def registration_error(camera: PinholeCamera, vertices: np.ndarray, faces: np.ndarray,
                        shown: Pose, true: Pose) -> RegistrationError:
-    """Outline distance between the silhouette at `shown` and at `true` (see module doc)."""
-    a, b = _outline(silhouette(camera, vertices, faces, shown)), _outline(silhouette(camera, vertices, faces, true))
-    px_a, _ = camera.project(shown.apply(vertices))
-    px_b, _ = camera.project(true.apply(vertices))
+    """Outline distance between the silhouette at `shown` and at `true` (see module doc), over the
+    image part both lie in."""
+    px_a, front_a = camera.project(shown.apply(vertices))
+    px_b, front_b = camera.project(true.apply(vertices))
     vertex = float(np.linalg.norm(px_a - px_b, axis=1).mean())
+    window = _window(camera, px_a[front_a], px_b[front_b])
+    if window[1] <= window[0] or window[3] <= window[2]:
+        return RegistrationError(float("inf"), float("inf"), vertex)
+    a = _outline(silhouette(camera, vertices, faces, shown, window))
+    b = _outline(silhouette(camera, vertices, faces, true, window))
     if not a.any() or not b.any():
         return RegistrationError(float("inf"), float("inf"), vertex)
     # distance of every pixel to the nearest outline pixel of the other silhouette

@@ -129,6 +129,28 @@ def test_registration_error_of_a_known_shift():
     assert 2.0 < err.mean_px < err.max_px
 
 
+@pytest.mark.parametrize("shift", [(0.0, 0.0, 0.0), (0.004, -0.002, 0.0), (0.3, 0.0, 0.0)])
+def test_registration_over_the_silhouettes_window_equals_the_whole_image(shift):
+    """The error is measured in the image part both silhouettes lie in: the same numbers as over
+    the whole image, also for a mesh partly outside it (0.3 m sideways)."""
+    import cv2
+
+    from dpmhw.session import registration
+
+    scene = load_scene("dpm-bunny")
+    cam = PinholeCamera(scene.camera.K, scene.camera.dist, scene.render.width, scene.render.height, scene.camera.pose)
+    obj = scene.objects[0]
+    v, f = obj.mesh.vertices, obj.mesh.faces
+    true = Pose(obj.pose.R, obj.pose.t + np.array(shift))
+    shown = Pose(obj.pose.R, true.t + np.array([0.003, 0.001, 0.0]))
+    a = registration._outline(silhouette(cam, v, f, shown))
+    b = registration._outline(silhouette(cam, v, f, true))
+    d = np.concatenate([cv2.distanceTransform((~b).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[a],
+                        cv2.distanceTransform((~a).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[b]])
+    err = registration_error(cam, v, f, shown, true)
+    assert (err.mean_px, err.max_px) == pytest.approx((float(d.mean()), float(d.max())), rel=1e-6)
+
+
 @pytest.mark.slow
 def test_bench_session_command(runner, tmp_path):
     out = tmp_path / "bench.json"

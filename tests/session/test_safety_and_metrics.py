@@ -139,14 +139,15 @@ def test_loop_metrics_fps_latency_and_deadline_misses():
     m = LoopMetrics(window=8, deadline_s=0.02)
     for k in range(20):
         frame_s = 0.03 if k % 2 else 0.01
-        m.record_frame({"render": frame_s * 0.9, "frame": frame_s}, t_present_ns=int(k * 0.05e9),
-                       latency_s=0.04, horizon_s=0.03)
+        m.record_render({"render": frame_s * 0.9, "frame": frame_s}, t_done_ns=int(k * 0.1e9))
+        m.record_present({"reproject": 0.001, "present": 0.0005}, t_present_ns=int(k * 0.05e9), latency_s=0.04, horizon_s=0.03)
     s = m.summary()
     assert s["fps"] == pytest.approx(20.0)
+    assert s["render_fps"] == pytest.approx(10.0)
     assert s["latency_ms"]["p50"] == pytest.approx(40.0)
-    assert s["counters"] == {"frames_presented": 20, "deadline_misses": 10}
+    assert s["counters"] == {"frames_rendered": 20, "frames_presented": 20, "deadline_misses": 10}
     assert s["window_frames"] == 8
     assert m.expected_pipeline_s() == pytest.approx(0.02)
     for k in range(3):  # the look-ahead follows the newest frames, not the whole window
-        m.record_frame({"frame": 0.05}, t_present_ns=int((20 + k) * 0.05e9), latency_s=0.06, horizon_s=0.05)
+        m.record_render({"frame": 0.05}, t_done_ns=int((20 + k) * 0.1e9))
     assert m.expected_pipeline_s(recent=3) == pytest.approx(0.05)
