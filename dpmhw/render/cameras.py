@@ -47,6 +47,12 @@ class PinholeCamera:
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return d.astype(np.float32)
 
+    def ideal_points(self) -> np.ndarray:
+        """(H*W, 2) float32 undistorted image-plane points (X/Z, Y/Z) of the pixel centres' rays,
+        row-major: a pixel at camera depth z shows the camera-space point z·(x, y, 1)."""
+        d = self._dirs_cam
+        return np.ascontiguousarray(d[:, :2] / d[:, 2:3], np.float32)
+
     def pixel_corners(self) -> np.ndarray:
         """(H + 1, W + 1, 2) float32 undistorted image coordinates of the pixel corners (built once)."""
         if self._corners is None:

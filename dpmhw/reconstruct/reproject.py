@@ -1,0 +1,422 @@
+"""Late reprojection: the last rendered native frame, moved to newer object poses right before a present.
+
+The frame thread calls `Reprojector.capture` once per rendered frame: the moving objects' lit
+pixels are compacted into a list (pixel, object, model-space point, colour), so that a present
+costs in proportion to them, not to the frame. The present thread calls `Reprojector.reproject`
+for each photon window with the poses predicted for it:
+
+1. `out` = the captured image, with the captured moving pixels replaced by the *plate*: the last
+   colour each pixel showed while it showed a static object or the background (black where it
+   never did: the projector's dark);
+2. every compacted point is moved by its object's pose change, projected with the lens
+   distortion, and splatted to the nearest pixel centre with a z-test (against the other points
+   and against the static surfaces' last depth: a static object in front hides it);
+3. runs of up to `GAP_MAX_PX` pixels that no point reached, between two splats whose captured
+   pixels were neighbours, are filled along rows, then along columns: where the two ends lie at
+   the same depth (within `DEPTH_STEP_REL`) the run is a crack of magnification and takes the
+   colours interpolated between them; across a depth step the run is surface the nearer end hid
+   at capture (a disocclusion) and takes the farther end's colour, which continues that surface.
+
+Model-space points come from the G-buffer's depth (camera z, as `render.gbuffer` and
+`reconstruct.guides` define it) along each pixel's ray through its centre, lens distortion
+inverted (`PinholeCamera.ideal_points`): camera point = z·(x, y, 1), model point = pose⁻¹ ·
+world point. Only geometry moves: shading, highlights and shadows stay as they were rendered.
+
+Poses equal to the capture's give the captured image bit for bit (nothing moves, nothing is
+splatted). Every per-pixel step is a serial numba kernel that releases the GIL: the present
+thread runs beside the frame thread's parallel kernels and must not wait for their threads.
+The projection of the points is one branch-free loop over contiguous arrays (it vectorises at
+whatever SIMD width the CPU has); the splat and the fills are scattered writes.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from typing import Sequence
+
+import numba as nb
+import numpy as np
+
+from dpmhw.render.distortion import distort_inline
+from dpmhw.transforms import Pose
+
+__all__ = ["Capture", "ReprojectStats", "Reprojector", "GAP_MAX_PX", "DEPTH_STEP_REL"]
+
+GAP_MAX_PX = 8  # longest run of unreached pixels filled between two splats (a rotation of a few degrees opens ~5)
+DEPTH_STEP_REL = 0.02  # ends of a run further apart in depth than this: a disocclusion, not a crack
+STATIC_Z_REL = 1e-3  # a static surface nearer than a moved point by more than this fraction hides it
+NEAR_Z = 1e-4  # a point this close to the projector's plane (metres) or behind it is dropped
+
+
+@dataclass(frozen=True)
+class Capture:
+    """One rendered frame, ready to be moved: the image, the poses it was rendered at, and the
+    moving objects' lit pixels as flat arrays (n = `lit`)."""
+
+    image: np.ndarray  # (H, W, 3) uint8, read-only
+    poses: tuple  # object index → Pose the image was rendered at
+    pixel: np.ndarray  # (n,) int32 flat pixel index
+    obj: np.ndarray  # (n,) int32 object index
+    point: np.ndarray  # (n, 3) float32 model-space point
+    colour: np.ndarray  # (n, 3) uint8 its colour in the image
+    plate: np.ndarray  # (n, 3) uint8 the plate's colour at its pixel (what shows when it leaves)
+    box: tuple[int, int, int, int]  # (y0, y1, x0, x1) the lit box it was compacted from
+
+    @property
+    def lit(self) -> int:
+        return int(self.pixel.shape[0])
+
+
+@dataclass(frozen=True)
+class ReprojectStats:
+    """What one reprojection did, in pixels (points: the capture's compacted lit pixels)."""
+
+    lit: int  # points in the capture
+    moved: int  # pixels a point landed on (after the z-test)
+    dropped: int  # points off the frame, behind the projector, or behind a static surface
+    holes: int  # crack pixels filled by interpolation (magnification)
+    disoccluded: int  # pixels of newly visible surface, filled from the farther side
+    vacated: int  # captured moving pixels no point or fill covers now: they show the plate
+    box: tuple[int, int, int, int] | None  # (y0, y1, x0, x1) of the splats (None: nothing moved)
+
+
+# ---- kernels ---------------------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def _count(ids, depth, dynamic, W, y0, y1, x0, x1):
+    """Moving lit pixels of the box; −1 − p for the first pixel p whose id names no object."""
+    n = 0
+    n_obj = dynamic.shape[0]
+    for y in range(y0, y1):
+        for p in range(y * W + x0, y * W + x1):
+            o = ids[p]
+            if o >= n_obj:
+                return -1 - p
+            if o >= 0 and dynamic[o] and math.isfinite(depth[p]) and depth[p] > 0.0:
+                n += 1
+    return n
+
+
+@nb.njit(cache=True, nogil=True)
+def _compact(image, ids, depth, ideal, dynamic, A, b, W, y0, y1, x0, x1, plate, plate_z,
+             pixel, obj, point, colour, back):
+    """Moving lit pixels → the capture's arrays; every other pixel of the box → the plate."""
+    k = 0
+    for y in range(y0, y1):
+        for p in range(y * W + x0, y * W + x1):
+            o = ids[p]
+            z = depth[p]
+            if o >= 0 and dynamic[o]:
+                if not (math.isfinite(z) and z > 0.0):
+                    continue
+                cx, cy = z * ideal[p, 0], z * ideal[p, 1]
+                for i in range(3):
+                    point[k, i] = A[o, i, 0] * cx + A[o, i, 1] * cy + A[o, i, 2] * z + b[o, i]
+                    colour[k, i] = image[p, i]
+                    back[k, i] = plate[p, i]
+                pixel[k] = p
+                obj[k] = o
+                k += 1
+            else:
+                for i in range(3):
+                    plate[p, i] = image[p, i]
+                plate_z[p] = z if o >= 0 and math.isfinite(z) and z > 0.0 else np.inf
+
+
+@nb.njit(cache=True, nogil=True)
+def _project(obj, point, M, fx, fy, cx, cy, dist, W, H, dest, zout):
+    """Each point moved by its object's (3, 4) model→camera matrix and projected: `dest` its
+    nearest pixel (−1: off the frame or behind the projector), `zout` its camera depth. No
+    branch and no scattered write: the loop vectorises."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    for k in range(obj.shape[0]):
+        o = obj[k]
+        m0, m1, m2 = point[k, 0], point[k, 1], point[k, 2]
+        X = M[o, 0, 0] * m0 + M[o, 0, 1] * m1 + M[o, 0, 2] * m2 + M[o, 0, 3]
+        Y = M[o, 1, 0] * m0 + M[o, 1, 1] * m1 + M[o, 1, 2] * m2 + M[o, 1, 3]
+        Z = M[o, 2, 0] * m0 + M[o, 2, 1] * m1 + M[o, 2, 2] * m2 + M[o, 2, 3]
+        front = Z > NEAR_Z
+        iz = 1.0 / Z if front else 0.0
+        xd, yd = distort_inline(X * iz, Y * iz, k1, k2, p1, p2, k3)
+        u = math.floor(fx * xd + cx + 0.5)
+        v = math.floor(fy * yd + cy + 0.5)
+        inside = front and u >= 0.0 and u < W and v >= 0.0 and v < H
+        dest[k] = np.int32(v) * W + np.int32(u) if inside else -1
+        zout[k] = Z
+
+
+@nb.njit(inline="always")
+def _put(out, q, ch, r, g, b):
+    if ch < 0:
+        out[q, 0] = r
+        out[q, 1] = g
+        out[q, 2] = b
+    else:
+        out[q, ch] = (r, g, b)[ch]
+
+
+@nb.njit(inline="always")
+def _fill_run(qa, qb, step, g, pixel, colour, src, zbuf, zstamp, fstamp, sid, plate_z, W, ch, out):
+    """Fill the g unreached pixels between splats qa and qb (q = qa + i·step) if their points'
+    captured pixels were neighbours; returns (cracks, disoccluded) filled."""
+    ka, kb = src[qa], src[qb]
+    pa, pb = pixel[ka], pixel[kb]
+    if abs(pa % W - pb % W) > 1 or abs(pa // W - pb // W) > 1:
+        return 0, 0  # something lay between them at capture too: a real gap
+    za, zb = zbuf[qa], zbuf[qb]
+    crack = abs(za - zb) <= DEPTH_STEP_REL * min(za, zb)
+    kf = ka if za > zb else kb
+    zf = max(za, zb)
+    holes = 0
+    dis = 0
+    for i in range(1, g + 1):
+        q = qa + i * step
+        if zstamp[q] == sid or fstamp[q] == sid:
+            continue
+        if crack:
+            t = i / (g + 1.0)
+            z = za + t * (zb - za)
+            if plate_z[q] < z * (1.0 - STATIC_Z_REL):
+                continue
+            r = np.uint8(colour[ka, 0] + t * (np.float32(colour[kb, 0]) - colour[ka, 0]) + 0.5)
+            gg = np.uint8(colour[ka, 1] + t * (np.float32(colour[kb, 1]) - colour[ka, 1]) + 0.5)
+            bb = np.uint8(colour[ka, 2] + t * (np.float32(colour[kb, 2]) - colour[ka, 2]) + 0.5)
+            _put(out, q, ch, r, gg, bb)
+            holes += 1
+        else:
+            if plate_z[q] < zf * (1.0 - STATIC_Z_REL):
+                continue
+            _put(out, q, ch, colour[kf, 0], colour[kf, 1], colour[kf, 2])
+            dis += 1
+        fstamp[q] = sid
+    return holes, dis
+
+
+@nb.njit(cache=True, nogil=True)
+def _base(image, ch, out):
+    """out = image (channel `ch` only when ch ≥ 0)."""
+    if ch < 0:
+        out[:] = image
+    else:
+        for p in range(image.shape[0]):
+            out[p, ch] = image[p, ch]
+
+
+@nb.njit(cache=True, nogil=True)
+def _splat(pixel, colour, back, dest, zout, plate_z, W, ch, zbuf, src, zstamp, fstamp, sid, out, stats):
+    """Erase the captured moving pixels (the plate), splat the points with a z-test, fill the
+    cracks and disocclusions along rows then columns; stats: moved, dropped, holes,
+    disoccluded, vacated, y0, y1, x0, x1."""
+    n = pixel.shape[0]
+    for k in range(n):
+        _put(out, pixel[k], ch, back[k, 0], back[k, 1], back[k, 2])
+    moved = dropped = 0
+    y0 = x0 = 1 << 30
+    y1 = x1 = -1
+    for k in range(n):
+        q = dest[k]
+        if q < 0:
+            dropped += 1
+            continue
+        z = zout[k]
+        if plate_z[q] < z * (1.0 - STATIC_Z_REL):
+            dropped += 1
+            continue
+        if zstamp[q] != sid:
+            zstamp[q] = sid
+            moved += 1
+        elif zbuf[q] <= z:
+            continue
+        zbuf[q] = z
+        src[q] = k
+        _put(out, q, ch, colour[k, 0], colour[k, 1], colour[k, 2])
+        y, x = q // W, q % W
+        y0, y1, x0, x1 = min(y0, y), max(y1, y + 1), min(x0, x), max(x1, x + 1)
+    holes = dis = 0
+    for y in range(max(y0, 0), y1):  # rows
+        last = -1
+        for x in range(x0, x1):
+            q = y * W + x
+            if zstamp[q] != sid:
+                continue
+            if last >= 0 and 1 < x - last <= GAP_MAX_PX + 1:
+                h, d = _fill_run(y * W + last, q, 1, x - last - 1, pixel, colour, src, zbuf, zstamp, fstamp, sid,
+                                 plate_z, W, ch, out)
+                holes += h
+                dis += d
+            last = x
+    for x in range(max(x0, 0), x1):  # columns: what the rows left (e.g. a crack along a row)
+        last = -1
+        for y in range(y0, y1):
+            q = y * W + x
+            if zstamp[q] != sid:
+                continue
+            if last >= 0 and 1 < y - last <= GAP_MAX_PX + 1:
+                h, d = _fill_run(last * W + x, q, W, y - last - 1, pixel, colour, src, zbuf, zstamp, fstamp, sid,
+                                 plate_z, W, ch, out)
+                holes += h
+                dis += d
+            last = y
+    vacated = 0
+    for k in range(n):
+        p = pixel[k]
+        if zstamp[p] != sid and fstamp[p] != sid:
+            vacated += 1
+    stats[0], stats[1], stats[2], stats[3], stats[4] = moved, dropped, holes, dis, vacated
+    stats[5], stats[6], stats[7], stats[8] = y0, y1, x0, x1
+
+
+# ---- checks ----------------------------------------------------------------------------------------
+def _poses(poses, n: int, name: str = "poses") -> tuple[Pose, ...]:
+    """`n` finite rigid poses, or a ValueError naming the argument and the entry."""
+    try:
+        items = list(poses)
+    except TypeError:
+        raise ValueError(f"{name}: expected a sequence of {n} Pose, got {type(poses).__name__}") from None
+    if len(items) != n:
+        raise ValueError(f"{name}: expected one Pose per scene object ({n}), got {len(items)}")
+    out = []
+    for i, p in enumerate(items):
+        R, t = getattr(p, "R", None), getattr(p, "t", None)
+        if R is None or t is None:
+            raise ValueError(f"{name}[{i}]: expected a Pose, got {type(p).__name__}")
+        R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
+        if R.shape != (3, 3) or t.shape != (3,):
+            raise ValueError(f"{name}[{i}]: expected R (3, 3) and t (3,), got {R.shape} and {t.shape}")
+        if not (np.isfinite(R).all() and np.isfinite(t).all()):
+            raise ValueError(f"{name}[{i}]: not finite")
+        out.append(Pose(R, t))
+    return tuple(out)
+
+
+def _array(a, name: str, dtype, size: int, shape: str) -> np.ndarray:
+    if not isinstance(a, np.ndarray) or a.dtype != dtype or a.size != size:
+        got = f"{a.dtype} {a.shape}" if isinstance(a, np.ndarray) else type(a).__name__
+        raise ValueError(f"{name}: expected {shape} {np.dtype(dtype).name}, got {got}")
+    return np.ascontiguousarray(a).reshape(-1)
+
+
+class Reprojector:
+    """Late reprojection for one projector (see the module docstring).
+
+    camera : the native `PinholeCamera` (with its lens distortion)
+    dynamic : per scene object, whether it moves (only those are reprojected)
+
+    `capture` belongs to one thread (the frame thread), `reproject` to one other (the present
+    thread); each holds its own lock, so a second caller waits instead of corrupting state.
+    """
+
+    def __init__(self, camera, dynamic: Sequence[bool]):
+        try:
+            K = np.asarray(camera.K, np.float64)
+            dist = np.asarray(camera.dist, np.float64).reshape(-1)
+            W, H = int(camera.width), int(camera.height)
+            cam_R, cam_t = np.asarray(camera.pose.R, np.float64), np.asarray(camera.pose.t, np.float64)
+        except (AttributeError, TypeError, ValueError):
+            raise ValueError(f"camera: expected a PinholeCamera, got {type(camera).__name__}") from None
+        if K.shape != (3, 3) or dist.shape != (5,) or W < 1 or H < 1 or cam_R.shape != (3, 3) or cam_t.shape != (3,) \
+                or not all(np.isfinite(a).all() for a in (K, dist, cam_R, cam_t)):
+            raise ValueError("camera: expected finite K (3, 3), dist (5,), pose and a size ≥ 1×1")
+        flags = np.asarray(list(dynamic))
+        if flags.ndim != 1 or flags.size == 0 or flags.dtype != np.bool_:
+            raise ValueError(f"dynamic: expected one bool per scene object, got {list(dynamic)!r}")
+        self.width, self.height = W, H
+        self.dynamic = flags.copy()
+        self.K, self.dist, self.cam_R, self.cam_t = K, dist, cam_R, cam_t
+        self._ideal = camera.ideal_points()
+        n = W * H
+        self._plate = np.zeros((n, 3), np.uint8)  # last colour without a moving object in front
+        self._plate_z = np.full(n, np.inf, np.float32)  # depth of the static surface there (inf: none seen)
+        self._zbuf = np.zeros(n, np.float32)  # per reprojection, valid where _zstamp == its id
+        self._src = np.zeros(n, np.int32)  # the point a splatted pixel shows
+        self._zstamp = np.zeros(n, np.int32)
+        self._fstamp = np.zeros(n, np.int32)  # filled by a run
+        self._sid = 0
+        self._capture_lock = threading.Lock()
+        self._present_lock = threading.Lock()
+
+    def capture(self, image: np.ndarray, object_id: np.ndarray, depth: np.ndarray, poses: Sequence[Pose],
+                box: tuple[int, int, int, int] | None = None) -> Capture:
+        """Compact the moving objects' lit pixels of `box` (the lit box; None: the whole frame)
+        and update the plate there. `object_id`, `depth`: the native G-buffer's (H*W values)."""
+        W, H = self.width, self.height
+        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.shape != (H, W, 3):
+            got = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
+            raise ValueError(f"image: expected ({H}, {W}, 3) uint8, got {got}")
+        ids = _array(object_id, "object_id", np.int32, H * W, f"({H * W},)")
+        z = _array(depth, "depth", np.float32, H * W, f"({H * W},)")
+        poses = _poses(poses, len(self.dynamic))
+        y0, y1, x0, x1 = self._box(box)
+        A = np.zeros((len(poses), 3, 3))
+        b = np.zeros((len(poses), 3))
+        for k, p in enumerate(poses):  # camera → model: R_kᵀ (R_cam·c + t_cam − t_k)
+            A[k] = p.R.T @ self.cam_R
+            b[k] = p.R.T @ (self.cam_t - p.t)
+        img = image.reshape(-1, 3)
+        with self._capture_lock:
+            n = _count(ids, z, self.dynamic, W, y0, y1, x0, x1)
+            if n < 0:
+                p = -1 - n
+                raise ValueError(f"object_id: pixel {p} names object {ids[p]}, the scene has {len(self.dynamic)}")
+            pixel, obj = np.empty(n, np.int32), np.empty(n, np.int32)
+            point, colour, back = np.empty((n, 3), np.float32), np.empty((n, 3), np.uint8), np.empty((n, 3), np.uint8)
+            _compact(img, ids, z, self._ideal, self.dynamic, A, b, W, y0, y1, x0, x1, self._plate, self._plate_z,
+                     pixel, obj, point, colour, back)
+        frozen = image.copy()
+        frozen.flags.writeable = False
+        return Capture(frozen, poses, pixel, obj, point, colour, back, (y0, y1, x0, x1))
+
+    def reproject(self, capture: Capture, poses: Sequence[Pose], out: np.ndarray, channel: int | None = None) -> ReprojectStats:
+        """`out` = the capture moved to `poses` (only channel `channel` of it when given)."""
+        W, H = self.width, self.height
+        if not isinstance(capture, Capture) or capture.image.shape != (H, W, 3):
+            raise ValueError(f"capture: expected a Capture of this Reprojector ({W}×{H}), got {type(capture).__name__}")
+        if not isinstance(out, np.ndarray) or out.dtype != np.uint8 or out.shape != (H, W, 3) or not out.flags.c_contiguous \
+                or not out.flags.writeable:
+            got = f"{out.dtype} {out.shape}" if isinstance(out, np.ndarray) else type(out).__name__
+            raise ValueError(f"out: expected a writable C-contiguous ({H}, {W}, 3) uint8 array, got {got}")
+        if channel is not None and (not isinstance(channel, (int, np.integer)) or isinstance(channel, bool)
+                                    or not 0 <= channel <= 2):
+            raise ValueError(f"channel: expected None, 0, 1 or 2, got {channel!r}")
+        poses = _poses(poses, len(self.dynamic))
+        ch = -1 if channel is None else int(channel)
+        img, dst = capture.image.reshape(-1, 3), out.reshape(-1, 3)
+        moving = np.flatnonzero(self.dynamic)
+        still = all(np.array_equal(poses[k].R, capture.poses[k].R) and np.array_equal(poses[k].t, capture.poses[k].t)
+                    for k in moving)
+        if still or capture.lit == 0:
+            _base(img, ch, dst)
+            return ReprojectStats(capture.lit, capture.lit if still else 0, 0, 0, 0, 0, capture.box if capture.lit else None)
+        M = np.zeros((len(poses), 3, 4), np.float32)
+        for k in moving:  # model → camera: R_camᵀ (R_k·m + t_k − t_cam)
+            M[k, :, :3] = self.cam_R.T @ poses[k].R
+            M[k, :, 3] = self.cam_R.T @ (poses[k].t - self.cam_t)
+        n = capture.lit
+        dest, zout = np.empty(n, np.int32), np.empty(n, np.float32)
+        stats = np.zeros(9, np.int64)
+        with self._present_lock:
+            self._sid += 1
+            if self._sid >= 2**31 - 1:  # a stamp can wrap only after 2³¹ presents; then start over
+                self._zstamp[:] = 0
+                self._fstamp[:] = 0
+                self._sid = 1
+            _project(capture.obj, capture.point, M, *self.K[[0, 1, 0, 1], [0, 1, 2, 2]], self.dist, W, H, dest, zout)
+            _base(img, ch, dst)
+            _splat(capture.pixel, capture.colour, capture.plate, dest, zout, self._plate_z, W, ch, self._zbuf, self._src,
+                   self._zstamp, self._fstamp, self._sid, dst, stats)
+        moved, dropped, holes, dis, vacated, y0, y1, x0, x1 = (int(v) for v in stats)
+        return ReprojectStats(n, moved, dropped, holes, dis, vacated, (y0, y1, x0, x1) if moved else None)
+
+    def _box(self, box) -> tuple[int, int, int, int]:
+        if box is None:
+            return (0, self.height, 0, self.width)
+        try:
+            y0, y1, x0, x1 = (int(v) for v in box)
+            if any(int(v) != v for v in box):
+                raise ValueError
+        except (TypeError, ValueError):
+            raise ValueError(f"box: expected (y0, y1, x0, x1) integers, got {box!r}") from None
+        if not (0 <= y0 <= y1 <= self.height and 0 <= x0 <= x1 <= self.width):
+            raise ValueError(f"box: expected 0 ≤ y0 ≤ y1 ≤ {self.height} and 0 ≤ x0 ≤ x1 ≤ {self.width}, got {box!r}")
+        return y0, y1, x0, x1
