@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import enum
 
+from dpmhw.display import DISPLAY_MODES
 from dpmhw.postprocess import TONEMAPS
 from dpmhw.reconstruct.settings import REUSE_MODES
 
-__all__ = ["ApiMode", "BenchTrajectory", "ClientPriority", "NatNetVersion", "PixelSampling", "QualityPart", "ReuseMode",
+__all__ = ["ApiMode", "BenchTrajectory", "ClientPriority", "DisplayModeChoice", "NatNetVersion", "PixelSampling", "QualityPart", "ReuseMode",
            "SerialModel", "SinkKind", "Tonemap", "Trajectory"]
 
 
@@ -22,6 +23,7 @@ ReuseMode = _choices("ReuseMode", REUSE_MODES)
 Tonemap = _choices("Tonemap", TONEMAPS)
 QualityPart = _choices("QualityPart", ("static", "dynamic", "native", "all"))
 BenchTrajectory = _choices("BenchTrajectory", ("linear", "rotate-oscillate", "static"))
+DisplayModeChoice = _choices("DisplayModeChoice", DISPLAY_MODES)
 ApiMode = _choices("ApiMode", ("process", "thread"))
 ClientPriority = _choices("ClientPriority", ("normal", "low", "idle"))
 Trajectory = _choices("Trajectory", ("static", "linear", "circular", "rotate-oscillate", "recorded"))

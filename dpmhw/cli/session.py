@@ -16,7 +16,7 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli.apps import app, bench_app, write_json
-from dpmhw.cli.choices import ApiMode, BenchTrajectory, ClientPriority
+from dpmhw.cli.choices import ApiMode, BenchTrajectory, ClientPriority, DisplayModeChoice
 
 session_app = typer.Typer(no_args_is_help=True, help="Projection sessions: tracker → prediction → render → projector.")
 app.add_typer(session_app, name="session")
@@ -165,12 +165,13 @@ def bench_session(
     client_priority: Annotated[ClientPriority, typer.Option(help="CPU priority of the load-client process: normal (the strict test: it competes with the loop like any local program), low, idle (as if the clients were on another machine).")] = ClientPriority("normal"),
     api_only: Annotated[bool, typer.Option("--api-only", help="Only the API-load case (skip the registration cases).")] = False,
     trajectory: Annotated[Optional[list[BenchTrajectory]], typer.Option(help="Repeatable; default: linear and rotate-oscillate.")] = None,
+    display: Annotated[DisplayModeChoice, typer.Option(help="The projector's display mode: video (one 24-bit frame per refresh) or pattern-8bit (three 8-bit sub-frames per refresh, one per colour channel).")] = DisplayModeChoice("video"),
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
     plot: Annotated[Path, typer.Option(help="Plot of registration error and latency over time and the frame-time histogram (PNG).")] = Path("bench-session/bench-session.png"),
     sets: SetOpt = None,
 ) -> None:
-    """Registration error vs ground truth with/without prediction, fps, latency, frame time under API load."""
-    from dpmhw.session.bench import format_table, run_bench
+    """Registration at photon time vs ground truth with/without late reprojection and prediction, fps, latency, frame time under API load."""
+    from dpmhw.session.bench import CASES, format_table, run_bench
 
     trajectories = tuple(t.value for t in trajectory) if trajectory else ("linear", "rotate-oscillate")
     modes = tuple(m.value for m in api_mode) if api_mode else ("process", "thread")
@@ -178,7 +179,7 @@ def bench_session(
         raise typer.BadParameter("--api-only needs --api-clients ≥ 1")
     from dpmhw.progress import Progress
 
-    steps = (0 if api_only else 2 * len(trajectories)) + (1 if api_clients else 0)  # run_bench's progress() calls
+    steps = (0 if api_only else len(CASES) * len(trajectories)) + (1 if api_clients else 0)  # run_bench's progress() calls
     with Progress() as bar:
         task = bar.task("bench session", total=steps)
         started: list[str] = []
@@ -187,10 +188,14 @@ def bench_session(
             task.update(len(started), description=f"bench session: {label}")
             started.append(label)
 
+        def on_note(text: str) -> None:
+            task.update(max(len(started) - 1, 0), description=f"bench session: {text}")
+
         results = run_bench(trajectories, api_clients=api_clients, api_rate_hz=api_rate, api_modes=modes,
                             api_windows=api_windows, api_window_s=api_window_s, api_client_priority=client_priority.value,
                             cases=not api_only, seconds=seconds,
-                            width=width, height=height, spp=spp, overrides=tuple(sets or ()), progress=on_step)
+                            width=width, height=height, spp=spp, overrides=(f"display.mode={display.value}", *(sets or ())),
+                            progress=on_step, note=on_note)
         task.update(steps, description="bench session")
     series = {c["case"]: c.pop("series") for c in results["cases"] if "series" in c}
     typer.echo(format_table(results))

@@ -35,10 +35,12 @@ __all__ = ["BenchCase", "format_table", "run_bench", "run_case"]
 class BenchCase:
     trajectory: str
     prediction: bool
+    reprojection: bool = True  # the late reprojection at each present
 
     @property
     def label(self) -> str:
-        return f"{self.trajectory} prediction={'on' if self.prediction else 'off'}"
+        onoff = lambda b: "on" if b else "off"  # noqa: E731
+        return f"{self.trajectory} prediction={onoff(self.prediction)} reprojection={onoff(self.reprojection)}"
 
 
 def _pct(values, qs=(50, 95, 99)):
@@ -190,25 +192,28 @@ class _ApiLoad:
             self.sock.close()
 
 
-STAGE_KEYS = ("gbuffer", "render", "reuse", "filter", "upsample", "adaptive", "lod", "mesh_lod", "post", "present", "frame")
+STAGE_KEYS = ("gbuffer", "render", "reuse", "filter", "upsample", "adaptive", "lod", "mesh_lod", "post", "capture", "frame",
+              "reproject", "present")
 
 
 def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 0, height: int = 0,
-             spp: int = 1, max_eval_frames: int = 120, overrides: tuple[str, ...] = ()) -> dict:
+             spp: int = 1, max_eval_frames: int = 120, overrides: tuple[str, ...] = (), progress=None) -> dict:
     """Run one mocked session and measure it (see module doc). width/height: the output size
     (0: the projector's native size); the shading scale and filter come from `overrides`.
 
     The row is flat (docs/session.md, "Session benchmark JSON"): scene, method, shading_scale,
-    filter, alpha, output_width, output_height, fps, fps_median (1 / median present interval),
-    latency_ms_p50/p95/p99, frame_ms_p50/p95/p99, registration_px_p50/p99 (and _max_, measured-pose and
-    vertex variants), <stage>_ms_p50 for every loop stage, frame counts."""
+    filter, alpha, display, reprojection, output_width, output_height, fps (presents/s),
+    fps_median (1 / median present interval), render_fps, latency_ms_p50/p95/p99 (sample exposure →
+    photon mid), frame_ms_p50/p95/p99 (rendered frames), registration_px_p50/p99 at photon time over
+    every photon window (and _max_, measured-pose and vertex variants), <stage>_ms_p50 for every
+    loop stage, late_presents, frame counts. `progress(text)` hears how the analysis goes."""
     from dpmhw.render.cameras import PinholeCamera
     from dpmhw.session.factory import build_session, prepare_scene
     from dpmhw.session.registration import registration_error
 
     cfg = load_session_config(overrides=[
         f"mock.trajectory={case.trajectory}", f"prediction.enabled={str(case.prediction).lower()}",
-        f"render.width={width}", f"render.height={height}", f"render.spp={spp}", "sink.kind=recording",
+        f"prediction.late_reprojection={str(case.reprojection).lower()}", f"render.width={width}", f"render.height={height}", f"render.spp={spp}", "sink.kind=recording",
         "api.enabled=false", *overrides])
     loop = build_session(cfg, mock=True, frame_log=100_000)
     try:
@@ -231,27 +236,34 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     camera = PinholeCamera(scene.camera.K, scene.camera.dist, scene.render.width, scene.render.height, scene.camera.pose)
     (index, body), = loop.parts.bindings.items()
     mesh = scene.objects[index].mesh
-    display_ns = int(cfg.prediction.display_latency_ms * 1e6)
     step = max(1, len(records) // max_eval_frames)
+    evaluated = records[::step]
     errors, measured = [], []
-    for r in records[::step]:
-        R, t = world.pose(body, (r.t_present_ns + display_ns) / 1e9)
-        truth = Pose(R, t)
-        errors.append(registration_error(camera, mesh.vertices, mesh.faces, r.poses[body], truth))
-        # the same frame had it shown the measured pose: prediction on/off paired on identical timing
-        measured.append(registration_error(camera, mesh.vertices, mesh.faces, r.measured[body], truth))
-    frame_ms = [r.stages_s["frame"] * 1e3 for r in records]
-    latency_ms = [(r.t_present_ns + display_ns - r.sample_t_ns[body]) / 1e6 for r in records]
+    for k, r in enumerate(evaluated):
+        if progress is not None and k % 20 == 0:
+            progress(f"{case.label}: registration of present {k + 1}/{len(evaluated)}")
+        # every photon window at its own instant: the pose it showed against the truth then
+        for t_photon, shown in r.windows:
+            truth = Pose(*world.pose(body, t_photon / 1e9))
+            errors.append(registration_error(camera, mesh.vertices, mesh.faces, shown[body], truth))
+            # had it shown the measured pose: prediction on/off paired on identical timing
+            measured.append(registration_error(camera, mesh.vertices, mesh.faces, r.measured[body], truth))
+    rendered = {r.rendered: r for r in records}  # a frame presented more than once counts once
+    frame_ms = [r.stages_s["frame"] * 1e3 for r in rendered.values()]
+    latency_ms = [(sum(t for t, _ in r.windows) / len(r.windows) - r.sample_t_ns[body]) / 1e6 for r in records]
     span_s = (records[-1].t_present_ns - records[0].t_present_ns) / 1e9
     intervals_s = np.diff([r.t_present_ns for r in records]) / 1e9
     out = {
         "case": case.label, "scene": cfg.scene.source, "method": _method(cfg), "trajectory": case.trajectory,
         "prediction": case.prediction, "shading_scale": cfg.render.shading_scale, "filter": cfg.render.filter,
-        "alpha": cfg.reuse.alpha, "reuse_mode": cfg.reuse.mode, "spp": spp,
+        "alpha": cfg.reuse.alpha, "reuse_mode": cfg.reuse.mode, "spp": spp, "reprojection": case.reprojection,
+        "display": getattr(getattr(cfg, "display", None), "mode", "video"), "photon_windows": len(records[0].windows),
         "output_width": status["output_size"][0], "output_height": status["output_size"][1],
         "shading_width": status["render_size"][0], "shading_height": status["render_size"][1],
         "frames": len(records), "fps": round((len(records) - 1) / span_s, 2) if span_s > 0 else 0.0,
         "fps_median": round(1.0 / float(np.median(intervals_s)), 2) if len(intervals_s) and np.median(intervals_s) > 0 else 0.0,
+        "render_fps": round((len(rendered) - 1) / span_s, 2) if span_s > 0 else 0.0,
+        "late_presents": status["counters"].get("late_presents", 0),
     }
     for prefix, values, qs in (("latency_ms", latency_ms, (50, 95, 99)), ("frame_ms", frame_ms, (50, 95, 99)),
                                ("registration_px", [e.mean_px for e in errors], (50, 99)),
@@ -261,9 +273,9 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         out.update({f"{prefix}_p{q}": v for q, v in zip(qs, _pct(values, qs))})
     for stage in STAGE_KEYS:
         out[f"{stage}_ms_p50"] = _pct([r.stages_s.get(stage, np.nan) * 1e3 for r in records], (50,))[0]
-    out.update({"horizon_ms_mean": status["prediction_horizon_ms"]["mean"], "evaluated_frames": len(errors),
+    out.update({"horizon_ms_mean": status["prediction_horizon_ms"]["mean"], "evaluated_windows": len(errors),
                 "projector_width": scene.render.width, "projector_height": scene.render.height})
-    out["series"] = bench_series(records, frame_ms, latency_ms, errors, step)  # for the plots; not a JSON row
+    out["series"] = bench_series(records, latency_ms, errors, step)  # for the plots; not a JSON row
     return out
 
 
@@ -350,16 +362,20 @@ def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...
     return out
 
 
+CASES = ((True, True), (True, False), (False, False))  # (prediction, late reprojection) per trajectory
+
+
 def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int = 4, api_rate_hz: float = 10.0,
               api_modes: tuple[str, ...] = ("process", "thread"), api_windows: int = 6, api_window_s: float = 3.0,
-              api_client_priority: str = "normal", cases: bool = True, progress=None, **kw) -> dict:
-    """Every trajectory with prediction on and off (unless not `cases`), then (if `api_clients`)
-    the API-load comparison for each of `api_modes`."""
+              api_client_priority: str = "normal", cases: bool = True, progress=None, note=None, **kw) -> dict:
+    """Every trajectory with prediction and late reprojection on, prediction alone, and neither
+    (unless not `cases`), then (if `api_clients`) the API-load comparison for each of `api_modes`.
+    `progress(label)` hears each case begin, `note(text)` how its analysis goes."""
     results = []
-    for case in [BenchCase(t, p) for t in trajectories for p in (True, False)] if cases else []:
+    for case in [BenchCase(t, p, r) for t in trajectories for p, r in CASES] if cases else []:
         if progress is not None:
             progress(case.label)
-        results.append(run_case(case, **kw))
+        results.append(run_case(case, progress=note, **kw))
     load = []
     if api_clients:
         if progress is not None:
@@ -372,11 +388,11 @@ def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int =
 
 def format_table(bench: dict) -> str:
     results = bench["cases"]
-    head = (f"{'case':<34} {'fps':>6} {'fps med':>7} {'lat p50':>8} {'p95':>7} {'p99':>7} {'frame p99':>9} "
+    head = (f"{'case':<52} {'fps':>6} {'render':>6} {'lat p50':>8} {'p95':>7} {'p99':>7} {'frame p99':>9} "
             f"{'reg p50':>8} {'reg p99':>8} {'vert p50':>8} {'unpred p50':>10} {'p99':>7}")
     lines = [head, "-" * len(head)] if results else []
     for r in results:
-        lines.append(f"{r['case']:<34} {r['fps']:>6.1f} {r['fps_median']:>7.1f} {r['latency_ms_p50']:>8.1f} "
+        lines.append(f"{r['case']:<52} {r['fps']:>6.1f} {r['render_fps']:>6.1f} {r['latency_ms_p50']:>8.1f} "
                      f"{r['latency_ms_p95']:>7.1f} {r['latency_ms_p99']:>7.1f} "
                      f"{r['frame_ms_p99']:>9.1f} {r['registration_px_p50']:>8.2f} {r['registration_px_p99']:>8.2f} "
                      f"{r['vertex_px_p50']:>8.2f} {r['registration_measured_pose_px_p50']:>10.2f} "
@@ -384,7 +400,7 @@ def format_table(bench: dict) -> str:
     if results:
         lines.append("per-stage p50 ms (" + ", ".join(STAGE_KEYS) + "):")
         for r in results:
-            lines.append(f"  {r['case']:<32} {r['method']:<24} " + " ".join(
+            lines.append(f"  {r['case']:<50} {r['method']:<24} " + " ".join(
                 f"{r[f'{k}_ms_p50']:.2f}" if r[f"{k}_ms_p50"] is not None else "-" for k in STAGE_KEYS))
     for load in bench.get("api_load") or []:
         u, b = load["unloaded_frame_ms"], load["loaded_frame_ms"]
@@ -399,8 +415,9 @@ def format_table(bench: dict) -> str:
                      f"{load['unloaded_split_p99_ratio']})")
     if not results:
         return "\n".join(lines)
-    lines.append("latency: tracker mid-exposure → frame presented; reg: symmetric outline distance between the "
-                 "silhouette shown and the true one at present time, in projector pixels "
+    lines.append(f"display {results[0]['display']} ({results[0]['photon_windows']} photon windows per present); fps: presents/s, "
+                 "render: rendered frames/s; latency: tracker mid-exposure → photons; reg: symmetric outline distance "
+                 "between the silhouette shown and the true one at each photon window's middle, in projector pixels "
                  f"({results[0]['projector_width']}×{results[0]['projector_height']}; output "
                  f"{results[0]['output_width']}×{results[0]['output_height']}); vert: mean vertex displacement; "
                  "unpred: reg of the same frames had they shown the measured (unpredicted) pose")

@@ -13,13 +13,16 @@ import numpy as np
 __all__ = ["bench_series", "plot_bench_session"]
 
 
-def bench_series(records, frame_ms, latency_ms, errors, step: int) -> dict:
-    """Per-frame series of one case: time (s from its first measured frame), frame time and
-    latency (ms), and the registration error (px) of every `step`-th frame."""
+def bench_series(records, latency_ms, errors, step: int) -> dict:
+    """Per-present series of one case: time (s from its first measured present), the rendered
+    frame's time and the latency (ms), and the registration error (px) of every photon window of
+    every `step`-th present."""
     t0 = records[0].t_present_ns
     t_s = [round((r.t_present_ns - t0) / 1e9, 5) for r in records]
-    return {"t_s": t_s, "frame_ms": [round(x, 4) for x in frame_ms], "latency_ms": [round(x, 4) for x in latency_ms],
-            "registration_t_s": t_s[::step][:len(errors)], "registration_px": [round(e.mean_px, 4) for e in errors]}
+    windows = [round((t - t0) / 1e9, 5) for r in records[::step] for t, _ in r.windows]
+    return {"t_s": t_s, "frame_ms": [round(r.stages_s["frame"] * 1e3, 4) for r in records],
+            "latency_ms": [round(x, 4) for x in latency_ms],
+            "registration_t_s": windows[:len(errors)], "registration_px": [round(e.mean_px, 4) for e in errors]}
 
 
 def plot_bench_session(cases: list[dict], series: dict[str, dict], path: str | Path) -> Path:
@@ -35,20 +38,20 @@ def plot_bench_session(cases: list[dict], series: dict[str, dict], path: str | P
     bins = np.linspace(0, float(np.percentile(all_frame_ms, 99.5)) * 1.05 + 1e-6, 60)
     for c in shown:
         s = series[c["case"]]
-        style = "-" if c.get("prediction") else "--"
+        style = "-" if c.get("reprojection") else "--" if c.get("prediction") else ":"
         label = c["case"]
         reg.plot(s["registration_t_s"], s["registration_px"], style, lw=1, label=label)
         lat.plot(s["t_s"], s["latency_ms"], style, lw=0.8, label=label)
         hist.hist(np.clip(s["frame_ms"], 0, bins[-1]), bins=bins, histtype="step", linestyle=style, label=label)
-    reg.set(title="Registration error (mean over the mesh)", xlabel="time in the measured window (s)",
+    reg.set(title="Registration error at photon time (mean over the outline)", xlabel="time in the measured window (s)",
             ylabel="error in projector pixels (px)")
-    lat.set(title="Latency: tracker exposure → present", xlabel="time in the measured window (s)", ylabel="latency (ms)")
+    lat.set(title="Latency: tracker exposure → photons", xlabel="time in the measured window (s)", ylabel="latency (ms)")
     hist.set(title="Frame time", xlabel="frame time (ms; the last bin holds the slowest 0.5 %)", ylabel="frames (log scale)",
              yscale="log")
     for ax in (reg, lat, hist):
         ax.grid(alpha=0.3)
     if shown:
         reg.legend(fontsize=8)
-    fig.suptitle("dpmhw bench session (solid: prediction on, dashed: off)")
+    fig.suptitle("dpmhw bench session (solid: late reprojection; dashed: prediction only; dotted: neither)")
     fig.savefig(path)
     return path

@@ -220,6 +220,19 @@ def exercise_stage(stage: ReconstructStage, frames, camera):
     return out
 
 
+def exercise_reprojection(reprojector, scene, size: tuple[int, int]) -> None:
+    """Capture a synthetic frame (the first moving object everywhere) and reproject it after a
+    move, into every channel and into one: what a present calls, compiled before presents need it."""
+    W, H = size
+    moving = next((k for k, o in enumerate(scene.objects) if o.is_dynamic), 0)
+    image = np.zeros((H, W, 3), np.uint8)
+    cap = reprojector.capture(image, np.full(H * W, moving, np.int32), np.ones(H * W, np.float32),
+                              scene.object_poses(0.0), (0, H, 0, W))
+    out = np.zeros_like(image)
+    for channel in (None, 0):
+        reprojector.reproject(cap, scene.object_poses(0.25), out, channel=channel)
+
+
 class SessionLoop:
     """Runs one projection session. `start()`, then `stop()` (idempotent) for a verified dark end."""
 
@@ -297,6 +310,8 @@ class SessionLoop:
             poses = scene.object_poses(t)
             frames.append((poses, renderer.render(time=t, seed=k, spp=1, poses=poses)))
         out = exercise_stage(self.reconstruct, frames[1:], renderer.camera)
+        if self.reprojector is not None:
+            exercise_reprojection(self._reprojector(), scene, self.output_size)  # a throwaway: its plate stays clean
         if self.mesh_lod is not None:
             self._observe_mesh_lod(out.image, frames[-1][1])
         took = time.monotonic() - t0
@@ -436,7 +451,7 @@ class SessionLoop:
     def _run(self) -> None:
         poll_s = 0.005
         while not self._stop.is_set():
-            self._heartbeat_ns = self.clock()
+            t_begin = self._heartbeat_ns = self.clock()
             try:
                 presented = self._iteration()
                 self.safety.update("loop", False)
@@ -448,6 +463,10 @@ class SessionLoop:
             self._publish()
             if not presented:
                 self._stop.wait(self._idle_wait_s(poll_s))
+            else:  # no faster than the display shows frames: a newer one would only replace it unseen
+                rest = t_begin + self.timing.period_ns - self.clock()
+                if rest > 0:
+                    self._stop.wait(rest / 1e9)
 
     def _idle_wait_s(self, poll_s: float) -> float:
         """Sleep after a dark turn: `poll_s`, but wake the resume lead before the hold-off ends,

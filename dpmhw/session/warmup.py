@@ -128,13 +128,19 @@ def _synthetic_frame(renderer, t: float):
 
 
 def _reconstruction(config_data: dict) -> None:
-    """The native G-buffer, reuse, filter, upsampling, LOD and post on synthetic frames."""
-    from dpmhw.session.loop import exercise_stage, reconstruct_stage
+    """The native G-buffer, reuse, filter, upsampling, LOD, post and the late reprojection on
+    synthetic frames."""
+    from dpmhw.reconstruct.reproject import Reprojector
+    from dpmhw.session.loop import exercise_reprojection, exercise_stage, reconstruct_stage
 
     config, scene, renderer, gbuffer = _build(config_data)
     stage = reconstruct_stage(config, scene, _NoPaths(renderer), gbuffer, time.monotonic_ns)
     frames = [(scene.object_poses(t), _synthetic_frame(renderer, t)) for t in (0.0, 0.25)]
     exercise_stage(stage, frames, renderer.camera)
+    if config.prediction.late_reprojection:
+        camera = gbuffer.camera if gbuffer is not None else renderer.camera
+        exercise_reprojection(Reprojector(camera, [o.is_dynamic for o in scene.objects]), scene,
+                              (scene.render.width, scene.render.height))
 
 
 # Each group's kernels and their cold compile time in seconds (exclusive of the callees listed
