@@ -74,6 +74,7 @@ class _Configured:
     parked: bool | None = None
     idle: bool | None = None
     sequence: _Sequence | None = None
+    video_pattern_hz: float | None = None  # video pattern mode as `set_video_pattern_mode` set it
     running: bool = False
 
 
@@ -356,7 +357,45 @@ class DLPC900:
                                f"({mode.name}); the switch takes ~300 ms (settle_s={self.settle_s})")
         if mode != self.configured.display_mode:
             self.configured.sequence = None  # a mode switch clears the controller's LUT
+            self.configured.video_pattern_hz = None
         self.configured.display_mode = int(mode)
+
+    # Where each RGB channel of a 24-bit video frame sits among the bit positions a video-pattern
+    # LUT entry names: TI numbers a frame's bit planes G0–G7, R0–R7, B0–B7.
+    VIDEO_CHANNEL_BITS = {Color.RED: 8, Color.GREEN: 0, Color.BLUE: 16}
+
+    def set_video_pattern_mode(self, refresh_hz: float = 60.0, *, start: bool = True) -> None:
+        """Video pattern mode showing each video frame as three 8-bit patterns: its red, green and
+        blue channels in that order, each lit by its own LED, each exposed a third of the frame
+        period (floored to µs: 5555 µs at 60 Hz, 180 patterns/s), the first waiting for the
+        frame's VSYNC; the LUT runs forever. Back to video mode: `set_display_mode(VIDEO)`.
+
+        As DLPU018 prescribes: stop, video mode (0x1A1B = 0) with the source's sync locked (main
+        status bit 3), video pattern mode (0x1A1B = 2, ~300 ms), one LUT definition per pattern
+        (0x1A34), the LUT configuration (0x1A31), and start (0x1A24 = 2) if `start`. The
+        exposure is checked against the 8-bit minimum before anything is sent.
+        """
+        if not (isinstance(refresh_hz, (int, float)) and 1.0 <= refresh_hz <= 240.0):
+            raise ValueError(f"refresh_hz: expected 1..240 Hz, got {refresh_hz!r}")
+        exposure_us = int(1e6 / refresh_hz) // 3
+        timings = [PatternTiming(exposure_us, bit_depth=8, color=c, wait_for_trigger=k == 0)
+                   for k, c in enumerate((Color.RED, Color.GREEN, Color.BLUE))]
+        for t in timings:
+            t.check()  # ValueError naming exposure_us when a third of the period is below the 8-bit minimum
+        with self._lock, self._whole_exchange():
+            self.stop()
+            if self.display_mode() is not DisplayMode.VIDEO:
+                self.set_display_mode(DisplayMode.VIDEO)
+            if not self.main_status().external_source_locked:
+                raise DLPC900Error("DLPC900: video pattern mode needs a locked video source (main status bit 3 "
+                                   "is clear): is the projector's display showing the session's window?")
+            self.set_display_mode(DisplayMode.VIDEO_PATTERN)
+            for k, t in enumerate(timings):
+                self.define_pattern(k, t, image_index=0, bit_position=self.VIDEO_CHANNEL_BITS[t.color])
+            self.configure_lut(len(timings), 0)
+            self.configured.video_pattern_hz = float(refresh_hz)
+            if start:
+                self.start()
 
     # ---- pattern sequencer ---------------------------------------------------------------
     def start(self) -> None:
@@ -710,6 +749,8 @@ class DLPC900:
             self.set_trigger_in2_polarity(bool(c.trigger_in2_polarity))
         if c.sequence is not None:
             self._send_sequence(c.sequence, start=False)
+        elif c.video_pattern_hz is not None:
+            self.set_video_pattern_mode(c.video_pattern_hz, start=False)
         elif c.display_mode is not None:
             self.set_display_mode(c.display_mode)
         if c.parked is not None:

@@ -2,15 +2,16 @@
 
 Live frames reach a DLPC900 through its video input (HDMI / DisplayPort), so the projector sink
 is a borderless full-screen window on the display the projector is attached to (`WindowSink`,
-pygame-ce). `FileSink` writes a PNG sequence or a video for
-review; `RecordingSink` keeps frames in memory for tests. All three reject frames of the wrong
-shape or dtype instead of resizing them.
+pygame-ce), presenting in step with that display's refresh. `FileSink` writes a PNG sequence or
+a video for review; `RecordingSink` keeps frames in memory for tests. All three reject frames of
+the wrong shape or dtype instead of resizing them, and carry the display's `DisplayTiming`.
 """
 
 from __future__ import annotations
 
 import os
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -40,33 +41,39 @@ class PresentedFrame:
 class RecordingSink:
     """Keeps a copy of every frame with its target and presentation times (for tests).
 
-    With `pace=True` it waits for each target time like a display would (via `sleep`).
+    With `pace=True` it behaves like a display: its refreshes lie on a grid `timing.period_ns`
+    apart from the clock's reading at construction, and `present` waits (via `sleep`) for the
+    first refresh at or after both now and the target and returns that refresh instant. Without
+    `pace` it has no refresh, like a file: it returns at once, with the time it kept the frame.
     """
 
-    timing = DisplayTiming()  # no refresh model yet: frames go out when presented
-
-    def __init__(self, *, shape: tuple[int, int] | None = None, clock: Clock = time.monotonic_ns,
-                 sleep: Callable[[float], None] = time.sleep, pace: bool = False, max_frames: int | None = None):
+    def __init__(self, *, shape: tuple[int, int] | None = None, timing: DisplayTiming = DisplayTiming(),
+                 clock: Clock = time.monotonic_ns, sleep: Callable[[float], None] = time.sleep, pace: bool = False,
+                 max_frames: int | None = None):
         self.shape = shape
+        self.timing = timing
         self.clock, self.sleep, self.pace = clock, sleep, pace
         self.max_frames = max_frames
         self.frames: list[PresentedFrame] = []
         self.closed = False
+        self._phase_ns = clock()
 
     def present(self, frame: np.ndarray, t_target_ns: int) -> int:
         if self.closed:
             raise RuntimeError("RecordingSink: present() after close()")
         check_frame(frame, self.shape)
         if self.pace:
-            _wait_until(t_target_ns, self.clock, self.sleep)
-        now = self.clock()
-        self.frames.append(PresentedFrame(frame.copy(), t_target_ns, now))
+            at = self.timing.next_vsync(max(self.clock(), t_target_ns), self._phase_ns)
+            _wait_until(at, self.clock, self.sleep)
+        else:
+            at = self.clock()
+        self.frames.append(PresentedFrame(frame.copy(), t_target_ns, at))
         if self.max_frames is not None and len(self.frames) > self.max_frames:
             del self.frames[0]
-        return now
+        return at
 
     def vsync_phase_ns(self) -> int:
-        return 0
+        return self._phase_ns
 
     def close(self) -> None:
         self.closed = True
@@ -77,16 +84,18 @@ class FileSink:
 
     `path` ending in .avi / .mp4 / .mkv makes a video at `fps` (OpenCV's writer; .avi uses
     MJPG); anything else is a directory that receives frame_000000.png, ... (lossless).
+    A file has no refresh: `present` writes at once and returns the time it finished writing.
     """
 
     VIDEO_CODECS = {".avi": "MJPG", ".mp4": "mp4v", ".mkv": "MJPG"}
 
-    timing = DisplayTiming()  # no refresh model yet: frames go out when presented
-
-    def __init__(self, path: str | os.PathLike, *, fps: float = 60.0, clock: Clock = time.monotonic_ns):
+    def __init__(self, path: str | os.PathLike, *, fps: float = 60.0, timing: DisplayTiming = DisplayTiming(),
+                 clock: Clock = time.monotonic_ns):
         import cv2  # a core dependency; imported here so the module loads fast
 
         self._cv2 = cv2
+        self.timing = timing
+        self._phase_ns = clock()
         self.path = Path(path)
         self.fps = fps
         self.clock = clock
@@ -119,7 +128,7 @@ class FileSink:
         return self.clock()
 
     def vsync_phase_ns(self) -> int:
-        return 0
+        return self._phase_ns
 
     def close(self) -> None:
         if self._writer is not None:
@@ -134,17 +143,36 @@ class WindowSink:
     display's current mode, which must be the projector's native resolution: `size` is the
     session's output size, and a display of another size is refused here, at start (a frame
     of the wrong size would cover a corner of the projector's image). Nothing is scaled.
-    `present` waits for the target time, blits and flips, and returns the time the flip returned.
+
+    Presents go out in step with the display's refresh. Where the platform gives vsync
+    (pygame-ce's `set_mode(..., vsync=1)`, which needs SCALED or OPENGL), a flip blocks until the
+    next refresh. At start the sink flips `VSYNC_PROBE_FLIPS` black frames, sleeping 0.3 and 1.3
+    periods in turn between them, and is vsync-locked only if every flip returned on one grid of
+    `timing.period_ns` (within `VSYNC_TOLERANCE`): a flip throttled to one period after the last
+    (Mesa's software swap on Xvfb) returns at once after the longer sleep and fails that. Locked,
+    `present` sleeps until half a period before the refresh it aims at, flips, and returns the
+    flip's return time, which re-locks the phase. Otherwise the sink keeps a software refresh
+    grid at `timing.refresh_hz` from its start: `present` waits for the first grid instant at or
+    after the target, flips, and returns that instant. `vsync_locked` says which.
+
+    What a real display adds, and this sink cannot see: the flip's return lags the refresh by
+    the wake-up of this thread (tens of microseconds to a millisecond), a compositor or driver
+    that queues frames shows each one or more refreshes later, the GPU's scan-out clock drifts
+    from `refresh_hz` (the phase re-lock follows it; the software grid does not), and the
+    projector adds its own delay after the scan-out (`timing.controller_delay_ns`).
     """
 
-    timing = DisplayTiming()  # no refresh model yet: frames go out when presented
+    VSYNC_PROBE_FLIPS = 8
+    VSYNC_TOLERANCE = 0.1  # fraction of a period a probed flip may lie off the grid
 
-    def __init__(self, display: int = 0, *, size: tuple[int, int] | None = None, clock: Clock = time.monotonic_ns,
+    def __init__(self, display: int = 0, *, size: tuple[int, int] | None = None,
+                 timing: DisplayTiming = DisplayTiming(), clock: Clock = time.monotonic_ns,
                  sleep: Callable[[float], None] = time.sleep, title: str = "dpmhw projector"):
         os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
         import pygame
 
         self._pg = pygame
+        self.timing = timing
         self.clock, self.sleep = clock, sleep
         pygame.display.init()
         try:
@@ -154,29 +182,60 @@ class WindowSink:
             raise
         flags = pygame.NOFRAME | pygame.FULLSCREEN
         pygame.display.set_caption(title)
-        self._surface = pygame.display.set_mode((w, h), flags, display=display)
-        pygame.mouse.set_visible(False)
-        self.shape = (self._surface.get_height(), self._surface.get_width())
+        self.shape = (h, w)
         self.closed = False
+        self._phase_ns = clock()
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")  # "no fast renderer available": no vsync either
+                self._surface = pygame.display.set_mode((w, h), flags | pygame.SCALED, display=display, vsync=1)
+            self.vsync_locked = self._probe_vsync()
+        except (pygame.error, Warning):  # no vsync on this platform
+            self.vsync_locked = False
+        if not self.vsync_locked:  # a plain window whose flips never block, paced by the software grid
+            self._surface = pygame.display.set_mode((w, h), flags, display=display)
+        pygame.mouse.set_visible(False)
+
+    def _probe_vsync(self) -> bool:
+        """Flip black frames at uneven gaps; vsync-locked when every flip returns on one refresh grid."""
+        self._blit(np.zeros((*self.shape, 3), np.uint8))
+        p = self.timing.period_ns
+        returns = []
+        for k in range(self.VSYNC_PROBE_FLIPS):
+            self._pg.display.flip()
+            returns.append(self.clock())
+            self.sleep((0.3 if k % 2 else 1.3) * p / 1e9)
+        self._phase_ns = returns[-1]
+        off = (np.asarray(returns[1:]) - returns[0]) / p  # the first flip may land mid-period
+        return bool((np.abs(off - np.round(off)) <= self.VSYNC_TOLERANCE).all() and (np.diff(np.round(off)) >= 1).all())
+
+    def _blit(self, frame: np.ndarray) -> None:
+        image = self._pg.image.frombuffer(np.ascontiguousarray(frame).tobytes(), (self.shape[1], self.shape[0]), "RGB")
+        self._surface.blit(image, (0, 0))
 
     def present(self, frame: np.ndarray, t_target_ns: int) -> int:
         if self.closed:
             raise RuntimeError("WindowSink: present() after close()")
         check_frame(frame, self.shape)
-        pg = self._pg
-        image = pg.image.frombuffer(np.ascontiguousarray(frame).tobytes(), (self.shape[1], self.shape[0]), "RGB")
-        _wait_until(t_target_ns, self.clock, self.sleep)
-        self._surface.blit(image, (0, 0))
-        pg.display.flip()
-        pg.event.pump()  # keep the window responsive to the window manager
-        return self.clock()
+        vsync = self.timing.next_vsync(max(self.clock(), t_target_ns), self._phase_ns)
+        if self.vsync_locked:
+            _wait_until(vsync - self.timing.period_ns // 2, self.clock, self.sleep)
+        else:
+            _wait_until(vsync, self.clock, self.sleep)
+        self._blit(frame)
+        self._pg.display.flip()
+        self._pg.event.pump()  # keep the window responsive to the window manager
+        if not self.vsync_locked:
+            return vsync
+        self._phase_ns = self.clock()  # the flip returned at the refresh that scans the frame out
+        return self._phase_ns
 
     def snapshot(self) -> np.ndarray:
         """(H, W, 3) uint8 of what the window holds now (for tests and diagnostics)."""
         return self._pg.surfarray.array3d(self._surface).swapaxes(0, 1).copy()
 
     def vsync_phase_ns(self) -> int:
-        return 0
+        return self._phase_ns
 
     def close(self) -> None:
         if not self.closed:

@@ -127,6 +127,19 @@ class LutEntry:
     bit_position: int
 
 
+def video_frame_groups(entries: list[LutEntry]) -> list[list[LutEntry]]:
+    """The LUT split into what one video frame shows in video pattern mode: a group starts at
+    an entry that waits for the trigger (the frame's VSYNC) and runs to the next. A LUT in
+    which no entry waits starts its one group at every VSYNC (an assumption: DLPU018 does
+    not say what the sequencer does then)."""
+    groups: list[list[LutEntry]] = []
+    for e in entries:
+        if e.wait_trigger or not groups:
+            groups.append([])
+        groups[-1].append(e)
+    return groups
+
+
 @dataclass(frozen=True)
 class DisplayedPattern:
     """One pattern the DMD showed: when, which LUT entry, which bits of which image."""
@@ -343,6 +356,10 @@ class DLPC900Model:
         self.command_log: RecentLog = RecentLog()  # LoggedCommand per command
         self.events: RecentLog = RecentLog()  # (t_ns, what) for sequencer and mode changes
         self.trigger_times: list[int] = []  # external trigger-in edges (tests add them)
+        # The video input's frame period while a source drives it with valid syncs (set by the
+        # video cable's device side, `firmware_mocks.video_link`), else None. Not reset by power-on:
+        # the source outside keeps sending.
+        self.video_period_ns: int | None = None
         self.power_on()
 
     # ---- state -------------------------------------------------------------------------
@@ -394,7 +411,8 @@ class DLPC900Model:
         return self.display_mode == 0 or self.sequencer == "running"
 
     def main_status(self) -> int:
-        return (int(self.parked) | (int(self.sequencer == "running") << 1))
+        locked = self.video_period_ns is not None  # bit 3 external source locked, bit 4 port 1 syncs valid
+        return int(self.parked) | (int(self.sequencer == "running") << 1) | (int(locked) << 3) | (int(locked) << 4)
 
     @property
     def settled_display_mode(self) -> int:
@@ -544,6 +562,9 @@ class DLPC900Model:
             raise CommandError(ERR_INVALID_PARAMETER, f"display mode {mode} (expected 0..3)")
         if self.sequencer != "stopped":
             raise CommandError(ERR_NOT_ALLOWED, "stop the pattern sequence before changing the display mode")
+        if mode == 2 and mode != self.display_mode and (self.settled_display_mode != 0 or self.video_period_ns is None):
+            # DLPU018 (0x1A1B): video pattern mode only from video mode, with the source's sync locked
+            raise CommandError(ERR_NOT_ALLOWED, "video pattern mode needs video mode with a locked video source first")
         if mode != self.display_mode:
             self._mode_from = self.settled_display_mode
             self.display_mode = mode
@@ -651,8 +672,22 @@ class DLPC900Model:
             raise CommandError(ERR_NOT_ALLOWED, "LUT configuration needs a pattern display mode")
         if n == 0 or any(k not in self.lut for k in range(n)):
             raise CommandError(ERR_PATTERN_NUMBER, f"{n} entries configured but not all are defined")
+        if self.display_mode == 2:
+            self._check_video_frame_fits([self.lut[k] for k in range(n)])
         self.lut_config = (n, repeat)
         self._lut_dirty = False
+
+    def _check_video_frame_fits(self, entries: list[LutEntry]) -> None:
+        """Video pattern mode shows the patterns of one video frame within that frame: each run
+        of entries from one that waits for the trigger (the frame's VSYNC) to the next must
+        expose and darken within the input's frame period (DLPU018's video-pattern timing)."""
+        if self.video_period_ns is None:
+            raise CommandError(ERR_NOT_ALLOWED, "video pattern mode has lost its video source")
+        for group in video_frame_groups(entries):
+            total_us = sum(e.exposure_us + e.dark_us for e in group)
+            if total_us * 1000 > self.video_period_ns:
+                raise CommandError(ERR_EXPOSURE, f"LUT entries {group[0].index}..{group[-1].index} take {total_us} µs, "
+                                                 f"more than the {self.video_period_ns / 1000:.0f} µs video frame period")
 
     def _w_lut_define(self, d: bytes) -> None:
         index = struct.unpack_from("<H", d, 0)[0]

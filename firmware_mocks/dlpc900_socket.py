@@ -211,12 +211,16 @@ def _accept(conn: Connection, authkey: bytes, session: _Session, slots: threadin
 
 
 def serve(address: str, authkey: bytes, serials: tuple[str, ...] = ("EMU0001",), width: int = 1920,
-          height: int = 1080, ready=None) -> None:
-    """Run emulated controllers behind `address` until the process is killed (or `ready` closes)."""
+          height: int = 1080, ready=None, video_hz: float | None = None) -> None:
+    """Run emulated controllers behind `address` until the process is killed (or `ready` closes).
+    With `video_hz` each one's video input is locked to a source at that refresh rate (a
+    machine's display output scans out whether or not a program presents to it)."""
     # a terminal's Ctrl-C reaches the whole process group: the device stays on, as a real one does
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     devices = [EmulatedDLPC900(s, address=5 + 3 * i, model=DLPC900Model(width=width, height=height))
                for i, s in enumerate(serials)]
+    for d in devices:
+        d.model.video_period_ns = None if video_hz is None else round(1e9 / video_hz)
     backend = DLPC900Backend(devices)
     lock = threading.Lock()
     slots = threading.BoundedSemaphore(MAX_CLIENTS)
@@ -261,7 +265,8 @@ class EmulatorProcess:
         self._tmpdir = tmpdir
 
     @classmethod
-    def start(cls, *serials: str, width: int = 1920, height: int = 1080, timeout_s: float = 60.0) -> "EmulatorProcess":
+    def start(cls, *serials: str, width: int = 1920, height: int = 1080, timeout_s: float = 60.0,
+              video_hz: float | None = None) -> "EmulatorProcess":
         EMULATOR_DIRS.sweep()  # the folders of owners that were killed
         tmpdir = os.path.join(EMULATOR_DIRS.directory, EMULATOR_DIRS.new_name())
         os.mkdir(tmpdir, 0o700)  # only this user may reach the socket
@@ -270,7 +275,7 @@ class EmulatorProcess:
         ctx = multiprocessing.get_context("spawn")
         ours, theirs = ctx.Pipe()
         process = ctx.Process(target=serve, name="dpmhw-dlpc900-emulator", daemon=True,
-                              args=(address, authkey, serials or ("EMU0001",), width, height, theirs))
+                              args=(address, authkey, serials or ("EMU0001",), width, height, theirs, video_hz))
         try:
             process.start()
             theirs.close()

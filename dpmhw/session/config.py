@@ -30,6 +30,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
 from serial import SerialBase
 
+from dpmhw.display import DISPLAY_MODES, DisplayTiming
 from dpmhw.errors import DpmhwError
 from dpmhw.limits import check_file_size, max_scene_bytes
 from dpmhw.reconstruct.settings import ALPHA_MAX, ALPHA_MIN, FILTER_MODES, REUSE_MODES
@@ -225,6 +226,24 @@ class ProjectorSection(_Section):
     reconnect_attempts: int = Field(2, ge=1, le=100)
 
 
+class DisplaySection(_Section):
+    mode: Literal[DISPLAY_MODES] = Field("video", description="video: the DLPC900 shows each 24-bit frame for one "
+                                         "refresh; pattern-8bit: video-pattern mode, the frame's R, G and B bit planes "
+                                         "as three 8-bit sub-frames (180 Hz at 60 Hz), each lit by its own LED")
+    refresh_hz: float = Field(60.0, ge=1.0, le=240.0, description="the video link's refresh rate")
+    controller_delay_ms: float | None = Field(None, ge=0.0, le=1000.0, description="scan-out start to first photon; "
+                                              "unset: one refresh period (an assumption: the programmer's guide gives "
+                                              "no figure; the controller buffers a whole frame before showing it)")
+
+    def timing(self) -> DisplayTiming:
+        # DLPU018 states no frame latency for video or video-pattern mode. The controller stores an
+        # incoming frame's bit planes in its embedded DRAM and sends them to the DMD from there (the
+        # DLPC900 datasheet's display description), so it can show a frame only once the whole
+        # frame has arrived: the default assumes one refresh period (docs/session.md).
+        delay = 1e3 / self.refresh_hz if self.controller_delay_ms is None else self.controller_delay_ms
+        return DisplayTiming(self.mode, self.refresh_hz, round(delay * 1e6))
+
+
 class SinkSection(_Section):
     kind: Literal["window", "file", "recording", "none"] = "window"
     path: str = Field("", description="output path (kind = file)")
@@ -291,6 +310,7 @@ class SessionConfig(_Section):
     bindings: list[Binding] = Field(default_factory=list, description="empty: every scene object with a rigid_body")
     tracker: TrackerSection = TrackerSection()
     projector: ProjectorSection = ProjectorSection()
+    display: DisplaySection = DisplaySection()  # docs/session.md, "Display timing"
     sink: SinkSection = SinkSection()
     safety: SafetySection = SafetySection()
     metrics: MetricsSection = MetricsSection()
@@ -346,6 +366,10 @@ class SessionConfig(_Section):
                            f"one frame ({period_s * 1e3:.0f} ms at render.target_fps={r.target_fps:g}); a frame that "
                            f"spends it is a stall (safety.watchdog_s={self.safety.watchdog_s:g}) and blanks the output")
         return out
+
+    def display_timing(self) -> DisplayTiming:
+        """When what the sink presents becomes light (`dpmhw.display`)."""
+        return self.display.timing()
 
     def resolve(self, path: str) -> Path:
         p = Path(path).expanduser()

@@ -4,8 +4,9 @@ The only place in `dpmhw` that reaches into `drivers/` and `firmware_mocks/`, al
 function, by the names a config gives (the core never imports them at module level).
 
 `mock=True` starts the firmware mocks on loopback — a NatNet server streaming a simulated world
-(the bound bodies move around their scene positions), an emulated DLPC900 behind pyusb — and
-an in-memory sink, then connects the *real* drivers to them.
+(the bound bodies move around their scene positions), an emulated DLPC900 behind pyusb and the
+video cable into it (`firmware_mocks.video_link`, the window sink's stand-in) — then connects
+the *real* drivers to them.
 """
 
 from __future__ import annotations
@@ -127,7 +128,8 @@ def resolve_bindings(config: SessionConfig, scene: Scene) -> dict[int, int]:
 
 
 class DLPC900Control:
-    """`ProjectorControl` over the DLPC900 driver: video mode, dark = idle (read back)."""
+    """`ProjectorControl` over the DLPC900 driver: the display mode `display.mode` names (video,
+    or video pattern mode for pattern-8bit), dark = idle (read back)."""
 
     def __init__(self, dlp: Any):
         self.dlp = dlp
@@ -143,6 +145,8 @@ class DLPC900Control:
             if dlp.in_standby():
                 dlp.wake()
             dlp.set_display_mode(DisplayMode.VIDEO)
+            if config.display.mode == "pattern-8bit":  # started when lit (`unblank`)
+                dlp.set_video_pattern_mode(config.display.refresh_hz, start=False)
             dlp.blank()
         except Exception:
             dlp.close()
@@ -156,6 +160,8 @@ class DLPC900Control:
         if self.dlp.in_standby():
             self.dlp.wake()
         self.dlp.set_idle(False)
+        if self.dlp.configured.video_pattern_hz is not None:  # blanking stopped the sequence
+            self.dlp.start()
 
     def health(self) -> dict:
         status = self.dlp.status()
@@ -177,8 +183,9 @@ class MockRig:
     world: Any  # firmware_mocks.world.World (ground truth)
     natnet: Any  # firmware_mocks.natnet_server.NatNetServer (tracker.kind = "natnet")
     serial: Any  # firmware_mocks.serial_tracker.PolhemusEmulator (tracker.kind = "serial")
-    projector: Any  # firmware_mocks.dlpc900_usb.EmulatedDLPC900
+    projector: Any  # firmware_mocks.dlpc900_usb.EmulatedDLPC900, or the SocketBackend to an out-of-process one
     stack: contextlib.ExitStack
+    video: Any = None  # firmware_mocks.video_link.VideoLink into `projector`'s model (in-process only)
 
 
 def mock_trajectory(name: str, base_t: np.ndarray, speed: float):
@@ -230,11 +237,22 @@ def start_mock_rig(config: SessionConfig, scene: Scene, bindings: dict[int, int]
             stack.callback(server.stop)
             server.start()
             over = {"command_port": server.command_port}
-        device = stack.enter_context(usb_emulation() if usb is None else socket_usb(*usb))
+        device = video = None
+        if usb is None:
+            from firmware_mocks.video_link import VideoLink
+
+            device = stack.enter_context(usb_emulation())
+            # the cable into the emulated projector, in before the driver opens it (video pattern
+            # mode needs its sync); the loop closes it as its sink, the stack again on error
+            video = VideoLink(device.model, timing=config.display_timing(),
+                              shape=(scene.render.height, scene.render.width))
+            stack.callback(video.close)
+        else:
+            device = stack.enter_context(socket_usb(*usb))
     except BaseException:
         stack.close()
         raise
-    return MockRig(world, server, serial, device, stack), over
+    return MockRig(world, server, serial, device, stack, video), over
 
 
 def open_tracker(config: SessionConfig, command_port: int | None = None, port: str | None = None):
@@ -273,21 +291,27 @@ def describe_tracker(config: SessionConfig, command_port: int | None = None, por
     return f"serial port {port}", f"dpmhw tracker watch --serial {port} --baudrate {t.baudrate}"
 
 
-def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int]):
-    kind = config.sink.kind
-    if mock and kind == "window":
-        kind = "recording"  # a fresh machine has no projector display
+def open_sink(config: SessionConfig, mock: bool, shape: tuple[int, int], rig: MockRig | None = None):
+    """The sink `sink.kind` names, with the display's timing. In a mock session the window is the
+    emulated projector's video input (`rig.video`); where that projector runs in another
+    process, a recording sink paced to the refresh stands in for it."""
     from drivers.frame_sinks import make_sink
 
+    kind, timing = config.sink.kind, config.display_timing()
+    if mock and kind == "window":
+        if rig is not None and rig.video is not None:
+            return rig.video
+        return make_sink("recording", shape=shape, timing=timing, pace=True, max_frames=8)
     if kind == "none" or kind == "recording":
-        return make_sink("recording", shape=shape, max_frames=8)
+        return make_sink("recording", shape=shape, timing=timing, max_frames=8)
     if kind == "file":
         try:
-            return make_sink("file", path=str(config.resolve(config.sink.path)), fps=config.render.target_fps)
+            return make_sink("file", path=str(config.resolve(config.sink.path)), fps=config.render.target_fps,
+                             timing=timing)
         except (ValueError, OSError) as exc:  # e.g. its folder does not exist
             raise SessionConfigError(f"sink.path: {exc}") from None
     try:
-        return make_sink("window", display=config.sink.display, size=(shape[1], shape[0]))
+        return make_sink("window", display=config.sink.display, size=(shape[1], shape[0]), timing=timing)
     except ValueError as exc:  # e.g. the display's mode is not the projector's native size
         raise SessionConfigError(f"sink: {exc}") from None
 
@@ -379,7 +403,7 @@ def open_session_parts(config: SessionConfig, *, mock: bool = False, renderer: A
                 closers.append(gbuffer.close)
         if hasattr(renderer, "close"):
             closers.append(renderer.close)
-        sink = open_sink(config, mock, (scene.render.height, scene.render.width))
+        sink = open_sink(config, mock, (scene.render.height, scene.render.width), rig)
         closers.append(sink.close)
         tracker = open_tracker(config, **over)
         tracker.start()
@@ -430,7 +454,7 @@ def start_usb_emulator(config: SessionConfig):
     that it outlives a loop process, as a real projector does; pass (.address, .authkey) as `usb`."""
     from firmware_mocks.dlpc900_socket import EmulatorProcess
 
-    return EmulatorProcess.start(config.projector.serial or "EMU0001")
+    return EmulatorProcess.start(config.projector.serial or "EMU0001", video_hz=config.display.refresh_hz)
 
 
 def idle_projector(config: SessionConfig, usb: tuple[str, bytes] | None = None) -> str:

@@ -42,6 +42,7 @@ def test_display_mode_waits_for_settle_and_reads_back(dlp, emu, clock):
 
 def test_display_mode_without_settle_is_caught_by_read_back(dlp, emu):
     dlp.settle_s = 0  # the emulated switch to video pattern mode still takes 300 ms of (fake) time
+    emu.model.video_period_ns = 16_666_667  # a locked 60 Hz source: video pattern mode needs one
     with pytest.raises(DLPC900Error, match="reads back 0"):
         dlp.set_display_mode(DisplayMode.VIDEO_PATTERN)
 
