@@ -99,6 +99,19 @@ def ssim(image: np.ndarray, reference: np.ndarray) -> float:
     return float(structural_similarity(luma(a), luma(b), gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=255.0))
 
 
+def masked_ssim(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> float:
+    """The SSIM map's mean over `mask`'s pixels (same parameters as `ssim`; the windows reach
+    11 px beyond the mask); NaN where the mask is empty."""
+    from skimage.metrics import structural_similarity
+
+    a, b = _check(image, reference)
+    if not np.any(mask):
+        return float("nan")
+    _, full = structural_similarity(luma(a), luma(b), gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                    data_range=255.0, full=True)
+    return float(full[mask].mean())
+
+
 def equivalent_spp(spp: list[float], psnr_db: list[float], target_db: float) -> tuple[float, bool]:
     """spp at which the plain curve (spp, psnr_db) reaches target_db, and whether that needed
     extrapolation past the measured range. The curve is sorted by spp and must rise with it."""

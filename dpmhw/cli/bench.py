@@ -258,3 +258,46 @@ def bench_mitsuba(
         plot_path.parent.mkdir(parents=True, exist_ok=True)
         mb.plot(rows, plot_path)
         typer.echo(f"wrote {plot_path}")
+
+
+@bench_app.command("reproject")
+def bench_reproject(
+    scene: Annotated[str, typer.Argument(help="Scene file or built-in name.")] = "dpm-bunny",
+    size: Annotated[Optional[str], typer.Option(help="Native size WxH [default: the scene's].")] = None,
+    spp: Annotated[int, typer.Option(min=1, help="Samples per pixel of the captured frames and the fresh renders.")] = 32,
+    starts: Annotated[str, typer.Option(help="Comma-separated trajectory times (s) the captures are rendered at.")] = "0.3,0.8,1.4",
+    horizons: Annotated[str, typer.Option(help="Comma-separated horizons (ms) the captures are moved by.")] = "5,10,20,40",
+    trajectory: Annotated[str, typer.Option(help="The mock world's trajectory: rotate-oscillate, linear or static.")] = "rotate-oscillate",
+    repeats: Annotated[int, typer.Option(min=1, help="Timed reprojections per row (the median is reported).")] = 30,
+    threads: Annotated[int, typer.Option(min=1, help="Render threads (the reprojection itself is serial).")] = 2,
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the rows as JSON here (a list of flat rows).")] = None,
+) -> None:
+    """Late reprojection: CPU-ms per reprojection and per pattern-mode present (three channels),
+    lit pixels, holes, and PSNR/SSIM inside the moving objects against fresh renders, per
+    horizon, beside the stale frame and the renders' own noise (docs/reprojection.md)."""
+    from dpmhw.benchmarks.reproject import ReprojectBenchConfig, format_table, run_reproject
+
+    try:
+        dims = None if size is None else tuple(int(v) for v in size.lower().split("x"))
+        if dims is not None and (len(dims) != 2 or min(dims) < 1):
+            raise ValueError
+    except ValueError:
+        raise typer.BadParameter(f"--size: expected WxH such as 1024x768, got {size!r}") from None
+    try:
+        times = tuple(float(v) for v in starts.split(","))
+    except ValueError:
+        raise typer.BadParameter(f"--starts: expected comma-separated seconds, got {starts!r}") from None
+    try:
+        ms = tuple(float(v) for v in horizons.split(","))
+    except ValueError:
+        raise typer.BadParameter(f"--horizons: expected comma-separated milliseconds, got {horizons!r}") from None
+    try:
+        cfg = ReprojectBenchConfig(scene=scene, size=dims, spp=spp, starts_s=times, horizons_ms=ms, trajectory=trajectory,
+                                   repeats=repeats, threads=threads)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
+    with Progress() as bar:
+        rows = run_reproject(cfg, progress=bar.callback)
+    typer.echo(format_table(rows))
+    if json_path is not None:
+        typer.echo(f"wrote {write_json(rows, json_path)}")

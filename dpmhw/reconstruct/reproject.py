@@ -53,13 +53,15 @@ NEAR_Z = 1e-4  # a point this close to the projector's plane (metres) or behind 
 @dataclass(frozen=True)
 class Capture:
     """One rendered frame, ready to be moved: the image, the poses it was rendered at, and the
-    moving objects' lit pixels as flat arrays (n = `lit`)."""
+    moving objects' lit pixels as flat arrays (n = `lit`), each object's points one run
+    (`segments[o]:segments[o + 1]`)."""
 
-    image: np.ndarray  # (H, W, 3) uint8, read-only
-    poses: tuple  # object index → Pose the image was rendered at
+    image: np.ndarray  # (H, W, 3) uint8, the caller's (not copied: it must not change afterwards)
+    R: np.ndarray  # (objects, 3, 3) rotations the image was rendered at
+    t: np.ndarray  # (objects, 3) translations
+    segments: np.ndarray  # (objects + 1,) int64 each object's run of points
     pixel: np.ndarray  # (n,) int32 flat pixel index
-    obj: np.ndarray  # (n,) int32 object index
-    point: np.ndarray  # (n, 3) float32 model-space point
+    point: np.ndarray  # (3, n) float32 model-space points (x, y, z rows: contiguous for the projection)
     colour: np.ndarray  # (n, 3) uint8 its colour in the image
     plate: np.ndarray  # (n, 3) uint8 the plate's colour at its pixel (what shows when it leaves)
     box: tuple[int, int, int, int]  # (y0, y1, x0, x1) the lit box it was compacted from
@@ -79,14 +81,14 @@ class ReprojectStats:
     holes: int  # crack pixels filled by interpolation (magnification)
     disoccluded: int  # pixels of newly visible surface, filled from the farther side
     vacated: int  # captured moving pixels no point or fill covers now: they show the plate
-    box: tuple[int, int, int, int] | None  # (y0, y1, x0, x1) of the splats (None: nothing moved)
+    box: tuple[int, int, int, int] | None  # (y0, y1, x0, x1) the points landed in (None: none did)
 
 
 # ---- kernels ---------------------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
-def _count(ids, depth, dynamic, W, y0, y1, x0, x1):
-    """Moving lit pixels of the box; −1 − p for the first pixel p whose id names no object."""
-    n = 0
+def _count(ids, depth, dynamic, W, y0, y1, x0, x1, counts):
+    """Moving lit pixels of the box per object into `counts`; returns −1 − p for the first pixel
+    p whose id names no object, else 0."""
     n_obj = dynamic.shape[0]
     for y in range(y0, y1):
         for p in range(y * W + x0, y * W + x1):
@@ -94,15 +96,15 @@ def _count(ids, depth, dynamic, W, y0, y1, x0, x1):
             if o >= n_obj:
                 return -1 - p
             if o >= 0 and dynamic[o] and math.isfinite(depth[p]) and depth[p] > 0.0:
-                n += 1
-    return n
+                counts[o] += 1
+    return 0
 
 
 @nb.njit(cache=True, nogil=True)
-def _compact(image, ids, depth, ideal, dynamic, A, b, W, y0, y1, x0, x1, plate, plate_z,
-             pixel, obj, point, colour, back):
-    """Moving lit pixels → the capture's arrays; every other pixel of the box → the plate."""
-    k = 0
+def _compact(image, ids, depth, ideal, dynamic, A, b, W, y0, y1, x0, x1, plate, plate_z, cursor,
+             pixel, point, colour, back):
+    """Moving lit pixels → the capture's arrays, each object's from its `cursor` on (so each
+    object's points are one run); every other pixel of the box → the plate."""
     for y in range(y0, y1):
         for p in range(y * W + x0, y * W + x1):
             o = ids[p]
@@ -110,14 +112,14 @@ def _compact(image, ids, depth, ideal, dynamic, A, b, W, y0, y1, x0, x1, plate, 
             if o >= 0 and dynamic[o]:
                 if not (math.isfinite(z) and z > 0.0):
                     continue
+                k = cursor[o]
+                cursor[o] = k + 1
                 cx, cy = z * ideal[p, 0], z * ideal[p, 1]
                 for i in range(3):
-                    point[k, i] = A[o, i, 0] * cx + A[o, i, 1] * cy + A[o, i, 2] * z + b[o, i]
+                    point[i, k] = A[o, i, 0] * cx + A[o, i, 1] * cy + A[o, i, 2] * z + b[o, i]
                     colour[k, i] = image[p, i]
                     back[k, i] = plate[p, i]
                 pixel[k] = p
-                obj[k] = o
-                k += 1
             else:
                 for i in range(3):
                     plate[p, i] = image[p, i]
@@ -125,25 +127,36 @@ def _compact(image, ids, depth, ideal, dynamic, A, b, W, y0, y1, x0, x1, plate, 
 
 
 @nb.njit(cache=True, nogil=True)
-def _project(obj, point, M, fx, fy, cx, cy, dist, W, H, dest, zout):
-    """Each point moved by its object's (3, 4) model→camera matrix and projected: `dest` its
-    nearest pixel (−1: off the frame or behind the projector), `zout` its camera depth. No
-    branch and no scattered write: the loop vectorises."""
+def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout):
+    """Points of one object moved by its model→camera matrix `M` ((12,) float32, row-major
+    3×4) and projected: `dest` the nearest pixel (−1: off the frame or behind the projector),
+    `zout` the camera depth; returns the box (y0, y1, x0, x1) of the pixels. float32, no branch, no scattered write, contiguous arrays: the
+    loop vectorises at the CPU's SIMD width."""
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    for k in range(obj.shape[0]):
-        o = obj[k]
-        m0, m1, m2 = point[k, 0], point[k, 1], point[k, 2]
-        X = M[o, 0, 0] * m0 + M[o, 0, 1] * m1 + M[o, 0, 2] * m2 + M[o, 0, 3]
-        Y = M[o, 1, 0] * m0 + M[o, 1, 1] * m1 + M[o, 1, 2] * m2 + M[o, 1, 3]
-        Z = M[o, 2, 0] * m0 + M[o, 2, 1] * m1 + M[o, 2, 2] * m2 + M[o, 2, 3]
-        front = Z > NEAR_Z
-        iz = 1.0 / Z if front else 0.0
+    a0, a1, a2, a3, a4, a5 = M[0], M[1], M[2], M[3], M[4], M[5]
+    a6, a7, a8, a9, a10, a11 = M[6], M[7], M[8], M[9], M[10], M[11]
+    one, zero, half, near = np.float32(1.0), np.float32(0.0), np.float32(0.5), np.float32(NEAR_Z)
+    Wf, Hf, Wi = np.float32(W), np.float32(H), np.int32(W)
+    y0, y1, x0, x1 = np.int32(H), np.int32(0), np.int32(W), np.int32(0)
+    for k in range(px.shape[0]):
+        m0, m1, m2 = px[k], py[k], pz[k]
+        X = a0 * m0 + a1 * m1 + a2 * m2 + a3
+        Y = a4 * m0 + a5 * m1 + a6 * m2 + a7
+        Z = a8 * m0 + a9 * m1 + a10 * m2 + a11
+        iz = one / max(Z, near)
         xd, yd = distort_inline(X * iz, Y * iz, k1, k2, p1, p2, k3)
-        u = math.floor(fx * xd + cx + 0.5)
-        v = math.floor(fy * yd + cy + 0.5)
-        inside = front and u >= 0.0 and u < W and v >= 0.0 and v < H
-        dest[k] = np.int32(v) * W + np.int32(u) if inside else -1
+        u = fx * xd + cx + half  # pixel (0, 0) covers [−0.5, 0.5)²: the nearest centre is ⌊u⌋
+        v = fy * yd + cy + half
+        inside = (Z > near) & (u >= zero) & (u < Wf) & (v >= zero) & (v < Hf)
+        ui = np.int32(u) if inside else np.int32(0)  # u ≥ 0: truncation is ⌊u⌋
+        vi = np.int32(v) if inside else np.int32(0)
+        dest[k] = vi * Wi + ui if inside else np.int32(-1)
         zout[k] = Z
+        y0 = min(y0, vi if inside else np.int32(H))
+        y1 = max(y1, vi + np.int32(1) if inside else np.int32(0))
+        x0 = min(x0, ui if inside else np.int32(W))
+        x1 = max(x1, ui + np.int32(1) if inside else np.int32(0))
+    return y0, y1, x0, x1
 
 
 @nb.njit(inline="always")
@@ -195,25 +208,26 @@ def _fill_run(qa, qb, step, g, pixel, colour, src, zbuf, zstamp, fstamp, sid, pl
 
 @nb.njit(cache=True, nogil=True)
 def _base(image, ch, out):
-    """out = image (channel `ch` only when ch ≥ 0)."""
+    """out = image, flat uint8 arrays (H*W*3); channel `ch` of each pixel only when ch ≥ 0."""
     if ch < 0:
         out[:] = image
     else:
-        for p in range(image.shape[0]):
-            out[p, ch] = image[p, ch]
+        for i in range(ch, image.shape[0], 3):
+            out[i] = image[i]
 
 
 @nb.njit(cache=True, nogil=True)
-def _splat(pixel, colour, back, dest, zout, plate_z, W, ch, zbuf, src, zstamp, fstamp, sid, out, stats):
-    """Erase the captured moving pixels (the plate), splat the points with a z-test, fill the
-    cracks and disocclusions along rows then columns; stats: moved, dropped, holes,
-    disoccluded, vacated, y0, y1, x0, x1."""
+def _splat(pixel, colour, back, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf, src, zstamp, fstamp, sid, last, out,
+           stats):
+    """Erase the captured moving pixels (the plate), splat the points with a z-test, then, in
+    one row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats
+    along the row and along the column down to each splat (a column's run lies in rows done
+    already: the same as rows first, then columns); stats: moved, dropped, holes,
+    disoccluded, vacated. `last`: (W,) int32 scratch."""
     n = pixel.shape[0]
     for k in range(n):
         _put(out, pixel[k], ch, back[k, 0], back[k, 1], back[k, 2])
     moved = dropped = 0
-    y0 = x0 = 1 << 30
-    y1 = x1 = -1
     for k in range(n):
         q = dest[k]
         if q < 0:
@@ -231,63 +245,61 @@ def _splat(pixel, colour, back, dest, zout, plate_z, W, ch, zbuf, src, zstamp, f
         zbuf[q] = z
         src[q] = k
         _put(out, q, ch, colour[k, 0], colour[k, 1], colour[k, 2])
-        y, x = q // W, q % W
-        y0, y1, x0, x1 = min(y0, y), max(y1, y + 1), min(x0, x), max(x1, x + 1)
     holes = dis = 0
-    for y in range(max(y0, 0), y1):  # rows
-        last = -1
+    for x in range(x0, x1):
+        last[x] = -1
+    for y in range(y0, y1):
+        row = -1
         for x in range(x0, x1):
             q = y * W + x
             if zstamp[q] != sid:
                 continue
-            if last >= 0 and 1 < x - last <= GAP_MAX_PX + 1:
-                h, d = _fill_run(y * W + last, q, 1, x - last - 1, pixel, colour, src, zbuf, zstamp, fstamp, sid,
+            if row >= 0 and 1 < x - row <= GAP_MAX_PX + 1:  # along the row
+                h, d = _fill_run(y * W + row, q, 1, x - row - 1, pixel, colour, src, zbuf, zstamp, fstamp, sid,
                                  plate_z, W, ch, out)
                 holes += h
                 dis += d
-            last = x
-    for x in range(max(x0, 0), x1):  # columns: what the rows left (e.g. a crack along a row)
-        last = -1
-        for y in range(y0, y1):
-            q = y * W + x
-            if zstamp[q] != sid:
-                continue
-            if last >= 0 and 1 < y - last <= GAP_MAX_PX + 1:
-                h, d = _fill_run(last * W + x, q, W, y - last - 1, pixel, colour, src, zbuf, zstamp, fstamp, sid,
+            row = x
+            above = last[x]
+            if above >= 0 and 1 < y - above <= GAP_MAX_PX + 1:  # along the column
+                h, d = _fill_run(above * W + x, q, W, y - above - 1, pixel, colour, src, zbuf, zstamp, fstamp, sid,
                                  plate_z, W, ch, out)
                 holes += h
                 dis += d
-            last = y
+            last[x] = y
     vacated = 0
     for k in range(n):
         p = pixel[k]
         if zstamp[p] != sid and fstamp[p] != sid:
             vacated += 1
     stats[0], stats[1], stats[2], stats[3], stats[4] = moved, dropped, holes, dis, vacated
-    stats[5], stats[6], stats[7], stats[8] = y0, y1, x0, x1
 
 
 # ---- checks ----------------------------------------------------------------------------------------
-def _poses(poses, n: int, name: str = "poses") -> tuple[Pose, ...]:
-    """`n` finite rigid poses, or a ValueError naming the argument and the entry."""
+def _poses(poses, n: int, name: str = "poses") -> tuple[np.ndarray, np.ndarray]:
+    """`n` finite rigid poses as stacked R (n, 3, 3) and t (n, 3), or a ValueError naming the
+    argument and the entry."""
     try:
         items = list(poses)
     except TypeError:
         raise ValueError(f"{name}: expected a sequence of {n} Pose, got {type(poses).__name__}") from None
     if len(items) != n:
         raise ValueError(f"{name}: expected one Pose per scene object ({n}), got {len(items)}")
-    out = []
-    for i, p in enumerate(items):
-        R, t = getattr(p, "R", None), getattr(p, "t", None)
-        if R is None or t is None:
-            raise ValueError(f"{name}[{i}]: expected a Pose, got {type(p).__name__}")
-        R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
-        if R.shape != (3, 3) or t.shape != (3,):
-            raise ValueError(f"{name}[{i}]: expected R (3, 3) and t (3,), got {R.shape} and {t.shape}")
-        if not (np.isfinite(R).all() and np.isfinite(t).all()):
-            raise ValueError(f"{name}[{i}]: not finite")
-        out.append(Pose(R, t))
-    return tuple(out)
+    try:
+        R = np.array([p.R for p in items], np.float64)
+        t = np.array([p.t for p in items], np.float64)
+        ok = R.shape == (n, 3, 3) and t.shape == (n, 3)
+    except (AttributeError, TypeError, ValueError):
+        ok = False
+    if not ok:
+        for i, p in enumerate(items):
+            shapes = (np.shape(getattr(p, "R", None)), np.shape(getattr(p, "t", None)))
+            if shapes != ((3, 3), (3,)):
+                raise ValueError(f"{name}[{i}]: expected a Pose with R (3, 3) and t (3,), got {type(p).__name__}")
+    bad = ~(np.isfinite(R).all(axis=(1, 2)) & np.isfinite(t).all(axis=1))
+    if bad.any():
+        raise ValueError(f"{name}[{int(np.flatnonzero(bad)[0])}]: not finite")
+    return R, t
 
 
 def _array(a, name: str, dtype, size: int, shape: str) -> np.ndarray:
@@ -332,45 +344,48 @@ class Reprojector:
         self._src = np.zeros(n, np.int32)  # the point a splatted pixel shows
         self._zstamp = np.zeros(n, np.int32)
         self._fstamp = np.zeros(n, np.int32)  # filled by a run
+        self._last = np.zeros(W, np.int32)  # per column: the row of its last splat (a row-major sweep)
         self._sid = 0
+        self._moving = [int(k) for k in np.flatnonzero(self.dynamic)]
+        self._intrinsics = (np.float32(K[0, 0]), np.float32(K[1, 1]), np.float32(K[0, 2]), np.float32(K[1, 2]),
+                            dist.astype(np.float32))
         self._capture_lock = threading.Lock()
         self._present_lock = threading.Lock()
 
     def capture(self, image: np.ndarray, object_id: np.ndarray, depth: np.ndarray, poses: Sequence[Pose],
                 box: tuple[int, int, int, int] | None = None) -> Capture:
         """Compact the moving objects' lit pixels of `box` (the lit box; None: the whole frame)
-        and update the plate there. `object_id`, `depth`: the native G-buffer's (H*W values)."""
+        and update the plate there. `object_id`, `depth`: the native G-buffer's (H*W values).
+        The capture keeps `image` itself: hand over a frame that is not written again."""
         W, H = self.width, self.height
-        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.shape != (H, W, 3):
+        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.shape != (H, W, 3) \
+                or not image.flags.c_contiguous:
             got = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
-            raise ValueError(f"image: expected ({H}, {W}, 3) uint8, got {got}")
+            raise ValueError(f"image: expected a C-contiguous ({H}, {W}, 3) uint8 array, got {got}")
         ids = _array(object_id, "object_id", np.int32, H * W, f"({H * W},)")
         z = _array(depth, "depth", np.float32, H * W, f"({H * W},)")
-        poses = _poses(poses, len(self.dynamic))
+        R, t = _poses(poses, len(self.dynamic))
         y0, y1, x0, x1 = self._box(box)
-        A = np.zeros((len(poses), 3, 3))
-        b = np.zeros((len(poses), 3))
-        for k, p in enumerate(poses):  # camera → model: R_kᵀ (R_cam·c + t_cam − t_k)
-            A[k] = p.R.T @ self.cam_R
-            b[k] = p.R.T @ (self.cam_t - p.t)
-        img = image.reshape(-1, 3)
+        A = np.einsum("kji,jl->kil", R, self.cam_R)  # camera → model: R_kᵀ (R_cam·c + t_cam − t_k)
+        b = np.einsum("kji,kj->ki", R, self.cam_t - t)
         with self._capture_lock:
-            n = _count(ids, z, self.dynamic, W, y0, y1, x0, x1)
-            if n < 0:
-                p = -1 - n
+            counts = np.zeros(len(self.dynamic), np.int64)
+            err = _count(ids, z, self.dynamic, W, y0, y1, x0, x1, counts)
+            if err < 0:
+                p = -1 - err
                 raise ValueError(f"object_id: pixel {p} names object {ids[p]}, the scene has {len(self.dynamic)}")
-            pixel, obj = np.empty(n, np.int32), np.empty(n, np.int32)
-            point, colour, back = np.empty((n, 3), np.float32), np.empty((n, 3), np.uint8), np.empty((n, 3), np.uint8)
-            _compact(img, ids, z, self._ideal, self.dynamic, A, b, W, y0, y1, x0, x1, self._plate, self._plate_z,
-                     pixel, obj, point, colour, back)
-        frozen = image.copy()
-        frozen.flags.writeable = False
-        return Capture(frozen, poses, pixel, obj, point, colour, back, (y0, y1, x0, x1))
+            segments = np.concatenate([[0], np.cumsum(counts)])
+            n = int(segments[-1])
+            pixel, point = np.empty(n, np.int32), np.empty((3, n), np.float32)
+            colour, back = np.empty((n, 3), np.uint8), np.empty((n, 3), np.uint8)
+            _compact(image.reshape(-1, 3), ids, z, self._ideal, self.dynamic, A, b, W, y0, y1, x0, x1, self._plate,
+                     self._plate_z, segments[:-1].copy(), pixel, point, colour, back)
+        return Capture(image, R, t, segments, pixel, point, colour, back, (y0, y1, x0, x1))
 
     def reproject(self, capture: Capture, poses: Sequence[Pose], out: np.ndarray, channel: int | None = None) -> ReprojectStats:
         """`out` = the capture moved to `poses` (only channel `channel` of it when given)."""
         W, H = self.width, self.height
-        if not isinstance(capture, Capture) or capture.image.shape != (H, W, 3):
+        if not isinstance(capture, Capture) or capture.image.shape != (H, W, 3) or len(capture.R) != len(self.dynamic):
             raise ValueError(f"capture: expected a Capture of this Reprojector ({W}×{H}), got {type(capture).__name__}")
         if not isinstance(out, np.ndarray) or out.dtype != np.uint8 or out.shape != (H, W, 3) or not out.flags.c_contiguous \
                 or not out.flags.writeable:
@@ -379,34 +394,36 @@ class Reprojector:
         if channel is not None and (not isinstance(channel, (int, np.integer)) or isinstance(channel, bool)
                                     or not 0 <= channel <= 2):
             raise ValueError(f"channel: expected None, 0, 1 or 2, got {channel!r}")
-        poses = _poses(poses, len(self.dynamic))
+        R, t = _poses(poses, len(self.dynamic))
         ch = -1 if channel is None else int(channel)
-        img, dst = capture.image.reshape(-1, 3), out.reshape(-1, 3)
-        moving = np.flatnonzero(self.dynamic)
-        still = all(np.array_equal(poses[k].R, capture.poses[k].R) and np.array_equal(poses[k].t, capture.poses[k].t)
-                    for k in moving)
-        if still or capture.lit == 0:
-            _base(img, ch, dst)
-            return ReprojectStats(capture.lit, capture.lit if still else 0, 0, 0, 0, 0, capture.box if capture.lit else None)
-        M = np.zeros((len(poses), 3, 4), np.float32)
-        for k in moving:  # model → camera: R_camᵀ (R_k·m + t_k − t_cam)
-            M[k, :, :3] = self.cam_R.T @ poses[k].R
-            M[k, :, 3] = self.cam_R.T @ (poses[k].t - self.cam_t)
-        n = capture.lit
+        img, dst = capture.image.reshape(-1), out.reshape(-1)
+        n, seg = capture.lit, capture.segments
+        moving = [k for k in self._moving if seg[k + 1] > seg[k]]
+        if not moving or all(np.array_equal(R[k], capture.R[k]) and np.array_equal(t[k], capture.t[k]) for k in moving):
+            _base(img, ch, dst)  # nothing moves: the captured image itself
+            return ReprojectStats(n, n, 0, 0, 0, 0, capture.box if n else None)
+        M = np.empty((len(R), 12), np.float32)  # model → camera: R_camᵀ (R_k·m + t_k − t_cam), row-major 3×4
+        M.reshape(-1, 3, 4)[:, :, :3] = np.einsum("ji,kjl->kil", self.cam_R, R)
+        M.reshape(-1, 3, 4)[:, :, 3] = (t - self.cam_t) @ self.cam_R
         dest, zout = np.empty(n, np.int32), np.empty(n, np.float32)
-        stats = np.zeros(9, np.int64)
+        stats = np.zeros(5, np.int64)
+        y0, y1, x0, x1 = H, 0, W, 0
+        px, py, pz = capture.point
         with self._present_lock:
             self._sid += 1
             if self._sid >= 2**31 - 1:  # a stamp can wrap only after 2³¹ presents; then start over
                 self._zstamp[:] = 0
                 self._fstamp[:] = 0
                 self._sid = 1
-            _project(capture.obj, capture.point, M, *self.K[[0, 1, 0, 1], [0, 1, 2, 2]], self.dist, W, H, dest, zout)
+            for k in moving:
+                a, e = seg[k], seg[k + 1]
+                b = _project(px[a:e], py[a:e], pz[a:e], M[k], *self._intrinsics, W, H, dest[a:e], zout[a:e])
+                y0, y1, x0, x1 = min(y0, b[0]), max(y1, b[1]), min(x0, b[2]), max(x1, b[3])
             _base(img, ch, dst)
-            _splat(capture.pixel, capture.colour, capture.plate, dest, zout, self._plate_z, W, ch, self._zbuf, self._src,
-                   self._zstamp, self._fstamp, self._sid, dst, stats)
-        moved, dropped, holes, dis, vacated, y0, y1, x0, x1 = (int(v) for v in stats)
-        return ReprojectStats(n, moved, dropped, holes, dis, vacated, (y0, y1, x0, x1) if moved else None)
+            _splat(capture.pixel, capture.colour, capture.plate, dest, zout, self._plate_z, W, y0, y1, x0, x1, ch,
+                   self._zbuf, self._src, self._zstamp, self._fstamp, self._sid, self._last, dst.reshape(-1, 3), stats)
+        moved, dropped, holes, dis, vacated = (int(v) for v in stats)
+        return ReprojectStats(n, moved, dropped, holes, dis, vacated, (y0, y1, x0, x1) if y1 > y0 else None)
 
     def _box(self, box) -> tuple[int, int, int, int]:
         if box is None:
