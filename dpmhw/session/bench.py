@@ -213,7 +213,7 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
 
     cfg = load_session_config(overrides=[
         f"mock.trajectory={case.trajectory}", f"prediction.enabled={str(case.prediction).lower()}",
-        f"prediction.late_reprojection={str(case.reprojection).lower()}", f"render.width={width}", f"render.height={height}", f"render.spp={spp}", "sink.kind=recording",
+        f"prediction.late_reprojection={str(case.reprojection).lower()}", f"render.width={width}", f"render.height={height}", f"render.spp={spp}",
         "api.enabled=false", *overrides])
     loop = build_session(cfg, mock=True, frame_log=100_000)
     try:
@@ -226,6 +226,7 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         status = loop.status()
         records = [r for r in list(loop.frame_log) if r.number > first and r.number <= status["frame_number"]]
         world = loop.parts.mock.world
+        video = list(loop.parts.mock.video.exposures) if getattr(loop.parts.mock, "video", None) is not None else None
     finally:
         loop.stop()
     if len(records) < 2:
@@ -236,18 +237,17 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     camera = PinholeCamera(scene.camera.K, scene.camera.dist, scene.render.width, scene.render.height, scene.camera.pose)
     (index, body), = loop.parts.bindings.items()
     mesh = scene.objects[index].mesh
-    step = max(1, len(records) // max_eval_frames)
-    evaluated = records[::step]
+    shown = _photon_windows(records, video)
+    step = max(1, len(shown) // (max_eval_frames * len(records[0].windows)))
+    evaluated = shown[::step]
     errors, measured = [], []
-    for k, r in enumerate(evaluated):
-        if progress is not None and k % 20 == 0:
-            progress(f"{case.label}: registration of present {k + 1}/{len(evaluated)}")
-        # every photon window at its own instant: the pose it showed against the truth then
-        for t_photon, shown in r.windows:
-            truth = Pose(*world.pose(body, t_photon / 1e9))
-            errors.append(registration_error(camera, mesh.vertices, mesh.faces, shown[body], truth))
-            # had it shown the measured pose: prediction on/off paired on identical timing
-            measured.append(registration_error(camera, mesh.vertices, mesh.faces, r.measured[body], truth))
+    for k, (t_photon, r, pose) in enumerate(evaluated):
+        if progress is not None and k % 50 == 0:
+            progress(f"{case.label}: registration of photon window {k + 1}/{len(evaluated)}")
+        truth = Pose(*world.pose(body, t_photon / 1e9))
+        errors.append(registration_error(camera, mesh.vertices, mesh.faces, pose[body], truth))
+        # had it shown the measured pose: prediction on/off paired on identical timing
+        measured.append(registration_error(camera, mesh.vertices, mesh.faces, r.measured[body], truth))
     rendered = {r.rendered: r for r in records}  # a frame presented more than once counts once
     frame_ms = [r.stages_s["frame"] * 1e3 for r in rendered.values()]
     latency_ms = [(sum(t for t, _ in r.windows) / len(r.windows) - r.sample_t_ns[body]) / 1e6 for r in records]
@@ -275,7 +275,28 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         out[f"{stage}_ms_p50"] = _pct([r.stages_s.get(stage, np.nan) * 1e3 for r in records], (50,))[0]
     out.update({"horizon_ms_mean": status["prediction_horizon_ms"]["mean"], "evaluated_windows": len(errors),
                 "projector_width": scene.render.width, "projector_height": scene.render.height})
-    out["series"] = bench_series(records, latency_ms, errors, step)  # for the plots; not a JSON row
+    out["series"] = bench_series(records, latency_ms, [t for t, _, _ in evaluated], errors)  # for the plots; not a JSON row
+    return out
+
+
+def _photon_windows(records, exposures) -> list[tuple[int, object, dict]]:
+    """(photon mid ns, record, {body: pose shown}) for every photon window the presents lit.
+
+    With the emulated projector's exposures (`exposures`), the truth is what it lit and when:
+    each exposure belongs to the last present scanned out at or before it (a refresh with no new
+    frame shows the previous one again, at other poses than it was made for), and its channel
+    names the window. Without them, the presents' own windows."""
+    if exposures is None:
+        return [(t, r, pose) for r in records for t, pose in r.windows]
+    at = np.array([r.t_present_ns for r in records])
+    out = []
+    for e in exposures:
+        k = int(np.searchsorted(at, e.scanout_ns, side="right")) - 1
+        if k < 0 or e.scanout_ns > at[-1]:
+            continue  # before the measured presents, or after them
+        r = records[k]
+        window = r.windows[e.channel if len(r.windows) > 1 and e.channel is not None else 0]
+        out.append(((e.t_start_ns + e.t_end_ns) // 2, r, window[1]))
     return out
 
 
@@ -296,7 +317,7 @@ def run_load_case(trajectory: str = "rotate-oscillate", *, modes: tuple[str, ...
 
     cfg = load_session_config(overrides=[
         f"mock.trajectory={trajectory}", f"render.width={width}", f"render.height={height}", f"render.spp={spp}",
-        "sink.kind=recording", "api.enabled=false", *overrides])
+        "api.enabled=false", *overrides])
     loop = build_session(cfg, mock=True, frame_log=100_000)
     spans = {(m, loaded): [] for m in modes for loaded in (False, True)}
     counts = {}

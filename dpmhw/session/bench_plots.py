@@ -13,16 +13,16 @@ import numpy as np
 __all__ = ["bench_series", "plot_bench_session"]
 
 
-def bench_series(records, latency_ms, errors, step: int) -> dict:
+def bench_series(records, latency_ms, photon_ns, errors) -> dict:
     """Per-present series of one case: time (s from its first measured present), the rendered
-    frame's time and the latency (ms), and the registration error (px) of every photon window of
-    every `step`-th present."""
+    frame's time and the latency (ms), and the registration error (px) of the photon windows
+    measured (at `photon_ns`)."""
     t0 = records[0].t_present_ns
-    t_s = [round((r.t_present_ns - t0) / 1e9, 5) for r in records]
-    windows = [round((t - t0) / 1e9, 5) for r in records[::step] for t, _ in r.windows]
-    return {"t_s": t_s, "frame_ms": [round(r.stages_s["frame"] * 1e3, 4) for r in records],
+    return {"t_s": [round((r.t_present_ns - t0) / 1e9, 5) for r in records],
+            "frame_ms": [round(r.stages_s["frame"] * 1e3, 4) for r in records],
             "latency_ms": [round(x, 4) for x in latency_ms],
-            "registration_t_s": windows[:len(errors)], "registration_px": [round(e.mean_px, 4) for e in errors]}
+            "registration_t_s": [round((t - t0) / 1e9, 5) for t in photon_ns],
+            "registration_px": [round(e.mean_px, 4) for e in errors]}
 
 
 def plot_bench_session(cases: list[dict], series: dict[str, dict], path: str | Path) -> Path:

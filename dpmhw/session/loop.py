@@ -695,12 +695,16 @@ class SessionLoop:
         self.metrics.record_render(stages, t5)
         if resume_at is not None and resume_at > t5:
             self._stop.wait((resume_at - t5) / 1e9)  # less than one frame's work
-        with self._lock:
-            self._capture = capture
-            self._latest = LatestFrame(self._frame_number, t5, image, settings, blank=False)
         if not self._sync_output():
             self.metrics.count("frames_withheld")  # rendered while dark (keeps causes observable)
             return False
+        with self._output_lock:  # only a frame made for a lit output is ever presented
+            if not self._output_on:  # dark again since
+                self.metrics.count("frames_withheld")
+                return False
+            with self._lock:
+                self._capture = capture
+                self._latest = LatestFrame(self._frame_number, t5, image, settings, blank=False)
         return True
 
     # ---- the present thread: one present per refresh, never waiting for a render ----------
