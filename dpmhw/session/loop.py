@@ -807,7 +807,9 @@ class SessionLoop:
             self._present_lead_ns = min(self._present_lead_ns + PRESENT_LEAD_STEP_NS, self.timing.period_ns // 2)
         self.safety.mark_started()
         self._present_number += 1
-        shown = self.timing.photon_mid_ns(max(t_present, vsync))  # a sink without a refresh answers early
+        # lit from the refresh the sink answered; a sink without one answers when it took the frame,
+        # which a display would show at its next refresh
+        shown = self.timing.photon_mid_ns(self.timing.next_vsync(max(t_present, vsync), self._vsync_phase))
         windows = tuple((t, used) for t, (_, used, _, _) in zip(shown, windows))
         oldest = min(s.t_exposure_ns for s in samples.values())
         latency_s = (sum(shown) / len(shown) - oldest) / 1e9
