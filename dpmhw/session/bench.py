@@ -205,7 +205,8 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     filter, alpha, display, reprojection, output_width, output_height, fps (presents/s),
     fps_median (1 / median present interval), render_fps, latency_ms_p50/p95/p99 (sample exposure →
     photon mid), frame_ms_p50/p95/p99 (rendered frames), registration_px_p50/p99 at photon time over
-    every photon window (and _max_, measured-pose and vertex variants), <stage>_ms_p50 for every
+    every photon window (and _max_, measured-pose and vertex variants; registration_px_p99_window<k>
+    per sub-frame in pattern mode), <stage>_ms_p50 for every
     loop stage, late_presents, frame counts. `progress(text)` hears how the analysis goes."""
     from dpmhw.render.cameras import PinholeCamera
     from dpmhw.session.factory import build_session, prepare_scene
@@ -241,7 +242,7 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     step = max(1, len(shown) // (max_eval_frames * len(records[0].windows)))
     evaluated = shown[::step]
     errors, measured = [], []
-    for k, (t_photon, r, pose) in enumerate(evaluated):
+    for k, (t_photon, r, pose, _) in enumerate(evaluated):
         if progress is not None and k % 50 == 0:
             progress(f"{case.label}: registration of photon window {k + 1}/{len(evaluated)}")
         truth = Pose(*world.pose(body, t_photon / 1e9))
@@ -275,19 +276,21 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         out[f"{stage}_ms_p50"] = _pct([r.stages_s.get(stage, np.nan) * 1e3 for r in records], (50,))[0]
     out.update({"horizon_ms_mean": status["prediction_horizon_ms"]["mean"], "evaluated_windows": len(errors),
                 "projector_width": scene.render.width, "projector_height": scene.render.height})
-    out["series"] = bench_series(records, latency_ms, [t for t, _, _ in evaluated], errors)  # for the plots; not a JSON row
+    for w in range(len(records[0].windows) if len(records[0].windows) > 1 else 0):  # per sub-frame
+        out[f"registration_px_p99_window{w}"] = _pct([e.mean_px for e, (*_, k) in zip(errors, evaluated) if k == w], (99,))[0]
+    out["series"] = bench_series(records, latency_ms, [t for t, *_ in evaluated], errors)  # for the plots; not a JSON row
     return out
 
 
-def _photon_windows(records, exposures) -> list[tuple[int, object, dict]]:
-    """(photon mid ns, record, {body: pose shown}) for every photon window the presents lit.
+def _photon_windows(records, exposures) -> list[tuple[int, object, dict, int]]:
+    """(photon mid ns, record, {body: pose shown}, window index) for every photon window the presents lit.
 
     With the emulated projector's exposures (`exposures`), the truth is what it lit and when:
     each exposure belongs to the last present scanned out at or before it (a refresh with no new
     frame shows the previous one again, at other poses than it was made for), and its channel
     names the window. Without them, the presents' own windows."""
     if exposures is None:
-        return [(t, r, pose) for r in records for t, pose in r.windows]
+        return [(t, r, pose, k) for r in records for k, (t, pose) in enumerate(r.windows)]
     at = np.array([r.t_present_ns for r in records])
     out = []
     for e in exposures:
@@ -295,8 +298,8 @@ def _photon_windows(records, exposures) -> list[tuple[int, object, dict]]:
         if k < 0 or e.scanout_ns > at[-1]:
             continue  # before the measured presents, or after them
         r = records[k]
-        window = r.windows[e.channel if len(r.windows) > 1 and e.channel is not None else 0]
-        out.append(((e.t_start_ns + e.t_end_ns) // 2, r, window[1]))
+        k = e.channel if len(r.windows) > 1 and e.channel is not None else 0
+        out.append(((e.t_start_ns + e.t_end_ns) // 2, r, r.windows[k][1], k))
     return out
 
 

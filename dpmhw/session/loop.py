@@ -657,8 +657,7 @@ class SessionLoop:
             self.safety.update("render", False)
         except Exception as exc:
             return self._stage_failed("render", "render_errors", f"render failed: {type(exc).__name__}: {exc}")
-        settings, stages, poses, t_start, t_target = job.settings, job.stages, job.poses, job.t_start, job.t_target
-        samples, age_s, used, horizon_ns, resume_at = job.samples, job.age_s, job.used, job.horizon_ns, job.resume_at
+        settings, stages, poses, t_start, resume_at = job.settings, job.stages, job.poses, job.t_start, job.resume_at
         if self.pipeline:
             self._prefetch()
         try:
