@@ -392,6 +392,11 @@ class DLPC900Model:
         self._timeline: RecentLog = RecentLog()  # DisplayedPattern of finished runs
 
     @property
+    def run_started_ns(self) -> int | None:
+        """When the running pattern sequence started (None unless one runs)."""
+        return self._run_started_at
+
+    @property
     def dual_controller(self) -> bool:
         return self.dmd_type in DUAL_CONTROLLER_DMDS
 
