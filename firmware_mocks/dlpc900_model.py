@@ -392,6 +392,11 @@ class DLPC900Model:
         self._timeline: RecentLog = RecentLog()  # DisplayedPattern of finished runs
 
     @property
+    def run_started_ns(self) -> int | None:
+        """When the running pattern sequence started (None unless one runs)."""
+        return self._run_started_at
+
+    @property
     def dual_controller(self) -> bool:
         return self.dmd_type in DUAL_CONTROLLER_DMDS
 
@@ -680,7 +685,9 @@ class DLPC900Model:
     def _check_video_frame_fits(self, entries: list[LutEntry]) -> None:
         """Video pattern mode shows the patterns of one video frame within that frame: each run
         of entries from one that waits for the trigger (the frame's VSYNC) to the next must
-        expose and darken within the input's frame period (DLPU018's video-pattern timing)."""
+        expose and darken within the input's frame period. DLPU018 states no such check; the
+        rule is the one TI's DLPC347x datasheets give for their equivalent 8-bit external
+        pattern mode, and error 14 (exposure out of range) the code that names it."""
         if self.video_period_ns is None:
             raise CommandError(ERR_NOT_ALLOWED, "video pattern mode has lost its video source")
         for group in video_frame_groups(entries):

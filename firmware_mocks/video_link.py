@@ -49,9 +49,8 @@ from firmware_mocks.dlpc900_model import DLPC900Model, video_frame_groups
 
 __all__ = ["Exposure", "VideoLink", "CHANNEL_OF_BIT", "input_word"]
 
-# bit position of an 8-bit field of the 24-bit video word -> RGB channel of the frame (0 R, 1 G, 2 B)
-CHANNEL_OF_BIT = {8: 0, 0: 1, 16: 2}
-_SHIFT = (8, 0, 16)  # per RGB channel: where its 8 bits sit in the word
+_SHIFT = (8, 0, 16)  # per RGB channel of the frame (R, G, B): where its 8 bits sit in the 24-bit word
+CHANNEL_OF_BIT = {bit: channel for channel, bit in enumerate(_SHIFT)}
 
 
 def input_word(frame: np.ndarray) -> np.ndarray:
@@ -194,8 +193,8 @@ class VideoLink:
             self._run_started = None
             return
         n, repeat_count = m.lut_config
-        if self._run_started is None or m._run_started_at != self._run_started:  # a new run: from entry 0
-            self._run_started, self._patterns_shown, self._group = m._run_started_at, 0, 0
+        if self._run_started is None or m.run_started_ns != self._run_started:  # a new run: from entry 0
+            self._run_started, self._patterns_shown, self._group = m.run_started_ns, 0, 0
         groups = video_frame_groups([m.lut[k] for k in range(n)])
         group = groups[self._group % len(groups)]
         self._group += 1

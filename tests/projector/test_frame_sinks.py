@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -193,3 +199,34 @@ def test_window_sink_refuses_a_throttled_flip(monkeypatch, clock):
 def test_unknown_sink_name():
     with pytest.raises(ValueError, match="window"):
         make_sink("hdmi")
+
+
+_XVFB_PROBE = """
+import json, time
+import numpy as np
+from dpmhw.display import DisplayTiming
+from drivers.frame_sinks import WindowSink
+sink = WindowSink(0, timing=DisplayTiming(refresh_hz=60.0))
+frame = np.zeros((*sink.shape, 3), np.uint8)
+out = []
+for k in range(5):
+    target = time.monotonic_ns() + k * 3_000_000
+    out.append((target, sink.present(frame, target), time.monotonic_ns()))
+print(json.dumps({"locked": sink.vsync_locked, "phase": sink.vsync_phase_ns(), "p": sink.timing.period_ns, "out": out}))
+sink.close()
+"""
+
+
+@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="xvfb-run is not installed (apt install xvfb)")
+def test_window_sink_under_xvfb_paces_the_software_grid():
+    """Xvfb has no vsync (its swaps are throttled): the sink must see that and keep a software grid."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    env.pop("SDL_VIDEODRIVER", None)
+    run = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 320x240x24", sys.executable, "-c", _XVFB_PROBE],
+                         capture_output=True, text=True, timeout=120, env=env)
+    assert run.returncode == 0, run.stderr
+    got = json.loads(run.stdout.strip().splitlines()[-1])
+    assert not got["locked"]
+    for target, at, returned in got["out"]:
+        assert (at - got["phase"]) % got["p"] == 0  # a refresh of the grid
+        assert at >= target and returned >= at  # never before the target, and waited for

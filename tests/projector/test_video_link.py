@@ -166,3 +166,26 @@ def test_a_frame_whose_patterns_overrun_the_period_is_refused(dlp, emu, clock):
     with pytest.raises(ValueError, match="exposure_us"):  # the driver refuses a rate whose thirds are too short
         dlp.set_video_pattern_mode(120.0)
     link.close()
+
+
+def test_frames_take_turns_through_the_lut_and_a_repeat_count_ends_the_run(dlp, emu, clock):
+    """Two VSYNC-started groups alternate frame by frame; 6 patterns in all, then darkness."""
+    link = VideoLink(emu.model, timing=DisplayTiming(controller_delay_ns=0), clock=clock, sleep=clock.sleep,
+                     block=False)
+    dlp.set_display_mode(DisplayMode.VIDEO_PATTERN)
+    colors = (Color.RED, Color.GREEN, Color.BLUE)
+    for k in range(6):
+        dlp.define_pattern(k, PatternTiming(5000, dark_us=100, bit_depth=8, color=colors[k % 3] if k < 3 else Color.WHITE,
+                                            wait_for_trigger=k % 3 == 0), image_index=0, bit_position=(8, 0, 16)[k % 3])
+    dlp.configure_lut(6, 6)
+    dlp.start()
+    for _ in range(3):
+        link.present(_frame(), clock())
+        clock.advance(P60)
+    link.poll()
+    rows = list(link.exposures)
+    assert [(r.frame, r.lut_index) for r in rows] == [(0, 0), (0, 1), (0, 2), (1, 3), (1, 4), (1, 5)]
+    assert [r.leds for r in rows[3:]] == [(True, True, True)] * 3
+    assert rows[1].t_start_ns - rows[0].t_start_ns == 5_100_000  # exposure, then dark
+    assert link.frames_shown == 3  # the third frame was scanned out, but the run had ended: no light
+    link.close()
