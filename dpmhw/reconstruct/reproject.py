@@ -170,17 +170,19 @@ def _put(out, q, ch, r, g, b):
 
 
 @nb.njit(inline="always")
-def _fill_run(qa, qb, step, g, pixel, colour, src, zbuf, zstamp, fstamp, sid, plate_z, W, ch, out):
-    """Fill the g unreached pixels between splats qa and qb (q = qa + i·step) if their points'
-    captured pixels were neighbours; returns (cracks, disoccluded) filled."""
+def _fill_run(qa, qb, step, g, pixel, src, zbuf, zstamp, fstamp, sid, plate_z, W, ch, out):
+    """Fill the g pixels between covered pixels qa and qb (q = qa + i·step) that nothing covers
+    yet, if the points they show were neighbours at capture; returns (cracks, disoccluded).
+    The ends' colours are read back from `out` (a channel not written is never read into one
+    that is); a filled pixel gets a depth and a point (the nearer end's), so that it can end a
+    run along the other axis."""
     ka, kb = src[qa], src[qb]
     pa, pb = pixel[ka], pixel[kb]
     if abs(pa % W - pb % W) > 1 or abs(pa // W - pb // W) > 1:
         return 0, 0  # something lay between them at capture too: a real gap
     za, zb = zbuf[qa], zbuf[qb]
     crack = abs(za - zb) <= DEPTH_STEP_REL * min(za, zb)
-    kf = ka if za > zb else kb
-    zf = max(za, zb)
+    qf, kf, zf = (qa, ka, za) if za > zb else (qb, kb, zb)
     holes = 0
     dis = 0
     for i in range(1, g + 1):
@@ -192,16 +194,20 @@ def _fill_run(qa, qb, step, g, pixel, colour, src, zbuf, zstamp, fstamp, sid, pl
             z = za + t * (zb - za)
             if plate_z[q] < z * (1.0 - STATIC_Z_REL):
                 continue
-            r = np.uint8(colour[ka, 0] + t * (np.float32(colour[kb, 0]) - colour[ka, 0]) + 0.5)
-            gg = np.uint8(colour[ka, 1] + t * (np.float32(colour[kb, 1]) - colour[ka, 1]) + 0.5)
-            bb = np.uint8(colour[ka, 2] + t * (np.float32(colour[kb, 2]) - colour[ka, 2]) + 0.5)
+            r = np.uint8(out[qa, 0] + t * (np.float32(out[qb, 0]) - out[qa, 0]) + 0.5)
+            gg = np.uint8(out[qa, 1] + t * (np.float32(out[qb, 1]) - out[qa, 1]) + 0.5)
+            bb = np.uint8(out[qa, 2] + t * (np.float32(out[qb, 2]) - out[qa, 2]) + 0.5)
             _put(out, q, ch, r, gg, bb)
+            src[q] = ka if t < 0.5 else kb
             holes += 1
         else:
-            if plate_z[q] < zf * (1.0 - STATIC_Z_REL):
+            z = zf
+            if plate_z[q] < z * (1.0 - STATIC_Z_REL):
                 continue
-            _put(out, q, ch, colour[kf, 0], colour[kf, 1], colour[kf, 2])
+            _put(out, q, ch, out[qf, 0], out[qf, 1], out[qf, 2])
+            src[q] = kf
             dis += 1
+        zbuf[q] = z
         fstamp[q] = sid
     return holes, dis
 
@@ -220,10 +226,10 @@ def _base(image, ch, out):
 def _splat(pixel, colour, back, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf, src, zstamp, fstamp, sid, last, out,
            stats):
     """Erase the captured moving pixels (the plate), splat the points with a z-test, then, in
-    one row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats
-    along the row and along the column down to each splat (a column's run lies in rows done
-    already: the same as rows first, then columns); stats: moved, dropped, holes,
-    disoccluded, vacated. `last`: (W,) int32 scratch."""
+    one row-major sweep of the splats' box (y0, y1, x0, x1), fill each row's runs between
+    splats, then each column's runs ending in that row (between splats or row fills: a crack
+    row crossing a crack column closes too; the rows a column's run crosses are done already);
+    stats: moved, dropped, holes, disoccluded, vacated. `last`: (W,) int32 scratch."""
     n = pixel.shape[0]
     for k in range(n):
         _put(out, pixel[k], ch, back[k, 0], back[k, 1], back[k, 2])
@@ -250,20 +256,23 @@ def _splat(pixel, colour, back, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf
         last[x] = -1
     for y in range(y0, y1):
         row = -1
-        for x in range(x0, x1):
+        for x in range(x0, x1):  # along the row, between splats
             q = y * W + x
             if zstamp[q] != sid:
                 continue
-            if row >= 0 and 1 < x - row <= GAP_MAX_PX + 1:  # along the row
-                h, d = _fill_run(y * W + row, q, 1, x - row - 1, pixel, colour, src, zbuf, zstamp, fstamp, sid,
-                                 plate_z, W, ch, out)
+            if row >= 0 and 1 < x - row <= GAP_MAX_PX + 1:
+                h, d = _fill_run(y * W + row, q, 1, x - row - 1, pixel, src, zbuf, zstamp, fstamp, sid, plate_z, W, ch, out)
                 holes += h
                 dis += d
             row = x
+        for x in range(x0, x1):  # along each column down to this row, between splats or row fills
+            q = y * W + x
+            if zstamp[q] != sid and fstamp[q] != sid:
+                continue
             above = last[x]
-            if above >= 0 and 1 < y - above <= GAP_MAX_PX + 1:  # along the column
-                h, d = _fill_run(above * W + x, q, W, y - above - 1, pixel, colour, src, zbuf, zstamp, fstamp, sid,
-                                 plate_z, W, ch, out)
+            if above >= 0 and 1 < y - above <= GAP_MAX_PX + 1:
+                h, d = _fill_run(above * W + x, q, W, y - above - 1, pixel, src, zbuf, zstamp, fstamp, sid, plate_z, W, ch,
+                                 out)
                 holes += h
                 dis += d
             last[x] = y
