@@ -27,7 +27,7 @@ from dpmhw.reconstruct.reproject import Reprojector
 from dpmhw.scene_file import load_scene
 from dpmhw.transforms import Pose
 
-TRAJECTORIES = ("rotate-oscillate", "linear", "static")
+TRAJECTORIES = ("rotate-oscillate", "linear", "static")  # session.factory.mock_trajectory's
 
 
 @dataclass(frozen=True)
