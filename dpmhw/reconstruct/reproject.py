@@ -161,24 +161,29 @@ def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout):
 
 @nb.njit(inline="always")
 def _put(out, q, ch, r, g, b):
+    """Pixel q = (r, g, b), or only its channel ch when ch ≥ 0."""
     if ch < 0:
         out[q, 0] = r
         out[q, 1] = g
         out[q, 2] = b
+    elif ch == 0:
+        out[q, 0] = r
+    elif ch == 1:
+        out[q, 1] = g
     else:
-        out[q, ch] = (r, g, b)[ch]
+        out[q, 2] = b
 
 
 @nb.njit(inline="always")
-def _fill_run(qa, qb, step, g, pixel, src, zbuf, zstamp, fstamp, sid, plate_z, W, ch, out):
+def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, ch, out):
     """Fill the g pixels between covered pixels qa and qb (q = qa + i·step) that nothing covers
     yet, if the points they show were neighbours at capture; returns (cracks, disoccluded).
     The ends' colours are read back from `out` (a channel not written is never read into one
     that is); a filled pixel gets a depth and a point (the nearer end's), so that it can end a
-    run along the other axis."""
+    run along the other axis. `cover`: s2 splatted, s2 + 1 filled in this reprojection."""
     ka, kb = src[qa], src[qb]
-    pa, pb = pixel[ka], pixel[kb]
-    if abs(pa % W - pb % W) > 1 or abs(pa // W - pb // W) > 1:
+    d = abs(pixel[kb] - pixel[ka])
+    if d > 1 and abs(d - W) > 1:  # (at the frame's side edges a row's end and the next row's start pass too)
         return 0, 0  # something lay between them at capture too: a real gap
     za, zb = zbuf[qa], zbuf[qb]
     crack = abs(za - zb) <= DEPTH_STEP_REL * min(za, zb)
@@ -187,7 +192,7 @@ def _fill_run(qa, qb, step, g, pixel, src, zbuf, zstamp, fstamp, sid, plate_z, W
     dis = 0
     for i in range(1, g + 1):
         q = qa + i * step
-        if zstamp[q] == sid or fstamp[q] == sid:
+        if cover[q] >> 1 == s2 >> 1:
             continue
         if crack:
             t = i / (g + 1.0)
@@ -208,28 +213,38 @@ def _fill_run(qa, qb, step, g, pixel, src, zbuf, zstamp, fstamp, sid, plate_z, W
             src[q] = kf
             dis += 1
         zbuf[q] = z
-        fstamp[q] = sid
+        cover[q] = s2 + 1
     return holes, dis
 
 
 @nb.njit(cache=True, nogil=True)
 def _base(image, ch, out):
-    """out = image, flat uint8 arrays (H*W*3); channel `ch` of each pixel only when ch ≥ 0."""
+    """out = image, flat uint8 arrays (H*W*3); only channel `ch` of each pixel when ch ≥ 0.
+    Plain loops over contiguous bytes (numba's slice assignment copies element by element, a
+    stride-3 loop does not vectorise): the channel is blended in with a per-channel byte
+    mask, so the other channels are read and stored back unchanged."""
     if ch < 0:
-        out[:] = image
-    else:
-        for i in range(ch, image.shape[0], 3):
+        for i in range(image.shape[0]):
             out[i] = image[i]
+        return
+    m0 = np.uint8(255 if ch == 0 else 0)
+    m1 = np.uint8(255 if ch == 1 else 0)
+    m2 = np.uint8(255 if ch == 2 else 0)
+    for p in range(image.shape[0] // 3):
+        i = 3 * p
+        out[i] = out[i] ^ ((out[i] ^ image[i]) & m0)
+        out[i + 1] = out[i + 1] ^ ((out[i + 1] ^ image[i + 1]) & m1)
+        out[i + 2] = out[i + 2] ^ ((out[i + 2] ^ image[i + 2]) & m2)
 
 
 @nb.njit(cache=True, nogil=True)
-def _splat(pixel, colour, back, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf, src, zstamp, fstamp, sid, last, out,
-           stats):
+def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf, src, cover, s2, out, stats):
     """Erase the captured moving pixels (the plate), splat the points with a z-test, then, in
     one row-major sweep of the splats' box (y0, y1, x0, x1), fill each row's runs between
     splats, then each column's runs ending in that row (between splats or row fills: a crack
-    row crossing a crack column closes too; the rows a column's run crosses are done already);
-    stats: moved, dropped, holes, disoccluded, vacated. `last`: (W,) int32 scratch."""
+    row crossing a crack column closes too; the rows a column's run crosses are done already).
+    `cover`: s2 where a point landed, s2 + 1 where a run was filled (older values: neither).
+    stats: moved, dropped, holes, disoccluded, vacated."""
     n = pixel.shape[0]
     for k in range(n):
         _put(out, pixel[k], ch, back[k, 0], back[k, 1], back[k, 2])
@@ -243,8 +258,8 @@ def _splat(pixel, colour, back, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf
         if plate_z[q] < z * (1.0 - STATIC_Z_REL):
             dropped += 1
             continue
-        if zstamp[q] != sid:
-            zstamp[q] = sid
+        if cover[q] != s2:
+            cover[q] = s2
             moved += 1
         elif zbuf[q] <= z:
             continue
@@ -252,34 +267,36 @@ def _splat(pixel, colour, back, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf
         src[q] = k
         _put(out, q, ch, colour[k, 0], colour[k, 1], colour[k, 2])
     holes = dis = 0
-    for x in range(x0, x1):
-        last[x] = -1
+    sid = s2 >> 1
     for y in range(y0, y1):
-        row = -1
-        for x in range(x0, x1):  # along the row, between splats
+        left = cover[y * W + x0] == s2
+        for x in range(x0 + 1, x1):  # along the row: a splat after a gap looks back for the splat before it
             q = y * W + x
-            if zstamp[q] != sid:
-                continue
-            if row >= 0 and 1 < x - row <= GAP_MAX_PX + 1:
-                h, d = _fill_run(y * W + row, q, 1, x - row - 1, pixel, src, zbuf, zstamp, fstamp, sid, plate_z, W, ch, out)
-                holes += h
-                dis += d
-            row = x
-        for x in range(x0, x1):  # along each column down to this row, between splats or row fills
+            here = cover[q] == s2
+            if here and not left:
+                for g in range(2, min(GAP_MAX_PX + 1, x - x0) + 1):
+                    if cover[q - g] == s2:
+                        h, d = _fill_run(q - g, q, 1, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
+                        holes += h
+                        dis += d
+                        break
+            left = here
+        if y == y0:
+            continue
+        for x in range(x0, x1):  # along the column: a covered pixel under a gap looks up for the one above it
             q = y * W + x
-            if zstamp[q] != sid and fstamp[q] != sid:
+            if cover[q] >> 1 != sid or cover[q - W] >> 1 == sid:
                 continue
-            above = last[x]
-            if above >= 0 and 1 < y - above <= GAP_MAX_PX + 1:
-                h, d = _fill_run(above * W + x, q, W, y - above - 1, pixel, src, zbuf, zstamp, fstamp, sid, plate_z, W, ch,
-                                 out)
-                holes += h
-                dis += d
-            last[x] = y
+            for g in range(2, min(GAP_MAX_PX + 1, y - y0) + 1):
+                a = q - g * W
+                if cover[a] >> 1 == sid:
+                    h, d = _fill_run(a, q, W, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
+                    holes += h
+                    dis += d
+                    break
     vacated = 0
     for k in range(n):
-        p = pixel[k]
-        if zstamp[p] != sid and fstamp[p] != sid:
+        if cover[pixel[k]] >> 1 != sid:
             vacated += 1
     stats[0], stats[1], stats[2], stats[3], stats[4] = moved, dropped, holes, dis, vacated
 
@@ -349,11 +366,9 @@ class Reprojector:
         n = W * H
         self._plate = np.zeros((n, 3), np.uint8)  # last colour without a moving object in front
         self._plate_z = np.full(n, np.inf, np.float32)  # depth of the static surface there (inf: none seen)
-        self._zbuf = np.zeros(n, np.float32)  # per reprojection, valid where _zstamp == its id
+        self._zbuf = np.zeros(n, np.float32)  # per reprojection, valid where _cover holds its id
         self._src = np.zeros(n, np.int32)  # the point a splatted pixel shows
-        self._zstamp = np.zeros(n, np.int32)
-        self._fstamp = np.zeros(n, np.int32)  # filled by a run
-        self._last = np.zeros(W, np.int32)  # per column: the row of its last splat (a row-major sweep)
+        self._cover = np.zeros(n, np.int32)  # 2·id of the reprojection that splatted the pixel, + 1: filled it
         self._sid = 0
         self._moving = [int(k) for k in np.flatnonzero(self.dynamic)]
         self._intrinsics = (np.float32(K[0, 0]), np.float32(K[1, 1]), np.float32(K[0, 2]), np.float32(K[1, 2]),
@@ -420,17 +435,16 @@ class Reprojector:
         px, py, pz = capture.point
         with self._present_lock:
             self._sid += 1
-            if self._sid >= 2**31 - 1:  # a stamp can wrap only after 2³¹ presents; then start over
-                self._zstamp[:] = 0
-                self._fstamp[:] = 0
+            if self._sid >= 2**30 - 1:  # the stamps wrap only after 2³⁰ presents; then start over
+                self._cover[:] = 0
                 self._sid = 1
             for k in moving:
                 a, e = seg[k], seg[k + 1]
                 b = _project(px[a:e], py[a:e], pz[a:e], M[k], *self._intrinsics, W, H, dest[a:e], zout[a:e])
                 y0, y1, x0, x1 = min(y0, b[0]), max(y1, b[1]), min(x0, b[2]), max(x1, b[3])
             _base(img, ch, dst)
-            _splat(capture.pixel, capture.colour, capture.plate, dest, zout, self._plate_z, W, y0, y1, x0, x1, ch,
-                   self._zbuf, self._src, self._zstamp, self._fstamp, self._sid, self._last, dst.reshape(-1, 3), stats)
+            _splat(capture.pixel, capture.plate, capture.colour, dest, zout, self._plate_z, W, y0, y1, x0, x1, ch,
+                   self._zbuf, self._src, self._cover, 2 * self._sid, dst.reshape(-1, 3), stats)
         moved, dropped, holes, dis, vacated = (int(v) for v in stats)
         return ReprojectStats(n, moved, dropped, holes, dis, vacated, (y0, y1, x0, x1) if y1 > y0 else None)
 
