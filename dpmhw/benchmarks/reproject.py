@@ -92,7 +92,7 @@ def run_reproject(cfg: ReprojectBenchConfig, progress=None) -> list[dict]:
             f = renderer.render(poses=poses_at(t), spp=cfg.spp, seed=seed)
             done += 1
             if progress is not None:
-                progress(f"render t = {t:.3f} s", done, total)
+                progress("renders (captures, references, noise)", done, total)
             return f, to_srgb8(f.radiance)
 
         def objects(frame) -> np.ndarray:
