@@ -217,6 +217,18 @@ def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
     return holes, dis
 
 
+@nb.njit(nogil=True, cache=True)
+def _column_run(q, rows_above, pixel, src, zbuf, cover, s2, plate_z, W, ch, out):
+    """Covered pixel q under a gap in its column (the caller checked the pixel above): fill the
+    run up to the covered pixel above it."""
+    sid = s2 >> 1
+    for g in range(2, min(GAP_MAX_PX + 1, rows_above) + 1):
+        a = q - g * W
+        if cover[a] >> 1 == sid:
+            return _fill_run(a, q, W, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
+    return 0, 0
+
+
 @nb.njit(cache=True, nogil=True)
 def _base(image, ch, out):
     """out = image, flat uint8 arrays (H*W*3); only channel `ch` of each pixel when ch ≥ 0.
@@ -240,9 +252,10 @@ def _base(image, ch, out):
 @nb.njit(cache=True, nogil=True)
 def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf, src, cover, s2, out, stats):
     """Erase the captured moving pixels (the plate), splat the points with a z-test, then, in
-    one row-major sweep of the splats' box (y0, y1, x0, x1), fill each row's runs between
-    splats, then each column's runs ending in that row (between splats or row fills: a crack
-    row crossing a crack column closes too; the rows a column's run crosses are done already).
+    one row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats
+    along the row, and along the column above each splat and each pixel a row run filled (a
+    crack row crossing a crack column closes too). When a pixel looks up its column, every
+    pixel above it is final: rows above are done, and only this pixel's run fills its column.
     `cover`: s2 where a point landed, s2 + 1 where a run was filled (older values: neither).
     stats: moved, dropped, holes, disoccluded, vacated."""
     n = pixel.shape[0]
@@ -269,31 +282,29 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf
     holes = dis = 0
     sid = s2 >> 1
     for y in range(y0, y1):
-        left = cover[y * W + x0] == s2
-        for x in range(x0 + 1, x1):  # along the row: a splat after a gap looks back for the splat before it
+        left = False
+        for x in range(x0, x1):
             q = y * W + x
-            here = cover[q] == s2
-            if here and not left:
+            if cover[q] != s2:
+                left = False
+                continue
+            if not left:  # a splat after a gap in the row: look back for the splat before it
                 for g in range(2, min(GAP_MAX_PX + 1, x - x0) + 1):
                     if cover[q - g] == s2:
                         h, d = _fill_run(q - g, q, 1, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
                         holes += h
                         dis += d
+                        for a in range(q - g + 1, q):  # what the row run filled: each its column too
+                            if cover[a] == s2 + 1 and y > y0 and cover[a - W] >> 1 != sid:
+                                h, d = _column_run(a, y - y0, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
+                                holes += h
+                                dis += d
                         break
-            left = here
-        if y == y0:
-            continue
-        for x in range(x0, x1):  # along the column: a covered pixel under a gap looks up for the one above it
-            q = y * W + x
-            if cover[q] >> 1 != sid or cover[q - W] >> 1 == sid:
-                continue
-            for g in range(2, min(GAP_MAX_PX + 1, y - y0) + 1):
-                a = q - g * W
-                if cover[a] >> 1 == sid:
-                    h, d = _fill_run(a, q, W, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
-                    holes += h
-                    dis += d
-                    break
+            left = True
+            if y > y0 and cover[q - W] >> 1 != sid:
+                h, d = _column_run(q, y - y0, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
+                holes += h
+                dis += d
     vacated = 0
     for k in range(n):
         if cover[pixel[k]] >> 1 != sid:
