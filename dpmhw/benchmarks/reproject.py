@@ -53,16 +53,22 @@ class ReprojectBenchConfig:
             raise ValueError("starts_s, horizons_ms: expected finite values ≥ 0")
 
 
-def _cpu_ms(fn, repeats: int) -> tuple[float, float]:
-    """(median, least) CPU-ms of the calling thread per call; on a shared machine the least is
-    the call the other processes disturbed least."""
-    fn()
+def _cpu_ms(repeats: int, fn, *args) -> tuple[float, float]:
+    """(median, least) CPU-ms of the calling thread per call fn(*args); on a shared machine the
+    least is the call the other processes disturbed least."""
+    fn(*args)
     times = []
     for _ in range(repeats):
         t0 = time.thread_time()
-        fn()
+        fn(*args)
         times.append(time.thread_time() - t0)
     return 1e3 * float(np.median(times)), 1e3 * float(np.min(times))
+
+
+def _pattern_present(reprojector: Reprojector, cap, poses, out) -> None:
+    """A pattern-8bit present: three one-channel reprojections into one frame."""
+    for k in range(3):
+        reprojector.reproject(cap, poses, out, channel=k)
 
 
 def run_reproject(cfg: ReprojectBenchConfig, progress=None) -> list[dict]:
@@ -114,8 +120,7 @@ def run_reproject(cfg: ReprojectBenchConfig, progress=None) -> list[dict]:
             rows_lit, cols_lit = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
             box = (int(rows_lit[0]), int(rows_lit[-1]) + 1, int(cols_lit[0]), int(cols_lit[-1]) + 1) if lit.any() else None
             cap = reprojector.capture(captured, ids, depth, poses_at(start), box)
-            capture_ms, capture_min = _cpu_ms(lambda: reprojector.capture(captured, ids, depth, poses_at(start), box),
-                                              cfg.repeats)
+            capture_ms, capture_min = _cpu_ms(cfg.repeats, reprojector.capture, captured, ids, depth, poses_at(start), box)
             for h in cfg.horizons_ms:
                 poses = poses_at(start + h / 1e3)
                 fresh, reference = render(start + h / 1e3)
@@ -129,14 +134,10 @@ def run_reproject(cfg: ReprojectBenchConfig, progress=None) -> list[dict]:
                            ssim_stale=masked_ssim(captured, reference, mask),
                            psnr_db_noise=noise[0], ssim_noise=noise[1], ms_capture=capture_ms,
                            ms_capture_min=capture_min)
-
-                def pattern():
-                    for k in range(3):
-                        reprojector.reproject(cap, poses, out, channel=k)
-
                 row["ms_per_reprojection"], row["ms_per_reprojection_min"] = _cpu_ms(
-                    lambda: reprojector.reproject(cap, poses, out), cfg.repeats)
-                row["ms_per_present_pattern"], row["ms_per_present_pattern_min"] = _cpu_ms(pattern, cfg.repeats)
+                    cfg.repeats, reprojector.reproject, cap, poses, out)
+                row["ms_per_present_pattern"], row["ms_per_present_pattern_min"] = _cpu_ms(
+                    cfg.repeats, _pattern_present, reprojector, cap, poses, out)
                 rows.append(row)
     return rows
 
