@@ -11,11 +11,12 @@ for each photon window with the poses predicted for it:
 2. every compacted point is moved by its object's pose change, projected with the lens
    distortion, and splatted to the nearest pixel centre with a z-test (against the other points
    and against the static surfaces' last depth: a static object in front hides it);
-3. runs of up to `GAP_MAX_PX` pixels that no point reached, between two splats whose captured
-   pixels were neighbours, are filled along rows, then along columns: where the two ends lie at
-   the same depth (within `DEPTH_STEP_REL`) the run is a crack of magnification and takes the
-   colours interpolated between them; across a depth step the run is surface the nearer end hid
-   at capture (a disocclusion) and takes the farther end's colour, which continues that surface.
+3. runs of up to `GAP_MAX_PX` pixels that no point reached, between two covered pixels whose
+   points were neighbours at capture, are filled along rows, then along columns: where the two
+   ends lie at the same depth (within `DEPTH_STEP_REL`) the run is a crack of magnification and
+   takes the colours interpolated between them; across a depth step the run is surface the
+   nearer end hid at capture (a disocclusion) and takes the farther end's colour, which
+   continues that surface.
 
 Model-space points come from the G-buffer's depth (camera z, as `render.gbuffer` and
 `reconstruct.guides` define it) along each pixel's ray through its centre, lens distortion
@@ -130,8 +131,8 @@ def _compact(image, ids, depth, ideal, dynamic, A, b, W, y0, y1, x0, x1, plate, 
 def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout):
     """Points of one object moved by its model→camera matrix `M` ((12,) float32, row-major
     3×4) and projected: `dest` the nearest pixel (−1: off the frame or behind the projector),
-    `zout` the camera depth; returns the box (y0, y1, x0, x1) of the pixels. float32, no branch, no scattered write, contiguous arrays: the
-    loop vectorises at the CPU's SIMD width."""
+    `zout` the camera depth; returns the box (y0, y1, x0, x1) of the pixels. float32, no
+    branch, no scattered write, contiguous arrays: the loop vectorises at the CPU's SIMD width."""
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     a0, a1, a2, a3, a4, a5 = M[0], M[1], M[2], M[3], M[4], M[5]
     a6, a7, a8, a9, a10, a11 = M[6], M[7], M[8], M[9], M[10], M[11]
@@ -362,6 +363,7 @@ class Reprojector:
             dist = np.asarray(camera.dist, np.float64).reshape(-1)
             W, H = int(camera.width), int(camera.height)
             cam_R, cam_t = np.asarray(camera.pose.R, np.float64), np.asarray(camera.pose.t, np.float64)
+            ideal = camera.ideal_points()
         except (AttributeError, TypeError, ValueError):
             raise ValueError(f"camera: expected a PinholeCamera, got {type(camera).__name__}") from None
         if K.shape != (3, 3) or dist.shape != (5,) or W < 1 or H < 1 or cam_R.shape != (3, 3) or cam_t.shape != (3,) \
@@ -373,7 +375,7 @@ class Reprojector:
         self.width, self.height = W, H
         self.dynamic = flags.copy()
         self.K, self.dist, self.cam_R, self.cam_t = K, dist, cam_R, cam_t
-        self._ideal = camera.ideal_points()
+        self._ideal = ideal
         n = W * H
         self._plate = np.zeros((n, 3), np.uint8)  # last colour without a moving object in front
         self._plate_z = np.full(n, np.inf, np.float32)  # depth of the static surface there (inf: none seen)
@@ -426,6 +428,8 @@ class Reprojector:
                 or not out.flags.writeable:
             got = f"{out.dtype} {out.shape}" if isinstance(out, np.ndarray) else type(out).__name__
             raise ValueError(f"out: expected a writable C-contiguous ({H}, {W}, 3) uint8 array, got {got}")
+        if np.may_share_memory(out, capture.image):
+            raise ValueError("out: is the capture's own image (the capture must stay as it was rendered)")
         if channel is not None and (not isinstance(channel, (int, np.integer)) or isinstance(channel, bool)
                                     or not 0 <= channel <= 2):
             raise ValueError(f"channel: expected None, 0, 1 or 2, got {channel!r}")

@@ -210,6 +210,7 @@ def test_bad_input_names_the_argument():
         (lambda: rp.reproject(cap, ok, out, channel=3), "channel"),
         (lambda: rp.reproject(cap, ok, out, channel=True), "channel"),
         (lambda: rp.reproject("capture", ok, out), "capture"),
+        (lambda: rp.reproject(cap, ok, image), "out"),
     ]
     for call, name in cases:
         with pytest.raises(ValueError, match=f"^{name}"):
