@@ -43,6 +43,7 @@ def test_help_shows_bracketed_defaults_and_no_bool_metavar():
     (["bench", "quality", "--part", "both"], "--part"),
     (["bench", "session", "--trajectory", "zigzag"], "--trajectory"),
     (["bench", "session", "--api-mode", "fork"], "--api-mode"),
+    (["bench", "reproject", "--trajectory", "zigzag"], "--trajectory"),
     (["mock", "natnet", "--version", "5.0"], "--version"),
     (["mock", "natnet", "--data-port", "0"], "--data-port"),
     (["mock", "serial", "--model", "XX"], "--model"),
@@ -111,3 +112,20 @@ def test_render_sidecar_is_file_dot_suffix_dot_json(tmp_path):
     assert result.exit_code == 0, result.output
     assert json.loads((tmp_path / "f.npy.json").read_text())["spp"] == 2
     assert re.search(r"rendering 16×12, passes: 2/2 \(100 %\), done in", result.output)  # progress in a log
+
+
+@pytest.mark.parametrize("args, option", [(["--size", "10x"], "--size"), (["--starts", "a"], "--starts"),
+                                          (["--horizons", "5,-1"], "horizons")])
+def test_bench_reproject_refuses_bad_values_naming_them(args, option):
+    result = _run("bench", "reproject", *args)
+    assert result.exit_code == 2 and option in result.output
+
+
+def test_bench_reproject_writes_flat_rows_with_the_machine(tmp_path):
+    path = tmp_path / "rp.json"
+    result = _run("bench", "reproject", "--size", "96x72", "--spp", "2", "--starts", "0.3", "--horizons", "20",
+                  "--repeats", "2", "--threads", "1", "--json", path)
+    assert result.exit_code == 0, result.output
+    rows = json.loads(path.read_text())
+    assert len(rows) == 1 and rows[0]["horizon_ms"] == 20 and rows[0]["lit"] > 0 and "machine_cpu_model" in rows[0]
+    assert rows[0]["ms_per_present_pattern"] > 0 and rows[0]["psnr_db"] > 0 and "ms/reproj" in result.output

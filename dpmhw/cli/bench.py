@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli.apps import bench_app, write_json
-from dpmhw.cli.choices import QualityPart
+from dpmhw.cli.choices import BenchTrajectory, QualityPart
 from dpmhw.cli.optional_value import optional_values
 from dpmhw.progress import Progress
 
@@ -267,7 +267,7 @@ def bench_reproject(
     spp: Annotated[int, typer.Option(min=1, help="Samples per pixel of the captured frames and the fresh renders.")] = 32,
     starts: Annotated[str, typer.Option(help="Comma-separated trajectory times (s) the captures are rendered at.")] = "0.3,0.8,1.4",
     horizons: Annotated[str, typer.Option(help="Comma-separated horizons (ms) the captures are moved by.")] = "5,10,20,40",
-    trajectory: Annotated[str, typer.Option(help="The mock world's trajectory: rotate-oscillate, linear or static.")] = "rotate-oscillate",
+    trajectory: Annotated[BenchTrajectory, typer.Option(help="The mock world's trajectory.")] = BenchTrajectory("rotate-oscillate"),
     repeats: Annotated[int, typer.Option(min=1, help="Timed reprojections per row (the median is reported).")] = 30,
     threads: Annotated[int, typer.Option(min=1, help="Render threads (the reprojection itself is serial).")] = 2,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the rows as JSON here (a list of flat rows).")] = None,
@@ -292,7 +292,7 @@ def bench_reproject(
     except ValueError:
         raise typer.BadParameter(f"--horizons: expected comma-separated milliseconds, got {horizons!r}") from None
     try:
-        cfg = ReprojectBenchConfig(scene=scene, size=dims, spp=spp, starts_s=times, horizons_ms=ms, trajectory=trajectory,
+        cfg = ReprojectBenchConfig(scene=scene, size=dims, spp=spp, starts_s=times, horizons_ms=ms, trajectory=trajectory.value,
                                    repeats=repeats, threads=threads)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None

@@ -11,11 +11,12 @@ for each photon window with the poses predicted for it:
 2. every compacted point is moved by its object's pose change, projected with the lens
    distortion, and splatted to the nearest pixel centre with a z-test (against the other points
    and against the static surfaces' last depth: a static object in front hides it);
-3. runs of up to `GAP_MAX_PX` pixels that no point reached, between two splats whose captured
-   pixels were neighbours, are filled along rows, then along columns: where the two ends lie at
-   the same depth (within `DEPTH_STEP_REL`) the run is a crack of magnification and takes the
-   colours interpolated between them; across a depth step the run is surface the nearer end hid
-   at capture (a disocclusion) and takes the farther end's colour, which continues that surface.
+3. runs of up to `GAP_MAX_PX` pixels that no point reached, between two covered pixels whose
+   points were neighbours at capture, are filled along rows, then along columns: where the two
+   ends lie at the same depth (within `DEPTH_STEP_REL`) the run is a crack of magnification and
+   takes the colours interpolated between them; across a depth step the run is surface the
+   nearer end hid at capture (a disocclusion) and takes the farther end's colour, which
+   continues that surface.
 
 Model-space points come from the G-buffer's depth (camera z, as `render.gbuffer` and
 `reconstruct.guides` define it) along each pixel's ray through its centre, lens distortion
@@ -130,8 +131,8 @@ def _compact(image, ids, depth, ideal, dynamic, A, b, W, y0, y1, x0, x1, plate, 
 def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout):
     """Points of one object moved by its model→camera matrix `M` ((12,) float32, row-major
     3×4) and projected: `dest` the nearest pixel (−1: off the frame or behind the projector),
-    `zout` the camera depth; returns the box (y0, y1, x0, x1) of the pixels. float32, no branch, no scattered write, contiguous arrays: the
-    loop vectorises at the CPU's SIMD width."""
+    `zout` the camera depth; returns the box (y0, y1, x0, x1) of the pixels. float32, no
+    branch, no scattered write, contiguous arrays: the loop vectorises at the CPU's SIMD width."""
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     a0, a1, a2, a3, a4, a5 = M[0], M[1], M[2], M[3], M[4], M[5]
     a6, a7, a8, a9, a10, a11 = M[6], M[7], M[8], M[9], M[10], M[11]
@@ -161,69 +162,103 @@ def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout):
 
 @nb.njit(inline="always")
 def _put(out, q, ch, r, g, b):
+    """Pixel q = (r, g, b), or only its channel ch when ch ≥ 0."""
     if ch < 0:
         out[q, 0] = r
         out[q, 1] = g
         out[q, 2] = b
+    elif ch == 0:
+        out[q, 0] = r
+    elif ch == 1:
+        out[q, 1] = g
     else:
-        out[q, ch] = (r, g, b)[ch]
+        out[q, 2] = b
 
 
 @nb.njit(inline="always")
-def _fill_run(qa, qb, step, g, pixel, colour, src, zbuf, zstamp, fstamp, sid, plate_z, W, ch, out):
-    """Fill the g unreached pixels between splats qa and qb (q = qa + i·step) if their points'
-    captured pixels were neighbours; returns (cracks, disoccluded) filled."""
+def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, ch, out):
+    """Fill the g pixels between covered pixels qa and qb (q = qa + i·step) that nothing covers
+    yet, if the points they show were neighbours at capture; returns (cracks, disoccluded).
+    The ends' colours are read back from `out` (a channel not written is never read into one
+    that is); a filled pixel gets a depth and a point (the nearer end's), so that it can end a
+    run along the other axis. `cover`: s2 splatted, s2 + 1 filled in this reprojection."""
     ka, kb = src[qa], src[qb]
-    pa, pb = pixel[ka], pixel[kb]
-    if abs(pa % W - pb % W) > 1 or abs(pa // W - pb // W) > 1:
+    d = abs(pixel[kb] - pixel[ka])
+    if d > 1 and abs(d - W) > 1:  # (at the frame's side edges a row's end and the next row's start pass too)
         return 0, 0  # something lay between them at capture too: a real gap
     za, zb = zbuf[qa], zbuf[qb]
     crack = abs(za - zb) <= DEPTH_STEP_REL * min(za, zb)
-    kf = ka if za > zb else kb
-    zf = max(za, zb)
+    qf, kf, zf = (qa, ka, za) if za > zb else (qb, kb, zb)
     holes = 0
     dis = 0
     for i in range(1, g + 1):
         q = qa + i * step
-        if zstamp[q] == sid or fstamp[q] == sid:
+        if cover[q] >> 1 == s2 >> 1:
             continue
         if crack:
             t = i / (g + 1.0)
             z = za + t * (zb - za)
             if plate_z[q] < z * (1.0 - STATIC_Z_REL):
                 continue
-            r = np.uint8(colour[ka, 0] + t * (np.float32(colour[kb, 0]) - colour[ka, 0]) + 0.5)
-            gg = np.uint8(colour[ka, 1] + t * (np.float32(colour[kb, 1]) - colour[ka, 1]) + 0.5)
-            bb = np.uint8(colour[ka, 2] + t * (np.float32(colour[kb, 2]) - colour[ka, 2]) + 0.5)
+            r = np.uint8(out[qa, 0] + t * (np.float32(out[qb, 0]) - out[qa, 0]) + 0.5)
+            gg = np.uint8(out[qa, 1] + t * (np.float32(out[qb, 1]) - out[qa, 1]) + 0.5)
+            bb = np.uint8(out[qa, 2] + t * (np.float32(out[qb, 2]) - out[qa, 2]) + 0.5)
             _put(out, q, ch, r, gg, bb)
+            src[q] = ka if t < 0.5 else kb
             holes += 1
         else:
-            if plate_z[q] < zf * (1.0 - STATIC_Z_REL):
+            z = zf
+            if plate_z[q] < z * (1.0 - STATIC_Z_REL):
                 continue
-            _put(out, q, ch, colour[kf, 0], colour[kf, 1], colour[kf, 2])
+            _put(out, q, ch, out[qf, 0], out[qf, 1], out[qf, 2])
+            src[q] = kf
             dis += 1
-        fstamp[q] = sid
+        zbuf[q] = z
+        cover[q] = s2 + 1
     return holes, dis
+
+
+@nb.njit(nogil=True, cache=True)
+def _column_run(q, rows_above, pixel, src, zbuf, cover, s2, plate_z, W, ch, out):
+    """Covered pixel q under a gap in its column (the caller checked the pixel above): fill the
+    run up to the covered pixel above it."""
+    sid = s2 >> 1
+    for g in range(2, min(GAP_MAX_PX + 1, rows_above) + 1):
+        a = q - g * W
+        if cover[a] >> 1 == sid:
+            return _fill_run(a, q, W, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
+    return 0, 0
 
 
 @nb.njit(cache=True, nogil=True)
 def _base(image, ch, out):
-    """out = image, flat uint8 arrays (H*W*3); channel `ch` of each pixel only when ch ≥ 0."""
+    """out = image, flat uint8 arrays (H*W*3); only channel `ch` of each pixel when ch ≥ 0.
+    Plain loops over contiguous bytes (numba's slice assignment copies element by element, a
+    stride-3 loop does not vectorise): the channel is blended in with a per-channel byte
+    mask, so the other channels are read and stored back unchanged."""
     if ch < 0:
-        out[:] = image
-    else:
-        for i in range(ch, image.shape[0], 3):
+        for i in range(image.shape[0]):
             out[i] = image[i]
+        return
+    m0 = np.uint8(255 if ch == 0 else 0)
+    m1 = np.uint8(255 if ch == 1 else 0)
+    m2 = np.uint8(255 if ch == 2 else 0)
+    for p in range(image.shape[0] // 3):
+        i = 3 * p
+        out[i] = out[i] ^ ((out[i] ^ image[i]) & m0)
+        out[i + 1] = out[i + 1] ^ ((out[i + 1] ^ image[i + 1]) & m1)
+        out[i + 2] = out[i + 2] ^ ((out[i + 2] ^ image[i + 2]) & m2)
 
 
 @nb.njit(cache=True, nogil=True)
-def _splat(pixel, colour, back, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf, src, zstamp, fstamp, sid, last, out,
-           stats):
+def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf, src, cover, s2, out, stats):
     """Erase the captured moving pixels (the plate), splat the points with a z-test, then, in
     one row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats
-    along the row and along the column down to each splat (a column's run lies in rows done
-    already: the same as rows first, then columns); stats: moved, dropped, holes,
-    disoccluded, vacated. `last`: (W,) int32 scratch."""
+    along the row, and along the column above each splat and each pixel a row run filled (a
+    crack row crossing a crack column closes too). When a pixel looks up its column, every
+    pixel above it is final: rows above are done, and only this pixel's run fills its column.
+    `cover`: s2 where a point landed, s2 + 1 where a run was filled (older values: neither).
+    stats: moved, dropped, holes, disoccluded, vacated."""
     n = pixel.shape[0]
     for k in range(n):
         _put(out, pixel[k], ch, back[k, 0], back[k, 1], back[k, 2])
@@ -237,8 +272,8 @@ def _splat(pixel, colour, back, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf
         if plate_z[q] < z * (1.0 - STATIC_Z_REL):
             dropped += 1
             continue
-        if zstamp[q] != sid:
-            zstamp[q] = sid
+        if cover[q] != s2:
+            cover[q] = s2
             moved += 1
         elif zbuf[q] <= z:
             continue
@@ -246,31 +281,34 @@ def _splat(pixel, colour, back, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf
         src[q] = k
         _put(out, q, ch, colour[k, 0], colour[k, 1], colour[k, 2])
     holes = dis = 0
-    for x in range(x0, x1):
-        last[x] = -1
+    sid = s2 >> 1
     for y in range(y0, y1):
-        row = -1
+        left = False
         for x in range(x0, x1):
             q = y * W + x
-            if zstamp[q] != sid:
+            if cover[q] != s2:
+                left = False
                 continue
-            if row >= 0 and 1 < x - row <= GAP_MAX_PX + 1:  # along the row
-                h, d = _fill_run(y * W + row, q, 1, x - row - 1, pixel, colour, src, zbuf, zstamp, fstamp, sid,
-                                 plate_z, W, ch, out)
+            if not left:  # a splat after a gap in the row: look back for the splat before it
+                for g in range(2, min(GAP_MAX_PX + 1, x - x0) + 1):
+                    if cover[q - g] == s2:
+                        h, d = _fill_run(q - g, q, 1, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
+                        holes += h
+                        dis += d
+                        for a in range(q - g + 1, q):  # what the row run filled: each its column too
+                            if cover[a] == s2 + 1 and y > y0 and cover[a - W] >> 1 != sid:
+                                h, d = _column_run(a, y - y0, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
+                                holes += h
+                                dis += d
+                        break
+            left = True
+            if y > y0 and cover[q - W] >> 1 != sid:
+                h, d = _column_run(q, y - y0, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
                 holes += h
                 dis += d
-            row = x
-            above = last[x]
-            if above >= 0 and 1 < y - above <= GAP_MAX_PX + 1:  # along the column
-                h, d = _fill_run(above * W + x, q, W, y - above - 1, pixel, colour, src, zbuf, zstamp, fstamp, sid,
-                                 plate_z, W, ch, out)
-                holes += h
-                dis += d
-            last[x] = y
     vacated = 0
     for k in range(n):
-        p = pixel[k]
-        if zstamp[p] != sid and fstamp[p] != sid:
+        if cover[pixel[k]] >> 1 != sid:
             vacated += 1
     stats[0], stats[1], stats[2], stats[3], stats[4] = moved, dropped, holes, dis, vacated
 
@@ -325,6 +363,7 @@ class Reprojector:
             dist = np.asarray(camera.dist, np.float64).reshape(-1)
             W, H = int(camera.width), int(camera.height)
             cam_R, cam_t = np.asarray(camera.pose.R, np.float64), np.asarray(camera.pose.t, np.float64)
+            ideal = camera.ideal_points()
         except (AttributeError, TypeError, ValueError):
             raise ValueError(f"camera: expected a PinholeCamera, got {type(camera).__name__}") from None
         if K.shape != (3, 3) or dist.shape != (5,) or W < 1 or H < 1 or cam_R.shape != (3, 3) or cam_t.shape != (3,) \
@@ -336,15 +375,13 @@ class Reprojector:
         self.width, self.height = W, H
         self.dynamic = flags.copy()
         self.K, self.dist, self.cam_R, self.cam_t = K, dist, cam_R, cam_t
-        self._ideal = camera.ideal_points()
+        self._ideal = ideal
         n = W * H
         self._plate = np.zeros((n, 3), np.uint8)  # last colour without a moving object in front
         self._plate_z = np.full(n, np.inf, np.float32)  # depth of the static surface there (inf: none seen)
-        self._zbuf = np.zeros(n, np.float32)  # per reprojection, valid where _zstamp == its id
+        self._zbuf = np.zeros(n, np.float32)  # per reprojection, valid where _cover holds its id
         self._src = np.zeros(n, np.int32)  # the point a splatted pixel shows
-        self._zstamp = np.zeros(n, np.int32)
-        self._fstamp = np.zeros(n, np.int32)  # filled by a run
-        self._last = np.zeros(W, np.int32)  # per column: the row of its last splat (a row-major sweep)
+        self._cover = np.zeros(n, np.int32)  # 2·id of the reprojection that splatted the pixel, + 1: filled it
         self._sid = 0
         self._moving = [int(k) for k in np.flatnonzero(self.dynamic)]
         self._intrinsics = (np.float32(K[0, 0]), np.float32(K[1, 1]), np.float32(K[0, 2]), np.float32(K[1, 2]),
@@ -391,6 +428,8 @@ class Reprojector:
                 or not out.flags.writeable:
             got = f"{out.dtype} {out.shape}" if isinstance(out, np.ndarray) else type(out).__name__
             raise ValueError(f"out: expected a writable C-contiguous ({H}, {W}, 3) uint8 array, got {got}")
+        if np.may_share_memory(out, capture.image):
+            raise ValueError("out: is the capture's own image (the capture must stay as it was rendered)")
         if channel is not None and (not isinstance(channel, (int, np.integer)) or isinstance(channel, bool)
                                     or not 0 <= channel <= 2):
             raise ValueError(f"channel: expected None, 0, 1 or 2, got {channel!r}")
@@ -411,17 +450,16 @@ class Reprojector:
         px, py, pz = capture.point
         with self._present_lock:
             self._sid += 1
-            if self._sid >= 2**31 - 1:  # a stamp can wrap only after 2³¹ presents; then start over
-                self._zstamp[:] = 0
-                self._fstamp[:] = 0
+            if self._sid >= 2**30 - 1:  # the stamps wrap only after 2³⁰ presents; then start over
+                self._cover[:] = 0
                 self._sid = 1
             for k in moving:
                 a, e = seg[k], seg[k + 1]
                 b = _project(px[a:e], py[a:e], pz[a:e], M[k], *self._intrinsics, W, H, dest[a:e], zout[a:e])
                 y0, y1, x0, x1 = min(y0, b[0]), max(y1, b[1]), min(x0, b[2]), max(x1, b[3])
             _base(img, ch, dst)
-            _splat(capture.pixel, capture.colour, capture.plate, dest, zout, self._plate_z, W, y0, y1, x0, x1, ch,
-                   self._zbuf, self._src, self._zstamp, self._fstamp, self._sid, self._last, dst.reshape(-1, 3), stats)
+            _splat(capture.pixel, capture.plate, capture.colour, dest, zout, self._plate_z, W, y0, y1, x0, x1, ch,
+                   self._zbuf, self._src, self._cover, 2 * self._sid, dst.reshape(-1, 3), stats)
         moved, dropped, holes, dis, vacated = (int(v) for v in stats)
         return ReprojectStats(n, moved, dropped, holes, dis, vacated, (y0, y1, x0, x1) if y1 > y0 else None)
 
