@@ -197,7 +197,7 @@ STAGE_KEYS = ("gbuffer", "render", "reuse", "filter", "upsample", "adaptive", "l
 
 
 def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 0, height: int = 0,
-             spp: int = 1, max_eval_frames: int = 120, overrides: tuple[str, ...] = (), progress=None) -> dict:
+             spp: int = 1, max_eval_windows: int = 120, overrides: tuple[str, ...] = (), progress=None) -> dict:
     """Run one mocked session and measure it (see module doc). width/height: the output size
     (0: the projector's native size); the shading scale and filter come from `overrides`.
 
@@ -239,7 +239,9 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     (index, body), = loop.parts.bindings.items()
     mesh = scene.objects[index].mesh
     shown = _photon_windows(records, video)
-    step = max(1, len(shown) // (max_eval_frames * len(records[0].windows)))
+    step = max(1, len(shown) // max_eval_windows)
+    if len(records[0].windows) > 1 and step % len(records[0].windows) == 0:
+        step += 1  # every sub-frame in turn, not always the same one
     evaluated = shown[::step]
     errors, measured = [], []
     for k, (t_photon, r, pose, _) in enumerate(evaluated):
