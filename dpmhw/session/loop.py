@@ -265,6 +265,8 @@ class SessionLoop:
         self._present_lead_ns = PRESENT_LEAD_MIN_NS  # how long before a refresh its present begins
         self._present_number = 0
         self._present_heartbeat_ns = clock()
+        self._buffers: list[np.ndarray] = []  # the present thread's output frames, in turn
+        self._buffer_turn = 0
         # render frame n+1 beside frame n's reconstruction; not with mesh LOD, whose level switch must hold for
         # a whole frame (render, G-buffer, refinement)
         self.pipeline = bool(config.render.pipeline) and self.mesh_lod is None
@@ -828,10 +830,9 @@ class SessionLoop:
 
     def _present_buffer(self) -> np.ndarray:
         """The next of a few output buffers in turn (a sink may still read the one before)."""
-        if not hasattr(self, "_buffers"):
-            H, W = self.output_size[1], self.output_size[0]
+        if not self._buffers:
+            W, H = self.output_size
             self._buffers = [np.zeros((H, W, 3), np.uint8) for _ in range(3)]
-            self._buffer_turn = 0
         self._buffer_turn = (self._buffer_turn + 1) % len(self._buffers)
         return self._buffers[self._buffer_turn]
 
@@ -1023,6 +1024,10 @@ class SessionLoop:
             "settings_applied": applied.model_dump(),
             "devices": {"tracker": tracker, "projector": dict(self._projector_health),
                         "last_blank": self._last_blank},
+            "display": {"mode": self.timing.mode, "refresh_hz": self.timing.refresh_hz,
+                        "controller_delay_ms": round(self.timing.controller_delay_ns / 1e6, 3),
+                        "late_reprojection": self.reprojector is not None,
+                        "present_lead_ms": round(self._present_lead_ns / 1e6, 3)},
             "render_size": [self.parts.renderer.width, self.parts.renderer.height],  # the shading resolution
             "output_size": list(self.output_size),
         }

@@ -15,7 +15,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import cv2
+import numba as nb
 import numpy as np
 
 from dpmhw.render.cameras import PinholeCamera
@@ -23,20 +26,45 @@ from dpmhw.transforms import Pose
 
 __all__ = ["RegistrationError", "registration_error", "silhouette"]
 
-_SHIFT = 4  # fixed-point bits for cv2.fillPoly: sub-pixel vertex positions
+
+@nb.njit(cache=True, nogil=True)
+def _fill_triangles(tri, mask):
+    """Set every pixel whose centre (x + ½, y + ½) lies inside or on one of `tri` ((n, 3, 2) pixel
+    coordinates, either winding): the union of the triangles, each visiting only its bounding box."""
+    H, W = mask.shape
+    for k in range(tri.shape[0]):
+        x0, y0, x1, y1 = tri[k, 0, 0], tri[k, 0, 1], tri[k, 1, 0], tri[k, 1, 1]
+        x2, y2 = tri[k, 2, 0], tri[k, 2, 1]
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        if area == 0.0:
+            continue
+        s = 1.0 if area > 0 else -1.0
+        lo_x = max(int(math.floor(min(x0, x1, x2) - 0.5)), 0)
+        hi_x = min(int(math.ceil(max(x0, x1, x2) - 0.5)), W - 1)
+        lo_y = max(int(math.floor(min(y0, y1, y2) - 0.5)), 0)
+        hi_y = min(int(math.ceil(max(y0, y1, y2) - 0.5)), H - 1)
+        for y in range(lo_y, hi_y + 1):
+            py = y + 0.5
+            for x in range(lo_x, hi_x + 1):
+                px = x + 0.5
+                e0 = s * ((x1 - x0) * (py - y0) - (y1 - y0) * (px - x0))
+                e1 = s * ((x2 - x1) * (py - y1) - (y2 - y1) * (px - x1))
+                e2 = s * ((x0 - x2) * (py - y2) - (y0 - y2) * (px - x2))
+                if e0 >= 0.0 and e1 >= 0.0 and e2 >= 0.0:
+                    mask[y, x] = 1
 
 
 def silhouette(camera: PinholeCamera, vertices: np.ndarray, faces: np.ndarray, pose: Pose,
                window: tuple[int, int, int, int] | None = None) -> np.ndarray:
-    """(H, W) bool: pixels covered by the mesh at `pose` (object→world) seen by `camera`; with
-    `window` (y0, y1, x0, x1) only that part of the image (the same pixels, cropped)."""
+    """(H, W) bool: pixels (by their centres) covered by the mesh at `pose` (object→world) seen by
+    `camera`; with `window` (y0, y1, x0, x1) only that part of the image (the same pixels, cropped)."""
     px, in_front = camera.project(pose.apply(vertices))
     keep = in_front[faces].all(axis=1)
     y0, y1, x0, x1 = window if window is not None else (0, camera.height, 0, camera.width)
-    tri = np.round((px[faces[keep]] - (x0, y0)) * (1 << _SHIFT)).astype(np.int32)
     mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    tri = np.ascontiguousarray(px[faces[keep]] - (x0, y0), np.float64)
     if len(tri):
-        cv2.fillPoly(mask, tri, 1, lineType=cv2.LINE_8, shift=_SHIFT)
+        _fill_triangles(tri, mask)
     return mask.astype(bool)
 
 
