@@ -31,6 +31,9 @@ hold at their peak, not for the bytes it is stored in, against `DPMHW_RENDER_MEM
 - Compressed files (.zip, .tar.gz, .tar.bz2, .gz, .bz2) are expanded here, through a reader
   that stops at `DPMHW_MAX_MESH_MB` of output; Draco or meshopt compressed glTF is refused
   (trimesh cannot decode it without optional packages).
+- An OBJ's base-colour texture (its materials' `map_Kd`, see `textures`) is charged
+  `textures.BYTES_PER_TEXEL` per texel, its size read from the image's header before the
+  decode; the image file is bounded by `DPMHW_MAX_MESH_MB` like the mesh.
 - Text (an OBJ, a PLY header) is UTF-8, or Latin-1 where it is not (scanner software writes `©`
   and accented names into comments), re-encoded here rather than left to trimesh's optional
   charset guesser.
@@ -46,6 +49,7 @@ import gzip
 import io
 import json
 import posixpath
+import re
 import struct
 import tarfile
 import zipfile
@@ -55,9 +59,10 @@ from pathlib import Path
 import numpy as np
 
 from dpmhw.limits import check_file_size, max_mesh_bytes, render_memory_limit
+from dpmhw.textures import BYTES_PER_TEXEL, Texture, decode_texture, open_texture, parse_mtl
 
 __all__ = ["ARCHIVE_FORMATS", "BYTES_PER_OTHER_BYTE", "BYTES_PER_TRIANGLE", "BYTES_PER_VERTEX", "MESH_FORMATS",
-           "PROCESS_BYTES", "MeshCounts", "MeshPart", "budget_problem", "count_mesh", "mesh_parts", "read_mesh"]
+           "PROCESS_BYTES", "DecodedMesh", "MeshCounts", "MeshPart", "budget_problem", "count_mesh", "mesh_parts", "read_mesh"]
 
 BYTES_PER_TRIANGLE = 450
 BYTES_PER_VERTEX = 200
@@ -84,11 +89,25 @@ class MeshCounts:
     triangles: int
     how: str
     other_bytes: int = 0
+    texels: int = 0
 
     def __add__(self, other: MeshCounts) -> MeshCounts:
         how = "; ".join(dict.fromkeys(self.how.split("; ") + other.how.split("; ")))  # each way of counting once
         return MeshCounts(self.vertices + other.vertices, self.triangles + other.triangles, how,
-                          self.other_bytes + other.other_bytes)
+                          self.other_bytes + other.other_bytes, self.texels + other.texels)
+
+
+@dataclass
+class DecodedMesh:
+    """A mesh file as decoded: vertices (V, 3), faces (F, 3), per-vertex texture coordinates uv
+    (V, 2) with its base-colour texture (or both None), and notes naming what the file declares
+    that the renderer does not model."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray | None = None
+    texture: Texture | None = None
+    notes: list[str] | None = None
 
 
 @dataclass
@@ -102,6 +121,9 @@ class MeshPart:
     path: Path | None = None
     files: dict[str, bytes] | None = None
     latin_1: int = 0  # leading bytes of text that are Latin-1, not UTF-8 (the OBJ, the PLY header)
+    sidecar: object = None  # name → bytes of a file beside it (an OBJ's MTL and images), or None when absent
+    mtllibs: list[str] | None = None  # an OBJ's `mtllib` files and `usemtl` names, found by the count
+    materials: set[str] | None = None
 
     def open(self):
         return io.BytesIO(self.data) if self.data is not None else open(self.path, "rb")
@@ -122,10 +144,11 @@ def budget_problem(counts: MeshCounts) -> str | None:
     """Why a mesh of `counts` would take too much memory to load and trace, or None when it fits."""
     limit = render_memory_limit()
     need = (PROCESS_BYTES + counts.vertices * BYTES_PER_VERTEX + counts.triangles * BYTES_PER_TRIANGLE
-            + int(counts.other_bytes * BYTES_PER_OTHER_BYTE))
+            + int(counts.other_bytes * BYTES_PER_OTHER_BYTE) + counts.texels * BYTES_PER_TEXEL)
     if need <= limit:
         return None
     other = f" and {counts.other_bytes / 2**20:,.0f} MiB of other text" if counts.other_bytes >= 2**20 else ""
+    other += f" and a texture of {counts.texels:,} texels ({BYTES_PER_TEXEL} bytes each)" if counts.texels else ""
     return (f"{counts.triangles:,} triangles and {counts.vertices:,} vertices{other} ({counts.how}) need about "
             f"{need / 2**20:,.0f} MiB to load and trace ({BYTES_PER_TRIANGLE} bytes per triangle, {BYTES_PER_VERTEX} per "
             f"vertex, {PROCESS_BYTES >> 20} MiB for the process), over the render memory limit of "
@@ -215,10 +238,10 @@ def mesh_parts(path: Path) -> list[MeshPart]:
     an archive without a mesh."""
     kind = file_type(path.name)
     if kind in MESH_FORMATS:
-        part = MeshPart(path.name, kind, None, path=path)
+        part = MeshPart(path.name, kind, None, path=path, sidecar=lambda uri: _file_beside(path.parent, uri, "file"))
         if kind == "gltf":
             part.data = path.read_bytes()
-            part.files = _gltf_sidecars(part.data, lambda uri: _file_beside(path.parent, uri))
+            part.files = _gltf_sidecars(part.data, lambda uri: _file_beside(path.parent, uri, "glTF's buffer file"))
         return [part]
     if kind not in ARCHIVE_FORMATS:
         raise ValueError(f"unsupported mesh format {'.' + kind if kind else '(no suffix)'}: expected "
@@ -232,19 +255,20 @@ def mesh_parts(path: Path) -> list[MeshPart]:
     parts = []
     for name, data in files.items():
         if file_type(name) in MESH_FORMATS:
-            part = MeshPart(name, file_type(name), data)
+            folder = posixpath.dirname(name)
+            beside = lambda uri, folder=folder: files.get(posixpath.normpath(posixpath.join(folder, uri)))  # noqa: E731
+            part = MeshPart(name, file_type(name), data, sidecar=beside)
             if part.file_type == "gltf":
-                folder = posixpath.dirname(name)
-                part.files = _gltf_sidecars(data, lambda uri, folder=folder: files.get(posixpath.normpath(posixpath.join(folder, uri))))
+                part.files = _gltf_sidecars(data, beside)
             parts.append(part)
     if not parts:
         raise ValueError(f"the {kind} file holds no {'/'.join(MESH_FORMATS)} mesh (it holds {len(files)} files)")
     return parts
 
 
-def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices, faces) of the mesh file at `path`, all its meshes concatenated, each counted
-    and charged to the budget before trimesh decodes it. Raises ValueError with the reason."""
+def read_mesh(path: Path) -> DecodedMesh:
+    """The mesh file at `path`, all its meshes concatenated, each counted and charged to the
+    budget (with an OBJ's texture) before trimesh decodes it. Raises ValueError with the reason."""
     parts = mesh_parts(path)
     counts = []
     for part in parts:
@@ -255,9 +279,15 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
         except Exception as exc:  # a header of the right syntax and the wrong shape (a list for a number, ...)
             raise ValueError(f"{_member(parts, part)}the {part.file_type.upper()} header is malformed: "
                              f"{type(exc).__name__}: {describe(exc)}") from exc
+    surfaces = [_obj_surface(part) if part.file_type == "obj" else (None, "", []) for part in parts]
+    images = [(image, name) for image, name, _ in surfaces if image is not None]
+    if images and len(parts) > 1:
+        raise ValueError(f"texture {images[0][1]}: a texture is rendered on a single mesh file, not on one of "
+                         f"{len(parts)} meshes in an archive")
     total = counts[0]
     for more in counts[1:]:
         total = total + more
+    total.texels = sum(image.size[0] * image.size[1] for image, _ in images)
     if problem := budget_problem(total):
         raise ValueError(problem)
     import trimesh
@@ -274,24 +304,81 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
                              f"{describe(exc)}") from exc
     vertices = sum(len(m.vertices) for m in meshes)
     faces = sum(len(m.faces) for m in meshes)
-    if problem := budget_problem(MeshCounts(vertices, faces, "as decoded")):
+    if problem := budget_problem(MeshCounts(vertices, faces, "as decoded", texels=total.texels)):
         raise ValueError(problem)
+    notes = [note for _, _, more in surfaces for note in more]
+    notes += [f"{_member(parts, part)}vertex colours (not modelled: the scene's albedo is)"
+              for part, m in zip(parts, meshes) if getattr(m.visual, "kind", None) in ("vertex", "face")]
     if len(meshes) == 1:
-        return np.asarray(meshes[0].vertices), np.asarray(meshes[0].faces)
+        decoded = DecodedMesh(np.asarray(meshes[0].vertices), np.asarray(meshes[0].faces), notes=notes)
+        if images:
+            decoded.uv, decoded.texture = _texture(meshes[0], *images[0], notes)
+        return decoded
     offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
-    return (np.concatenate([np.asarray(m.vertices) for m in meshes]),
-            np.concatenate([np.asarray(m.faces) + o for m, o in zip(meshes, offsets)]))
+    return DecodedMesh(np.concatenate([np.asarray(m.vertices) for m in meshes]),
+                       np.concatenate([np.asarray(m.faces) + o for m, o in zip(meshes, offsets)]), notes=notes)
+
+
+def _obj_surface(part: MeshPart) -> tuple[object, str, list[str]]:
+    """(the base-colour image, lazily opened, or None; its file name; notes) of an OBJ: the
+    `map_Kd` of the materials it uses, from the MTL files beside it. One image per mesh; an
+    image declared and unreadable is an error naming it."""
+    maps: dict[str, str] = {}
+    ignored: list[str] = []
+    notes = []
+    for library in part.mtllibs or []:
+        data = part.sidecar(library)
+        if data is None:
+            notes.append(f"material library {library} is not a file beside it: its materials are ignored")
+            continue
+        found, unmodelled = parse_mtl(_decode(data), part.materials or None)
+        maps.update(found)
+        ignored += [u for u in unmodelled if u not in ignored]
+    if ignored:
+        notes.append(f"its materials declare {', '.join(ignored)}: not modelled, ignored")
+    names = sorted(set(maps.values()))
+    if len(names) > 1:
+        raise ValueError(f"the materials of {part.name} use {len(names)} map_Kd textures ({', '.join(names[:3])}"
+                         f"{', …' if len(names) > 3 else ''}): one texture per mesh is rendered (bake them into one)")
+    if not names:
+        return None, "", notes
+    name = names[0]
+    data = part.sidecar(name)
+    if data is None:
+        raise ValueError(f"texture {name} (map_Kd of {part.name}) is not a file beside it")
+    try:
+        return open_texture(data), name, notes
+    except Exception as exc:  # Pillow raises many types for broken images
+        raise ValueError(f"cannot read texture {name}: {describe(exc)}") from None
+
+
+def _texture(mesh, image, name: str, notes: list[str]) -> tuple[np.ndarray | None, Texture | None]:
+    """(per-vertex uv, decoded texture) of a decoded mesh whose material names `image`; (None,
+    None) with a note when the mesh has no texture coordinate for every vertex."""
+    uv = getattr(mesh.visual, "uv", None)
+    if uv is None or len(uv) != len(mesh.vertices):
+        notes.append(f"texture {name} is not applied: the mesh has no texture coordinates (vt) for every face")
+        return None, None
+    uv = np.asarray(uv, np.float64)
+    if not np.all(np.isfinite(uv)):
+        raise ValueError("the mesh has non-finite texture coordinates (vt)")
+    try:
+        texture, more = decode_texture(image, name)
+    except Exception as exc:  # Pillow raises many types for a truncated or corrupt image
+        raise ValueError(f"cannot read texture {name}: {describe(exc)}") from None
+    notes += more
+    return uv, texture
 
 
 def _member(parts: list[MeshPart], part: MeshPart) -> str:
     return f"member {part.name}: " if part.path is None else ""
 
 
-def _file_beside(folder: Path, uri: str) -> bytes | None:
+def _file_beside(folder: Path, uri: str, what: str) -> bytes | None:
     target = folder / uri
     if not target.is_file():
         return None
-    check_file_size(target, max_mesh_bytes(), "the glTF's buffer file", "DPMHW_MAX_MESH_MB")
+    check_file_size(target, max_mesh_bytes(), f"the {what}", "DPMHW_MAX_MESH_MB")
     return target.read_bytes()
 
 
@@ -319,6 +406,7 @@ def _count_obj(f, size: int, part: MeshPart) -> MeshCounts:
     utf8 = True
     vertices = triangles = other = 0
     carry = b""
+    part.mtllibs, part.materials = [], set()
     while True:
         chunk = f.read(OBJ_CHUNK)
         if utf8:
@@ -336,6 +424,7 @@ def _count_obj(f, size: int, part: MeshPart) -> MeshCounts:
             if len(carry) > OBJ_CHUNK:
                 raise ValueError(f"a line is over {OBJ_CHUNK >> 20} MiB long: not an OBJ file")
         if text:
+            _obj_materials(text, part)
             v, t, o = _count_obj_lines(np.frombuffer(text, np.uint8))
             vertices += v
             triangles += t
@@ -344,6 +433,22 @@ def _count_obj(f, size: int, part: MeshPart) -> MeshCounts:
             break
     part.latin_1 = 0 if utf8 else size
     return MeshCounts(vertices, triangles, "counted in the OBJ's v/vt/vn and f lines", other)
+
+
+_MATERIAL_LINE = re.compile(rb"^[ \t]*(mtllib|usemtl)[ \t]+([^\r\n#]*)", re.MULTILINE)
+MAX_MATERIAL_NAMES = 10_000
+
+
+def _obj_materials(text: bytes, part: MeshPart) -> None:
+    """The `mtllib` files and `usemtl` names in whole lines `text`, added to `part`'s."""
+    for key, value in _MATERIAL_LINE.findall(text):
+        name = value.decode("utf-8", "replace").strip()
+        if key == b"mtllib":
+            part.mtllibs += [n for n in [name] if n and n not in part.mtllibs]
+        else:
+            part.materials.add(name)
+        if len(part.mtllibs) + len(part.materials) > MAX_MATERIAL_NAMES:
+            raise ValueError(f"the OBJ names over {MAX_MATERIAL_NAMES:,} materials")
 
 
 def _count_obj_lines(a: np.ndarray) -> tuple[int, int, int]:
