@@ -53,7 +53,7 @@ import re
 import struct
 import tarfile
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -124,6 +124,7 @@ class MeshPart:
     sidecar: object = None  # name → bytes of a file beside it (an OBJ's MTL and images), or None when absent
     mtllibs: list[str] | None = None  # an OBJ's `mtllib` files and `usemtl` names, found by the count
     materials: set[str] | None = None
+    notes: list[str] = field(default_factory=list)  # what the count found declared and not modelled
 
     def open(self):
         return io.BytesIO(self.data) if self.data is not None else open(self.path, "rb")
@@ -306,7 +307,8 @@ def read_mesh(path: Path) -> DecodedMesh:
     faces = sum(len(m.faces) for m in meshes)
     if problem := budget_problem(MeshCounts(vertices, faces, "as decoded", texels=total.texels)):
         raise ValueError(problem)
-    notes = [note for _, _, more in surfaces for note in more]
+    notes = [_member(parts, part) + note for part in parts for note in part.notes]
+    notes += [note for _, _, more in surfaces for note in more]
     notes += [f"{_member(parts, part)}vertex colours (not modelled: the scene's albedo is)"
               for part, m in zip(parts, meshes) if getattr(m.visual, "kind", None) in ("vertex", "face")]
     if len(meshes) == 1:
@@ -346,8 +348,12 @@ def _obj_surface(part: MeshPart) -> tuple[object, str, list[str]]:
     data = part.sidecar(name)
     if data is None:
         raise ValueError(f"texture {name} (map_Kd of {part.name}) is not a file beside it")
+    from PIL import UnidentifiedImageError
+
     try:
         return open_texture(data), name, notes
+    except UnidentifiedImageError:
+        raise ValueError(f"cannot read texture {name}: not an image format Pillow reads (PNG, JPEG, …)") from None
     except Exception as exc:  # Pillow raises many types for broken images
         raise ValueError(f"cannot read texture {name}: {describe(exc)}") from None
 
@@ -500,6 +506,8 @@ def _count_ply(f, size: int, part: MeshPart) -> MeshCounts:
     elements: list[list] = []  # [name, count, min row bytes, values per row]
     for number, line in enumerate(lines[1:], 2):
         words = line.split()
+        if words[:2] == ["comment", "TextureFile"]:
+            part.notes.append(f"TextureFile {' '.join(words[2:])} (a PLY's texture is not rendered: export an OBJ with map_Kd)")
         if not words or words[0] in ("comment", "obj_info", "end_header"):
             continue
         try:
@@ -575,7 +583,17 @@ def _count_gltf(f, size: int, part: MeshPart) -> MeshCounts:
         tree, buffers = _glb_chunks(data)
     else:
         tree, buffers = _json(data, "glTF"), []
-    return _count_gltf_tree(tree, buffers, part.files or {})
+    counts = _count_gltf_tree(tree, buffers, part.files or {})
+    declared = set()
+    for material in _items(tree, "materials"):
+        if isinstance(material, dict):
+            pbr = material.get("pbrMetallicRoughness")
+            declared.update(k for k in (pbr if isinstance(pbr, dict) else {}) if k.endswith("Texture"))
+            declared.update(k for k in material if k.endswith("Texture"))
+    if declared:
+        part.notes.append(f"its materials declare {', '.join(sorted(declared))}: a glTF's textures are not rendered "
+                          "(export an OBJ with map_Kd)")
+    return counts
 
 
 def _glb_chunks(data: bytes) -> tuple[dict, list[int]]:

@@ -36,3 +36,46 @@ def write_checker_quad(folder: Path, size: float = 1.0, cells: int = 4, texels_p
         "usemtl checker\n"
         "f 1/1/1 2/2/1 3/3/1\nf 1/1/1 3/3/1 4/4/1\n")
     return folder / "quad.obj"
+
+
+def write_textured_bunny(folder: Path, repeats: float = 2.0) -> Path:
+    """bunny.obj (the built-in Stanford bunny with `vt` by planar projection along z: u from x,
+    v from y, `repeats` checker images across it, no seam), bunny.mtl and checker.png (8 × 8
+    cells) in `folder`. Returns the OBJ's path."""
+    from PIL import Image
+
+    from dpmhw.meshes import stanford_bunny
+
+    folder = Path(folder)
+    mesh = stanford_bunny(smooth=False)
+    v = mesh.vertices
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    uv = (v[:, :2] - lo[:2]) / (hi[:2] - lo[:2]).max() * repeats
+    Image.fromarray(checker(cells=8, texels_per_cell=8)).convert("RGB").save(folder / "checker.png")
+    (folder / "bunny.mtl").write_text("newmtl checker\nKd 1 1 1\nmap_Kd checker.png\n")
+    lines = ["mtllib bunny.mtl"]
+    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in v]
+    lines += [f"vt {a:.6f} {b:.6f}" for a, b in uv]
+    lines.append("usemtl checker")
+    lines += [f"f {a}/{a} {b}/{b} {c}/{c}" for a, b, c in mesh.faces + 1]
+    (folder / "bunny.obj").write_text("\n".join(lines) + "\n")
+    return folder / "bunny.obj"
+
+
+def textured_bunny_scene(folder: Path, width: int = 256, height: int = 192) -> Path:
+    """The built-in dpm-bunny scene at width × height with the textured bunny (write_textured_bunny),
+    seen by its projector (no separate viewer)."""
+    from importlib.resources import files
+
+    write_textured_bunny(folder)
+    text = files("dpmhw.scenes").joinpath("dpm-bunny.toml").read_text()
+    scale = width / 1024
+    text = (text.replace('mesh = "builtin:bunny"', 'mesh = "bunny.obj"')
+            .replace("width = 1024", f"width = {width}").replace("height = 768", f"height = {height}")
+            .replace("fx = 1500.0", f"fx = {1500 * scale}").replace("fy = 1500.0", f"fy = {1500 * scale}")
+            .replace("cx = 512.0", f"cx = {512 * scale}").replace("cy = 700.0", f"cy = {700 * scale}")
+            .replace("albedo = [0.65, 0.55, 0.45]", "albedo = [0.9, 0.8, 0.7]")
+            .replace("[viewer]\nposition = [0.5, 0.3, 1.2]\n", ""))  # Mitsuba shades towards the camera
+    path = folder / "textured-bunny.toml"
+    path.write_text(text)
+    return path
