@@ -124,6 +124,7 @@ class MeshPart:
     sidecar: object = None  # name → bytes of a file beside it (an OBJ's MTL and images), or None when absent
     mtllibs: list[str] | None = None  # an OBJ's `mtllib` files and `usemtl` names, found by the count
     materials: set[str] | None = None
+    has_vt: bool = False  # an OBJ with texture coordinates
     notes: list[str] = field(default_factory=list)  # what the count found declared and not modelled
 
     def open(self):
@@ -345,6 +346,9 @@ def _obj_surface(part: MeshPart) -> tuple[object, str, list[str]]:
     if not names:
         return None, "", notes
     name = names[0]
+    if not part.has_vt:
+        notes.append(f"texture {name} is not applied: the OBJ has no texture coordinates (vt)")
+        return None, "", notes
     data = part.sidecar(name)
     if data is None:
         raise ValueError(f"texture {name} (map_Kd of {part.name}) is not a file beside it")
@@ -445,8 +449,13 @@ _MATERIAL_LINE = re.compile(rb"^[ \t]*(mtllib|usemtl)[ \t]+([^\r\n#]*)", re.MULT
 MAX_MATERIAL_NAMES = 10_000
 
 
+_VT_LINE = re.compile(rb"^vt[ \t]", re.MULTILINE)
+
+
 def _obj_materials(text: bytes, part: MeshPart) -> None:
-    """The `mtllib` files and `usemtl` names in whole lines `text`, added to `part`'s."""
+    """The `mtllib` files and `usemtl` names in whole lines `text`, added to `part`'s, and
+    whether it has a `vt` line."""
+    part.has_vt = part.has_vt or _VT_LINE.search(text) is not None
     for key, value in _MATERIAL_LINE.findall(text):
         name = value.decode("utf-8", "replace").strip()
         if key == b"mtllib":
