@@ -31,7 +31,7 @@ hold at their peak, not for the bytes it is stored in, against `DPMHW_RENDER_MEM
 - Compressed files (.zip, .tar.gz, .tar.bz2, .gz, .bz2) are expanded here, through a reader
   that stops at `DPMHW_MAX_MESH_MB` of output; Draco or meshopt compressed glTF is refused
   (trimesh cannot decode it without optional packages).
-- An OBJ's base-colour texture (its materials' `map_Kd`, see `textures`) is charged
+- A mesh's base-colour texture (an OBJ's `map_Kd`, a PLY's `TextureFile`, see `textures`) is charged
   `textures.BYTES_PER_TEXEL` per texel, its size read from the image's header before the
   decode; the image file is bounded by `DPMHW_MAX_MESH_MB` like the mesh.
 - Text (an OBJ, a PLY header) is UTF-8, or Latin-1 where it is not (scanner software writes `©`
@@ -124,7 +124,8 @@ class MeshPart:
     sidecar: object = None  # name → bytes of a file beside it (an OBJ's MTL and images), or None when absent
     mtllibs: list[str] | None = None  # an OBJ's `mtllib` files and `usemtl` names, found by the count
     materials: set[str] | None = None
-    has_vt: bool = False  # an OBJ with texture coordinates
+    has_vt: bool = False  # texture coordinates declared (an OBJ's vt lines, a PLY's properties)
+    texture_name: str = ""  # a PLY's `comment TextureFile`
     notes: list[str] = field(default_factory=list)  # what the count found declared and not modelled
 
     def open(self):
@@ -281,7 +282,7 @@ def read_mesh(path: Path) -> DecodedMesh:
         except Exception as exc:  # a header of the right syntax and the wrong shape (a list for a number, ...)
             raise ValueError(f"{_member(parts, part)}the {part.file_type.upper()} header is malformed: "
                              f"{type(exc).__name__}: {describe(exc)}") from exc
-    surfaces = [_obj_surface(part) if part.file_type == "obj" else (None, "", []) for part in parts]
+    surfaces = [_surface(part) for part in parts]
     images = [(image, name) for image, name, _ in surfaces if image is not None]
     if images and len(parts) > 1:
         raise ValueError(f"texture {images[0][1]}: a texture is rendered on a single mesh file, not on one of "
@@ -322,10 +323,37 @@ def read_mesh(path: Path) -> DecodedMesh:
                        np.concatenate([np.asarray(m.faces) + o for m, o in zip(meshes, offsets)]), notes=notes)
 
 
-def _obj_surface(part: MeshPart) -> tuple[object, str, list[str]]:
-    """(the base-colour image, lazily opened, or None; its file name; notes) of an OBJ: the
-    `map_Kd` of the materials it uses, from the MTL files beside it. One image per mesh; an
-    image declared and unreadable is an error naming it."""
+def _surface(part: MeshPart) -> tuple[object, str, list[str]]:
+    """(the base-colour image, lazily opened, or None; its file name; notes) of a mesh: an
+    OBJ's materials' `map_Kd`, a PLY's `TextureFile`. An image declared and unreadable is an
+    error naming it."""
+    if part.file_type == "obj":
+        name, notes = _obj_texture_name(part)
+    elif part.file_type == "ply":
+        name, notes = part.texture_name, []
+    else:
+        return None, "", []
+    if not name:
+        return None, "", notes
+    if not part.has_vt:
+        notes.append(f"texture {name} is not applied: the mesh has no texture coordinates")
+        return None, "", notes
+    data = part.sidecar(name)
+    if data is None:
+        raise ValueError(f"texture {name} of {part.name} is not a file beside it")
+    from PIL import UnidentifiedImageError
+
+    try:
+        return open_texture(data), name, notes
+    except UnidentifiedImageError:
+        raise ValueError(f"cannot read texture {name}: not an image format Pillow reads (PNG, JPEG, …)") from None
+    except Exception as exc:  # Pillow raises many types for broken images
+        raise ValueError(f"cannot read texture {name}: {describe(exc)}") from None
+
+
+def _obj_texture_name(part: MeshPart) -> tuple[str, list[str]]:
+    """(the `map_Kd` of the materials an OBJ uses, from the MTL files beside it, or ""; notes).
+    One image per mesh."""
     maps: dict[str, str] = {}
     ignored: list[str] = []
     notes = []
@@ -343,35 +371,19 @@ def _obj_surface(part: MeshPart) -> tuple[object, str, list[str]]:
     if len(names) > 1:
         raise ValueError(f"the materials of {part.name} use {len(names)} map_Kd textures ({', '.join(names[:3])}"
                          f"{', …' if len(names) > 3 else ''}): one texture per mesh is rendered (bake them into one)")
-    if not names:
-        return None, "", notes
-    name = names[0]
-    if not part.has_vt:
-        notes.append(f"texture {name} is not applied: the OBJ has no texture coordinates (vt)")
-        return None, "", notes
-    data = part.sidecar(name)
-    if data is None:
-        raise ValueError(f"texture {name} (map_Kd of {part.name}) is not a file beside it")
-    from PIL import UnidentifiedImageError
-
-    try:
-        return open_texture(data), name, notes
-    except UnidentifiedImageError:
-        raise ValueError(f"cannot read texture {name}: not an image format Pillow reads (PNG, JPEG, …)") from None
-    except Exception as exc:  # Pillow raises many types for broken images
-        raise ValueError(f"cannot read texture {name}: {describe(exc)}") from None
+    return (names[0] if names else ""), notes
 
 
 def _texture(mesh, image, name: str, notes: list[str]) -> tuple[np.ndarray | None, Texture | None]:
-    """(per-vertex uv, decoded texture) of a decoded mesh whose material names `image`; (None,
-    None) with a note when the mesh has no texture coordinate for every vertex."""
+    """(per-vertex uv, decoded texture) of a decoded mesh whose file names `image`; (None, None)
+    with a note when the mesh has no texture coordinate for every vertex."""
     uv = getattr(mesh.visual, "uv", None)
     if uv is None or len(uv) != len(mesh.vertices):
-        notes.append(f"texture {name} is not applied: the mesh has no texture coordinates (vt) for every face")
+        notes.append(f"texture {name} is not applied: the mesh has no texture coordinates for every face")
         return None, None
     uv = np.asarray(uv, np.float64)
     if not np.all(np.isfinite(uv)):
-        raise ValueError("the mesh has non-finite texture coordinates (vt)")
+        raise ValueError("the mesh has non-finite texture coordinates")
     try:
         texture, more = decode_texture(image, name)
     except Exception as exc:  # Pillow raises many types for a truncated or corrupt image
@@ -516,7 +528,7 @@ def _count_ply(f, size: int, part: MeshPart) -> MeshCounts:
     for number, line in enumerate(lines[1:], 2):
         words = line.split()
         if words[:2] == ["comment", "TextureFile"]:
-            part.notes.append(f"TextureFile {' '.join(words[2:])} (a PLY's texture is not rendered: export an OBJ with map_Kd)")
+            part.texture_name = " ".join(words[2:])
         if not words or words[0] in ("comment", "obj_info", "end_header"):
             continue
         try:
@@ -536,6 +548,8 @@ def _count_ply(f, size: int, part: MeshPart) -> MeshCounts:
                 else:
                     element[2] += _PLY_TYPES[words[1]]
                     element[3] += 1
+                # texture coordinates: a face's `texcoord` list, or per vertex (the names trimesh reads)
+                part.has_vt |= words[-1] in ("texcoord", "texture_u", "u", "s")
             else:
                 raise ValueError
         except (ValueError, IndexError, KeyError):

@@ -109,16 +109,32 @@ def test_vertex_colours_and_a_missing_material_library_are_named(tmp_path):
     assert any("gone.mtl" in n for n in notes), notes
 
 
-def test_ply_and_gltf_textures_and_colours_are_named(tmp_path):
+def test_a_ply_texture_file_loads_like_an_obj_texture(tmp_path):
+    from PIL import Image
+
+    Image.fromarray(checker()).convert("RGB").save(tmp_path / "skin.png")
+    (tmp_path / "tex.ply").write_text(
+        "ply\nformat ascii 1.0\ncomment TextureFile skin.png\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nproperty float s\nproperty float t\nelement face 1\n"
+        "property list uchar int vertex_indices\nend_header\n0 0 0 0 0\n1 0 0 1 0\n0 1 0 0 1\n3 0 1 2\n")
+    mesh = load_mesh(tmp_path / "tex.ply")
+    assert mesh.texture.size == (32, 32) and mesh.notes == []
+    assert {tuple(uv) for uv in mesh.uv} == {(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)}
+    (tmp_path / "skin.png").unlink()
+    with pytest.raises(ValueError, match="skin.png"):
+        load_mesh(tmp_path / "tex.ply")
+
+
+def test_gltf_textures_and_ply_colours_are_named(tmp_path):
     import trimesh
     from PIL import Image
 
-    (tmp_path / "tex.ply").write_text(
-        "ply\nformat ascii 1.0\ncomment TextureFile skin.png\nelement vertex 3\nproperty float x\nproperty float y\n"
+    (tmp_path / "colour.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
         "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nelement face 1\n"
         "property list uchar int vertex_indices\nend_header\n0 0 0 255 0 0\n1 0 0 0 255 0\n0 1 0 0 0 255\n3 0 1 2\n")
-    notes = load_mesh(tmp_path / "tex.ply").notes
-    assert any("TextureFile skin.png" in n for n in notes) and any("vertex colours" in n for n in notes), notes
+    notes = load_mesh(tmp_path / "colour.ply").notes
+    assert any("vertex colours" in n for n in notes), notes
     visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [0, 1]], image=Image.new("RGB", (4, 4)))
     trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], visual=visual, process=False).export(tmp_path / "tex.glb")
     notes = load_mesh(tmp_path / "tex.glb").notes
