@@ -382,8 +382,8 @@ def _texture(mesh, image, name: str, notes: list[str]) -> tuple[np.ndarray | Non
         notes.append(f"texture {name} is not applied: the mesh has no texture coordinates for every face")
         return None, None
     uv = np.asarray(uv, np.float64)
-    if not np.all(np.isfinite(uv)):
-        raise ValueError("the mesh has non-finite texture coordinates")
+    if not np.all(np.abs(uv) <= MAX_TEXTURE_COORDINATE):  # NaN fails too
+        raise ValueError(f"the mesh has texture coordinates that are non-finite or beyond ±{MAX_TEXTURE_COORDINATE:g}")
     try:
         texture, more = decode_texture(image, name)
     except Exception as exc:  # Pillow raises many types for a truncated or corrupt image
@@ -459,6 +459,7 @@ def _count_obj(f, size: int, part: MeshPart) -> MeshCounts:
 
 _MATERIAL_LINE = re.compile(rb"^[ \t]*(mtllib|usemtl)[ \t]+([^\r\n#]*)", re.MULTILINE)
 MAX_MATERIAL_NAMES = 10_000
+MAX_TEXTURE_COORDINATE = 1e6  # in repeats; beyond is a wrong file (float32 keeps 1/16 of a repeat at 1e6)
 
 
 _VT_LINE = re.compile(rb"^vt[ \t]", re.MULTILINE)

@@ -160,6 +160,14 @@ def test_a_texture_declared_but_unreadable_is_a_one_line_error_naming_it(tmp_pat
     assert "checker.png" in message and "\n" not in message, message
 
 
+@pytest.mark.parametrize("vt", ["nan 0", "1e7 0"])
+def test_texture_coordinates_must_be_finite_and_bounded(tmp_path, vt):
+    obj = write_checker_quad(tmp_path)
+    obj.write_text(obj.read_text().replace("vt 1 0\n", f"vt {vt}\n"))
+    with pytest.raises(ValueError, match="texture coordinates"):
+        load_mesh(obj)
+
+
 def test_several_textures_on_one_mesh_are_refused_naming_them(tmp_path):
     obj = write_checker_quad(tmp_path)
     (tmp_path / "quad.mtl").write_text("newmtl a\nmap_Kd checker.png\nnewmtl b\nmap_Kd other.png\n")
