@@ -43,6 +43,7 @@ Every refusal is a `ValueError` of one line naming the file and the reason.
 
 from __future__ import annotations
 
+import base64
 import bz2
 import codecs
 import gzip
@@ -125,7 +126,8 @@ class MeshPart:
     mtllibs: list[str] | None = None  # an OBJ's `mtllib` files and `usemtl` names, found by the count
     materials: set[str] | None = None
     has_vt: bool = False  # texture coordinates declared (an OBJ's vt lines, a PLY's properties)
-    texture_name: str = ""  # a PLY's `comment TextureFile`
+    texture_name: str = ""  # a PLY's `comment TextureFile`, a glTF's base-colour image
+    texture_data: bytes | None = None  # a glTF's base-colour image (a PLY's and an OBJ's are files beside it)
     notes: list[str] = field(default_factory=list)  # what the count found declared and not modelled
 
     def open(self):
@@ -296,12 +298,14 @@ def read_mesh(path: Path) -> DecodedMesh:
     import trimesh
 
     meshes = []
-    for part in parts:
+    for part, (image, _, _) in zip(parts, surfaces):
         resolver = trimesh.resolvers.ZipResolver(part.files) if part.files else None
         try:
             with io.BytesIO(_latin_1_as_utf8(part)) if part.latin_1 else part.open() as f:
+                # a glTF's texture coordinates come with its materials (their images opened lazily, charged above)
+                materials = part.file_type in ("glb", "gltf") and image is not None
                 meshes.append(trimesh.load(f, file_type=part.file_type, resolver=resolver, force="mesh", process=False,
-                                           skip_materials=True))
+                                           skip_materials=not materials))
         except Exception as exc:  # trimesh raises many types for broken files
             raise ValueError(f"{_member(parts, part)}trimesh cannot decode the {part.file_type.upper()} data: "
                              f"{describe(exc)}") from exc
@@ -329,16 +333,14 @@ def _surface(part: MeshPart) -> tuple[object, str, list[str]]:
     error naming it."""
     if part.file_type == "obj":
         name, notes = _obj_texture_name(part)
-    elif part.file_type == "ply":
-        name, notes = part.texture_name, []
     else:
-        return None, "", []
+        name, notes = part.texture_name, []
     if not name:
         return None, "", notes
     if not part.has_vt:
         notes.append(f"texture {name} is not applied: the mesh has no texture coordinates")
         return None, "", notes
-    data = part.sidecar(name)
+    data = part.texture_data if part.file_type in ("glb", "gltf") else part.sidecar(name)
     if data is None:
         raise ValueError(f"texture {name} of {part.name} is not a file beside it")
     from PIL import UnidentifiedImageError
@@ -608,16 +610,69 @@ def _count_gltf(f, size: int, part: MeshPart) -> MeshCounts:
     else:
         tree, buffers = _json(data, "glTF"), []
     counts = _count_gltf_tree(tree, buffers, part.files or {})
-    declared = set()
-    for material in _items(tree, "materials"):
-        if isinstance(material, dict):
-            pbr = material.get("pbrMetallicRoughness")
-            declared.update(k for k in (pbr if isinstance(pbr, dict) else {}) if k.endswith("Texture"))
-            declared.update(k for k in material if k.endswith("Texture"))
-    if declared:
-        part.notes.append(f"its materials declare {', '.join(sorted(declared))}: a glTF's textures are not rendered "
-                          "(export an OBJ with map_Kd)")
+    _gltf_surface(tree, data, part)
     return counts
+
+
+def _gltf_surface(tree: dict, data: bytes, part: MeshPart) -> None:
+    """The base-colour image of the materials a glTF's primitives use (its bytes and name into
+    `part`, one image per mesh), whether those primitives have texture coordinates, and notes
+    naming the other textures and factors, which are not modelled."""
+    used = set()
+    for mesh in _items(tree, "meshes"):
+        for primitive in (mesh.get("primitives", []) if isinstance(mesh, dict) else []):
+            if isinstance(primitive, dict) and "material" in primitive:
+                used.add(primitive["material"])
+                part.has_vt |= "TEXCOORD_0" in primitive.get("attributes", {})
+    materials = _items(tree, "materials")
+    images, ignored = set(), set()
+    for index in sorted(m for m in used if isinstance(m, int) and 0 <= m < len(materials)):
+        material = materials[index] if isinstance(materials[index], dict) else {}
+        pbr = material.get("pbrMetallicRoughness", {})
+        pbr = pbr if isinstance(pbr, dict) else {}
+        ignored.update(k for k in [*pbr, *material] if k.endswith("Texture") and k != "baseColorTexture")
+        factor = pbr.get("baseColorFactor", [1, 1, 1, 1])
+        if factor != [1, 1, 1, 1]:
+            ignored.add(f"baseColorFactor {factor} (the scene's albedo multiplies the texture)")
+        if "baseColorTexture" in pbr:
+            texture = _whole(pbr["baseColorTexture"], "index", f"materials[{index}].pbrMetallicRoughness.baseColorTexture")
+            textures = _items(tree, "textures")
+            if texture >= len(textures):
+                raise ValueError(f"materials[{index}]'s baseColorTexture names textures[{texture}], which does not exist")
+            images.add(_whole(textures[texture], "source", f"textures[{texture}]"))
+    if ignored:
+        part.notes.append(f"its materials declare {', '.join(sorted(ignored))}: not modelled, ignored")
+    if len(images) > 1:
+        raise ValueError(f"the materials its primitives use have {len(images)} base-colour images: one texture per mesh "
+                         "is rendered (bake them into one)")
+    if images:
+        part.texture_name, part.texture_data = _gltf_image(tree, data, part, images.pop())
+
+
+def _gltf_image(tree: dict, data: bytes, part: MeshPart, index: int) -> tuple[str, bytes | None]:
+    """(name, bytes) of a glTF's images[index]: from a buffer view, a data URI or a file beside it
+    (None when that file is missing)."""
+    images = _items(tree, "images")
+    if index >= len(images) or not isinstance(images[index], dict):
+        raise ValueError(f"images[{index}] does not exist")
+    image = images[index]
+    if "uri" in image:
+        uri = str(image["uri"])
+        if uri.startswith("data:"):
+            return f"images[{index}] (a data URI)", base64.b64decode(uri.partition(",")[2])
+        return uri, part.sidecar(uri)
+    view = _items(tree, "bufferViews")[_whole(image, "bufferView", f"images[{index}]")]
+    buffer = _items(tree, "buffers")[_whole(view, "buffer", "the image's bufferView")]
+    uri = buffer.get("uri")
+    if uri is None:  # the GLB's BIN chunk, after the 12-byte header and the JSON chunk
+        json_length = struct.unpack_from("<I", data, 12)[0]
+        stored = data[12 + 8 + json_length + 8:]
+    elif uri.startswith("data:"):
+        stored = base64.b64decode(uri.partition(",")[2])
+    else:
+        stored = part.files[uri]
+    start = view.get("byteOffset", 0)
+    return f"images[{index}] (in buffer {view['buffer']})", stored[start:start + view["byteLength"]]
 
 
 def _glb_chunks(data: bytes) -> tuple[dict, list[int]]:

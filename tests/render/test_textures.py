@@ -125,20 +125,31 @@ def test_a_ply_texture_file_loads_like_an_obj_texture(tmp_path):
         load_mesh(tmp_path / "tex.ply")
 
 
-def test_gltf_textures_and_ply_colours_are_named(tmp_path):
+@pytest.mark.parametrize("suffix", ["glb", "gltf"])
+def test_a_gltf_base_colour_texture_loads_and_its_other_textures_are_named(tmp_path, suffix):
     import trimesh
     from PIL import Image
 
+    material = trimesh.visual.material.PBRMaterial(baseColorTexture=Image.fromarray(checker()).convert("RGB"),
+                                                   normalTexture=Image.new("RGB", (4, 4)))
+    visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [0, 1]], material=material)
+    exported = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], visual=visual, process=False).export(file_type=suffix)
+    for name, data in (exported.items() if suffix == "gltf" else [("tex.glb", exported)]):  # .gltf: the JSON and its buffers
+        (tmp_path / ("tex.gltf" if name == "model.gltf" else name)).write_bytes(data)
+    mesh = load_mesh(tmp_path / f"tex.{suffix}")
+    assert mesh.texture.size == (32, 32)
+    assert mesh.texture.texels[0, 0, 0] == pytest.approx(srgb_to_linear(LIGHT / 255), rel=1e-6)
+    assert {tuple(uv) for uv in mesh.uv} == {(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)}  # v up, as an OBJ's
+    assert len(mesh.notes) == 1 and "normalTexture" in mesh.notes[0] and "baseColorTexture" not in mesh.notes[0]
+
+
+def test_ply_vertex_colours_are_named(tmp_path):
     (tmp_path / "colour.ply").write_text(
         "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
         "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nelement face 1\n"
         "property list uchar int vertex_indices\nend_header\n0 0 0 255 0 0\n1 0 0 0 255 0\n0 1 0 0 0 255\n3 0 1 2\n")
     notes = load_mesh(tmp_path / "colour.ply").notes
     assert any("vertex colours" in n for n in notes), notes
-    visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [0, 1]], image=Image.new("RGB", (4, 4)))
-    trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], visual=visual, process=False).export(tmp_path / "tex.glb")
-    notes = load_mesh(tmp_path / "tex.glb").notes
-    assert any("baseColorTexture" in n for n in notes), notes
 
 
 @pytest.mark.parametrize("damage", ["missing", "garbage", "truncated", "directory"])
