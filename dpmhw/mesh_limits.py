@@ -31,9 +31,10 @@ hold at their peak, not for the bytes it is stored in, against `DPMHW_RENDER_MEM
 - Compressed files (.zip, .tar.gz, .tar.bz2, .gz, .bz2) are expanded here, through a reader
   that stops at `DPMHW_MAX_MESH_MB` of output; Draco or meshopt compressed glTF is refused
   (trimesh cannot decode it without optional packages).
-- A mesh's base-colour texture (an OBJ's `map_Kd`, a PLY's `TextureFile`, see `textures`) is charged
-  `textures.BYTES_PER_TEXEL` per texel, its size read from the image's header before the
-  decode; the image file is bounded by `DPMHW_MAX_MESH_MB` like the mesh.
+- A mesh's base-colour texture (an OBJ's `map_Kd`, a PLY's `TextureFile`, a glTF's
+  `baseColorTexture`, see `textures`) is charged `textures.BYTES_PER_TEXEL` per texel, its size
+  read from the image's header before the decode; the image file is bounded by
+  `DPMHW_MAX_MESH_MB` like the mesh.
 - Text (an OBJ, a PLY header) is UTF-8, or Latin-1 where it is not (scanner software writes `©`
   and accented names into comments), re-encoded here rather than left to trimesh's optional
   charset guesser.
@@ -328,9 +329,9 @@ def read_mesh(path: Path) -> DecodedMesh:
 
 
 def _surface(part: MeshPart) -> tuple[object, str, list[str]]:
-    """(the base-colour image, lazily opened, or None; its file name; notes) of a mesh: an
-    OBJ's materials' `map_Kd`, a PLY's `TextureFile`. An image declared and unreadable is an
-    error naming it."""
+    """(the base-colour image, lazily opened, or None; its name; notes) of a mesh: an OBJ's
+    materials' `map_Kd`, a PLY's `TextureFile`, a glTF's `baseColorTexture`. An image declared
+    and unreadable is an error naming it."""
     if part.file_type == "obj":
         name, notes = _obj_texture_name(part)
     else:

@@ -1,6 +1,7 @@
 """Albedo textures of mesh files: the base-colour image a mesh declares (an OBJ material's
-`map_Kd`, a PLY's `comment TextureFile`), decoded to linear RGB within the memory budget, and
-what else an OBJ's materials declare that the renderer does not model (named in one warning).
+`map_Kd`, a PLY's `comment TextureFile`, a glTF's `baseColorTexture`), decoded to linear RGB
+within the memory budget, and what else an OBJ's materials declare that the renderer does not
+model (named in one warning).
 
 The renderer multiplies an object's albedo by its texture, fetched bilinearly with repeat
 wrapping (`kernels.albedo_at`). Texels are stored in sRGB and decoded to linear once here, as a
