@@ -17,9 +17,11 @@ import numpy as np
 
 __all__ = ["BYTES_PER_TEXEL", "MTL_MODELLED", "Texture", "decode_texture", "open_texture", "parse_mtl", "srgb_to_linear"]
 
-# Peak bytes held per texel while a texture is decoded and rendered: Pillow's RGB(A) image (3–4),
-# the 8-bit array (3) and the float32 linear texels (12), taken as 20.
-BYTES_PER_TEXEL = 20
+# Peak bytes per texel of loading a texture: the peak RSS of `load_mesh` on a quad with an
+# incompressible (noise) PNG of 1024², 2048² and 4096² texels over its RSS before, per texel:
+# 25.0, 22.3 and 22.1 (the file's bytes, Pillow's 4-byte pixels, the 8-bit array, the float32
+# linear texels); taken as 24. The renderer then reads the mesh's texels in place.
+BYTES_PER_TEXEL = 24
 
 # MTL statements the renderer reads or that change nothing it draws: the material's name, its
 # base-colour image, and the illumination model and optical constants exporters always write (the

@@ -69,7 +69,7 @@ def _texture_tables(objects, tri_offsets, rows: int) -> tuple[np.ndarray, np.nda
         width, height = mesh.texture.size
         obj_tex[i] = seen[id(mesh.texture)], width, height
         tri_uv[tri_offsets[i]:tri_offsets[i] + len(mesh.faces)] = mesh.uv[mesh.faces].reshape(-1, 6)
-    return tri_uv, obj_tex, np.ascontiguousarray(np.concatenate(texels), f32)
+    return tri_uv, obj_tex, np.ascontiguousarray(texels[0] if len(texels) == 1 else np.concatenate(texels), f32)
 
 
 class SceneGeometry:
