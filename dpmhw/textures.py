@@ -64,6 +64,8 @@ def decode_texture(image, name: str) -> tuple[Texture, list[str]]:
     Pillow raises for broken data); a note names an alpha channel that is not opaque
     (transparency is not modelled)."""
     notes = []
+    if image.mode.startswith("I;16"):  # 16-bit grey: its high bytes
+        image = image.point(lambda value: value / 256).convert("L")
     if image.mode not in ("RGB", "RGBA", "L", "LA"):
         image = image.convert("RGBA" if "A" in image.getbands() or image.mode == "P" else "RGB")
     pixels = np.asarray(image)
@@ -80,8 +82,7 @@ def decode_texture(image, name: str) -> tuple[Texture, list[str]]:
 
 def parse_mtl(text: str, used: set[str] | None) -> tuple[dict[str, str], list[str]]:
     """({material: map_Kd file name}, [statements the renderer does not model]) of the MTL
-    `text`, for the materials in `used` (None: all). Each unmodelled statement is named once,
-    with the material it came from."""
+    `text`, for the materials in `used` (None: all). Each unmodelled statement is named once."""
     maps: dict[str, str] = {}
     ignored: dict[str, None] = {}
     material = None
@@ -98,13 +99,14 @@ def parse_mtl(text: str, used: set[str] | None) -> tuple[dict[str, str], list[st
         if key == "map_kd" and len(words) > 1:
             maps[material] = _map_file(words[1:])
         elif key == "kd" and len(words) > 1 and any(_number(w) != 1.0 for w in words[1:4]):
-            ignored[f"Kd {' '.join(words[1:4])} (the scene's albedo multiplies the texture)"] = None
+            ignored[f"Kd {' '.join(words[1:4])} (the scene's albedo is used)"] = None
         elif key == "ks" and any(_number(w) != 0.0 for w in words[1:4]):
             ignored[f"Ks {' '.join(words[1:4])} (the scene's specular is used)"] = None
         elif key == "ke" and any(_number(w) != 0.0 for w in words[1:4]):
             ignored["Ke (emission: the scene's emission is used)"] = None
         elif key not in MTL_MODELLED:
-            ignored[f"{words[0]}" + (f" {_map_file(words[1:])}" if key.startswith("map_") or key in ("bump", "norm", "disp", "decal", "refl") else "")] = None
+            is_map = key.startswith("map_") or key in ("bump", "norm", "disp", "decal", "refl")
+            ignored[words[0] + (f" {_map_file(words[1:])}" if is_map else "")] = None
     return maps, list(ignored)
 
 
