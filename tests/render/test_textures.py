@@ -1,5 +1,6 @@
-"""Albedo textures: an OBJ's map_Kd through the loader, the path tracer and the G-buffers, its
-bounds and errors, and the warning for what a material declares that the renderer does not model."""
+"""Albedo textures: a mesh file's base-colour image through the loader, the path tracer and the
+G-buffers, its bounds and errors, and the warning for what a file declares that the renderer does
+not model."""
 
 import numpy as np
 import pytest
