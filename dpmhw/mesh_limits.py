@@ -109,7 +109,7 @@ class DecodedMesh:
     faces: np.ndarray
     uv: np.ndarray | None = None
     texture: Texture | None = None
-    notes: list[str] | None = None
+    notes: list[str] = field(default_factory=list)
 
 
 @dataclass

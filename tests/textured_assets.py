@@ -17,16 +17,15 @@ def checker(cells: int = 4, texels_per_cell: int = 8) -> np.ndarray:
     return np.where((index[:, None] + index[None, :]) % 2 == 0, LIGHT, DARK).astype(np.uint8)
 
 
-def write_checker_quad(folder: Path, size: float = 1.0, cells: int = 4, texels_per_cell: int = 8, mtl_extra: str = "",
-                       image: str = "checker.png") -> Path:
-    """checker.png, quad.mtl (map_Kd image, plus `mtl_extra` lines) and quad.obj in `folder`: a
+def write_checker_quad(folder: Path, size: float = 1.0, cells: int = 4, texels_per_cell: int = 8, mtl_extra: str = "") -> Path:
+    """checker.png, quad.mtl (map_Kd checker.png, plus `mtl_extra` lines) and quad.obj in `folder`: a
     size × size square in the XZ plane facing +Y, u along +x, v along −z (so the image's top row
     is at −z). Returns the OBJ's path."""
     from PIL import Image
 
     folder = Path(folder)
     Image.fromarray(checker(cells, texels_per_cell)).convert("RGB").save(folder / "checker.png")
-    (folder / "quad.mtl").write_text(f"newmtl checker\nKd 1 1 1\nmap_Kd {image}\n{mtl_extra}")
+    (folder / "quad.mtl").write_text(f"newmtl checker\nKd 1 1 1\nmap_Kd checker.png\n{mtl_extra}")
     h = size / 2
     (folder / "quad.obj").write_text(
         "mtllib quad.mtl\n"
