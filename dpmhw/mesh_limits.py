@@ -31,6 +31,10 @@ hold at their peak, not for the bytes it is stored in, against `DPMHW_RENDER_MEM
 - Compressed files (.zip, .tar.gz, .tar.bz2, .gz, .bz2) are expanded here, through a reader
   that stops at `DPMHW_MAX_MESH_MB` of output; Draco or meshopt compressed glTF is refused
   (trimesh cannot decode it without optional packages).
+- A mesh's base-colour texture (an OBJ's `map_Kd`, a PLY's `TextureFile`, a glTF's
+  `baseColorTexture`, see `textures`) is charged `textures.BYTES_PER_TEXEL` per texel, its size
+  read from the image's header before the decode; the image file is bounded by
+  `DPMHW_MAX_MESH_MB` like the mesh.
 - Text (an OBJ, a PLY header) is UTF-8, or Latin-1 where it is not (scanner software writes `©`
   and accented names into comments), re-encoded here rather than left to trimesh's optional
   charset guesser.
@@ -40,24 +44,27 @@ Every refusal is a `ValueError` of one line naming the file and the reason.
 
 from __future__ import annotations
 
+import base64
 import bz2
 import codecs
 import gzip
 import io
 import json
 import posixpath
+import re
 import struct
 import tarfile
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from dpmhw.limits import check_file_size, max_mesh_bytes, render_memory_limit
+from dpmhw.textures import BYTES_PER_TEXEL, Texture, decode_texture, open_texture, parse_mtl
 
 __all__ = ["ARCHIVE_FORMATS", "BYTES_PER_OTHER_BYTE", "BYTES_PER_TRIANGLE", "BYTES_PER_VERTEX", "MESH_FORMATS",
-           "PROCESS_BYTES", "MeshCounts", "MeshPart", "budget_problem", "count_mesh", "mesh_parts", "read_mesh"]
+           "PROCESS_BYTES", "DecodedMesh", "MeshCounts", "MeshPart", "budget_problem", "count_mesh", "mesh_parts", "read_mesh"]
 
 BYTES_PER_TRIANGLE = 450
 BYTES_PER_VERTEX = 200
@@ -84,11 +91,25 @@ class MeshCounts:
     triangles: int
     how: str
     other_bytes: int = 0
+    texels: int = 0
 
     def __add__(self, other: MeshCounts) -> MeshCounts:
         how = "; ".join(dict.fromkeys(self.how.split("; ") + other.how.split("; ")))  # each way of counting once
         return MeshCounts(self.vertices + other.vertices, self.triangles + other.triangles, how,
-                          self.other_bytes + other.other_bytes)
+                          self.other_bytes + other.other_bytes, self.texels + other.texels)
+
+
+@dataclass
+class DecodedMesh:
+    """A mesh file as decoded: vertices (V, 3), faces (F, 3), per-vertex texture coordinates uv
+    (V, 2) with its base-colour texture (or both None), and notes naming what the file declares
+    that the renderer does not model."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray | None = None
+    texture: Texture | None = None
+    notes: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -102,6 +123,13 @@ class MeshPart:
     path: Path | None = None
     files: dict[str, bytes] | None = None
     latin_1: int = 0  # leading bytes of text that are Latin-1, not UTF-8 (the OBJ, the PLY header)
+    sidecar: object = None  # name → bytes of a file beside it (an OBJ's MTL and images), or None when absent
+    mtllibs: list[str] | None = None  # an OBJ's `mtllib` files and `usemtl` names, found by the count
+    materials: set[str] | None = None
+    has_vt: bool = False  # texture coordinates declared (an OBJ's vt lines, a PLY's properties)
+    texture_name: str = ""  # a PLY's `comment TextureFile`, a glTF's base-colour image
+    texture_data: bytes | None = None  # a glTF's base-colour image (a PLY's and an OBJ's are files beside it)
+    notes: list[str] = field(default_factory=list)  # what the count found declared and not modelled
 
     def open(self):
         return io.BytesIO(self.data) if self.data is not None else open(self.path, "rb")
@@ -122,10 +150,11 @@ def budget_problem(counts: MeshCounts) -> str | None:
     """Why a mesh of `counts` would take too much memory to load and trace, or None when it fits."""
     limit = render_memory_limit()
     need = (PROCESS_BYTES + counts.vertices * BYTES_PER_VERTEX + counts.triangles * BYTES_PER_TRIANGLE
-            + int(counts.other_bytes * BYTES_PER_OTHER_BYTE))
+            + int(counts.other_bytes * BYTES_PER_OTHER_BYTE) + counts.texels * BYTES_PER_TEXEL)
     if need <= limit:
         return None
     other = f" and {counts.other_bytes / 2**20:,.0f} MiB of other text" if counts.other_bytes >= 2**20 else ""
+    other += f" and a texture of {counts.texels:,} texels ({BYTES_PER_TEXEL} bytes each)" if counts.texels else ""
     return (f"{counts.triangles:,} triangles and {counts.vertices:,} vertices{other} ({counts.how}) need about "
             f"{need / 2**20:,.0f} MiB to load and trace ({BYTES_PER_TRIANGLE} bytes per triangle, {BYTES_PER_VERTEX} per "
             f"vertex, {PROCESS_BYTES >> 20} MiB for the process), over the render memory limit of "
@@ -215,10 +244,10 @@ def mesh_parts(path: Path) -> list[MeshPart]:
     an archive without a mesh."""
     kind = file_type(path.name)
     if kind in MESH_FORMATS:
-        part = MeshPart(path.name, kind, None, path=path)
+        part = MeshPart(path.name, kind, None, path=path, sidecar=lambda uri: _file_beside(path.parent, uri, "file"))
         if kind == "gltf":
             part.data = path.read_bytes()
-            part.files = _gltf_sidecars(part.data, lambda uri: _file_beside(path.parent, uri))
+            part.files = _gltf_sidecars(part.data, lambda uri: _file_beside(path.parent, uri, "glTF's buffer file"))
         return [part]
     if kind not in ARCHIVE_FORMATS:
         raise ValueError(f"unsupported mesh format {'.' + kind if kind else '(no suffix)'}: expected "
@@ -232,19 +261,20 @@ def mesh_parts(path: Path) -> list[MeshPart]:
     parts = []
     for name, data in files.items():
         if file_type(name) in MESH_FORMATS:
-            part = MeshPart(name, file_type(name), data)
+            folder = posixpath.dirname(name)
+            beside = lambda uri, folder=folder: files.get(posixpath.normpath(posixpath.join(folder, uri)))  # noqa: E731
+            part = MeshPart(name, file_type(name), data, sidecar=beside)
             if part.file_type == "gltf":
-                folder = posixpath.dirname(name)
-                part.files = _gltf_sidecars(data, lambda uri, folder=folder: files.get(posixpath.normpath(posixpath.join(folder, uri))))
+                part.files = _gltf_sidecars(data, beside)
             parts.append(part)
     if not parts:
         raise ValueError(f"the {kind} file holds no {'/'.join(MESH_FORMATS)} mesh (it holds {len(files)} files)")
     return parts
 
 
-def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices, faces) of the mesh file at `path`, all its meshes concatenated, each counted
-    and charged to the budget before trimesh decodes it. Raises ValueError with the reason."""
+def read_mesh(path: Path) -> DecodedMesh:
+    """The mesh file at `path`, all its meshes concatenated, each counted and charged to the
+    budget (with an OBJ's texture) before trimesh decodes it. Raises ValueError with the reason."""
     parts = mesh_parts(path)
     counts = []
     for part in parts:
@@ -255,43 +285,125 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
         except Exception as exc:  # a header of the right syntax and the wrong shape (a list for a number, ...)
             raise ValueError(f"{_member(parts, part)}the {part.file_type.upper()} header is malformed: "
                              f"{type(exc).__name__}: {describe(exc)}") from exc
+    surfaces = [_surface(part) for part in parts]
+    images = [(image, name) for image, name, _ in surfaces if image is not None]
+    if images and len(parts) > 1:
+        raise ValueError(f"texture {images[0][1]}: a texture is rendered on a single mesh file, not on one of "
+                         f"{len(parts)} meshes in an archive")
     total = counts[0]
     for more in counts[1:]:
         total = total + more
+    total.texels = sum(image.size[0] * image.size[1] for image, _ in images)
     if problem := budget_problem(total):
         raise ValueError(problem)
     import trimesh
 
     meshes = []
-    for part in parts:
+    for part, (image, _, _) in zip(parts, surfaces):
         resolver = trimesh.resolvers.ZipResolver(part.files) if part.files else None
         try:
             with io.BytesIO(_latin_1_as_utf8(part)) if part.latin_1 else part.open() as f:
+                # a glTF's texture coordinates come with its materials (their images opened lazily, charged above)
+                materials = part.file_type in ("glb", "gltf") and image is not None
                 meshes.append(trimesh.load(f, file_type=part.file_type, resolver=resolver, force="mesh", process=False,
-                                           skip_materials=True))
+                                           skip_materials=not materials))
         except Exception as exc:  # trimesh raises many types for broken files
             raise ValueError(f"{_member(parts, part)}trimesh cannot decode the {part.file_type.upper()} data: "
                              f"{describe(exc)}") from exc
     vertices = sum(len(m.vertices) for m in meshes)
     faces = sum(len(m.faces) for m in meshes)
-    if problem := budget_problem(MeshCounts(vertices, faces, "as decoded")):
+    if problem := budget_problem(MeshCounts(vertices, faces, "as decoded", texels=total.texels)):
         raise ValueError(problem)
+    notes = [_member(parts, part) + note for part in parts for note in part.notes]
+    notes += [note for _, _, more in surfaces for note in more]
+    notes += [f"{_member(parts, part)}vertex colours (not modelled: the scene's albedo is)"
+              for part, m in zip(parts, meshes) if getattr(m.visual, "kind", None) in ("vertex", "face")]
     if len(meshes) == 1:
-        return np.asarray(meshes[0].vertices), np.asarray(meshes[0].faces)
+        decoded = DecodedMesh(np.asarray(meshes[0].vertices), np.asarray(meshes[0].faces), notes=notes)
+        if images:
+            decoded.uv, decoded.texture = _texture(meshes[0], *images[0], notes)
+        return decoded
     offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
-    return (np.concatenate([np.asarray(m.vertices) for m in meshes]),
-            np.concatenate([np.asarray(m.faces) + o for m, o in zip(meshes, offsets)]))
+    return DecodedMesh(np.concatenate([np.asarray(m.vertices) for m in meshes]),
+                       np.concatenate([np.asarray(m.faces) + o for m, o in zip(meshes, offsets)]), notes=notes)
+
+
+def _surface(part: MeshPart) -> tuple[object, str, list[str]]:
+    """(the base-colour image, lazily opened, or None; its name; notes) of a mesh: an OBJ's
+    materials' `map_Kd`, a PLY's `TextureFile`, a glTF's `baseColorTexture`. An image declared
+    and unreadable is an error naming it."""
+    if part.file_type == "obj":
+        name, notes = _obj_texture_name(part)
+    else:
+        name, notes = part.texture_name, []
+    if not name:
+        return None, "", notes
+    if not part.has_vt:
+        notes.append(f"texture {name} is not applied: the mesh has no texture coordinates")
+        return None, "", notes
+    data = part.texture_data if part.file_type in ("glb", "gltf") else part.sidecar(name)
+    if data is None:
+        raise ValueError(f"texture {name} of {part.name} is not a file beside it")
+    from PIL import UnidentifiedImageError
+
+    try:
+        return open_texture(data), name, notes
+    except UnidentifiedImageError:
+        raise ValueError(f"cannot read texture {name}: not an image format Pillow reads (PNG, JPEG, …)") from None
+    except Exception as exc:  # Pillow raises many types for broken images
+        raise ValueError(f"cannot read texture {name}: {describe(exc)}") from None
+
+
+def _obj_texture_name(part: MeshPart) -> tuple[str, list[str]]:
+    """(the `map_Kd` of the materials an OBJ uses, from the MTL files beside it, or ""; notes).
+    One image per mesh."""
+    maps: dict[str, str] = {}
+    ignored: list[str] = []
+    notes = []
+    for library in part.mtllibs or []:
+        data = part.sidecar(library)
+        if data is None:
+            notes.append(f"material library {library} is not a file beside it: its materials are ignored")
+            continue
+        found, unmodelled = parse_mtl(_decode(data), part.materials or None)
+        maps.update(found)
+        ignored += [u for u in unmodelled if u not in ignored]
+    if ignored:
+        notes.append(f"its materials declare {', '.join(ignored)}: not modelled, ignored")
+    names = sorted(set(maps.values()))
+    if len(names) > 1:
+        raise ValueError(f"the materials of {part.name} use {len(names)} map_Kd textures ({', '.join(names[:3])}"
+                         f"{', …' if len(names) > 3 else ''}): one texture per mesh is rendered (bake them into one)")
+    return (names[0] if names else ""), notes
+
+
+def _texture(mesh, image, name: str, notes: list[str]) -> tuple[np.ndarray | None, Texture | None]:
+    """(per-vertex uv, decoded texture) of a decoded mesh whose file names `image`; (None, None)
+    with a note when the mesh has no texture coordinate for every vertex."""
+    uv = getattr(mesh.visual, "uv", None)
+    if uv is None or len(uv) != len(mesh.vertices):
+        notes.append(f"texture {name} is not applied: the mesh has no texture coordinates for every face")
+        return None, None
+    uv = np.asarray(uv, np.float64)
+    if not np.all(np.abs(uv) <= MAX_TEXTURE_COORDINATE):  # NaN fails too
+        raise ValueError(f"the mesh has texture coordinates that are non-finite or beyond ±{MAX_TEXTURE_COORDINATE:g}")
+    try:
+        texture, more = decode_texture(image, name)
+    except Exception as exc:  # Pillow raises many types for a truncated or corrupt image
+        raise ValueError(f"cannot read texture {name}: {describe(exc)}") from None
+    notes += more
+    return uv, texture
 
 
 def _member(parts: list[MeshPart], part: MeshPart) -> str:
     return f"member {part.name}: " if part.path is None else ""
 
 
-def _file_beside(folder: Path, uri: str) -> bytes | None:
+def _file_beside(folder: Path, uri: str, what: str) -> bytes | None:
     target = folder / uri
     if not target.is_file():
         return None
-    check_file_size(target, max_mesh_bytes(), "the glTF's buffer file", "DPMHW_MAX_MESH_MB")
+    check_file_size(target, max_mesh_bytes(), f"the {what}", "DPMHW_MAX_MESH_MB")
     return target.read_bytes()
 
 
@@ -319,6 +431,7 @@ def _count_obj(f, size: int, part: MeshPart) -> MeshCounts:
     utf8 = True
     vertices = triangles = other = 0
     carry = b""
+    part.mtllibs, part.materials = [], set()
     while True:
         chunk = f.read(OBJ_CHUNK)
         if utf8:
@@ -336,6 +449,7 @@ def _count_obj(f, size: int, part: MeshPart) -> MeshCounts:
             if len(carry) > OBJ_CHUNK:
                 raise ValueError(f"a line is over {OBJ_CHUNK >> 20} MiB long: not an OBJ file")
         if text:
+            _obj_materials(text, part)
             v, t, o = _count_obj_lines(np.frombuffer(text, np.uint8))
             vertices += v
             triangles += t
@@ -344,6 +458,28 @@ def _count_obj(f, size: int, part: MeshPart) -> MeshCounts:
             break
     part.latin_1 = 0 if utf8 else size
     return MeshCounts(vertices, triangles, "counted in the OBJ's v/vt/vn and f lines", other)
+
+
+_MATERIAL_LINE = re.compile(rb"^[ \t]*(mtllib|usemtl)[ \t]+([^\r\n#]*)", re.MULTILINE)
+MAX_MATERIAL_NAMES = 10_000
+MAX_TEXTURE_COORDINATE = 1e6  # in repeats; beyond is a wrong file (float32 keeps 1/16 of a repeat at 1e6)
+
+
+_VT_LINE = re.compile(rb"^vt[ \t]", re.MULTILINE)
+
+
+def _obj_materials(text: bytes, part: MeshPart) -> None:
+    """The `mtllib` files and `usemtl` names in whole lines `text`, added to `part`'s, and
+    whether it has a `vt` line."""
+    part.has_vt = part.has_vt or _VT_LINE.search(text) is not None
+    for key, value in _MATERIAL_LINE.findall(text):
+        name = value.decode("utf-8", "replace").strip()
+        if key == b"mtllib":
+            part.mtllibs += [n for n in [name] if n and n not in part.mtllibs]
+        else:
+            part.materials.add(name)
+        if len(part.mtllibs) + len(part.materials) > MAX_MATERIAL_NAMES:
+            raise ValueError(f"the OBJ names over {MAX_MATERIAL_NAMES:,} materials")
 
 
 def _count_obj_lines(a: np.ndarray) -> tuple[int, int, int]:
@@ -395,6 +531,8 @@ def _count_ply(f, size: int, part: MeshPart) -> MeshCounts:
     elements: list[list] = []  # [name, count, min row bytes, values per row]
     for number, line in enumerate(lines[1:], 2):
         words = line.split()
+        if words[:2] == ["comment", "TextureFile"]:
+            part.texture_name = " ".join(words[2:])
         if not words or words[0] in ("comment", "obj_info", "end_header"):
             continue
         try:
@@ -414,6 +552,8 @@ def _count_ply(f, size: int, part: MeshPart) -> MeshCounts:
                 else:
                     element[2] += _PLY_TYPES[words[1]]
                     element[3] += 1
+                # texture coordinates: a face's `texcoord` list, or per vertex (the names trimesh reads)
+                part.has_vt |= words[-1] in ("texcoord", "texture_u", "u", "s")
             else:
                 raise ValueError
         except (ValueError, IndexError, KeyError):
@@ -470,7 +610,70 @@ def _count_gltf(f, size: int, part: MeshPart) -> MeshCounts:
         tree, buffers = _glb_chunks(data)
     else:
         tree, buffers = _json(data, "glTF"), []
-    return _count_gltf_tree(tree, buffers, part.files or {})
+    counts = _count_gltf_tree(tree, buffers, part.files or {})
+    _gltf_surface(tree, data, part)
+    return counts
+
+
+def _gltf_surface(tree: dict, data: bytes, part: MeshPart) -> None:
+    """The base-colour image of the materials a glTF's primitives use (its bytes and name into
+    `part`, one image per mesh), whether those primitives have texture coordinates, and notes
+    naming the other textures and factors, which are not modelled."""
+    used = set()
+    for mesh in _items(tree, "meshes"):
+        for primitive in (mesh.get("primitives", []) if isinstance(mesh, dict) else []):
+            if isinstance(primitive, dict) and "material" in primitive:
+                used.add(primitive["material"])
+                part.has_vt |= "TEXCOORD_0" in primitive.get("attributes", {})
+    materials = _items(tree, "materials")
+    images, ignored = set(), set()
+    for index in sorted(m for m in used if isinstance(m, int) and 0 <= m < len(materials)):
+        material = materials[index] if isinstance(materials[index], dict) else {}
+        pbr = material.get("pbrMetallicRoughness", {})
+        pbr = pbr if isinstance(pbr, dict) else {}
+        ignored.update(k for k in [*pbr, *material] if k.endswith("Texture") and k != "baseColorTexture")
+        factor = pbr.get("baseColorFactor", [1, 1, 1, 1])
+        if factor != [1, 1, 1, 1]:
+            ignored.add(f"baseColorFactor {factor} (the scene's albedo multiplies the texture)")
+        if "baseColorTexture" in pbr:
+            texture = _whole(pbr["baseColorTexture"], "index", f"materials[{index}].pbrMetallicRoughness.baseColorTexture")
+            textures = _items(tree, "textures")
+            if texture >= len(textures):
+                raise ValueError(f"materials[{index}]'s baseColorTexture names textures[{texture}], which does not exist")
+            images.add(_whole(textures[texture], "source", f"textures[{texture}]"))
+    if ignored:
+        part.notes.append(f"its materials declare {', '.join(sorted(ignored))}: not modelled, ignored")
+    if len(images) > 1:
+        raise ValueError(f"the materials its primitives use have {len(images)} base-colour images: one texture per mesh "
+                         "is rendered (bake them into one)")
+    if images:
+        part.texture_name, part.texture_data = _gltf_image(tree, data, part, images.pop())
+
+
+def _gltf_image(tree: dict, data: bytes, part: MeshPart, index: int) -> tuple[str, bytes | None]:
+    """(name, bytes) of a glTF's images[index]: from a buffer view, a data URI or a file beside it
+    (None when that file is missing)."""
+    images = _items(tree, "images")
+    if index >= len(images) or not isinstance(images[index], dict):
+        raise ValueError(f"images[{index}] does not exist")
+    image = images[index]
+    if "uri" in image:
+        uri = str(image["uri"])
+        if uri.startswith("data:"):
+            return f"images[{index}] (a data URI)", base64.b64decode(uri.partition(",")[2])
+        return uri, part.sidecar(uri)
+    view = _items(tree, "bufferViews")[_whole(image, "bufferView", f"images[{index}]")]
+    buffer = _items(tree, "buffers")[_whole(view, "buffer", "the image's bufferView")]
+    uri = buffer.get("uri")
+    if uri is None:  # the GLB's BIN chunk, after the 12-byte header and the JSON chunk
+        json_length = struct.unpack_from("<I", data, 12)[0]
+        stored = data[12 + 8 + json_length + 8:]
+    elif uri.startswith("data:"):
+        stored = base64.b64decode(uri.partition(",")[2])
+    else:
+        stored = part.files[uri]
+    start = view.get("byteOffset", 0)
+    return f"images[{index}] (in buffer {view['buffer']})", stored[start:start + view["byteLength"]]
 
 
 def _glb_chunks(data: bytes) -> tuple[dict, list[int]]:

@@ -8,13 +8,14 @@ no stage downstream divides by a zero-length normal.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from dpmhw.limits import check_file_size, max_mesh_bytes
 from dpmhw.mesh_limits import describe, read_mesh
+from dpmhw.textures import Texture
 
 log = logging.getLogger(__name__)
 
@@ -25,13 +26,18 @@ MAX_COORDINATE = 1e9
 
 @dataclass
 class TriangleMesh:
-    """vertices : (V, 3) float64; faces : (F, 3) int32; vertex_normals : (V, 3) or None (flat shading)."""
+    """vertices : (V, 3) float64; faces : (F, 3) int32; vertex_normals : (V, 3) or None (flat shading);
+    uv : (V, 2) texture coordinates of `texture` (the albedo's), or both None; notes : what the
+    mesh file declares that the renderer does not model."""
 
     vertices: np.ndarray
     faces: np.ndarray
     vertex_normals: np.ndarray | None = None
     source: str = ""
     dropped_degenerate: int = field(default=0)
+    uv: np.ndarray | None = None
+    texture: Texture | None = None
+    notes: list[str] = field(default_factory=list)
 
     @property
     def triangles(self) -> np.ndarray:
@@ -48,7 +54,7 @@ class TriangleMesh:
         if self.vertex_normals is not None:
             normals = self.vertex_normals / scale  # normals transform by the inverse transpose
             normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-        return TriangleMesh(self.vertices * scale, self.faces, normals, self.source, self.dropped_degenerate)
+        return replace(self, vertices=self.vertices * scale, vertex_normals=normals)
 
     def recentred(self, mode: str) -> "TriangleMesh":
         """Move the model origin: 'none', 'centroid' (bounding-box centre) or 'bottom' (centre of the lowest face of the box)."""
@@ -58,7 +64,7 @@ class TriangleMesh:
         origin = (lo + hi) / 2
         if mode == "bottom":
             origin[1] = lo[1]
-        return TriangleMesh(self.vertices - origin, self.faces, self.vertex_normals, self.source, self.dropped_degenerate)
+        return replace(self, vertices=self.vertices - origin)
 
 
 def clean(vertices: np.ndarray, faces: np.ndarray, smooth: bool, source: str) -> TriangleMesh:
@@ -114,13 +120,18 @@ def smooth_within(mesh: TriangleMesh, angle_deg: float) -> TriangleMesh:
     b = np.concatenate([corner(pairs[:, 1], edges[:, 0]), corner(pairs[:, 1], edges[:, 1])])
     n = faces.size
     count, label = connected_components(coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)), directed=False)
-    first = np.empty(count, np.int64)
-    first[label] = np.arange(n)  # a corner of each group (all of its corners are one vertex)
     normals = np.zeros((count, 3))
     np.add.at(normals, label, np.repeat(cross, 3, axis=0))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    vertices = mesh.vertices[mesh.faces.ravel()[first]]
-    return TriangleMesh(vertices, label.reshape(-1, 3).astype(np.int32), normals, mesh.source, mesh.dropped_degenerate)
+    group = label
+    if mesh.uv is not None:  # a group's corners on two sides of a UV seam stay two vertices
+        _, label = np.unique(np.stack([group, mesh.faces.ravel()], 1), axis=0, return_inverse=True)
+        label = label.reshape(-1)
+    first = np.empty(label.max() + 1, np.int64)
+    first[label] = np.arange(n)  # a corner of each vertex
+    corner = mesh.faces.ravel()[first]
+    return replace(mesh, vertices=mesh.vertices[corner], faces=label.reshape(-1, 3).astype(np.int32),
+                   vertex_normals=normals[group[first]], uv=None if mesh.uv is None else mesh.uv[corner])
 
 
 def quad_mesh(size, segments=(1, 1)) -> TriangleMesh:
@@ -187,9 +198,10 @@ def load_mesh(path: Path, smooth: bool = True) -> TriangleMesh:
         raise FileNotFoundError(f"mesh file not found: {path}")
     check_file_size(path, max_mesh_bytes(), "mesh file", "DPMHW_MAX_MESH_MB")
     try:
-        vertices, faces = read_mesh(path)
+        decoded = read_mesh(path)
     except (ValueError, OSError) as exc:
         raise ValueError(f"cannot read mesh {path}: {describe(exc)}") from exc
+    vertices, faces = decoded.vertices, decoded.faces
     if len(faces) == 0:
         raise ValueError(f"mesh {path} has no triangles")
     if not np.all(np.isfinite(vertices)):
@@ -199,7 +211,9 @@ def load_mesh(path: Path, smooth: bool = True) -> TriangleMesh:
         raise ValueError(f"mesh {path} has a vertex coordinate of {largest:.3g}, over {MAX_COORDINATE:g} (wrong units?)")
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise ValueError(f"mesh {path} has faces that index missing vertices")
-    return clean(vertices, faces, smooth=smooth, source=str(path))
+    mesh = clean(vertices, faces, smooth=smooth, source=str(path))
+    mesh.uv, mesh.texture, mesh.notes = decoded.uv, decoded.texture, [f"{path.name}: {note}" for note in decoded.notes]
+    return mesh
 
 
 BUNNY_DATA = Path(__file__).parent / "data" / "stanford-bunny.npz"

@@ -323,6 +323,7 @@ def _parse_mesh_shape(f: _Fields, shape: str, base_dir: Path, notes: list[str], 
         mesh = _load_mesh_field(f, Path(override), smooth) if override else stanford_bunny(smooth)
     else:
         mesh = _load_mesh_field(f, base_dir / name, smooth)
+    notes += mesh.notes
     if angle is not None:
         mesh = smooth_within(mesh, angle)
     scale = f.vector("scale", default=(1, 1, 1), lo=0.0, scalar_ok=True)
@@ -373,7 +374,8 @@ def _parse_object(source: str, table, index: int, base_dir: Path, notes: list[st
     mesh = _parse_mesh_shape(f, shape, base_dir, notes, mesh_override)
     if len(mesh.faces) == 0:
         f.fail("size" if shape != "mesh" else "mesh", "the shape has no non-degenerate triangles")
-    albedo = f.vector("albedo", default=(0.8, 0.8, 0.8), lo=0.0, hi=1.0, scalar_ok=True)
+    # a textured mesh's albedo multiplies its texture: 1 by default, the texture as painted
+    albedo = f.vector("albedo", default=(0.8,) * 3 if mesh.texture is None else (1.0,) * 3, lo=0.0, hi=1.0, scalar_ok=True)
     specular = f.vector("specular", default=(0, 0, 0), lo=0.0, hi=1.0, scalar_ok=True)
     rigid_body = f.number("rigid_body", default=-1, lo=0, integer=True) if f.has("rigid_body") else None
     face_roughness = None

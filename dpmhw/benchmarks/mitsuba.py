@@ -1,7 +1,9 @@
 """`dpmhw bench mitsuba`: Mitsuba 3 (LLVM backend) on the same scene as dpmhw, the renderer's speed baseline.
 
 The scene is converted in memory (`scene_dict`): every object becomes an `mi.Mesh` in world space
-(its pose at t = 0), with a two-sided BSDF (dpmhw shades both faces; Mitsuba's BSDFs alone are
+(its pose at t = 0; a textured one with its texture coordinates, v flipped to Mitsuba's
+top-row-first convention, and its texture as a linear `bitmap` with bilinear filtering and repeat
+wrapping, the albedo multiplied in), with a two-sided BSDF (dpmhw shades both faces; Mitsuba's BSDFs alone are
 black from behind: `bsdf_dict` for the glossy lobe) and an `area` emitter where it emits
 (one-sided, like dpmhw's); a background becomes a `constant` emitter. The camera is dpmhw's
 OpenCV pinhole as a `perspective` sensor (`sensor_dict`): horizontal FOV from fx, the principal
@@ -161,7 +163,7 @@ def bsdf_dict(obj, source: str = "", index: int = 0) -> dict:
     w·roughconductor(material "none" (Fresnel = 1), α as dpmhw's, specular_reflectance s/w),
     equal to the sum exactly while both reflectances stay in [0, 1] (always for a grey s)."""
     albedo, spec = np.asarray(obj.albedo, float), np.asarray(obj.specular, float)
-    diffuse = {"type": "diffuse", "reflectance": {"type": "rgb", "value": albedo.tolist()}}
+    diffuse = {"type": "diffuse", "reflectance": _reflectance(obj, albedo)}
     if not np.any(spec > 0):
         return {"type": "twosided", "bsdf": diffuse}
     w = float(spec.max())
@@ -176,10 +178,20 @@ def bsdf_dict(obj, source: str = "", index: int = 0) -> dict:
     if np.any(kd > 1.0 + 1e-9):
         raise SceneError(source, f"objects[{index}].specular", f"specular channels {spec.tolist()} differ too much for "
                                                                "a blendbsdf with reflectances in [0, 1]")
-    diffuse["reflectance"]["value"] = np.minimum(kd, 1.0).tolist()
+    diffuse["reflectance"] = _reflectance(obj, np.minimum(kd, 1.0))
     glossy = {"type": "roughconductor", "material": "none", "distribution": "ggx", "alpha": max(obj.roughness**2, MIN_ALPHA),
               "specular_reflectance": {"type": "rgb", "value": (spec / w).tolist()}}
     return {"type": "twosided", "bsdf": {"type": "blendbsdf", "weight": w, "bsdf_0": diffuse, "bsdf_1": glossy}}
+
+
+def _reflectance(obj, factor: np.ndarray) -> dict:
+    """A diffuse reflectance of `factor` (3,), times the object's texture where it has one."""
+    if obj.mesh.texture is None:
+        return {"type": "rgb", "value": np.asarray(factor, float).tolist()}
+    import mitsuba as mi
+
+    data = np.ascontiguousarray(obj.mesh.texture.texels * np.asarray(factor, np.float32), np.float32)
+    return {"type": "bitmap", "bitmap": mi.Bitmap(data), "raw": True, "filter_type": "bilinear", "wrap_mode": "repeat"}
 
 
 def _mesh(mi, obj, pose: Pose):
@@ -190,7 +202,8 @@ def _mesh(mi, obj, pose: Pose):
         props["emitter"] = mi.load_dict({"type": "area", "radiance": {"type": "rgb", "value": obj.emission.tolist()}})
     m = obj.mesh
     normals = m.vertex_normals
-    mesh = mi.Mesh(obj.name, len(m.vertices), len(m.faces), props=props, has_vertex_normals=normals is not None)
+    mesh = mi.Mesh(obj.name, len(m.vertices), len(m.faces), props=props, has_vertex_normals=normals is not None,
+                   has_vertex_texcoords=m.uv is not None)
     params = mi.traverse(mesh)
 
     def put(key, values, dtype):  # flat buffers, in whatever array type this variant stores them
@@ -200,6 +213,8 @@ def _mesh(mi, obj, pose: Pose):
     put("faces", m.faces, np.uint32)
     if normals is not None:
         put("vertex_normals", normals @ pose.R.T, np.float32)
+    if m.uv is not None:
+        put("vertex_texcoords", np.stack([m.uv[:, 0], 1.0 - m.uv[:, 1]], 1), np.float32)
     params.update()
     return mesh
 
@@ -366,10 +381,11 @@ def interior_mask(object_id: np.ndarray, normal: np.ndarray, radius: int = EDGE_
     return same_obj & flat & (object_id >= 0)
 
 
-def regions(scene: Scene, object_id: np.ndarray, normal: np.ndarray) -> dict[str, np.ndarray]:
+def regions(scene: Scene, object_id: np.ndarray, normal: np.ndarray, tile: int = 0) -> dict[str, np.ndarray]:
     """Named pixel masks away from edges (creases only on flat-shaded objects): every interior
-    pixel, each object, and a box's faces split by their normal's dominant axis (floor, walls,
-    ceiling)."""
+    pixel, each object, a box's faces split by their normal's dominant axis (floor, walls,
+    ceiling), and with `tile` > 0 each tile × tile block of the image whose interior pixels fill
+    at least half of it ("tile y,x", its top-left pixel)."""
     inside = interior_mask(object_id, normal, crease_ids=[i for i, o in enumerate(scene.objects) if o.mesh.vertex_normals is None])
     out = {"all interior": inside}
     axis = np.argmax(np.abs(normal), axis=-1)
@@ -386,6 +402,14 @@ def regions(scene: Scene, object_id: np.ndarray, normal: np.ndarray) -> dict[str
                     out[f"{obj.name} normal {name}"] = part
         else:
             out[obj.name] = m
+    if tile > 0:
+        H, W = object_id.shape
+        for y in range(0, H - tile + 1, tile):
+            for x in range(0, W - tile + 1, tile):
+                if inside[y:y + tile, x:x + tile].sum() >= tile * tile // 2:
+                    m = np.zeros_like(inside)
+                    m[y:y + tile, x:x + tile] = inside[y:y + tile, x:x + tile]
+                    out[f"tile {y},{x}"] = m
     return out
 
 
@@ -394,10 +418,10 @@ def _luminance(img: np.ndarray) -> np.ndarray:
 
 
 def compare(scene_name: str = "paper-static", spp: int = 256, threads: int = 2, variant: str = VARIANT, mesh=None,
-            progress=None) -> list[dict]:
+            progress=None, tile: int = 0) -> list[dict]:
     """Both renderers at `spp` (dpmhw with pixel jitter, the box-filtered pixel integral like
-    Mitsuba's), in chunks of up to MAX_SPP_PER_CALL: mean luminance per region (see `regions`),
-    relative difference, and its standard error from the spread of the chunks."""
+    Mitsuba's), in chunks of up to MAX_SPP_PER_CALL: mean luminance per region (see `regions`,
+    with its `tile`s), relative difference, and its standard error from the spread of the chunks."""
     from dpmhw.render.integrator import PathIntegrator
 
     scene = load_scene(scene_name, mesh_override=mesh)
@@ -406,7 +430,7 @@ def compare(scene_name: str = "paper-static", spp: int = 256, threads: int = 2, 
     n_chunks = max(1, spp // chunk)
     with PathIntegrator(scene, threads=threads, pixel_sampling="jitter") as integrator:
         ref = integrator.render(time=0.0, seed=0, spp=1)
-        masks = regions(scene, ref.object_id, ref.normal)
+        masks = regions(scene, ref.object_id, ref.normal, tile)
         sums = {"dpmhw": 0.0, "mitsuba": 0.0}
         per_chunk = {"dpmhw": [], "mitsuba": []}
         for c in range(n_chunks):

@@ -43,6 +43,8 @@ def scene_digest(scene: Scene) -> str:
             put(o.face_roughness)
         if o.mesh.vertex_normals is not None:
             put(o.mesh.vertex_normals)
+        if o.mesh.texture is not None:
+            put(o.mesh.uv, o.mesh.texture.texels)
     return h.hexdigest()
 
 

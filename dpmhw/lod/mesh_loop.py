@@ -42,12 +42,14 @@ SRGB8_TO_LINEAR = srgb_decode(np.arange(256) / 255.0).astype(np.float32)
 
 
 def build_levels(scene, reductions=None) -> list[MeshLevels | None]:
-    """Levels for every moving, non-emissive mesh object of ≥ MIN_FACES triangles without a
-    roughness map (None for the others); objects with identical meshes share one MeshLevels."""
+    """Levels for every moving, non-emissive, untextured mesh object of ≥ MIN_FACES triangles
+    without a roughness map (None for the others: simplification keeps no texture coordinates);
+    objects with identical meshes share one MeshLevels."""
     by_content: dict[str, MeshLevels] = {}
     out: list[MeshLevels | None] = []
     for o in scene.objects:
-        if o.shape != "mesh" or not o.is_dynamic or o.is_emissive or o.face_roughness is not None or len(o.mesh.faces) < MIN_FACES:
+        if (o.shape != "mesh" or not o.is_dynamic or o.is_emissive or o.face_roughness is not None or o.mesh.texture is not None
+                or len(o.mesh.faces) < MIN_FACES):
             out.append(None)
             continue
         key = hashlib.sha256(o.mesh.vertices.tobytes() + o.mesh.faces.tobytes()).hexdigest()

@@ -62,7 +62,7 @@ RASTER_BAND_ROWS = 8  # the rasteriser's threads take interleaved bands of this 
 NEAR_Z = 1e-4  # a moving vertex this close to the projector's plane (metres): trace that frame instead
 
 
-def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, viewer, use_viewer, cam_fwd,
+def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, tex, spec, alpha, viewer, use_viewer, cam_fwd,
                 g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough):
     """G-buffer attributes of pixels `index` from their camera rays' hits (d, t, obj, prim, u, v
     indexed by pixel); the renderer's first-vertex helpers (`kernels.shade` at depth 0)."""
@@ -89,8 +89,8 @@ def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, vi
         g_pos[p, 0], g_pos[p, 1], g_pos[p, 2] = p0, p1, p2
         g_normal[p, 0], g_normal[p, 1], g_normal[p, 2] = s0, s1, s2
         g_depth[p] = t[p] * (d0 * cam_fwd[0] + d1 * cam_fwd[1] + d2 * cam_fwd[2])
+        g_alb[p, 0], g_alb[p, 1], g_alb[p, 2] = kernels.albedo_at(alb, tex, ob, i, u[p], v[p])
         for c in range(3):
-            g_alb[p, c] = alb[ob, c]
             g_spec[p, c] = spec[ob, c]
         g_rough[p] = math.sqrt(tri[i, 21] if tri[i, 21] > 0.0 else alpha[ob])  # per-triangle α: a roughness map
 
@@ -394,7 +394,7 @@ class NativeGBuffer:
 
     def _attributes(self, index, d, hits, R, T) -> None:
         g = self.geometry
-        _attribute_kernels[len(index) >= PARALLEL_MIN_PIXELS](index, d, hits.t, hits.obj, hits.prim, hits.u, hits.v, g.tri, R, T, g.obj_albedo, g.obj_specular,
+        _attribute_kernels[len(index) >= PARALLEL_MIN_PIXELS](index, d, hits.t, hits.obj, hits.prim, hits.u, hits.v, g.tri, R, T, g.obj_albedo, g.textures, g.obj_specular,
                     g.obj_alpha, self.viewer, self.use_viewer, self.cam_fwd, self.id, self.position, self.normal,
                     self.depth, self.albedo, self.spec_albedo, self.roughness)
 

@@ -47,6 +47,31 @@ def _triangle_rows(mesh, alpha: np.ndarray | None = None) -> np.ndarray:
     return rows
 
 
+def _texture_tables(objects, tri_offsets, rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The albedo textures as the kernels read them (`kernels.albedo_at`): (tri_uv, obj_tex,
+    texels). tri_uv (rows, 6) float32: the texture coordinates of each triangle row's three
+    corners; obj_tex (O, 3) int64: each object's texture as (first texel, width, height), width
+    0 for none; texels (N, 3) float32, linear RGB, each texture's rows top to bottom. Without a
+    texture in the scene, one-row placeholders (no kernel reads them)."""
+    obj_tex = np.zeros((len(objects), 3), np.int64)
+    if not any(o.mesh.texture is not None for o in objects):
+        return np.zeros((1, 6), f32), obj_tex, np.zeros((1, 3), f32)
+    tri_uv = np.zeros((rows, 6), f32)
+    texels, start, seen = [], 0, {}
+    for i, o in enumerate(objects):
+        mesh = o.mesh
+        if mesh.texture is None:
+            continue
+        if id(mesh.texture) not in seen:
+            seen[id(mesh.texture)] = start
+            texels.append(mesh.texture.texels.reshape(-1, 3))
+            start += len(texels[-1])
+        width, height = mesh.texture.size
+        obj_tex[i] = seen[id(mesh.texture)], width, height
+        tri_uv[tri_offsets[i]:tri_offsets[i] + len(mesh.faces)] = mesh.uv[mesh.faces].reshape(-1, 6)
+    return tri_uv, obj_tex, np.ascontiguousarray(texels[0] if len(texels) == 1 else np.concatenate(texels), f32)
+
+
 class SceneGeometry:
     def __init__(self, scene: Scene, threads: int = 2):
         self.scene = scene
@@ -66,6 +91,7 @@ class SceneGeometry:
             self.tri_offsets[i] = unique[key]
         self.tri = np.concatenate(rows)
         self.triangle_count = sum(len(o.mesh.faces) for o in objects)
+        self.textures = _texture_tables(objects, self.tri_offsets, len(self.tri))
 
         self.obj_albedo = np.array([o.albedo for o in objects], f32)
         self.obj_specular = np.array([o.specular for o in objects], f32)
@@ -129,9 +155,9 @@ class SceneGeometry:
         obj = self.scene.objects[k]
         same = meshes[0] is obj.mesh or (np.array_equal(meshes[0].faces, obj.mesh.faces)
                                          and np.array_equal(meshes[0].vertices, obj.mesh.vertices))
-        if not obj.is_dynamic or obj.is_emissive or obj.face_roughness is not None or not same:
-            raise ValueError(f"objects[{k}]: mesh levels need a moving, non-emissive object without a roughness map, "
-                             "and its own mesh as level 0")
+        if not obj.is_dynamic or obj.is_emissive or obj.face_roughness is not None or obj.mesh.texture is not None or not same:
+            raise ValueError(f"objects[{k}]: mesh levels need a moving, non-emissive, untextured object without a roughness "
+                             "map, and its own mesh as level 0")
         if not hasattr(self, "_levels"):
             self._levels: dict[int, list] = {}  # object → [(tri offset, bvh, sphere, triangles) per level]
             self._level_cache: dict[int, list] = {}  # id(meshes[1]) → the same, shared by instances

@@ -360,7 +360,7 @@ class PathIntegrator:
             primary_dirs = w.cam_d
         if self._fused_native():  # queries from inside the kernel: one native call per thread
             g = self.geometry
-            scn = (g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area, light_world, g.light_obj,
+            scn = (g.tri, R, T, g.obj_albedo, g.textures, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area, light_world, g.light_obj,
                    g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd)
             films = (film["emit"], film["diff"], film["spec"], nonfinite)
             gb = (gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer)
@@ -430,7 +430,7 @@ class PathIntegrator:
             if depth == 0:  # the first vertex: its surface (unless kept), then this pass's samples
                 if not surface_ready:
                     kernels.first_surface(first, end, primary_dirs, primary.t, primary.obj, primary.prim, primary.u, primary.v, g.tri,
-                                          R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.background, viewer,
+                                          R, T, g.obj_albedo, g.textures, g.obj_specular, g.obj_alpha, g.obj_emission, g.background, viewer,
                                           self.use_viewer, cam_fwd, w.surf, gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth,
                                           gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer, self.split)
                 n_shadow, n_next = kernels.sample_first(
@@ -442,7 +442,7 @@ class PathIntegrator:
                 n_shadow, n_next = kernels.shade(
                     depth, self.max_bounces, self.mis_last, key, first, count, w.pixel, w.ray_d[1 - rays],
                     w.hits.t, w.hits.obj, w.hits.prim, w.hits.u, w.hits.v, w.beta, w.kd, w.prev_pdf, w.prev_env,
-                    g.tri, R, T, g.obj_albedo, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
+                    g.tri, R, T, g.obj_albedo, g.textures, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
                     light_world, g.light_obj, g.light_cdf, g.p_env, g.background, film["diff"], film["spec"], nonfinite,
                     w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.ray_o[rays], w.ray_d[rays], self.split,
                 )

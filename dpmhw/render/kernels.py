@@ -257,6 +257,41 @@ def hit_point(tri, R, T, ob, i, u, v):
 
 
 @nb.njit(inline="always", **_jit)
+def albedo_at(obj_alb, tex, ob, i, u, v):
+    """The diffuse albedo at barycentrics (u, v) of triangle row i of object ob: obj_alb[ob],
+    times its texture where it has one. `tex` = (tri_uv, obj_tex, texels) (SceneGeometry.textures):
+    the corners' texture coordinates interpolated, then the texels fetched bilinearly with repeat
+    wrapping, texel centres at half-integers and v = 1 the image's top row (OBJ and Mitsuba's
+    convention)."""
+    tri_uv, obj_tex, texels = tex
+    a0, a1, a2 = obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2]
+    width = obj_tex[ob, 1]
+    if width == 0:
+        return a0, a1, a2
+    height = obj_tex[ob, 2]
+    w0 = F1 - u - v
+    tu = w0 * tri_uv[i, 0] + u * tri_uv[i, 2] + v * tri_uv[i, 4]
+    tv = w0 * tri_uv[i, 1] + u * tri_uv[i, 3] + v * tri_uv[i, 5]
+    tu -= np.floor(tu)  # repeat: [0, 1) before scaling, so no coordinate overflows an index
+    tv -= np.floor(tv)
+    x = tu * np.float32(width) - np.float32(0.5)
+    y = (F1 - tv) * np.float32(height) - np.float32(0.5)
+    fx, fy = np.floor(x), np.floor(y)
+    ax, ay = x - fx, y - fy
+    x0, y0 = int(fx), int(fy)
+    x0 = x0 + width if x0 < 0 else (x0 - width if x0 >= width else x0)
+    y0 = y0 + height if y0 < 0 else (y0 - height if y0 >= height else y0)
+    x1 = x0 + 1 if x0 + 1 < width else 0
+    y1 = y0 + 1 if y0 + 1 < height else 0
+    r0, r1 = obj_tex[ob, 0] + y0 * width, obj_tex[ob, 0] + y1 * width
+    w00, w01, w10, w11 = (F1 - ax) * (F1 - ay), ax * (F1 - ay), (F1 - ax) * ay, ax * ay
+    t0 = w00 * texels[r0 + x0, 0] + w01 * texels[r0 + x1, 0] + w10 * texels[r1 + x0, 0] + w11 * texels[r1 + x1, 0]
+    t1 = w00 * texels[r0 + x0, 1] + w01 * texels[r0 + x1, 1] + w10 * texels[r1 + x0, 1] + w11 * texels[r1 + x1, 1]
+    t2 = w00 * texels[r0 + x0, 2] + w01 * texels[r0 + x1, 2] + w10 * texels[r1 + x0, 2] + w11 * texels[r1 + x1, 2]
+    return a0 * t0, a1 * t1, a2 * t2
+
+
+@nb.njit(inline="always", **_jit)
 def face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2, v0, v1, v2, use_viewer):
     """Normalise the shading normal s (g where it vanishes), take the outgoing direction wo (−d,
     or towards the viewer at v when `use_viewer`: in DPM the eye, not the projector, sees the
@@ -286,7 +321,7 @@ def shade(
     depth, max_bounces, mis_last, key, first, count, pixel, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v,
     beta, kd, prev_pdf, prev_env,
     tri,
-    obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
+    obj_R, obj_t, obj_alb, tex, obj_spec, obj_alpha, obj_emit, obj_pdfA,
     light_world, light_obj, light_cdf, p_env, background,
     film_diff, film_spec, nonfinite,
     sh_o, sh_d, sh_tmax, sh_c, sh_pix,
@@ -300,6 +335,7 @@ def shade(
     `tri` : (F, 24) float32 rows of v0, e1 = v1 − v0, e2 = v2 − v0, unit geometric normal and the
     three corner shading normals, all in model space: one hit touches two cache lines. Column 21:
     the triangle's GGX α where its object has a roughness map, else 0 (then obj_alpha applies).
+    `tex`: the albedo textures (albedo_at).
     `light_world` : (L, 12) rows of the emissive triangles in world space (v0, e1, e2, normal:
     SceneGeometry.light_rows), so light sampling transforms nothing per vertex.
     Writes the film at each path's pixel, and, packed from row `first`: the shadow rays (sh_o,
@@ -374,7 +410,8 @@ def shade(
         alpha = obj_alpha[ob]
         if tri[tri_i, 21] > 0.0:  # per-triangle α (a scene's roughness_map)
             alpha = tri[tri_i, 21]
-        wd = _lum(obj_alb[ob, 0] * (F1 - obj_spec[ob, 0]), obj_alb[ob, 1] * (F1 - obj_spec[ob, 1]), obj_alb[ob, 2] * (F1 - obj_spec[ob, 2]))
+        ar, ag, ab = albedo_at(obj_alb, tex, ob, tri_i, u, v)
+        wd = _lum(ar * (F1 - obj_spec[ob, 0]), ag * (F1 - obj_spec[ob, 1]), ab * (F1 - obj_spec[ob, 2]))
         ws = _lum(obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2])
         if wd + ws <= 0.0:
             continue  # black surface: nothing is reflected
@@ -421,7 +458,7 @@ def shade(
                     tmax = dist * np.float32(1.0 - SHADOW_SHORTEN)
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if inv_pl > 0.0 and cos_i > 0.0 and _dot(wi0, wi1, wi2, g0, g1, g2) > 0.0:
-            fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec, split)
+            fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, ar, ag, ab, obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec, split)
             w = F1
             if continues or mis_last:
                 r_bl = pdf_b * inv_pl
@@ -465,7 +502,7 @@ def shade(
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if cos_i <= 0.0 or _dot(wi0, wi1, wi2, g0, g1, g2) <= 0.0:
             continue
-        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, obj_alb[ob, 0], obj_alb[ob, 1], obj_alb[ob, 2], obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec, split)
+        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, ar, ag, ab, obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2], alpha, p_spec, split)
         if not pdf_b > 0.0:
             continue
         f0, f1, f2 = fd0 + fs0, fd1 + fs1, fd2 + fs2
@@ -514,7 +551,7 @@ NO_SHADOW = np.float32(-1.0)  # a block table's tmax where no shadow ray is trac
 
 
 @nb.njit(nogil=True, **_jit_shading)
-def first_surface(first, end, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v, tri, obj_R, obj_t, obj_alb, obj_spec, obj_alpha, obj_emit,
+def first_surface(first, end, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v, tri, obj_R, obj_t, obj_alb, tex, obj_spec, obj_alpha, obj_emit,
                   background, viewer, use_viewer, cam_fwd, surf, gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec,
                   gb_rough, write_gbuffer, split):
     """The frame-independent part of the first vertex of pixels [first, end) (camera rays rd,
@@ -557,17 +594,18 @@ def first_surface(first, end, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v, tri, o
         alpha = obj_alpha[ob]
         if tri[i, 21] > 0.0:  # per-triangle α (a scene's roughness_map)
             alpha = tri[i, 21]
+        ar, ag, ab = albedo_at(obj_alb, tex, ob, i, hit_u[k], hit_v[k])
         if write_gbuffer:
             gb_id[k] = ob
             gb_model[k, 0], gb_model[k, 1], gb_model[k, 2] = pm0, pm1, pm2
             gb_pos[k, 0], gb_pos[k, 1], gb_pos[k, 2] = p0, p1, p2
             gb_normal[k, 0], gb_normal[k, 1], gb_normal[k, 2] = s0, s1, s2
             gb_depth[k] = hit_t[k] * _dot(d0, d1, d2, cam_fwd[0], cam_fwd[1], cam_fwd[2])
+            gb_alb[k, 0], gb_alb[k, 1], gb_alb[k, 2] = ar, ag, ab
             for c in range(3):
-                gb_alb[k, c] = obj_alb[ob, c]
                 gb_spec[k, c] = obj_spec[ob, c]
             gb_rough[k] = math.sqrt(alpha)
-        wd = _lum(obj_alb[ob, 0] * (F1 - obj_spec[ob, 0]), obj_alb[ob, 1] * (F1 - obj_spec[ob, 1]), obj_alb[ob, 2] * (F1 - obj_spec[ob, 2]))
+        wd = _lum(ar * (F1 - obj_spec[ob, 0]), ag * (F1 - obj_spec[ob, 1]), ab * (F1 - obj_spec[ob, 2]))
         ws = _lum(obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2])
         if wd + ws <= 0.0:
             continue  # black surface: nothing is reflected
@@ -576,8 +614,7 @@ def first_surface(first, end, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v, tri, o
         surf[S_G, k], surf[S_G + 1, k], surf[S_G + 2, k] = g0, g1, g2
         surf[S_S, k], surf[S_S + 1, k], surf[S_S + 2, k] = s0, s1, s2
         surf[S_WO, k], surf[S_WO + 1, k], surf[S_WO + 2, k] = wo0, wo1, wo2
-        for c in range(3):
-            surf[S_ALB + c, k] = obj_alb[ob, c]
+        surf[S_ALB, k], surf[S_ALB + 1, k], surf[S_ALB + 2, k] = ar, ag, ab
         if split:
             for c in range(3):
                 surf[S_SPEC + c, k] = obj_spec[ob, c]
@@ -926,7 +963,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     image width, cam_d): when on, the camera rays are generated through a random point of each
     pixel into cam_d (which `primary_dirs` must then be) and traced here in full. Returns (shadow rays,
     continuation rays), or (−1, −1) if a path outlived 4096 bounces."""
-    tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd = scn
+    tri, R, T, obj_alb, tex, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd = scn
     film_emit, film_diff, film_spec, nonfinite = film
     gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer = gb
     surface_ready, surf = surface
@@ -954,7 +991,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
         nx_o, nx_d = (ray_o0, ray_d0) if depth % 2 == 0 else (ray_o1, ray_d1)
         if depth == 0:  # the first vertex: its surface (unless kept), then this pass's samples
             if not surface_ready:
-                first_surface(first, end, primary_dirs, p_t, p_obj, p_prim, p_u, p_v, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit,
+                first_surface(first, end, primary_dirs, p_t, p_obj, p_prim, p_u, p_v, tri, R, T, obj_alb, tex, obj_spec, obj_alpha, obj_emit,
                               background, viewer, use_viewer, cam_fwd, surf, gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb,
                               gb_spec, gb_rough, write_gbuffer, split)
             n_shadow, n_next = sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env,
@@ -964,7 +1001,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
             rd = ray_d1 if depth % 2 == 0 else ray_d0
             n_shadow, n_next = shade(
                 depth, max_bounces, mis_last, key, first, count, pixel, rd, h_t, h_obj, h_prim, h_u, h_v,
-                beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, obj_spec, obj_alpha, obj_emit, obj_pdfA,
+                beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, tex, obj_spec, obj_alpha, obj_emit, obj_pdfA,
                 light_world, light_obj, light_cdf, p_env, background, film_diff, film_spec, nonfinite,
                 sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d, split)
         if n_shadow:

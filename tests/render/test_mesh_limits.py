@@ -309,11 +309,13 @@ def test_a_utf8_obj_with_a_byte_order_mark_and_accents_loads(tmp_path):
     assert len(load_mesh(path).faces) == 4
 
 
-def test_an_obj_with_a_latin_1_material_library_loads_without_reading_it(tmp_path):
+def test_an_obj_with_a_latin_1_material_library_loads(tmp_path):
+    """Its texture, without texture coordinates to apply it, is named and not read."""
     (tmp_path / "scan.mtl").write_bytes("# matériau ©\nnewmtl a\nmap_Kd missing.png\n".encode("latin-1"))
     path = tmp_path / "scan.obj"
     path.write_text("mtllib scan.mtl\nusemtl a\n" + TETRA)
-    assert len(load_mesh(path).faces) == 4
+    mesh = load_mesh(path)
+    assert len(mesh.faces) == 4 and any("missing.png" in note for note in mesh.notes)
 
 
 @pytest.mark.parametrize("name, data, words", [
