@@ -192,8 +192,7 @@ def test_the_session_loop_chooses_levels_every_frame():
     """`lod.mesh=true`: the loop installs the levels, chooses before each render (stage
     "mesh_lod" timed), reads the output's visibility after it; the lit bunny 1 m away stays at
     level 0; `lod.mesh=false` (default): no MeshLod at all."""
-    from dpmhw.session.testing import fake_session
-    from dpmhw.tracking import wait_for
+    from dpmhw.session.testing import fake_session, wait_for
 
     scene = load_scene("dpm-bunny").at_size(32, 24)
     for on in (True, False):
