@@ -46,12 +46,12 @@ from concurrent.futures import ThreadPoolExecutor
 import numba as nb
 import numpy as np
 
-from dpmhw.render import kernels, traversal
-from dpmhw.render.accel import empty_hits
+from dpmhw.render import kernels
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.distortion import distort_inline
+from dpmhw.render.embree import traversal
+from dpmhw.render.embree.accel import RtcAccel, empty_hits
 from dpmhw.render.geometry import SceneGeometry
-from dpmhw.render.traversal import RtcAccel
 from dpmhw.scene_file import Scene
 from dpmhw.transforms import Pose
 

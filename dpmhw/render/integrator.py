@@ -30,12 +30,11 @@ import numpy as np
 from dpmhw.errors import RenderError
 from dpmhw.limits import render_memory_problem
 from dpmhw.render import kernels
-from dpmhw.render.accel import Hits, empty_hits
 from dpmhw.render.cameras import PinholeCamera
+from dpmhw.render.embree.accel import Hits, RtcAccel, empty_hits
 from dpmhw.render.frame import Frame
 from dpmhw.render.geometry import SceneGeometry
 from dpmhw.render.raster import CameraHits
-from dpmhw.render.traversal import RtcAccel
 from dpmhw.scene_file import Scene
 from dpmhw.transforms import Pose
 

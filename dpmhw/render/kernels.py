@@ -22,7 +22,8 @@ from llvmlite import ir
 from numba import types
 from numba.core.extending import intrinsic
 
-from dpmhw.render import raster, traversal
+from dpmhw.render import raster
+from dpmhw.render.embree import traversal
 from dpmhw.render.prefetch import prefetch_row
 
 INV_PI = 1.0 / math.pi

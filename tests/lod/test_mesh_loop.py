@@ -9,7 +9,7 @@ from dpmhw.lod import mesh_loop
 from dpmhw.lod.mesh_lod import MeshLevels, image_pop_visibility, scene_at_levels
 from dpmhw.lod.mesh_loop import MeshLod, build_levels, mesh_lod
 from dpmhw.lod.visibility import VisibilitySettings
-from dpmhw.render import accel, rtc
+from dpmhw.render.embree import accel, capi
 from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene
@@ -55,7 +55,7 @@ def test_each_level_bvh_is_built_once(bunny, monkeypatch):
         built = len(r.geometry._level_scenes)
         assert built == len(levels[0]) - 1  # one per coarser level; level 0 is the renderer's own
         fail = lambda *a, **k: pytest.fail("a BVH was built after the levels were installed")  # noqa: E731
-        monkeypatch.setattr(rtc, "RtcScene", fail)
+        monkeypatch.setattr(capi, "RtcScene", fail)
         monkeypatch.setattr(accel, "_embree_scene", fail)
         cam = scene.camera.pose
         seen = []
