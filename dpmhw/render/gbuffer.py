@@ -418,7 +418,7 @@ class NativeGBuffer:
         self._stamp = np.zeros(len(self._dcz), np.int32)  # see `_raster`
         self._sid = 0
 
-    # ---- hook: mesh level of detail (dpmhw.lod.mesh_loop) -----------------------------------
+    # ---- hook: mesh level of detail (dpmhw.lod.mesh_pipeline) -----------------------------------
     def use_mesh(self, k: int, mesh, all_levels=None) -> None:
         """Moving object k is drawn with `mesh` from the next update on (its triangle rows and
         BVH already swapped by `SceneGeometry.set_level`). `all_levels` (every mesh it may use,

@@ -120,7 +120,7 @@ class SceneGeometry:
         t = np.array([p.t for p in poses], f32)
         return R, t
 
-    # ---- mesh levels of detail (dpmhw.lod.mesh_loop) -------------------------------------------
+    # ---- mesh levels of detail (dpmhw.lod.mesh_pipeline) -------------------------------------------
     def add_levels(self, k: int, meshes) -> None:
         """Install the levels of moving object k (`meshes[0]` its own mesh, then coarser ones):
         their triangle rows are appended to `tri` and their model-space BVHs built, once; then

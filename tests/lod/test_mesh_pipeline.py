@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from dpmhw.benchmarks.lod import bench_scene
-from dpmhw.lod import mesh_loop
-from dpmhw.lod.mesh_lod import MeshLevels, image_pop_visibility, scene_at_levels
-from dpmhw.lod.mesh_loop import MeshLod, build_levels, mesh_lod
+from dpmhw.lod import mesh_pipeline
+from dpmhw.lod.mesh_levels import MeshLevels, image_pop_visibility, scene_at_levels
+from dpmhw.lod.mesh_pipeline import MeshLod, build_levels, mesh_lod
 from dpmhw.lod.visibility import VisibilitySettings
 from dpmhw.render.embree import accel, capi
 from dpmhw.render.gbuffer import NativeGBuffer
@@ -175,7 +175,7 @@ def test_levels_only_for_moving_meshes():
         assert (lv is not None) == (o.shape == "mesh" and o.is_dynamic)
     assert levels[3] is levels[4]  # the two bunnies share one MeshLevels
     assert isinstance(levels[3], MeshLevels)
-    assert mesh_loop.SRGB8_TO_LINEAR[0] == 0 and mesh_loop.SRGB8_TO_LINEAR[255] == pytest.approx(1.0)
+    assert mesh_pipeline.SRGB8_TO_LINEAR[0] == 0 and mesh_pipeline.SRGB8_TO_LINEAR[255] == pytest.approx(1.0)
     with PathIntegrator(scaled_scene(scene, 0.1), threads=1) as r:
         with pytest.raises(ValueError, match="objects\\[0\\]"):
             r.geometry.add_levels(0, [scene.objects[0].mesh])
