@@ -13,10 +13,11 @@ NOT_RENDERING = ("gbuffer.py", "digest.py")
 
 
 def renderer_digest() -> str:
-    """sha256 of the version and dpmhw/render/*.py (but NOT_RENDERING), 16 hex digits."""
+    """sha256 of the version and dpmhw/render/**/*.py (but NOT_RENDERING), 16 hex digits."""
     h = hashlib.sha256(__version__.encode())
-    for p in sorted(Path(__file__).resolve().parent.glob("*.py")):
-        if p.name in NOT_RENDERING:
+    root = Path(__file__).resolve().parent
+    for p in sorted(root.rglob("*.py")):
+        if p.name in NOT_RENDERING and p.parent == root:
             continue
-        h.update(p.name.encode() + p.read_bytes())
+        h.update(p.relative_to(root).as_posix().encode() + p.read_bytes())
     return h.hexdigest()[:16]
