@@ -34,7 +34,7 @@ from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.embree.accel import Hits, RtcAccel, empty_hits
 from dpmhw.render.frame import Frame
 from dpmhw.render.geometry import SceneGeometry
-from dpmhw.render.raster import CameraHits
+from dpmhw.render.static_raster import CameraHits
 from dpmhw.scene_file import Scene
 from dpmhw.transforms import Pose
 
@@ -109,7 +109,7 @@ class PathIntegrator:
         # one compiled call per thread and pass (with the C API); False: Python between the stages (the
         # embreex fallback, and the benchmark's per-stage timing)
         self.fused = True
-        # a new camera pose's hits on static objects by rasterisation (raster.CameraHits: 15 against
+        # a new camera pose's hits on static objects by rasterisation (static_raster.CameraHits: 15 against
         # 35 CPU-ms for paper-static's, the same triangles but at shared edges); not with lens
         # distortion, whose pixel rays are traced. False: traced (for comparisons)
         self.raster_camera = True

@@ -22,7 +22,7 @@ from llvmlite import ir
 from numba import types
 from numba.core.extending import intrinsic
 
-from dpmhw.render import raster
+from dpmhw.render import static_raster
 from dpmhw.render.embree import traversal
 from dpmhw.render.prefetch import prefetch_row
 
@@ -913,7 +913,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     queried from inside (traversal): shade → shadow rays → continuation rays → shade …, no
     Python between the stages. `primary` = (t, obj, prim, u, v) of the camera rays. `static` =
     (trace, t, obj, prim, u, v, then the rasteriser's per-pixel triangles and tables, see
-    raster.resolve_range): the camera rays' hits on the static objects (the integrator's
+    static_raster.resolve_range): the camera rays' hits on the static objects (the integrator's
     per-pose cache, which is `primary` itself when nothing moves); with `trace` (a new camera
     pose) this segment's rows of it are made first: resolved on the rasterised triangles, or
     (no triangles given) traced as 4×4-tile packets against the static BVH (`acc_static`), here
@@ -942,7 +942,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     else:
         trace_static, s_t, s_obj, s_prim, s_u, s_v, r_tri, r_vw, r_faces, r_obj, r_prim, r_origin = static
         if trace_static and r_tri.shape[0] > 0:  # rasterised: each pixel's triangle known, its hit resolved here
-            raster.resolve_range(r_tri, r_vw, r_faces, r_obj, r_prim, r_origin, primary_dirs, first, end, s_t, s_obj, s_prim, s_u, s_v)
+            static_raster.resolve_range(r_tri, r_vw, r_faces, r_obj, r_prim, r_origin, primary_dirs, first, end, s_t, s_obj, s_prim, s_u, s_v)
         elif trace_static:
             traversal.closest_tiles(acc_static, R, T, camera_o, primary_dirs, width, first, end, s_t, s_obj, s_prim, s_u, s_v)
         if complete_primary:

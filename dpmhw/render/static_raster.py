@@ -29,9 +29,8 @@ import numba as nb
 import numpy as np
 
 from dpmhw.render.embree.accel import Hits, empty_hits
+from dpmhw.render.zbuffer import BAND_ROWS, NEAR_Z
 
-BAND_ROWS = 16  # image rows per band: the unit of parallel work and of triangle binning
-NEAR_Z = 1e-6  # bounding boxes of triangles crossing the camera plane are taken from z ≥ NEAR_Z
 BOX_MARGIN = 1e-3  # pixels
 SPAN_WIDTH = 16  # boxes wider than this get each row's span from the edges' crossings
 

@@ -1,4 +1,4 @@
-"""Camera hits by rasterisation (dpmhw.render.raster) against Embree's traced camera rays."""
+"""Camera hits by rasterisation (dpmhw.render.static_raster) against Embree's traced camera rays."""
 
 import os
 from types import SimpleNamespace
@@ -9,7 +9,7 @@ import pytest
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.embree import capi
 from dpmhw.render.geometry import SceneGeometry
-from dpmhw.render.raster import CameraHits, CameraHitsUnsupported
+from dpmhw.render.static_raster import CameraHits, CameraHitsUnsupported
 from dpmhw.transforms import Pose, rotation_about_axis
 
 from .test_integrator import ROOM
@@ -213,7 +213,7 @@ def test_bad_inputs_name_the_field_and_a_scene_without_static_objects_misses():
 def test_rows_resolved_piecewise_equal_the_whole_frame(make_scene):
     """The integrator's segments can resolve their own pixels (resolve_range) from one z-buffer."""
     from dpmhw.render.embree.accel import empty_hits
-    from dpmhw.render.raster import resolve_range
+    from dpmhw.render.static_raster import resolve_range
 
     scene = make_scene(ROOM.format(extra=""))
     geometry = SceneGeometry(scene, threads=1)
