@@ -46,6 +46,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numba as nb
 import numpy as np
 
+from dpmhw.parallel_kernels import PARALLEL_MIN_PIXELS, serial_and_parallel
 from dpmhw.render import kernels
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.distortion import distort_inline
@@ -94,17 +95,7 @@ def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, spec, alpha, vi
         g_rough[p] = math.sqrt(tri[i, 21] if tri[i, 21] > 0.0 else alpha[ob])  # per-triangle α: a roughness map
 
 
-def _serial_and_parallel(py_func):
-    """(serial, parallel) compilations; the serial one is a renamed copy (own cache entry)."""
-    import types
-
-    serial = types.FunctionType(py_func.__code__, py_func.__globals__, py_func.__name__ + "_serial")
-    serial.__qualname__ = py_func.__qualname__ + "_serial"
-    return nb.njit(cache=True, nogil=True)(serial), nb.njit(parallel=True, cache=True, nogil=True)(py_func)
-
-
-_attribute_kernels = _serial_and_parallel(_attributes_py)
-PARALLEL_MIN_PIXELS = 32768  # below this, waking the worker threads costs more than the work
+_attribute_kernels = serial_and_parallel(_attributes_py)
 
 
 @nb.njit(nogil=True, cache=True)
