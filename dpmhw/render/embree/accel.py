@@ -2,7 +2,7 @@
 built through Embree's C API (its queries run in `traversal`'s kernels) and `EmbreeAccel` through
 embreex (which has no instancing) with the same interface and the same hits.
 
-Each BVH is built once: so each BVH is built once: all static objects together in world
+Each BVH is built once: all static objects together in world
 space, and every distinct moving mesh (`mesh_key`) in its own model space. Per frame a query
 transforms the rays into each moving object's model space (a rigid transform keeps ray
 distances), and every later BVH is asked only for hits closer than the best so far (embree's
