@@ -48,8 +48,8 @@ import numpy as np
 from dpmhw.benchmarks.figures import save_figure
 from dpmhw.benchmarks.native_quality import flip_error
 from dpmhw.benchmarks.references import REFERENCE_SEED, ReferenceCache
-from dpmhw.lod.mesh_lod import MeshLodSettings
-from dpmhw.lod.mesh_loop import MeshLod, build_levels
+from dpmhw.lod.mesh_levels import MeshLodSettings
+from dpmhw.lod.mesh_pipeline import MeshLod, build_levels
 from dpmhw.lod.refine import RefineSettings, TileRefiner
 from dpmhw.lod.visibility import VisibilitySettings, visibility_map
 from dpmhw.metrics import masked_psnr, psnr, ssim

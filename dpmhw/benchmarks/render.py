@@ -27,9 +27,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from dpmhw.render import kernels
-from dpmhw.render.accel import empty_hits
 from dpmhw.machine import machine_info
+from dpmhw.render import kernels
+from dpmhw.render.embree.accel import empty_hits
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene
 from dpmhw.transforms import Pose, rotation_about_axis

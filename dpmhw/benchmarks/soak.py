@@ -81,7 +81,7 @@ from typing import Callable
 import numpy as np
 
 from dpmhw.session.config import load_session_config
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import wait_for
 
 __all__ = ["FAULT_KINDS", "KINDS_BY_TRACKER", "format_table", "plot_soak", "run_soak"]
 

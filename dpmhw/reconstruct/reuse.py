@@ -58,6 +58,7 @@ import numba as nb
 import numpy as np
 
 from dpmhw.errors import DpmhwError
+from dpmhw.parallel_kernels import PARALLEL_MIN_PIXELS, serial_and_parallel
 from dpmhw.render.distortion import distort_inline
 from dpmhw.reconstruct.settings import ALPHA_MAX, ALPHA_MIN, MAX_HISTORY_LENGTH, REUSE_MODES
 
@@ -225,21 +226,8 @@ def _motion_py(cur, cur_id, prev_xy, prev_ok, width, height, hi, lo, hist_n, his
     return bad.sum()
 
 
-PARALLEL_MIN_PIXELS = 16384  # below this, thread start-up costs more than the work
-
-
-def _serial_and_parallel(py_func):
-    """(serial, parallel) compiled versions; the serial one is a renamed copy so that the two
-    never share an on-disk cache entry."""
-    import types
-
-    serial = types.FunctionType(py_func.__code__, py_func.__globals__, py_func.__name__ + "_serial")
-    serial.__qualname__ = py_func.__qualname__ + "_serial"
-    return nb.njit(cache=True, nogil=True)(serial), nb.njit(parallel=True, cache=True, nogil=True)(py_func)
-
-
-_same_pixel_kernel = _serial_and_parallel(_same_pixel_py)
-_motion_kernel = _serial_and_parallel(_motion_py)
+_same_pixel_kernel = serial_and_parallel(_same_pixel_py)
+_motion_kernel = serial_and_parallel(_motion_py)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -313,7 +301,7 @@ def reproject(object_id: np.ndarray, model_position: np.ndarray, prev_poses, pre
     return xy, ok
 
 
-_reproject_kernel = _serial_and_parallel(_reproject_py)
+_reproject_kernel = serial_and_parallel(_reproject_py)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -12,11 +12,13 @@ from dpmhw import __version__
 NOT_RENDERING = ("gbuffer.py", "digest.py")
 
 
-def renderer_digest() -> str:
-    """sha256 of the version and dpmhw/render/*.py (but NOT_RENDERING), 16 hex digits."""
+def renderer_digest(root: Path | None = None) -> str:
+    """sha256 of the version and `root`/**/*.py (default: dpmhw/render/) but NOT_RENDERING at
+    its top, 16 hex digits."""
     h = hashlib.sha256(__version__.encode())
-    for p in sorted(Path(__file__).resolve().parent.glob("*.py")):
-        if p.name in NOT_RENDERING:
+    root = Path(__file__).resolve().parent if root is None else root
+    for p in sorted(root.rglob("*.py")):
+        if p.name in NOT_RENDERING and p.parent == root:
             continue
-        h.update(p.name.encode() + p.read_bytes())
+        h.update(p.relative_to(root).as_posix().encode() + p.read_bytes())
     return h.hexdigest()[:16]

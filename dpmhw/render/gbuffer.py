@@ -16,7 +16,7 @@ cached attributes; every other pixel (silhouettes, depth steps, other objects) i
 "trace" traces every pixel of the region (exact; the reference the "edges" mode is measured
 against in docs/temporal-reuse.md).
 
-Mode "raster" z-buffers the moving objects' model-space meshes into the region instead (`_raster`:
+Mode "raster" z-buffers the moving objects' model-space meshes into the region instead (`_raster_moving`:
 coverage is tested at each pixel ray's ideal image-plane point, so the hits equal ray casting's
 except on shared edges, with or without lens distortion) and needs no shading frame. Measured
 on dpm-bunny at 1024×768 (69k triangles, 40–55k covered pixels, 2 threads, CPU time per update,
@@ -46,20 +46,20 @@ from concurrent.futures import ThreadPoolExecutor
 import numba as nb
 import numpy as np
 
-from dpmhw.render import kernels, traversal
-from dpmhw.render.accel import empty_hits
+from dpmhw.parallel_kernels import PARALLEL_MIN_PIXELS, serial_and_parallel
+from dpmhw.render import kernels
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.distortion import distort_inline
+from dpmhw.render.embree import traversal
+from dpmhw.render.embree.accel import RtcAccel, empty_hits
 from dpmhw.render.geometry import SceneGeometry
-from dpmhw.render.traversal import RtcAccel
+from dpmhw.render.zbuffer import BAND_ROWS, NEAR_Z
 from dpmhw.scene_file import Scene
 from dpmhw.transforms import Pose
 
 ROI_MARGIN_PX = 4  # plus 1 % of the box size: lens distortion between the hull's projected corners
 EDGE_DEPTH_REL = 0.02  # 2×2 shading taps further apart in depth than this: trace the native pixel
 MODES = ("raster", "edges", "trace")
-RASTER_BAND_ROWS = 8  # the rasteriser's threads take interleaved bands of this many rows
-NEAR_Z = 1e-4  # a moving vertex this close to the projector's plane (metres): trace that frame instead
 
 
 def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, tex, spec, alpha, viewer, use_viewer, cam_fwd,
@@ -95,17 +95,7 @@ def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, tex, spec, alph
         g_rough[p] = math.sqrt(tri[i, 21] if tri[i, 21] > 0.0 else alpha[ob])  # per-triangle α: a roughness map
 
 
-def _serial_and_parallel(py_func):
-    """(serial, parallel) compilations; the serial one is a renamed copy (own cache entry)."""
-    import types
-
-    serial = types.FunctionType(py_func.__code__, py_func.__globals__, py_func.__name__ + "_serial")
-    serial.__qualname__ = py_func.__qualname__ + "_serial"
-    return nb.njit(cache=True, nogil=True)(serial), nb.njit(parallel=True, cache=True, nogil=True)(py_func)
-
-
-_attribute_kernels = _serial_and_parallel(_attributes_py)
-PARALLEL_MIN_PIXELS = 32768  # below this, waking the worker threads costs more than the work
+_attribute_kernels = serial_and_parallel(_attributes_py)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -247,7 +237,7 @@ def _setup_faces(faces, cam, pix, margin_rel, y0, y1, x0, x1, rect):
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
-def _raster(faces, cam, rect, ideal, qx_col, qy_row, separable, dcz, W, bands, obj, prim0, stamp, sid, s_t, t, o_id, prim,
+def _raster_moving(faces, cam, rect, ideal, qx_col, qy_row, separable, dcz, W, bands, obj, prim0, stamp, sid, s_t, t, o_id, prim,
             u, v):
     """Z-buffer the faces into the pixels' camera-ray hits (t, o_id, prim, u, v): a pixel whose
     `stamp` is `sid` holds a moving object's hit of this frame there, any other its cached static
@@ -264,8 +254,8 @@ def _raster(faces, cam, rect, ideal, qx_col, qy_row, separable, dcz, W, bands, o
             ya, yb = rect[f, 0], rect[f, 1]
             if ya >= yb:
                 continue
-            ra = ya // RASTER_BAND_ROWS
-            rb = (yb - 1) // RASTER_BAND_ROWS
+            ra = ya // BAND_ROWS
+            rb = (yb - 1) // BAND_ROWS
             if rb - ra + 1 < bands and (b - ra) % bands > rb - ra:
                 continue  # none of its row blocks belongs to this band
             i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
@@ -279,7 +269,7 @@ def _raster(faces, cam, rect, ideal, qx_col, qy_row, separable, dcz, W, bands, o
             inv = 1.0 / area
             iza, izb, izc = 1.0 / za, 1.0 / zb, 1.0 / zc
             for y in range(ya, yb):
-                if (y // RASTER_BAND_ROWS) % bands != b:
+                if (y // BAND_ROWS) % bands != b:
                     continue
                 qy = qy_row[y]
                 for x in range(rect[f, 2], rect[f, 3]):
@@ -415,10 +405,10 @@ class NativeGBuffer:
         K = self.camera.K
         self._qx_col = (np.arange(self.width) - K[0, 2]) / K[0, 0]  # the ideal points without distortion
         self._qy_row = (np.arange(self.height) - K[1, 2]) / K[1, 1]
-        self._stamp = np.zeros(len(self._dcz), np.int32)  # see `_raster`
+        self._stamp = np.zeros(len(self._dcz), np.int32)  # see `_raster_moving`
         self._sid = 0
 
-    # ---- hook: mesh level of detail (dpmhw.lod.mesh_loop) -----------------------------------
+    # ---- hook: mesh level of detail (dpmhw.lod.mesh_pipeline) -----------------------------------
     def use_mesh(self, k: int, mesh, all_levels=None) -> None:
         """Moving object k is drawn with `mesh` from the next update on (its triangle rows and
         BVH already swapped by `SceneGeometry.set_level`). `all_levels` (every mesh it may use,
@@ -436,7 +426,7 @@ class NativeGBuffer:
 
     # ---- per frame -------------------------------------------------------------------------
     def _raster_box(self, box, poses) -> None:
-        """Mode "raster": z-buffer the moving objects' meshes into the box (see `_raster`); falls
+        """Mode "raster": z-buffer the moving objects' meshes into the box (see `_raster_moving`); falls
         back to tracing the box when a moving vertex reaches the projector's plane."""
         if self._meshes is None:
             self._raster_setup()
@@ -455,7 +445,7 @@ class NativeGBuffer:
         bands = max(1, nb.get_num_threads())
         for i, prim0, _, faces, cpos, pix, rect in self._meshes:
             _setup_faces(faces, cpos, pix, self._margin_rel, *box, rect)
-            _raster(faces, cpos, rect, self._ideal, self._qx_col, self._qy_row, self._margin_rel == 0.0, self._dcz, W,
+            _raster_moving(faces, cpos, rect, self._ideal, self._qx_col, self._qy_row, self._margin_rel == 0.0, self._dcz, W,
                     bands, i, prim0, self._stamp, self._sid, s.t,
                     h.t, h.obj, h.prim, h.u, h.v)
         st = self._static

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dpmhw.render import rtc
-from dpmhw.render.accel import EmbreeAccel
+from dpmhw.render.embree import capi
+from dpmhw.render.embree.accel import EmbreeAccel
 from dpmhw.render.kernels import MIN_ALPHA
 from dpmhw.scene_file import Scene
 from dpmhw.transforms import Pose
@@ -24,9 +24,9 @@ def _luminance(rgb: np.ndarray) -> np.ndarray:
 
 def make_accel(objects, tri_offsets, threads: int):
     """Embree through its C API from the kernels (RtcAccel), or embreex's one-ray path when
-    libembree4 cannot be loaded (rtc.load warns once)."""
-    if rtc.load():
-        from dpmhw.render.traversal import RtcAccel
+    libembree4 cannot be loaded (capi.load warns once)."""
+    if capi.load():
+        from dpmhw.render.embree.accel import RtcAccel
 
         return RtcAccel(objects, tri_offsets, threads=threads)
     return EmbreeAccel(objects, tri_offsets, threads=threads)
@@ -146,7 +146,7 @@ class SceneGeometry:
         t = np.array([p.t for p in poses], f32)
         return R, t
 
-    # ---- mesh levels of detail (dpmhw.lod.mesh_loop) -------------------------------------------
+    # ---- mesh levels of detail (dpmhw.lod.mesh_pipeline) -------------------------------------------
     def add_levels(self, k: int, meshes) -> None:
         """Install the levels of moving object k (`meshes[0]` its own mesh, then coarser ones):
         their triangle rows are appended to `tri` and their model-space BVHs built, once; then
@@ -187,13 +187,13 @@ class SceneGeometry:
     def _level_bvh(self, mesh):
         """One model-space BVH of a level for this geometry's accelerator, and its bounding
         sphere (the accelerator's own formula)."""
-        from dpmhw.render.accel import _embree_scene
+        from dpmhw.render.embree.accel import _embree_scene
 
         v = np.asarray(mesh.vertices)
         centre = (v.min(axis=0) + v.max(axis=0)) / 2
         radius = np.linalg.norm(v - centre, axis=1).max() * (1 + 1e-4) + 1e-9
         if hasattr(self.accel, "acc"):
-            scene = rtc.RtcScene([np.asarray(v, np.float32)], [mesh.faces])
+            scene = capi.RtcScene([np.asarray(v, np.float32)], [mesh.faces])
             self._level_scenes.append(scene)
             return scene.handle, np.array([*centre.astype(f32), f32(radius)], f32)
         return _embree_scene([v], [mesh.faces]), (centre.astype(f32), f32(radius))

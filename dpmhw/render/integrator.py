@@ -30,12 +30,11 @@ import numpy as np
 from dpmhw.errors import RenderError
 from dpmhw.limits import render_memory_problem
 from dpmhw.render import kernels
-from dpmhw.render.accel import Hits, empty_hits
 from dpmhw.render.cameras import PinholeCamera
+from dpmhw.render.embree.accel import Hits, RtcAccel, empty_hits
 from dpmhw.render.frame import Frame
 from dpmhw.render.geometry import SceneGeometry
-from dpmhw.render.raster import CameraHits
-from dpmhw.render.traversal import RtcAccel
+from dpmhw.render.static_raster import CameraHits
 from dpmhw.scene_file import Scene
 from dpmhw.transforms import Pose
 
@@ -110,7 +109,7 @@ class PathIntegrator:
         # one compiled call per thread and pass (with the C API); False: Python between the stages (the
         # embreex fallback, and the benchmark's per-stage timing)
         self.fused = True
-        # a new camera pose's hits on static objects by rasterisation (raster.CameraHits: 15 against
+        # a new camera pose's hits on static objects by rasterisation (static_raster.CameraHits: 15 against
         # 35 CPU-ms for paper-static's, the same triangles but at shared edges); not with lens
         # distortion, whose pixel rays are traced. False: traced (for comparisons)
         self.raster_camera = True

@@ -22,7 +22,8 @@ from llvmlite import ir
 from numba import types
 from numba.core.extending import intrinsic
 
-from dpmhw.render import raster, traversal
+from dpmhw.render import static_raster
+from dpmhw.render.embree import traversal
 from dpmhw.render.prefetch import prefetch_row
 
 INV_PI = 1.0 / math.pi
@@ -140,6 +141,22 @@ def _basis(n0, n1, n2):
 
 
 @nb.njit(inline="always", **_jit)
+def _cosine_local(u1, u2):
+    """A cosine-distributed direction about +z from two uniforms (Malley's method: a uniform point
+    (x, y) of the unit disk, radius √u1 and angle 2π·u2, lifted to the hemisphere); its pdf is
+    z/π. The GGX sample takes the same disk point."""
+    r = math.sqrt(u1)
+    cphi, sphi = _cos_sin_turn(u2)
+    return r * cphi, r * sphi, math.sqrt(max(F0, F1 - u1))
+
+
+@nb.njit(inline="always", **_jit)
+def _to_world(x, y, z, t0, t1, t2, c0, c1, c2, s0, s1, s2):
+    """Local coordinates in the frame (t, c, s) → world."""
+    return x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
+
+
+@nb.njit(inline="always", **_jit)
 def _ggx_d(cos_h, a2):
     denom = cos_h * cos_h * (a2 - F1) + F1
     return a2 / (PI32 * denom * denom)
@@ -206,9 +223,7 @@ def _ggx_sample(wo0, wo1, wo2, t0, t1, t2, c0, c1, c2, s0, s1, s2, alpha, x, y):
     hx, hy = alpha * hx, alpha * hy
     ihl = F1 / math.sqrt(hx * hx + hy * hy + hz * hz)
     hx, hy, hz = hx * ihl, hy * ihl, hz * ihl
-    h0 = hx * t0 + hy * c0 + hz * s0
-    h1 = hx * t1 + hy * c1 + hz * s1
-    h2 = hx * t2 + hy * c2 + hz * s2
+    h0, h1, h2 = _to_world(hx, hy, hz, t0, t1, t2, c0, c1, c2, s0, s1, s2)
     dh = np.float32(2.0) * _dot(wo0, wo1, wo2, h0, h1, h2)
     return dh * h0 - wo0, dh * h1 - wo1, dh * h2 - wo2
 
@@ -429,10 +444,8 @@ def shade(
         wi0 = wi1 = wi2 = F0
         if u_sel < p_env:
             t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
-            r = math.sqrt(u1)
-            cphi, sphi = _cos_sin_turn(u2)
-            x, y, z = r * cphi, r * sphi, math.sqrt(max(F0, F1 - u1))
-            wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
+            x, y, z = _cosine_local(u1, u2)
+            wi0, wi1, wi2 = _to_world(x, y, z, t0, t1, t2, c0, c1, c2, s0, s1, s2)
             pdf_l = p_env * z * INV_PI32
             if pdf_l > 0.0:
                 inv_pl = F1 / pdf_l
@@ -491,14 +504,11 @@ def shade(
         u1 = rand(key, pix, base_dim + 4)
         u2 = rand(key, pix, base_dim + 5)
         t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
-        r = math.sqrt(u1)
-        cphi, sphi = _cos_sin_turn(u2)
-        x, y = r * cphi, r * sphi
+        x, y, z = _cosine_local(u1, u2)
         if u_lobe < p_spec:
             wi0, wi1, wi2 = _ggx_sample(wo0, wo1, wo2, t0, t1, t2, c0, c1, c2, s0, s1, s2, alpha, x, y)
         else:
-            z = math.sqrt(max(F0, F1 - u1))
-            wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
+            wi0, wi1, wi2 = _to_world(x, y, z, t0, t1, t2, c0, c1, c2, s0, s1, s2)
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         if cos_i <= 0.0 or _dot(wi0, wi1, wi2, g0, g1, g2) <= 0.0:
             continue
@@ -670,12 +680,11 @@ def _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, g
         u1 = rand(key, k, 1)
         u2 = rand(key, k, 2)
         t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
-        r = math.sqrt(u1)
-        cphi, sphi = _cos_sin_turn(u2)
-        x, y, z = r * cphi, r * sphi, math.sqrt(max(F0, F1 - u1))
+        x, y, z = _cosine_local(u1, u2)
         pdf_e = p_env * z * INV_PI32
         inv_e = F1 / pdf_e if pdf_e > F0 else F0
-        bb1, bb2 = u2 * r, F1 - r  # uniform on the triangle (r = √u1)
+        su = math.sqrt(u1)
+        bb1, bb2 = u2 * su, F1 - su  # uniform on the triangle
         q0 = lblk[L_ROW * LSB + j] + bb1 * lblk[(L_ROW + 3) * LSB + j] + bb2 * lblk[(L_ROW + 6) * LSB + j] - o0
         q1 = lblk[(L_ROW + 1) * LSB + j] + bb1 * lblk[(L_ROW + 4) * LSB + j] + bb2 * lblk[(L_ROW + 7) * LSB + j] - o1
         q2 = lblk[(L_ROW + 2) * LSB + j] + bb1 * lblk[(L_ROW + 5) * LSB + j] + bb2 * lblk[(L_ROW + 8) * LSB + j] - o2
@@ -688,9 +697,10 @@ def _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, g
         area_ok = (dist > TINY32) & (cos_l > F0) & (pa > F0)
         inv_a = cos_l / pa if area_ok else F0
         env = u_sel < p_env
-        wi0 = x * t0 + y * c0 + z * s0 if env else qa0
-        wi1 = x * t1 + y * c1 + z * s1 if env else qa1
-        wi2 = x * t2 + y * c2 + z * s2 if env else qa2
+        e0, e1, e2 = _to_world(x, y, z, t0, t1, t2, c0, c1, c2, s0, s1, s2)
+        wi0 = e0 if env else qa0
+        wi1 = e1 if env else qa1
+        wi2 = e2 if env else qa2
         inv_pl = inv_e if env else inv_a
         li0 = bg0 if env else lblk[L_EMIT * LSB + j]
         li1 = bg1 if env else lblk[(L_EMIT + 1) * LSB + j]
@@ -720,10 +730,8 @@ def _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, g
         u_lobe = rand(key, k, 3)
         u1 = rand(key, k, 4)
         u2 = rand(key, k, 5)
-        r = math.sqrt(u1)
-        cphi, sphi = _cos_sin_turn(u2)
-        x, y, z = r * cphi, r * sphi, math.sqrt(max(F0, F1 - u1))
-        wi0, wi1, wi2 = x * t0 + y * c0 + z * s0, x * t1 + y * c1 + z * s1, x * t2 + y * c2 + z * s2
+        x, y, z = _cosine_local(u1, u2)
+        wi0, wi1, wi2 = _to_world(x, y, z, t0, t1, t2, c0, c1, c2, s0, s1, s2)
         if glossy:  # the GGX lobe's direction where u_lobe chooses it
             h0, h1, h2 = _ggx_sample(wo0, wo1, wo2, t0, t1, t2, c0, c1, c2, s0, s1, s2, alpha, x, y)
             spec_lobe = u_lobe < p_spec
@@ -949,7 +957,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     queried from inside (traversal): shade → shadow rays → continuation rays → shade …, no
     Python between the stages. `primary` = (t, obj, prim, u, v) of the camera rays. `static` =
     (trace, t, obj, prim, u, v, then the rasteriser's per-pixel triangles and tables, see
-    raster.resolve_range): the camera rays' hits on the static objects (the integrator's
+    static_raster.resolve_range): the camera rays' hits on the static objects (the integrator's
     per-pose cache, which is `primary` itself when nothing moves); with `trace` (a new camera
     pose) this segment's rows of it are made first: resolved on the rasterised triangles, or
     (no triangles given) traced as 4×4-tile packets against the static BVH (`acc_static`), here
@@ -978,7 +986,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     else:
         trace_static, s_t, s_obj, s_prim, s_u, s_v, r_tri, r_vw, r_faces, r_obj, r_prim, r_origin = static
         if trace_static and r_tri.shape[0] > 0:  # rasterised: each pixel's triangle known, its hit resolved here
-            raster.resolve_range(r_tri, r_vw, r_faces, r_obj, r_prim, r_origin, primary_dirs, first, end, s_t, s_obj, s_prim, s_u, s_v)
+            static_raster.resolve_range(r_tri, r_vw, r_faces, r_obj, r_prim, r_origin, primary_dirs, first, end, s_t, s_obj, s_prim, s_u, s_v)
         elif trace_static:
             traversal.closest_tiles(acc_static, R, T, camera_o, primary_dirs, width, first, end, s_t, s_obj, s_prim, s_u, s_v)
         if complete_primary:

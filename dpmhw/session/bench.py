@@ -25,7 +25,7 @@ import numpy as np
 
 from dpmhw.session.bench_plots import bench_series
 from dpmhw.session.config import load_session_config
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import wait_for
 from dpmhw.transforms import Pose
 
 __all__ = ["BenchCase", "format_table", "run_bench", "run_case"]

@@ -171,7 +171,7 @@ class LodSection(_Section):
                                            "path every 1, 2 or 4 frames (1/every of the paths; between, its history)")
     viewer_distance_m: float = Field(1.5, gt=0.0, le=1e4, description="the audience's distance to the surface")
     alpha_v: float = Field(0.0, ge=-1e4, le=1e4, description="added to the visibility (higher refines more)")
-    mesh: bool = Field(False, description="mesh level of detail per moving object per frame (dpmhw.lod.mesh_loop; "
+    mesh: bool = Field(False, description="mesh level of detail per moving object per frame (dpmhw.lod.mesh_pipeline; "
                        "off: the renderer's meshes as loaded, bit for bit; at lab distances a visible object keeps "
                        "level 0, docs/mesh-lod.md)")
 

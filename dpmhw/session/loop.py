@@ -41,7 +41,7 @@ import numpy as np
 from dpmhw.display import DisplayTiming
 from dpmhw.frame_sink import FrameSink
 from dpmhw.postprocess import NonFiniteFrameError
-from dpmhw.lod.mesh_loop import mesh_lod
+from dpmhw.lod.mesh_pipeline import mesh_lod
 from dpmhw.lod.refine import tile_refiner
 from dpmhw.reconstruct.adaptive import AdaptiveSampler
 from dpmhw.reconstruct.settings import FILTER_MODES, REUSE_MODES

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
 from dpmhw.tracking import LatestPoses, PoseSample, TrackerState, TrackerStatus
 
-__all__ = ["FakeProjector", "FakeTracker", "FlatRenderer", "fake_session"]
+__all__ = ["FakeProjector", "FakeTracker", "FlatRenderer", "fake_session", "wait_for"]
 
 
 class FakeTracker:
@@ -134,11 +135,11 @@ def flat_frame(width: int, height: int, seed: int = 0):
 
 def fake_session(overrides=(), renderer=None, projector=True, tracker=None, frame_log=2000):
     """A SessionLoop (not started) over the doubles and an in-memory sink, 32×24 dpm-bunny."""
-    from drivers.frame_sinks import RecordingSink
     from dpmhw.scene_file import load_scene
     from dpmhw.session.config import load_session_config
     from dpmhw.session.factory import resolve_bindings
     from dpmhw.session.loop import SessionLoop, SessionParts
+    from drivers.frame_sinks import RecordingSink
 
     scene = load_scene("dpm-bunny").at_size(32, 24)
     cfg = load_session_config(overrides=["safety.holdoff_s=0.1", "safety.stale_after_ms=200", "safety.watchdog_s=1.0",
@@ -147,3 +148,15 @@ def fake_session(overrides=(), renderer=None, projector=True, tracker=None, fram
                          resolve_bindings(cfg, scene), FakeProjector() if projector else None)
     parts.tracker.start()
     return SessionLoop(cfg, parts, frame_log=frame_log)
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.005) -> bool:
+    """Poll `predicate` until true or `timeout_s` elapses; returns its last value. For tests and
+    benches that watch a running session from outside, where no event says what they wait for."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if predicate():
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(poll_s)

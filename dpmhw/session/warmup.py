@@ -148,13 +148,13 @@ def _reconstruction(config_data: dict) -> None:
 # docs/first-run.md. They weigh the progress and its ETA (a kernel not listed is not counted).
 EXPECTED_S: dict[str, dict[str, float]] = {
     "path tracing": {
-        "render.kernels.sample_first": 14.6, "render.kernels.shade": 12.4, "render.traversal._closest_rows": 7.0,
+        "render.kernels.sample_first": 14.6, "render.kernels.shade": 12.4, "render.embree.traversal._closest_rows": 7.0,
         "render.kernels.trace_segment": 4.0, "render.kernels.trace_segments": 3.7,
-        "render.traversal.occluded_range": 1.8, "render.kernels.first_surface": 1.7, "render.raster._raster": 1.5,
-        "render.raster._setup": 1.4, "render.traversal.closest_rows": 1.2, "render.traversal.closest_range": 0.8,
-        "render.raster.resolve_range": 0.5, "render.kernels.jittered_directions": 0.5,
-        "render.raster._to_camera": 0.4, "render.traversal.tile_order_range": 0.4,
-        "render.traversal.closest_tiles": 0.4,
+        "render.embree.traversal.occluded_range": 1.8, "render.kernels.first_surface": 1.7, "render.static_raster._raster": 1.5,
+        "render.static_raster._setup": 1.4, "render.embree.traversal.closest_rows": 1.2, "render.embree.traversal.closest_range": 0.8,
+        "render.static_raster.resolve_range": 0.5, "render.kernels.jittered_directions": 0.5,
+        "render.static_raster._to_camera": 0.4, "render.embree.traversal.tile_order_range": 0.4,
+        "render.embree.traversal.closest_tiles": 0.4,
     },
     "G-buffer and reconstruction": {
         "reconstruct.analytic._evaluate_block": 5.6, "reconstruct.upsample._upsample_kernel": 4.6,

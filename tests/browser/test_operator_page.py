@@ -17,7 +17,7 @@ import urllib.request
 
 import pytest
 
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import wait_for
 
 pytestmark = pytest.mark.browser
 

@@ -11,8 +11,8 @@ import signal
 import pytest
 import usb.core
 
+from dpmhw.session.testing import wait_for
 from drivers.dlpc900 import DLPC900, DisplayMode
-from dpmhw.tracking import wait_for
 from firmware_mocks.dlpc900_socket import EmulatorProcess, SocketBackend, socket_usb
 
 WAIT_S = 30  # for what must happen eventually: generous, as only broken code waits this long

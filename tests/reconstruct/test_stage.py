@@ -155,8 +155,7 @@ def test_switching_the_filter_live_restarts_the_history_of_the_other_path():
 def test_native_gbuffer_packet_path_equals_the_embreex_path():
     """The C-API packet re-trace (tile order, from the cached static hits) and embreex's
     gathered one-ray path give the same G-buffer bit for bit."""
-    from dpmhw.render.accel import EmbreeAccel
-    from dpmhw.render.traversal import RtcAccel
+    from dpmhw.render.embree.accel import EmbreeAccel, RtcAccel
 
     native = load_scene("dpm-bunny").at_size(96, 72)
     r = PathIntegrator(native, threads=1)

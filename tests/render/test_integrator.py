@@ -211,7 +211,7 @@ def test_a_fixed_camera_keeps_the_first_surfaces_and_shares_a_read_only_gbuffer(
 def test_nothing_is_kept_while_an_object_moves(make_scene):
     """A moving object changes the camera hits every frame: each frame computes its first
     surfaces and writes its own G-buffer, which follows the object."""
-    from .test_rtc import MOTION
+    from .test_embree import MOTION
 
     scene = make_scene(ROOM.format(extra=MOTION))
     with PathIntegrator(scene, threads=2) as integrator:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import wait_for
 from server.app import build_app
 
 WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba); only broken code waits

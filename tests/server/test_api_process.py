@@ -12,8 +12,7 @@ import httpx
 import numpy as np
 import pytest
 
-from dpmhw.session.testing import fake_session
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import fake_session, wait_for
 from server.process import ApiProcess
 from server.shared_slot import SharedSlot, SlotTornError
 

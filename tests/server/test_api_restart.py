@@ -8,8 +8,7 @@ import signal
 
 import httpx
 
-from dpmhw.session.testing import fake_session
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import fake_session, wait_for
 from server.process import ApiProcess
 
 

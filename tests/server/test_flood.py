@@ -18,8 +18,7 @@ import time
 import httpx
 import pytest
 
-from dpmhw.session.testing import fake_session
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import fake_session, wait_for
 from server.guard import ConnectionLimits
 from server.process import ApiProcess
 

@@ -11,10 +11,9 @@ import pytest
 from dpmhw.reconstruct.settings import ALPHA_MIN
 from dpmhw.session.config import LIVE_FIELDS, LiveSettings, SessionConfig, SessionConfigError, load_session_config
 from dpmhw.session.recording import SessionRecorder
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import wait_for
 from server.models import SettingsModel, SettingsPatch
 from server.pages import STATIC_DIR
-
 from tests.server.conftest import AUTH
 
 WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba); only broken code waits

@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from dpmhw.session.config import load_session_config
 from dpmhw.session.factory import build_session
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import wait_for
 from server.app import build_app
 
 TOKEN = "e2e-token"

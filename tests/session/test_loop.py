@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from dpmhw.session.loop import SettingsError
-from dpmhw.tracking import TrackerState, wait_for
+from dpmhw.session.testing import wait_for
+from dpmhw.tracking import TrackerState
 
 WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba); only broken code waits
 

@@ -6,7 +6,7 @@ import pytest
 
 from dpmhw.session.config import SessionConfigError, load_session_config
 from dpmhw.session.factory import build_session
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import wait_for
 
 
 @pytest.mark.parametrize("scale, filt", [(0.25, "lobe"), (0.5, "normal"), (1, "off")])

@@ -5,8 +5,7 @@ from __future__ import annotations
 import csv
 
 from dpmhw.session.recording import SessionRecorder
-from dpmhw.session.testing import fake_session
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import fake_session, wait_for
 
 WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba); only broken code waits
 

@@ -13,7 +13,7 @@ import threading
 
 import pytest
 
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import wait_for
 
 WAIT_S = 30  # for what must happen eventually: generous, as only broken code waits this long
 

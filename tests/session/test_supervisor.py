@@ -30,7 +30,7 @@ import httpx
 import pytest
 
 from dpmhw.session.supervisor import EMULATOR_ENV
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import wait_for
 from firmware_mocks.dlpc900_socket import EmulatorProcess
 
 DARK_WITHIN_S = 15.0  # kill → emulated DMD dark by read-back (measured: well under 1 s; see docs/session.md)

@@ -15,8 +15,8 @@ import time
 import httpx
 import pytest
 
-from dpmhw.session.safety import SafetyMonitor
 from dpmhw.child_process import RestartPolicy, describe_exit
+from dpmhw.session.safety import SafetyMonitor
 from dpmhw.session.supervisor import FaultResponder
 from server.process import bind_api_socket
 
@@ -216,7 +216,7 @@ def test_leftovers_of_dead_owners_are_swept_and_live_ones_kept(tmp_path):
 
 def test_the_loop_keeps_its_heartbeat_lit_while_projecting_and_dark_once_blanked(make_loop):
     from dpmhw.session.heartbeat import Heartbeat
-    from dpmhw.tracking import wait_for
+    from dpmhw.session.testing import wait_for
 
     loop = make_loop()  # stale 200 ms, watchdog 1 s
     beat = loop.heartbeat = Heartbeat()

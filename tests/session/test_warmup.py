@@ -96,7 +96,7 @@ def test_the_groups_cover_the_session_and_no_frame_compiles(extra):
     """The worker groups (run here, in this process) leave the session's own warm-up nothing to
     compile, and frames in every reuse mode and filter compile nothing after it."""
     from dpmhw.session.factory import build_session
-    from dpmhw.tracking import wait_for
+    from dpmhw.session.testing import wait_for
 
     cfg = load_session_config(None, ["render.width=96", "render.height=72", *extra])
     data = cfg.model_dump()

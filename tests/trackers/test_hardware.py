@@ -12,7 +12,8 @@ import time
 import numpy as np
 import pytest
 
-from dpmhw.tracking import TrackerState, wait_for
+from dpmhw.session.testing import wait_for
+from dpmhw.tracking import TrackerState
 
 pytestmark = pytest.mark.hardware
 

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from dpmhw.plausibility import PlausibilityGate, PlausibilityLimits
-from dpmhw.tracking import ClockMapping, PoseSample, wait_for
+from dpmhw.session.testing import wait_for
+from dpmhw.tracking import ClockMapping, PoseSample
 from drivers.natnet import NatNetClient
 from drivers.polhemus_protocol import PoseRecord, RecordParser, TextRecord
 from drivers.serial_tracker import PolhemusTracker

@@ -11,7 +11,7 @@ import sys
 from typer.testing import CliRunner
 
 from dpmhw.cli import _register, app
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import wait_for
 from drivers.natnet import NatNetClient
 
 from .conftest import free_udp_port

@@ -15,7 +15,8 @@ import time
 import numpy as np
 import pytest
 
-from dpmhw.tracking import TrackerState, wait_for
+from dpmhw.session.testing import wait_for
+from dpmhw.tracking import TrackerState
 from drivers.natnet import NatNetClient
 from firmware_mocks.natnet_server import NatNetServer, NatNetServerConfig
 from firmware_mocks.world import World

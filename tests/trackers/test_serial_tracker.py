@@ -16,7 +16,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dpmhw.plausibility import PlausibilityLimits
-from dpmhw.tracking import Tracker, TrackerState, wait_for
+from dpmhw.session.testing import wait_for
+from dpmhw.tracking import Tracker, TrackerState
 from drivers.polhemus_protocol import (
     POSE_RECORD_BYTES,
     PolhemusDecodeError,

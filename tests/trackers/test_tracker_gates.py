@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from dpmhw.plausibility import PlausibilityGate, PlausibilityLimits
-from dpmhw.tracking import LatestPoses, PoseSample, TrackerState, wait_for
+from dpmhw.session.testing import wait_for
+from dpmhw.tracking import LatestPoses, PoseSample, TrackerState
 from drivers.natnet_protocol import NatNetDecodeError, decode_frame_poses
 from drivers.polhemus_protocol import PolhemusDecodeError, PoseRecord, RecordParser, TextRecord
 from drivers.serial_tracker import PolhemusTracker

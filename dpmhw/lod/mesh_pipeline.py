@@ -29,7 +29,7 @@ import math
 import numba as nb
 import numpy as np
 
-from dpmhw.lod.mesh_lod import MeshLevels, MeshLodSelector, MeshLodSettings, object_visibility
+from dpmhw.lod.mesh_levels import MeshLevels, MeshLodSelector, MeshLodSettings, object_visibility
 from dpmhw.lod.visibility import VisibilityMap, VisibilitySettings, visibility_map
 from dpmhw.postprocess import srgb_decode
 from dpmhw.transforms import Pose

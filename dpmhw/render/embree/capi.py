@@ -44,7 +44,7 @@ RTC_SCENE_FLAG_ROBUST = 1 << 2
 # of four real frames, dropping it changed the primitive of 7 hits (neighbouring triangles across
 # an edge), let none escape and unblocked no shadow ray; the furnace, closed-box and grazing tests
 # hold. Rays aimed exactly at a closed box's edges from inside still escape without it (832 of
-# 60,000: tests/render/test_rtc.py::test_no_leak_out_of_a_closed_box); paths never aim that
+# 60,000: tests/render/test_embree.py::test_no_leak_out_of_a_closed_box); paths never aim that
 # exactly, and random bounces do not leak (same test). No accel of this build is both
 # watertight and faster: "tri_accel=bvh8.triangle4v" (and every robust variant) is the Pluecker
 # test with robust traversal, as slow as the flag; the speed-up is the Moeller test's.

@@ -11,7 +11,7 @@ order, which negates them exactly, and the tests are inclusive: no pixel falls b
 
 Then the closest triangle's t, u, v come from a float32 ray–triangle intersection with the
 pixel's own camera ray (`PinholeCamera.rays_into`) and the world-space float32 vertices Embree
-was given (`traversal.RtcAccel`), factored as Embree's Moeller test is. On paper-static at
+was given (`embree.accel.RtcAccel`), factored as Embree's Moeller test is. On paper-static at
 1024×768 (five poses) they agree with Embree's within 1.3e-6 in t/t; u and v within 1e-6 on the
 room and 7e-4 on the bunny, whose 3 mm triangles seen from 1.5 m leave both intersectors' float32
 barycentrics that uncertain. The triangle differs from Embree's in 0-1 pixel per frame, on an
@@ -28,10 +28,9 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from dpmhw.render.accel import Hits, empty_hits
+from dpmhw.render.embree.accel import Hits, empty_hits
+from dpmhw.render.zbuffer import BAND_ROWS, NEAR_Z
 
-BAND_ROWS = 16  # image rows per band: the unit of parallel work and of triangle binning
-NEAR_Z = 1e-6  # bounding boxes of triangles crossing the camera plane are taken from z ≥ NEAR_Z
 BOX_MARGIN = 1e-3  # pixels
 SPAN_WIDTH = 16  # boxes wider than this get each row's span from the edges' crossings
 

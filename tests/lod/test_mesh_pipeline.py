@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from dpmhw.benchmarks.lod import bench_scene
-from dpmhw.lod import mesh_loop
-from dpmhw.lod.mesh_lod import MeshLevels, image_pop_visibility, scene_at_levels
-from dpmhw.lod.mesh_loop import MeshLod, build_levels, mesh_lod
+from dpmhw.lod import mesh_pipeline
+from dpmhw.lod.mesh_levels import MeshLevels, image_pop_visibility, scene_at_levels
+from dpmhw.lod.mesh_pipeline import MeshLod, build_levels, mesh_lod
 from dpmhw.lod.visibility import VisibilitySettings
-from dpmhw.render import accel, rtc
+from dpmhw.render.embree import accel, capi
 from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene
@@ -55,7 +55,7 @@ def test_each_level_bvh_is_built_once(bunny, monkeypatch):
         built = len(r.geometry._level_scenes)
         assert built == len(levels[0]) - 1  # one per coarser level; level 0 is the renderer's own
         fail = lambda *a, **k: pytest.fail("a BVH was built after the levels were installed")  # noqa: E731
-        monkeypatch.setattr(rtc, "RtcScene", fail)
+        monkeypatch.setattr(capi, "RtcScene", fail)
         monkeypatch.setattr(accel, "_embree_scene", fail)
         cam = scene.camera.pose
         seen = []
@@ -175,7 +175,7 @@ def test_levels_only_for_moving_meshes():
         assert (lv is not None) == (o.shape == "mesh" and o.is_dynamic)
     assert levels[3] is levels[4]  # the two bunnies share one MeshLevels
     assert isinstance(levels[3], MeshLevels)
-    assert mesh_loop.SRGB8_TO_LINEAR[0] == 0 and mesh_loop.SRGB8_TO_LINEAR[255] == pytest.approx(1.0)
+    assert mesh_pipeline.SRGB8_TO_LINEAR[0] == 0 and mesh_pipeline.SRGB8_TO_LINEAR[255] == pytest.approx(1.0)
     with PathIntegrator(scaled_scene(scene, 0.1), threads=1) as r:
         with pytest.raises(ValueError, match="objects\\[0\\]"):
             r.geometry.add_levels(0, [scene.objects[0].mesh])
@@ -192,8 +192,7 @@ def test_the_session_loop_chooses_levels_every_frame():
     """`lod.mesh=true`: the loop installs the levels, chooses before each render (stage
     "mesh_lod" timed), reads the output's visibility after it; the lit bunny 1 m away stays at
     level 0; `lod.mesh=false` (default): no MeshLod at all."""
-    from dpmhw.session.testing import fake_session
-    from dpmhw.tracking import wait_for
+    from dpmhw.session.testing import fake_session, wait_for
 
     scene = load_scene("dpm-bunny").at_size(32, 24)
     for on in (True, False):

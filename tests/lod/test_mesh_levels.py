@@ -3,8 +3,15 @@
 import numpy as np
 import pytest
 
-from dpmhw.lod import mesh_lod
-from dpmhw.lod.mesh_lod import MeshLevels, MeshLodSelector, MeshLodSettings, object_visibility, pop_visibility, scene_at_levels
+from dpmhw.lod import mesh_levels
+from dpmhw.lod.mesh_levels import (
+    MeshLevels,
+    MeshLodSelector,
+    MeshLodSettings,
+    object_visibility,
+    pop_visibility,
+    scene_at_levels,
+)
 from dpmhw.lod.visibility import LodSettingsError, VisibilitySettings
 from dpmhw.meshes import sphere_mesh
 from dpmhw.scene_file import load_scene
@@ -126,7 +133,7 @@ def test_zero_size_projection_and_behind_the_projector(sphere_levels):
 
 def test_selection_never_rebuilds_a_bvh(sphere_levels, monkeypatch):
     sel = MeshLodSelector([sphere_levels, None], FOCAL)
-    monkeypatch.setattr(mesh_lod, "build_bvh", lambda *a: pytest.fail("BVH rebuilt during selection"))
+    monkeypatch.setattr(mesh_levels, "build_bvh", lambda *a: pytest.fail("BVH rebuilt during selection"))
     for z in np.geomspace(0.5, 300, 30):
         sel.select([pose_at(z), pose_at(1.0)], Pose.identity(), np.array([1.0, 1.0]))
     assert sel.current[1] == 0

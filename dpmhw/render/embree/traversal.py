@@ -8,7 +8,7 @@ culling the farther hits. The sphere test and the transform repeat `accel._rays_
 float32 arithmetic exactly, so both paths return the same hits bit for bit.
 
 `acc` is the tuple (scenes, static_objects, tri_offsets, dyn_obj, dyn_sphere) built by
-`RtcAccel.tables`: scenes[0] is the static RTCScene (0 if none), scenes[1 + j] the BVH of moving
+`accel.RtcAccel`: scenes[0] is the static RTCScene (0 if none), scenes[1 + j] the BVH of moving
 object dyn_obj[j], whose model-space bounding sphere is dyn_sphere[j] = (cx, cy, cz, r).
 
 Queries take rows of the caller's ray arrays, as 16-wide packets or one ray per call (an
@@ -22,8 +22,7 @@ import math
 import numba as nb
 import numpy as np
 
-from dpmhw.render import rtc
-from dpmhw.render.accel import mesh_key
+from dpmhw.render.embree import capi
 
 NO_HIT_TFAR = np.float32(1e37)  # embreex's default tfar: keeps hits identical to it
 
@@ -69,8 +68,8 @@ def _load(f, iv, W, j, o0, o1, o2, d0, d1, d2, tfar):
     have changed (the constant fields are set once per query call by _constant_fields)."""
     f[j], f[W + j], f[2 * W + j] = o0, o1, o2
     f[4 * W + j], f[5 * W + j], f[6 * W + j] = d0, d1, d2
-    f[rtc.R_TFAR * W + j] = tfar
-    iv[rtc.H_GEOM * W + j], iv[rtc.H_INST * W + j] = rtc.INVALID, rtc.INVALID
+    f[capi.R_TFAR * W + j] = tfar
+    iv[capi.H_GEOM * W + j], iv[capi.H_INST * W + j] = capi.INVALID, capi.INVALID
 
 
 @nb.njit(inline="always", nogil=True, cache=True)
@@ -78,31 +77,31 @@ def _constant_fields(f, iv, W):
     """The fields of every lane of a W-wide packet that no query changes: tnear 0, time 0, all
     mask bits, id 0, flags 0 (a query writes only tfar and the hit)."""
     for j in range(W):
-        f[rtc.R_TNEAR * W + j], f[rtc.R_TIME * W + j] = 0.0, 0.0
-        iv[rtc.R_MASK * W + j], iv[rtc.R_ID * W + j], iv[rtc.R_FLAGS * W + j] = rtc.INVALID, 0, 0
+        f[capi.R_TNEAR * W + j], f[capi.R_TIME * W + j] = 0.0, 0.0
+        iv[capi.R_MASK * W + j], iv[capi.R_ID * W + j], iv[capi.R_FLAGS * W + j] = capi.INVALID, 0, 0
 
 
 @nb.njit(inline="always", nogil=True, cache=True)
 def _intersect(packets, vp, scene, fp):
     if packets:
-        rtc.rtcIntersect16(vp, scene, fp, 0)
+        capi.rtcIntersect16(vp, scene, fp, 0)
     else:
-        rtc.rtcIntersect1(scene, fp, 0)
+        capi.rtcIntersect1(scene, fp, 0)
 
 
 @nb.njit(inline="always", nogil=True, cache=True)
 def _occluded(packets, vp, scene, fp):
     if packets:
-        rtc.rtcOccluded16(vp, scene, fp, 0)
+        capi.rtcOccluded16(vp, scene, fp, 0)
     else:
-        rtc.rtcOccluded1(scene, fp, 0)
+        capi.rtcOccluded1(scene, fp, 0)
 
 
 @nb.njit(nogil=True, cache=True)
 def scratch16():
     """Aligned scratch for one 16-wide packet or one ray: (float32 view, int32 view, int32 valid[16])."""
-    f = rtc.aligned_words(rtc.P16_RAYHIT_WORDS + 16)
-    return f, f.view(np.int32), f[rtc.P16_RAYHIT_WORDS:].view(np.int32)
+    f = capi.aligned_words(capi.P16_RAYHIT_WORDS + 16)
+    return f, f.view(np.int32), f[capi.P16_RAYHIT_WORDS:].view(np.int32)
 
 
 NO_ORDER = np.zeros(0, np.int64)
@@ -146,12 +145,12 @@ def _closest_rows(acc, R, T, f, iv, valid, o, d, order, first, end, t, obj, prim
                 _load(f, iv, W, i, o[r, 0], o[r, 1], o[r, 2], d[r, 0], d[r, 1], d[r, 2], NO_HIT_TFAR)
             _intersect(packets, vp, scene0, fp)
             for i in range(n):
-                g = iv[rtc.H_GEOM * W + i]
+                g = iv[capi.H_GEOM * W + i]
                 r = rows[i]
-                if g != rtc.INVALID:
+                if g != capi.INVALID:
                     k = static_objects[g]
-                    t[r], obj[r], prim[r] = f[rtc.R_TFAR * W + i], k, tri_offsets[k] + iv[rtc.H_PRIM * W + i]
-                    u[r], v[r] = f[rtc.H_U * W + i], f[rtc.H_V * W + i]
+                    t[r], obj[r], prim[r] = f[capi.R_TFAR * W + i], k, tri_offsets[k] + iv[capi.H_PRIM * W + i]
+                    u[r], v[r] = f[capi.H_U * W + i], f[capi.H_V * W + i]
                 elif not resume:
                     t[r], obj[r], prim[r], u[r], v[r] = np.inf, -1, -1, 0.0, 0.0
         elif not resume:
@@ -175,10 +174,10 @@ def _closest_rows(acc, R, T, f, iv, valid, o, d, order, first, end, t, obj, prim
                 continue
             _intersect(packets, vp, scenes[1 + j], fp)
             for i in range(n):
-                if valid[i] != 0 and iv[rtc.H_GEOM * W + i] != rtc.INVALID:
+                if valid[i] != 0 and iv[capi.H_GEOM * W + i] != capi.INVALID:
                     r = rows[i]
-                    t[r], obj[r], prim[r] = f[rtc.R_TFAR * W + i], k, tri_offsets[k] + iv[rtc.H_PRIM * W + i]
-                    u[r], v[r] = f[rtc.H_U * W + i], f[rtc.H_V * W + i]
+                    t[r], obj[r], prim[r] = f[capi.R_TFAR * W + i], k, tri_offsets[k] + iv[capi.H_PRIM * W + i]
+                    u[r], v[r] = f[capi.H_U * W + i], f[capi.H_V * W + i]
 
 
 @nb.njit(nogil=True, cache=True)
@@ -250,7 +249,7 @@ def occluded_range(acc, R, T, o, d, tmax, first, end, blocked, packets):
                 _load(f, iv, W, i, o[a + i, 0], o[a + i, 1], o[a + i, 2], d[a + i, 0], d[a + i, 1], d[a + i, 2], tmax[a + i])
             _occluded(packets, vp, scene0, fp)
             for i in range(n):
-                blocked[a + i] = f[rtc.R_TFAR * W + i] == -math.inf
+                blocked[a + i] = f[capi.R_TFAR * W + i] == -math.inf
         for j in range(dyn_obj.shape[0]):
             k = dyn_obj[j]
             c0, c1, c2, rad = _centre(R, T, k, dyn_sphere, j)
@@ -267,98 +266,6 @@ def occluded_range(acc, R, T, o, d, tmax, first, end, blocked, packets):
                 continue
             _occluded(packets, vp, scenes[1 + j], fp)
             for i in range(n):
-                if valid[i] != 0 and f[rtc.R_TFAR * W + i] == -math.inf:
+                if valid[i] != 0 and f[capi.R_TFAR * W + i] == -math.inf:
                     blocked[a + i] = True
 
-
-class RtcAccel:
-    """The scene's BVHs built through Embree's C API, with the same interface as
-    `accel.EmbreeAccel` (so the benchmark and tests can put one beside the other), plus `acc`:
-    the tables the compiled kernels query directly."""
-
-    def __init__(self, objects, tri_offsets: np.ndarray, threads: int = 2, robust: bool | None = None):
-        from concurrent.futures import ThreadPoolExecutor
-
-        self.threads = max(1, int(threads))
-        self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="rtc") if self.threads > 1 else None
-        self.tri_offsets = np.asarray(tri_offsets, np.int32)
-        static = [i for i, o in enumerate(objects) if not o.is_dynamic]
-        self.static_objects = np.array(static if static else [0], dtype=np.int32)
-        self._scenes: list[rtc.RtcScene] = []
-        self.static_scene = None
-        if static:
-            self.static_scene = rtc.RtcScene([objects[i].pose.apply(objects[i].mesh.vertices).astype(np.float32) for i in static],
-                                             [objects[i].mesh.faces for i in static], robust=robust)
-            self._scenes.append(self.static_scene)
-        self.dynamic_objects = [i for i, o in enumerate(objects) if o.is_dynamic]
-        by_mesh: dict[bytes, rtc.RtcScene] = {}
-        handles = [self.static_scene.handle if self.static_scene else 0]
-        sphere = []
-        for i in self.dynamic_objects:
-            mesh = objects[i].mesh
-            key = mesh_key(mesh)
-            if key not in by_mesh:  # copies of one mesh share one BVH
-                by_mesh[key] = rtc.RtcScene([np.asarray(mesh.vertices, np.float32)], [mesh.faces], robust=robust)
-                self._scenes.append(by_mesh[key])
-            handles.append(by_mesh[key].handle)
-            lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
-            centre = (lo + hi) / 2  # the same sphere as EmbreeAccel's
-            radius = np.linalg.norm(mesh.vertices - centre, axis=1).max() * (1 + 1e-4) + 1e-9
-            sphere.append([*centre.astype(np.float32), np.float32(radius)])
-        self.acc = (np.array(handles, np.int64), self.static_objects, self.tri_offsets,
-                    np.array(self.dynamic_objects, np.int32), np.array(sphere, np.float32).reshape(-1, 4))
-        scenes = self.acc[0]
-        # only the moving objects (static hits already known) / only the static BVH
-        self.acc_moving = (np.concatenate([[0], scenes[1:]]).astype(np.int64),) + self.acc[1:]
-        self._order_key, self._order = None, NO_ORDER
-        self.acc_static = (scenes[:1].copy(), self.static_objects, self.tri_offsets, np.zeros(0, np.int32), np.zeros((0, 4), np.float32))
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
-        for s in self._scenes:
-            s.close()
-        self._scenes = []
-
-    def _split(self, fn, n: int, grain: int = 4096) -> None:
-        """fn(first, end) over a few chunks of [0, n) per thread (the kernels release the GIL)."""
-        chunks = max(1, min(4 * self.threads, n // grain))
-        bounds = np.linspace(0, n, chunks + 1).astype(np.int64) // 16 * 16  # whole packets (tiles) per chunk
-        bounds[-1] = n
-        jobs = [(int(a), int(e)) for a, e in zip(bounds[:-1], bounds[1:]) if e > a]
-        if self._pool is None or len(jobs) < 2:
-            for a, e in jobs:
-                fn(a, e)
-        else:
-            list(self._pool.map(lambda job: fn(*job), jobs))
-
-    def intersect_range(self, origins, directions, first, end, poses_R, poses_t, hits, static_done: bool = False, packets: bool = False) -> None:
-        """As EmbreeAccel.intersect_range (`static_done`: the rows already hold the static hits)."""
-        acc = self.acc_moving if static_done else self.acc
-        closest_range(acc, poses_R, poses_t, origins, directions, first, end, hits.t, hits.obj, hits.prim, hits.u, hits.v, packets, static_done)
-
-    def occluded_range(self, origins, directions, tmax, first, end, poses_R, poses_t, blocked, packets: bool = False) -> None:
-        occluded_range(self.acc, poses_R, poses_t, origins, directions, tmax, first, end, blocked, packets)
-
-    def _tile_order(self, width: int, height: int) -> np.ndarray:
-        if self._order_key != (width, height):
-            self._order, self._order_key = tile_order(width, height), (width, height)
-        return self._order
-
-    def intersect_static(self, origins: np.ndarray, directions: np.ndarray, width: int | None = None):
-        """Closest hits among the static objects only (every moving object ignored). With the
-        image `width` (rays row-major, one per pixel), as 4×4 pixel tiles; else 16 rows at a time."""
-        from dpmhw.render.accel import empty_hits
-
-        n = len(origins)
-        hits = empty_hits(n)
-        R = np.zeros((len(self.tri_offsets), 3, 3), np.float32)
-        T = np.zeros((len(self.tri_offsets), 3), np.float32)
-        h = (hits.t, hits.obj, hits.prim, hits.u, hits.v)
-        if width and n % width == 0:  # camera rays, one per pixel: 4×4 tiles
-            order = self._tile_order(width, n // width)
-            self._split(lambda a, e: closest_rows(self.acc_static, R, T, origins, directions, order, a, e, *h, True), n)
-        else:
-            self._split(lambda a, e: closest_range(self.acc_static, R, T, origins, directions, a, e, *h, True), n)
-        return hits

@@ -12,7 +12,7 @@ the Hausdorff distance between the level and the original, taken as the larger o
 one-sided maxima; a vertex's distance to the other surface is bounded above by the nearer of
 (a) the hit along its normal (both ways) through the other surface's BVH and (b) the nearest
 vertex of the other surface. The BVH (embreex, model space) is built once per level and serves
-these queries and the pop renders. In the pipeline (`mesh_loop.MeshLod`) the renderer gets its
+these queries and the pop renders. In the pipeline (`mesh_pipeline.MeshLod`) the renderer gets its
 own copy of each level's rows and BVH once (`SceneGeometry.add_levels`) and swaps them in place;
 `scene_at_levels` builds the equivalent scene from scratch (the tests' reference).
 

@@ -1,4 +1,4 @@
-"""Camera hits by rasterisation (dpmhw.render.raster) against Embree's traced camera rays."""
+"""Camera hits by rasterisation (dpmhw.render.static_raster) against Embree's traced camera rays."""
 
 import os
 from types import SimpleNamespace
@@ -6,15 +6,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from dpmhw.render import rtc
 from dpmhw.render.cameras import PinholeCamera
+from dpmhw.render.embree import capi
 from dpmhw.render.geometry import SceneGeometry
-from dpmhw.render.raster import CameraHits, CameraHitsUnsupported
+from dpmhw.render.static_raster import CameraHits, CameraHitsUnsupported
 from dpmhw.transforms import Pose, rotation_about_axis
 
 from .test_integrator import ROOM
 
-pytestmark = pytest.mark.skipif(not rtc.load(), reason="libembree4 not found")
+pytestmark = pytest.mark.skipif(not capi.load(), reason="libembree4 not found")
 
 
 def _look(position, target, up=(0.0, 1.0, 0.0)) -> Pose:
@@ -95,7 +95,7 @@ def test_triangles_crossing_the_camera_plane_and_behind_it():
     crossing = ([[-0.3, 0.2, 1.0], [0.4, 0.3, -2.0], [0.1, 0.6, -2.0]], [[0, 1, 2]])
     behind = ([[-1, 0, 3], [1, 0, 3], [0, 1, 3]], [[0, 1, 2]])
     objects, offsets = _static(floor, crossing, behind)
-    from dpmhw.render.traversal import RtcAccel
+    from dpmhw.render.embree.accel import RtcAccel
 
     accel = RtcAccel(objects, offsets)
     try:
@@ -114,7 +114,7 @@ def test_degenerate_triangles_are_never_hit():
     # zero area: three collinear corners, and a triangle with a repeated corner; then a real one
     odd = ([[-0.5, 0, -1], [0, 0, -1], [0.5, 0, -1], [0, 0.5, -1], [0.2, -0.4, -1]], [[0, 1, 2], [3, 3, 4], [0, 3, 4]])
     objects, offsets = _static(wall, odd)
-    from dpmhw.render.traversal import RtcAccel
+    from dpmhw.render.embree.accel import RtcAccel
 
     accel = RtcAccel(objects, offsets)
     try:
@@ -149,7 +149,7 @@ def _grid(n, size, rng):
 def test_no_holes_along_shared_edges_of_a_large_quad_at_grazing_angles():
     rng = np.random.default_rng(3)
     objects, offsets = _static(_grid(60, 20.0, rng))
-    from dpmhw.render.traversal import RtcAccel
+    from dpmhw.render.embree.accel import RtcAccel
 
     accel = RtcAccel(objects, offsets)
     try:
@@ -212,8 +212,8 @@ def test_bad_inputs_name_the_field_and_a_scene_without_static_objects_misses():
 
 def test_rows_resolved_piecewise_equal_the_whole_frame(make_scene):
     """The integrator's segments can resolve their own pixels (resolve_range) from one z-buffer."""
-    from dpmhw.render.accel import empty_hits
-    from dpmhw.render.raster import resolve_range
+    from dpmhw.render.embree.accel import empty_hits
+    from dpmhw.render.static_raster import resolve_range
 
     scene = make_scene(ROOM.format(extra=""))
     geometry = SceneGeometry(scene, threads=1)

@@ -1,13 +1,15 @@
-"""Ray queries on Intel Embree (embreex), for scenes whose rigid objects move every frame.
+"""The scene's BVHs for ray queries, for scenes whose rigid objects move every frame: `RtcAccel`
+built through Embree's C API (its queries run in `traversal`'s kernels) and `EmbreeAccel` through
+embreex (which has no instancing) with the same interface and the same hits.
 
-embreex has no instancing, so each BVH is built once: all static objects together in world
+Each BVH is built once: all static objects together in world
 space, and every distinct moving mesh (`mesh_key`) in its own model space. Per frame a query
 transforms the rays into each moving object's model space (a rigid transform keeps ray
 distances), and every later BVH is asked only for hits closer than the best so far (embree's
 `tfar` culls the rest).
 The `*_range` queries work on a row range of the caller's arrays on the calling thread (the
 integrator runs one per image segment from its own threads: `EmbreeScene.run` releases the GIL);
-`intersect_static` splits its batch over this class's threads.
+`intersect_static` splits its batch over the accelerator's threads.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ import numba as nb
 import numpy as np
 from embreex import mesh_construction, rtcore_scene
 
-from dpmhw.render import rtc
+from dpmhw.render.embree import capi
+from dpmhw.render.embree.traversal import NO_ORDER, closest_range, closest_rows, occluded_range, tile_order
 from dpmhw.scene_file import ObjectSpec
 
 MIN_RAYS_PER_THREAD = 16384
@@ -96,7 +99,7 @@ def mesh_key(mesh) -> bytes:
 
 
 def _embree_scene(vertices_list, faces_list, robust: bool | None = None) -> rtcore_scene.EmbreeScene:
-    scene = rtcore_scene.EmbreeScene(robust=rtc.ROBUST if robust is None else robust)
+    scene = rtcore_scene.EmbreeScene(robust=capi.ROBUST if robust is None else robust)
     for vertices, faces in zip(vertices_list, faces_list):
         mesh_construction.TriangleMesh(scene, np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.int32))
     return scene
@@ -215,3 +218,92 @@ class EmbreeAccel:
 def empty_hits(n: int) -> Hits:
     """Uninitialised Hits for n rays (filled by the intersect calls)."""
     return Hits(np.empty(n, np.float32), np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32))
+
+
+class RtcAccel:
+    """The scene's BVHs built through Embree's C API, with the same interface as
+    `EmbreeAccel` (so the benchmark and tests can put one beside the other), plus `acc`:
+    the tables the compiled kernels query directly."""
+
+    def __init__(self, objects, tri_offsets: np.ndarray, threads: int = 2, robust: bool | None = None):
+        self.threads = max(1, int(threads))
+        self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="rtc") if self.threads > 1 else None
+        self.tri_offsets = np.asarray(tri_offsets, np.int32)
+        static = [i for i, o in enumerate(objects) if not o.is_dynamic]
+        self.static_objects = np.array(static if static else [0], dtype=np.int32)
+        self._scenes: list[capi.RtcScene] = []
+        self.static_scene = None
+        if static:
+            self.static_scene = capi.RtcScene([objects[i].pose.apply(objects[i].mesh.vertices).astype(np.float32) for i in static],
+                                             [objects[i].mesh.faces for i in static], robust=robust)
+            self._scenes.append(self.static_scene)
+        self.dynamic_objects = [i for i, o in enumerate(objects) if o.is_dynamic]
+        by_mesh: dict[bytes, capi.RtcScene] = {}
+        handles = [self.static_scene.handle if self.static_scene else 0]
+        sphere = []
+        for i in self.dynamic_objects:
+            mesh = objects[i].mesh
+            key = mesh_key(mesh)
+            if key not in by_mesh:  # copies of one mesh share one BVH
+                by_mesh[key] = capi.RtcScene([np.asarray(mesh.vertices, np.float32)], [mesh.faces], robust=robust)
+                self._scenes.append(by_mesh[key])
+            handles.append(by_mesh[key].handle)
+            lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+            centre = (lo + hi) / 2  # the same sphere as EmbreeAccel's
+            radius = np.linalg.norm(mesh.vertices - centre, axis=1).max() * (1 + 1e-4) + 1e-9
+            sphere.append([*centre.astype(np.float32), np.float32(radius)])
+        self.acc = (np.array(handles, np.int64), self.static_objects, self.tri_offsets,
+                    np.array(self.dynamic_objects, np.int32), np.array(sphere, np.float32).reshape(-1, 4))
+        scenes = self.acc[0]
+        # only the moving objects (static hits already known) / only the static BVH
+        self.acc_moving = (np.concatenate([[0], scenes[1:]]).astype(np.int64),) + self.acc[1:]
+        self._order_key, self._order = None, NO_ORDER
+        self.acc_static = (scenes[:1].copy(), self.static_objects, self.tri_offsets, np.zeros(0, np.int32), np.zeros((0, 4), np.float32))
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+        for s in self._scenes:
+            s.close()
+        self._scenes = []
+
+    def _split(self, fn, n: int, grain: int = 4096) -> None:
+        """fn(first, end) over a few chunks of [0, n) per thread (the kernels release the GIL)."""
+        chunks = max(1, min(4 * self.threads, n // grain))
+        bounds = np.linspace(0, n, chunks + 1).astype(np.int64) // 16 * 16  # whole packets (tiles) per chunk
+        bounds[-1] = n
+        jobs = [(int(a), int(e)) for a, e in zip(bounds[:-1], bounds[1:]) if e > a]
+        if self._pool is None or len(jobs) < 2:
+            for a, e in jobs:
+                fn(a, e)
+        else:
+            list(self._pool.map(lambda job: fn(*job), jobs))
+
+    def intersect_range(self, origins, directions, first, end, poses_R, poses_t, hits, static_done: bool = False, packets: bool = False) -> None:
+        """As EmbreeAccel.intersect_range (`static_done`: the rows already hold the static hits)."""
+        acc = self.acc_moving if static_done else self.acc
+        closest_range(acc, poses_R, poses_t, origins, directions, first, end, hits.t, hits.obj, hits.prim, hits.u, hits.v, packets, static_done)
+
+    def occluded_range(self, origins, directions, tmax, first, end, poses_R, poses_t, blocked, packets: bool = False) -> None:
+        occluded_range(self.acc, poses_R, poses_t, origins, directions, tmax, first, end, blocked, packets)
+
+    def _tile_order(self, width: int, height: int) -> np.ndarray:
+        if self._order_key != (width, height):
+            self._order, self._order_key = tile_order(width, height), (width, height)
+        return self._order
+
+    def intersect_static(self, origins: np.ndarray, directions: np.ndarray, width: int | None = None):
+        """Closest hits among the static objects only (every moving object ignored). With the
+        image `width` (rays row-major, one per pixel), as 4×4 pixel tiles; else 16 rows at a time."""
+        n = len(origins)
+        hits = empty_hits(n)
+        R = np.zeros((len(self.tri_offsets), 3, 3), np.float32)
+        T = np.zeros((len(self.tri_offsets), 3), np.float32)
+        h = (hits.t, hits.obj, hits.prim, hits.u, hits.v)
+        if width and n % width == 0:  # camera rays, one per pixel: 4×4 tiles
+            order = self._tile_order(width, n // width)
+            self._split(lambda a, e: closest_rows(self.acc_static, R, T, origins, directions, order, a, e, *h, True), n)
+        else:
+            self._split(lambda a, e: closest_range(self.acc_static, R, T, origins, directions, a, e, *h, True), n)
+        return hits

@@ -1,16 +1,15 @@
-"""Embree's C API from numba (rtc, traversal) against embreex, the oracle: identical hits."""
+"""Embree's C API from numba (capi, traversal) against embreex, the oracle: identical hits."""
 
 import numpy as np
 import pytest
 
-from dpmhw.render import rtc
-from dpmhw.render.accel import EmbreeAccel, empty_hits
+from dpmhw.render.embree import capi
+from dpmhw.render.embree.accel import EmbreeAccel, RtcAccel, empty_hits
 from dpmhw.render.geometry import SceneGeometry
-from dpmhw.render.traversal import RtcAccel
 
 from .test_integrator import ROOM
 
-pytestmark = pytest.mark.skipif(not rtc.load(), reason="libembree4 not found next to embreex")
+pytestmark = pytest.mark.skipif(not capi.load(), reason="libembree4 not found next to embreex")
 
 MOTION = "motion = { rotate_axis = [0.3, 1.0, 0.2], rotate_deg_per_s = 50.0, oscillate_direction = [1.0, 0.0, 0.0], oscillate_amplitude = 0.1, oscillate_period_s = 2.0 }"
 
@@ -130,7 +129,7 @@ def test_missing_library_falls_back_to_embreex_with_one_warning(tmp_path):
         "import warnings; warnings.simplefilter('always')\n"
         "from dpmhw.scene_file import load_scene\n"
         "from dpmhw.render.integrator import PathIntegrator\n"
-        "from dpmhw.render.accel import EmbreeAccel\n"
+        "from dpmhw.render.embree.accel import EmbreeAccel\n"
         "with PathIntegrator(load_scene('paper-static'), threads=1) as it:\n"
         "    assert isinstance(it.geometry.accel, EmbreeAccel)\n"
         "    f = it.render(seed=1)\n"
@@ -164,7 +163,7 @@ def _closed_box_rays(scene, R, T, n, rng, at_edges):
 def test_no_leak_out_of_a_closed_box(make_scene, robust):
     """Rays from inside a closed box all hit it: aimed exactly at its edges and corners with the
     robust flag (without it, the Moeller test lets 832 of these 60,000 escape), and in random
-    directions, as paths bounce, with the default (rtc.ROBUST off: the leak needs a ray through
+    directions, as paths bounce, with the default (capi.ROBUST off: the leak needs a ray through
     an edge to the last bit, which paths do not aim for)."""
     from .test_radiometry import CLOSED_ROOM
 
