@@ -30,11 +30,12 @@ STAGES = ("gbuffer", "reuse", "filter", "upsample", "adaptive", "post")
 FPS = 60.0
 
 
-def _poses(scene, bindings, trajectory, t: float, speed: float):
+def _poses(scene, trajectories, t: float):
+    """The scene's poses at t, the bound objects' from their trajectories."""
     from dpmhw.transforms import Pose
 
     poses = scene.object_poses(t)
-    for index, traj in trajectory.items():
+    for index, traj in trajectories.items():
         R, p = traj.pose(t)
         poses[index] = Pose(np.asarray(R, float), np.asarray(p, float))
     return poses
@@ -50,16 +51,17 @@ def run_stages(scene: str = "dpm-bunny", frames: int = 60, warmup: int = 8, traj
     config = load_session_config(None, {"scene": {"source": scene}, "mock": {"trajectory": trajectory},
                                         **(overrides or {})})
     sc = prepare_scene(config)
-    bindings = resolve_bindings(config, sc)
-    trajs = {i: mock_trajectory(config.mock.trajectory, sc.objects[i].pose.t, config.mock.speed) for i in bindings}
+    trajs = {i: mock_trajectory(config.mock.trajectory, sc.objects[i].pose.t, config.mock.speed)
+             for i in resolve_bindings(config, sc)}
     renderer, gbuffer = build_renderer(config, sc)
-    stage = reconstruct_stage(config, sc, renderer, gbuffer, time.monotonic_ns)
+    stage = None
     out_h, in_h = hashlib.sha256(), hashlib.sha256()
     rows = []
     try:
+        stage = reconstruct_stage(config, sc, renderer, gbuffer, time.monotonic_ns)
         for k in range(warmup + frames):
             t = k / FPS
-            poses = _poses(sc, bindings, trajs, t, config.mock.speed)
+            poses = _poses(sc, trajs, t)
             frame = renderer.render(time=t, seed=config.render.seed + k, spp=config.render.spp, poses=poses)
             w0, c0 = time.perf_counter(), time.process_time()
             out = stage.apply(frame, mode=config.reuse.mode, alpha=config.reuse.alpha, filter=config.render.filter,
@@ -75,7 +77,8 @@ def run_stages(scene: str = "dpm-bunny", frames: int = 60, warmup: int = 8, traj
                 rows.append({"frame": k, "wall_ms": wall * 1e3, "cpu_ms": cpu * 1e3,
                              **{f"{s}_ms": out.stages_s.get(s, 0.0) * 1e3 for s in STAGES}})
     finally:
-        stage.close()
+        if stage is not None:
+            stage.close()
         if gbuffer is not None:
             gbuffer.close()
         renderer.close()

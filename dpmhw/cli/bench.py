@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli.apps import bench_app, write_json
-from dpmhw.cli.choices import QualityPart
+from dpmhw.cli.choices import BenchTrajectory, QualityPart
 from dpmhw.cli.optional_value import optional_values
 from dpmhw.progress import Progress
 
@@ -265,17 +265,20 @@ def bench_stages(
     scene: Annotated[str, typer.Argument(help="Scene file or built-in name.")] = "dpm-bunny",
     frames: Annotated[int, typer.Option(min=1, help="Timed frames (after the warm-up ones).")] = 60,
     warmup: Annotated[int, typer.Option(min=0, help="Frames run first and not counted (history fill, cache loads).")] = 8,
-    trajectory: Annotated[str, typer.Option(help="The mock's trajectory of the bound objects: static, linear or rotate-oscillate.")] = "rotate-oscillate",
+    trajectory: Annotated[BenchTrajectory, typer.Option(help="The mock's trajectory of the bound objects.")] = BenchTrajectory("rotate-oscillate"),
     digest: Annotated[bool, typer.Option("--digest", help="Also hash the outputs (images, histories, G-buffer) and the rendered inputs.")] = False,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the per-frame rows as JSON here.")] = None,
 ) -> None:
     """The session's reconstruction stage alone: median wall and CPU ms per frame and ms per
     sub-stage (gbuffer, reuse, filter, upsample, adaptive, post) on a moving pose sequence."""
     from dpmhw.benchmarks.stages import format_table, run_stages
+    from dpmhw.errors import DpmhwError
 
-    if trajectory not in ("static", "linear", "rotate-oscillate"):
-        raise typer.BadParameter(f"--trajectory: expected static, linear or rotate-oscillate, got {trajectory!r}")
-    result = run_stages(scene, frames=frames, warmup=warmup, trajectory=trajectory, digest=digest)
+    try:
+        result = run_stages(scene, frames=frames, warmup=warmup, trajectory=trajectory.value, digest=digest)
+    except DpmhwError as exc:  # e.g. a scene without a bound (moving) object
+        typer.secho(f"error: {exc}", fg="red", err=True)
+        raise typer.Exit(2)
     typer.echo(format_table(result))
     if json_path is not None:
         keep = {k: result[k] for k in ("scene", "size", "shading", "trajectory") if k in result}
