@@ -4,11 +4,13 @@ The stage is the session's own (`session.factory.build_renderer` + `session.loop
 from a default config: ¼ shading, native G-buffer, analytic demodulation, lobe filter, motion
 reuse, adaptive sampling); the bound objects follow the mock's trajectory (`session.factory
 .mock_trajectory`, rotate-oscillate by default) on a 60 fps timeline, every frame moving. Each
-frame is rendered first (not timed), then `ReconstructStage.apply` is timed: wall ms, CPU ms
-(`time.process_time`: every thread of the process, so the helper thread and the kernels' threads
-count) and the stage's own sub-stage seconds (gbuffer, reuse, filter, upsample, adaptive, post;
-the shading branch (reuse, filter) runs beside the G-buffer, so they overlap). The first
-`warmup` frames (history fill, cache loads) are not counted.
+frame is rendered (its render timed on its own: render_ms, render_cpu_ms), then
+`ReconstructStage.apply` is timed: wall ms, CPU ms (`time.process_time`: every thread of the
+process, so the helper thread and the kernels' threads count) and the stage's own sub-stage
+seconds (gbuffer, reuse, filter, upsample, adaptive, post; the shading branch (reuse, filter)
+runs beside the G-buffer, so they overlap). loop_cpu_ms = render + stage CPU: the loop's
+per-frame work without its pipelining, prediction and present. The first `warmup` frames
+(history fill, cache loads) are not counted.
 
 `digest`: sha256 over every frame's output image, the three reuse histories and the native
 G-buffer's id/depth/normal, and separately over the rendered inputs, so that two code versions
@@ -62,6 +64,7 @@ def run_stages(scene: str = "dpm-bunny", frames: int = 60, warmup: int = 8, traj
         for k in range(warmup + frames):
             t = k / FPS
             poses = _poses(sc, trajs, t)
+            r0, rc0 = time.perf_counter(), time.process_time()
             frame = renderer.render(time=t, seed=config.render.seed + k, spp=config.render.spp, poses=poses)
             w0, c0 = time.perf_counter(), time.process_time()
             out = stage.apply(frame, mode=config.reuse.mode, alpha=config.reuse.alpha, filter=config.render.filter,
@@ -74,7 +77,8 @@ def run_stages(scene: str = "dpm-bunny", frames: int = 60, warmup: int = 8, traj
                           gbuffer.id, gbuffer.depth, gbuffer.normal):
                     out_h.update(np.ascontiguousarray(a).tobytes())
             if k >= warmup:
-                rows.append({"frame": k, "wall_ms": wall * 1e3, "cpu_ms": cpu * 1e3,
+                rows.append({"frame": k, "wall_ms": wall * 1e3, "cpu_ms": cpu * 1e3, "render_ms": (w0 - r0) * 1e3,
+                             "render_cpu_ms": (c0 - rc0) * 1e3, "loop_cpu_ms": (cpu + c0 - rc0) * 1e3,
                              **{f"{s}_ms": out.stages_s.get(s, 0.0) * 1e3 for s in STAGES}})
     finally:
         if stage is not None:
@@ -82,7 +86,7 @@ def run_stages(scene: str = "dpm-bunny", frames: int = 60, warmup: int = 8, traj
         if gbuffer is not None:
             gbuffer.close()
         renderer.close()
-    keys = ["wall_ms", "cpu_ms"] + [f"{s}_ms" for s in STAGES]
+    keys = ["wall_ms", "cpu_ms"] + [f"{s}_ms" for s in STAGES] + ["render_ms", "render_cpu_ms", "loop_cpu_ms"]
     medians = {key: float(np.median([r[key] for r in rows])) for key in keys}
     result = {"scene": scene, "size": f"{sc.render.width}x{sc.render.height}", "shading": f"{renderer.width}x{renderer.height}",
               "trajectory": trajectory, "frames": frames, "medians": medians, "rows": rows}
@@ -95,7 +99,7 @@ def format_table(result: dict) -> str:
     m = result["medians"]
     head = (f"{result['scene']} {result['size']} (shading {result['shading']}), {result['trajectory']}, "
             f"medians of {result['frames']} frames")
-    lines = [head, " ".join(f"{k[:-3]:>9}" for k in m), " ".join(f"{v:9.2f}" for v in m.values())]
+    lines = [head, " ".join(f"{k[:-3]:>10}" for k in m), " ".join(f"{v:10.2f}" for v in m.values())]
     if "digest_out" in result:
         lines.append(f"digest: out {result['digest_out']}  in {result['digest_in']}")
     return "\n".join(lines)
