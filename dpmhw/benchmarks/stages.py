@@ -44,14 +44,13 @@ def _poses(scene, trajectories, t: float):
 
 
 def run_stages(scene: str = "dpm-bunny", frames: int = 60, warmup: int = 8, trajectory: str = "rotate-oscillate",
-               overrides: dict | None = None, digest: bool = False) -> dict:
+               digest: bool = False) -> dict:
     """Per-frame rows and per-stage medians; see the module doc."""
     from dpmhw.session.config import load_session_config
     from dpmhw.session.factory import build_renderer, mock_trajectory, prepare_scene, resolve_bindings
     from dpmhw.session.loop import reconstruct_stage
 
-    config = load_session_config(None, {"scene": {"source": scene}, "mock": {"trajectory": trajectory},
-                                        **(overrides or {})})
+    config = load_session_config(None, {"scene": {"source": scene}, "mock": {"trajectory": trajectory}})
     sc = prepare_scene(config)
     trajs = {i: mock_trajectory(config.mock.trajectory, sc.objects[i].pose.t, config.mock.speed)
              for i in resolve_bindings(config, sc)}

@@ -281,6 +281,5 @@ def bench_stages(
         raise typer.Exit(2)
     typer.echo(format_table(result))
     if json_path is not None:
-        keep = {k: result[k] for k in ("scene", "size", "shading", "trajectory") if k in result}
-        extra = {k: result[k] for k in ("digest_out", "digest_in") if k in result}
-        typer.echo(f"wrote {write_json([{**keep, **extra, **r} for r in result['rows']], json_path)}")
+        keep = {k: result[k] for k in ("scene", "size", "shading", "trajectory", "digest_out", "digest_in") if k in result}
+        typer.echo(f"wrote {write_json([{**keep, **r} for r in result['rows']], json_path)}")
