@@ -44,6 +44,7 @@ def test_help_shows_bracketed_defaults_and_no_bool_metavar():
     (["bench", "session", "--trajectory", "zigzag"], "--trajectory"),
     (["bench", "session", "--api-mode", "fork"], "--api-mode"),
     (["bench", "reproject", "--trajectory", "zigzag"], "--trajectory"),
+    (["bench", "stages", "--trajectory", "zigzag"], "--trajectory"),
     (["mock", "natnet", "--version", "5.0"], "--version"),
     (["mock", "natnet", "--data-port", "0"], "--data-port"),
     (["mock", "serial", "--model", "XX"], "--model"),

@@ -301,3 +301,28 @@ def bench_reproject(
     typer.echo(format_table(rows))
     if json_path is not None:
         typer.echo(f"wrote {write_json(rows, json_path)}")
+
+
+@bench_app.command("stages")
+def bench_stages(
+    scene: Annotated[str, typer.Argument(help="Scene file or built-in name.")] = "dpm-bunny",
+    frames: Annotated[int, typer.Option(min=1, help="Timed frames (after the warm-up ones).")] = 60,
+    warmup: Annotated[int, typer.Option(min=0, help="Frames run first and not counted (history fill, cache loads).")] = 8,
+    trajectory: Annotated[BenchTrajectory, typer.Option(help="The mock's trajectory of the bound objects.")] = BenchTrajectory("rotate-oscillate"),
+    digest: Annotated[bool, typer.Option("--digest", help="Also hash the outputs (images, histories, G-buffer) and the rendered inputs.")] = False,
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the per-frame rows as JSON here.")] = None,
+) -> None:
+    """The session's reconstruction stage alone: median wall and CPU ms per frame and ms per
+    sub-stage (gbuffer, reuse, filter, upsample, adaptive, post) on a moving pose sequence."""
+    from dpmhw.benchmarks.stages import format_table, run_stages
+    from dpmhw.errors import DpmhwError
+
+    try:
+        result = run_stages(scene, frames=frames, warmup=warmup, trajectory=trajectory.value, digest=digest)
+    except DpmhwError as exc:  # e.g. a scene without a bound (moving) object
+        typer.secho(f"error: {exc}", fg="red", err=True)
+        raise typer.Exit(2)
+    typer.echo(format_table(result))
+    if json_path is not None:
+        keep = {k: result[k] for k in ("scene", "size", "shading", "trajectory", "digest_out", "digest_in") if k in result}
+        typer.echo(f"wrote {write_json([{**keep, **r} for r in result['rows']], json_path)}")

@@ -63,6 +63,8 @@ POLY_COLUMNS = 20  # corners (4 × 3), unit normal (3), corner count, centre (3)
 # lane on AVX-512): ~4 CPU-ns a point for an unclipped quad against ~30 scalar, ~95 with the
 # branches. Two things block that and are avoided: numba's ZeroDivisionError checks (hence
 # `error_model="numpy"`; every division is guarded by a select) and branches whose arms differ.
+# Conditions are combined with `&`, not `and`: a short-circuit test guarding a load, or a tuple
+# chosen by a branch, becomes a masked load or store, which AVX2 has only as slow `vmaskmov`.
 EVAL = dict(cache=True, nogil=True, fastmath=FASTMATH, error_model="numpy")
 SOA_ROWS = 13  # per gathered point: p (3), unit n (3), reflected view r (3), λ, specular amplitude (0: none),
 # E, S (rows 9, 10 hold the roughness and the specular flag until `_prepare_span`)
@@ -171,7 +173,7 @@ def _specular_span(soa, i0, i1, poly, t, lum):
         inv = 1.0 / math.sqrt(d2)
         q0, q1, q2 = q0 * inv, q1 * inv, q2 * inv
         cos_l = -(q0 * m0 + q1 * m1 + q2 * m2)
-        ok = d2 > 1e-20 and cos_l > 0.0 and q0 * soa[3, i] + q1 * soa[4, i] + q2 * soa[5, i] > 0.0
+        ok = (d2 > 1e-20) & (cos_l > 0.0) & (q0 * soa[3, i] + q1 * soa[4, i] + q2 * soa[5, i] > 0.0)
         omega = min(area * cos_l / d2, TWO_PI)  # solid angle (small-emitter approximation)
         lam = soa[9, i]
         lam_l = TWO_PI / omega  # an SG of amplitude 1 integrating to ≈ Ω
@@ -196,13 +198,13 @@ def _prepare_span(soa, i0, i1, viewer):
         n0, n1, n2 = soa[3, i], soa[4, i], soa[5, i]
         rough, flag = soa[9, i], soa[10, i]
         nl = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        live = math.isfinite(p0 + p1 + p2) and math.isfinite(nl) and nl > 1e-12
+        live = math.isfinite(p0 + p1 + p2) & math.isfinite(nl) & (nl > 1e-12)
         inv = 1.0 / nl
-        p0, p1, p2 = (p0, p1, p2) if live else (0.0, 0.0, 0.0)
-        n0, n1, n2 = (n0 * inv, n1 * inv, n2 * inv) if live else (0.0, 0.0, 0.0)
+        p0, p1, p2 = (p0 if live else 0.0), (p1 if live else 0.0), (p2 if live else 0.0)
+        n0, n1, n2 = (n0 * inv if live else 0.0), (n1 * inv if live else 0.0), (n2 * inv if live else 0.0)
         v0, v1, v2 = viewer[0] - p0, viewer[1] - p1, viewer[2] - p2
         vl = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-        lobe = live and flag > 0.0 and vl > 1e-12 and math.isfinite(vl) and math.isfinite(rough)
+        lobe = live & (flag > 0.0) & (vl > 1e-12) & math.isfinite(vl) & math.isfinite(rough)
         v0, v1, v2 = v0 / vl, v1 / vl, v2 / vl
         ndv = n0 * v0 + n1 * v1 + n2 * v2
         cos_o = max(ndv, MIN_NDOTV)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dpmhw.tracking import wait_for
+from dpmhw.session.testing import wait_for
 
 WAIT_S = 60  # what must happen eventually (a loaded machine, a first compile); only broken code waits
 
