@@ -47,6 +47,7 @@ from dpmhw.reconstruct.settings import FILTER_MODES, REUSE_MODES
 from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
+from dpmhw.session.governor import Governor
 from dpmhw.session.heartbeat import Heartbeat
 from dpmhw.session.metrics import LoopMetrics
 from dpmhw.session.prediction import PosePredictor
@@ -121,6 +122,7 @@ class FrameRecord:
     sample_age_s: float  # oldest sample's age when the frame started
     settings: LiveSettings
     stages_s: dict
+    governor_level: int = 0  # the quality governor's level the frame was made at (0: the configured settings)
 
 
 @dataclass(frozen=True)
@@ -185,7 +187,7 @@ def reconstruct_stage(config: SessionConfig, scene, renderer, gbuffer, clock) ->
                             background=scene.render.background, viewer=scene.viewer_position,
                             warmup=config.reuse.warmup, gbuffer=gbuffer, clock=clock,
                             adaptive=AdaptiveSampler(renderer, gbuffer, r.adaptive_rays, r.adaptive_threshold)
-                            if gbuffer is not None and r.adaptive_rays > 0 else None,
+                            if gbuffer is not None else None,  # budget 0 samples nothing; a live setting may raise it
                             lod=tile_refiner(renderer, gbuffer, config.lod),
                             analytic=(r.analytic_floor, r.analytic_specular_floor) if r.analytic else None)
 
@@ -236,6 +238,10 @@ class SessionLoop:
         self._settings = config.live_settings()
         self._accepted = self._settings
         self._pending: LiveSettings | None = None
+        self._pinned: set[str] = set()  # live settings the operator set: the governor leaves them alone
+        self.governor = Governor(config.governor, parts.sink.timing.refresh_hz, clock, inert=frozenset(
+            name for name, part in (("adaptive_rays", self.reconstruct.adaptive), ("lod_rays", self.reconstruct.lod))
+            if part is None))
         self._reset_requested = False
         self._lock = threading.Lock()  # guards the published references and the queue only
         self._output_lock = threading.Lock()  # serialises going dark / going live
@@ -369,20 +375,25 @@ class SessionLoop:
         with self._lock:
             return self._accepted
 
-    def update_settings(self, patch: dict) -> LiveSettings:
+    def update_settings(self, patch: dict, *, operator: bool = True) -> LiveSettings:
         """Validate `patch` against the accepted settings and queue it for the next frame (a patch
-        that changes no value queues nothing: the loop applies only real changes)."""
+        that changes no value queues nothing: the loop applies only real changes). An operator's
+        fields are pinned (the governor works around them); the governor's (`operator=False`)
+        skip pinned fields. Under the lock, so neither overwrites the other with a stale base."""
         from pydantic import ValidationError
 
         with self._lock:
             base = self._accepted
-        try:
-            new = LiveSettings.model_validate({**base.model_dump(), **patch})
-        except ValidationError as exc:
-            raise SettingsError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
-        if new == base:
-            return base
-        with self._lock:
+            if not operator:
+                patch = {k: v for k, v in patch.items() if k not in self._pinned}
+            try:
+                new = LiveSettings.model_validate({**base.model_dump(), **patch})
+            except ValidationError as exc:
+                raise SettingsError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+            if operator:
+                self._pinned.update(patch)
+            if new == base:
+                return base
             self._accepted = new
             self._pending = new
         return new
@@ -449,6 +460,7 @@ class SessionLoop:
             reset, self._reset_requested = self._reset_requested, False
         if pending is not None:
             self._settings = pending
+            self.reconstruct.set_budgets(pending.adaptive_rays, pending.lod_rays)
             self.metrics.count("settings_changes_applied")
         if reset:
             self.reconstruct.reset()
@@ -651,13 +663,18 @@ class SessionLoop:
         record = FrameRecord(self._frame_number, t_start, t_present, t_target, used,
                              {b: s.t_exposure_ns for b, s in samples.items()},
                              {b: Pose(np.array(s.rotation), np.array(s.translation)) for b, s in samples.items()},
-                             age_s, settings, stages)
+                             age_s, settings, stages, self.governor.level)
         if self.frame_log is not None:
             self.frame_log.append(record)
             if len(self.frame_log) > self._frame_log_max:
                 del self.frame_log[0]
         if self.parts.recorder is not None:
             self.parts.recorder.frame(record, image)
+        with self._lock:
+            pinned = frozenset(self._pinned)
+        patch = self.governor.observe(t5, stages["frame"], stages, settings, pinned)
+        if patch:
+            self.update_settings(patch, operator=False)
         return True
 
     @staticmethod
@@ -845,6 +862,7 @@ class SessionLoop:
                         "last_blank": self._last_blank},
             "render_size": [self.parts.renderer.width, self.parts.renderer.height],  # the shading resolution
             "output_size": list(self.output_size),
+            "governor": self.governor.status(),
         }
         with self._lock:
             self._status = MappingProxyType(snap)
