@@ -57,10 +57,10 @@ class Rung:
 # stage (docs/session.md): the normal-aware filter costs no quality there, adaptive sampling
 # little; the LOD budget is the largest saving when tile refinement runs at all.
 LADDER: tuple[Rung, ...] = (
-    Rung("normal-aware filter", "filter", "normal", 0.03),
-    Rung("adaptive sampling off", "adaptive_rays", 0, 0.09),
+    Rung("normal-aware filter", "filter", "normal", 0.045),
+    Rung("adaptive sampling off", "adaptive_rays", 0, 0.077),
     Rung("lod rays off", "lod_rays", 0, 0.10),
-    Rung("filter off", "filter", "off", 0.09),
+    Rung("filter off", "filter", "off", 0.071),
 )
 
 
@@ -85,7 +85,7 @@ class Governor:
         self.target_from = "governor.target_fps" if config.target_fps is not None else "the display's refresh"
         self.latency_budget_s = config.latency_budget_ms / 1e3
         self.down_window_ns = int(config.down_window_s * 1e9)
-        self.up_window_ns = int(config.up_window_s * 1e9)
+        self.up_window_ns = int(max(config.up_window_s, config.down_window_s) * 1e9)  # up is never quicker
         self.down_margin = config.down_margin
         self.headroom = config.headroom
         self.ladder = ladder
@@ -130,12 +130,12 @@ class Governor:
         """One rendered frame: its end (`now_ns`), its own time (`frame_s`, start to present), its
         sub-stages (unused by the policy), the settings it was made with and the pinned fields.
         Returns the live settings to change, or None."""
+        self.pinned = frozenset(pinned)
         if not self.enabled:
             return None
         values = settings.model_dump() if hasattr(settings, "model_dump") else dict(settings)
         if self._base is None:
             self._base = {r.field: values[r.field] for r in self.ladder}
-        self.pinned = frozenset(pinned)
         wanted = {f: v for f, v in self.choices().items() if f not in self.pinned}
         if any(values[f] != v for f, v in wanted.items()):  # made before the last change arrived
             self._last_ns = now_ns
