@@ -20,7 +20,8 @@ Decisions:
   ratios), or the cheapest.
 - up: only after `up_window_s` measured at the current level, and only if the rate predicted
   for the level above beats the target by `headroom`. A step up that has to be undone within
-  two hold times doubles the hold (up to 16×): the governor converges instead of oscillating.
+  two hold times doubles the hold (up to 16×), one that holds halves it again: the governor
+  converges instead of oscillating.
 - the window restarts at each change (frames made with the old settings do not count) and after
   a gap (a dark spell: no frames, no rate).
 """
@@ -99,7 +100,7 @@ class Governor:
         self._frames: deque[tuple[int, float]] = deque(maxlen=MAX_FRAMES)  # (now_ns, frame_s) at this level
         self._last_ns: int | None = None
         self._changed_ns: int | None = None
-        self._last_up_ns: int | None = None  # the last step up, until a step down or the next hold passes
+        self._last_up_ns: int | None = None  # the last step up, until it is undone or has held two hold times
         self._next_up_check_ns = 0
         self._backoff = 1
         self._fps: float | None = None
@@ -212,6 +213,9 @@ class Governor:
             self._last_up_ns = None
             self.reason = f"down to {self._name(new)}: {why} over {self.down_window_ns / 1e9:g} s"
             return new
+        if self._last_up_ns is not None and now_ns - self._last_up_ns >= 2 * self._hold_ns():
+            self._backoff = max(1, self._backoff // 2)  # the last step up held: trust the estimates a bit more
+            self._last_up_ns = None
         above = [k for k in levels if k < self.level]
         if not above or now_ns < self._next_up_check_ns:
             return None

@@ -3,8 +3,8 @@
 One folder per session (`<parent>/session-YYYYmmdd-HHMMSS/`):
 
     config.json    the resolved session config (token masked)
-    frames.csv     one row per presented frame: times, stage durations, the quality governor's level
-                   (0: the configured settings), stage durations, every live setting
+    frames.csv     one row per presented frame: times, the quality governor's level (0: the
+                   configured settings), stage durations, every live setting
                    (`LiveSettings`, flags as 0/1), pose used per body
     poses.csv      every tracker sample (body, exposure time, valid, position, quaternion xyzw)
     frames/NNNNNN.png   every `frame_every`-th presented frame

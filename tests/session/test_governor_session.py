@@ -36,6 +36,7 @@ def test_governor_status_and_pinning_in_a_mock_session():
             assert gov["choices"]["adaptive_rays"] == 0 and gov["choices"]["filter"] == "lobe"
             assert [r["skipped"] for r in gov["ladder"] if r["field"] in ("filter", "lod_rays")] == [True, True, True]
             assert wait_for(lambda: loop.frame_log[-1].settings.adaptive_rays == 0, WAIT_S)
+            assert loop.reconstruct.adaptive.budget_rays == 0  # the live budget reached the sampler
             assert st["settings"]["filter"] == "lobe"  # the operator's, never the governor's
             assert all(r.settings.filter == "lobe" for r in loop.frame_log)
             assert loop.frame_log[-1].governor_level == loop.governor.level >= 2
