@@ -4,10 +4,10 @@ cheaper rungs while the rate misses its target, and back up when the machine has
 A policy object only: the frame thread calls `observe` once per rendered frame with the clock,
 the frame's time and its settings; it returns a patch of live settings (or None), which the
 loop applies like an operator's change, except that it never touches a pinned field (one the
-operator set). It keeps a bounded window of frame times and does O(window) work at most once
-per frame; it never blocks, sleeps or renders.
+operator set). It keeps a bounded window of frame times, reads the short window's frames each
+frame and the long window's at most every `down_window_s`; it never blocks, sleeps or renders.
 
-The ladder (`LADDER`) is ordered by measured cost saved per quality lost: each rung is one live
+The ladder (`LADDER`) is ordered by quality lost per cost saved, least first: each rung is one live
 setting set to a cheaper value, applied on top of the rungs before it. Level 0 is the operator's
 configuration (the governor never raises quality above it); level k applies the first k rungs.
 A rung is skipped when its field is pinned or the configuration is already at least as cheap
@@ -37,7 +37,7 @@ __all__ = ["Governor", "LADDER", "Rung"]
 
 GAP_S = 1.0  # no frame for this long (dark, paused): the window starts again
 MIN_FRAMES = 4  # frames a window needs before it says anything
-MAX_FRAMES = 4096  # the window's bound (a 600 s window at 1000 fps would be far more)
+MAX_FRAMES = 4096  # the window's bound: at high rates the long window is its newest 4096 frames
 MAX_BACKOFF = 16  # the up-hold doubles after each undone step up, up to this factor
 LATENCY_QUANTILE = 90.0
 FILTER_COST = {"off": 0, "normal": 1, "lobe": 2}  # the filter modes, cheapest first
@@ -56,7 +56,9 @@ class Rung:
 
 # Ordered by quality lost per cost saved, measured on dpm-bunny 1024×768 through the session's
 # stage (docs/session.md): the normal-aware filter costs no quality there, adaptive sampling
-# little; the LOD budget is the largest saving when tile refinement runs at all.
+# little. The LOD budget's saving grows with the budget (docs/lod.md) and was not measured here:
+# 0.10 is a guess: an underestimate makes a step down go further than needed and a step up
+# too hopeful (then undone, and the hold doubles).
 LADDER: tuple[Rung, ...] = (
     Rung("normal-aware filter", "filter", "normal", 0.045),
     Rung("adaptive sampling off", "adaptive_rays", 0, 0.077),
@@ -166,7 +168,7 @@ class Governor:
         median frame time when frames take less than the interval between them (they wait on
         something else, e.g. a paced present)."""
         frames = self._frames
-        if len(frames) < MIN_FRAMES or now_ns - frames[0][0] < span_ns:
+        if len(frames) < MIN_FRAMES or (now_ns - frames[0][0] < span_ns and len(frames) < MAX_FRAMES):
             return None
         times, first = [], now_ns
         for t, frame_s in reversed(frames):  # newest first: a short window reads only its own frames
