@@ -112,7 +112,7 @@ class Governor:
     def _effective(self, rung: Rung) -> bool:
         return rung.field not in self.pinned and rung.field not in self.inert and _cheaper(rung.field, rung.value, self._base[rung.field])
 
-    def _levels(self) -> list[int]:
+    def levels(self) -> list[int]:
         """The levels that change something: 0 and each k whose rung k−1 is effective."""
         return [0] + [k + 1 for k, r in enumerate(self.ladder) if self._effective(r)]
 
@@ -194,7 +194,7 @@ class Governor:
             return None
         rate, capacity, p90 = short
         self._fps, self._frame_p90_s = rate, p90
-        levels = self._levels()
+        levels = self.levels()
         slow = rate < self.target_fps * (1.0 - self.down_margin)
         late = p90 > self.latency_budget_s
         if slow or late:
@@ -213,7 +213,7 @@ class Governor:
             if self._last_up_ns is not None and now_ns - self._last_up_ns < 2 * self._hold_ns():
                 self._backoff = min(self._backoff * 2, MAX_BACKOFF)  # the last step up did not hold
             self._last_up_ns = None
-            self.reason = f"down to {self._name(new)}: {why} over {self.down_window_ns / 1e9:g} s"
+            self.reason = f"down to {self.rung_name(new)}: {why} over {self.down_window_ns / 1e9:g} s"
             return new
         if self._last_up_ns is not None and now_ns - self._last_up_ns >= 2 * self._hold_ns():
             self._backoff = max(1, self._backoff // 2)  # the last step up held: trust the estimates a bit more
@@ -232,14 +232,14 @@ class Governor:
         if predicted < self.target_fps * (1.0 + self.headroom) or p90_up * (1.0 + self.headroom) > self.latency_budget_s:
             return None
         self._last_up_ns = now_ns
-        self.reason = (f"up to {self._name(up)}: {long[0]:.1f} fps over {self._hold_ns() / 1e9:g} s predicts "
+        self.reason = (f"up to {self.rung_name(up)}: {long[0]:.1f} fps over {self._hold_ns() / 1e9:g} s predicts "
                        f"{predicted:.1f} fps there (target {self.target_fps:g} + {self.headroom:.0%} headroom)")
         return up
 
     def _hold_ns(self) -> int:
         return self.up_window_ns * self._backoff
 
-    def _name(self, level: int) -> str:
+    def rung_name(self, level: int) -> str:
         return "the configured settings" if level == 0 else f"level {level} ({self.ladder[level - 1].name})"
 
     # ---- for /status -------------------------------------------------------------------------
@@ -249,7 +249,7 @@ class Governor:
         return {
             "enabled": self.enabled,
             "level": self.level,
-            "rung": self._name(self.level),
+            "rung": self.rung_name(self.level),
             "ladder": [{"level": k + 1, "name": r.name, "field": r.field, "value": r.value,
                         "skipped": self._base is not None and not self._effective(r)} for k, r in enumerate(self.ladder)],
             "choices": self.choices(),
