@@ -60,10 +60,10 @@ class Rung:
 # 0.10 is a guess: an underestimate makes a step down go further than needed and a step up
 # too hopeful (then undone, and the hold doubles).
 LADDER: tuple[Rung, ...] = (
-    Rung("normal-aware filter", "filter", "normal", 0.045),
-    Rung("adaptive sampling off", "adaptive_rays", 0, 0.077),
+    Rung("normal-aware filter", "filter", "normal", 0.048),
+    Rung("adaptive sampling off", "adaptive_rays", 0, 0.085),
     Rung("lod rays off", "lod_rays", 0, 0.10),
-    Rung("filter off", "filter", "off", 0.071),
+    Rung("filter off", "filter", "off", 0.056),
 )
 
 
