@@ -31,7 +31,7 @@ from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.scene_file import load_scene
 from dpmhw.sequence import with_fps
 from dpmhw.session.config import load_session_config
-from dpmhw.session.governor import LADDER, Governor
+from dpmhw.session.governor import Governor
 
 EVAL_K = (18, 30)  # t = 0.3 and 0.5 s
 FRAMES = range(6, 31)
