@@ -375,8 +375,9 @@ class RemoteRuntime:
 
     def update_settings(self, patch: dict) -> LiveSettings:
         current = self.settings()  # what this process last had accepted, or the newer snapshot
-        if all(getattr(current, k, _MISSING) == v for k, v in patch.items()):
-            return current  # changes nothing: the session is not asked (nor made to publish)
+        pinned = self._read()[0]["status"].get("governor", {}).get("pinned", ())
+        if all(getattr(current, k, _MISSING) == v and k in pinned for k, v in patch.items()):
+            return current  # changes nothing, pins nothing new: the session is not asked (nor made to publish)
         self._admit("update_settings")
         settings, accepted_ns = self._call("update_settings", dict(patch))
         new = LiveSettings.model_validate(settings)

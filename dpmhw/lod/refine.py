@@ -52,7 +52,7 @@ numpy over a (48 × 64)-tile grid.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba as nb
 import numpy as np
@@ -287,6 +287,11 @@ class TileRefiner:
         self.output_map: VisibilityMap | None = None  # the map of the last refined output (the next plan's)
         self.last_rays = 0  # rays traced in the last frame (≤ settings.rays)
         self.last_pixels = 0  # paths traced in the last frame (pixels × spp)
+
+    def set_rays(self, rays: int) -> None:
+        """A new per-frame ray budget from the next plan on (a live setting; 0 traces nothing)."""
+        self.settings = replace(self.settings, rays=rays)
+        self.policy.settings = replace(self.policy.settings, ray_budget=self.settings.rays)
 
     def reset(self) -> None:
         for _, _, f in self._h:

@@ -121,6 +121,9 @@ class AdaptiveSampler:
         g = self.gbuffer
         gid = g.id if object_id is None else object_id
         self._frame += 1
+        if self.max_pixels == 0:  # budget 0 (a live setting): nothing to choose
+            self.last_pixels = self.last_rays = 0
+            return np.empty(0, np.int64)
         pixels = select(gid, wsum, unresolved, g.width, box, self.max_pixels, self.threshold)
         self.last_pixels, self.last_rays = len(pixels), 0
         if len(pixels) == 0:

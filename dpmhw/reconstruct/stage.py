@@ -156,6 +156,14 @@ class ReconstructStage:
                 pool.shutdown(wait=True)
         self._helper = self._ahead_thread = None
 
+    def set_budgets(self, adaptive_rays: int, lod_rays: int) -> None:
+        """The live ray budgets of adaptive sampling and tile refinement (each only where that
+        sampler exists: a refiner off at start stays off)."""
+        if self.adaptive is not None:
+            self.adaptive.budget_rays = int(adaptive_rays)
+        if self.lod is not None:
+            self.lod.set_rays(lod_rays)
+
     def _now(self) -> float:
         return self.clock() / 1e9
 

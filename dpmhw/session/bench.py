@@ -267,6 +267,10 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         "fps_median": round(1.0 / float(np.median(intervals_s)), 2) if len(intervals_s) and np.median(intervals_s) > 0 else 0.0,
         "render_fps": round((len(rendered) - 1) / span_s, 2) if span_s > 0 else 0.0,
         "late_presents": status["counters"].get("late_presents", 0),
+        # the quality governor's levels over the measured frames (0: the configured settings) and its last reason
+        "governor_level_min": min(r.governor_level for r in records),
+        "governor_level_max": max(r.governor_level for r in records),
+        "governor_reason": status["governor"]["reason"],
     }
     for prefix, values, qs in (("latency_ms", latency_ms, (50, 95, 99)), ("frame_ms", frame_ms, (50, 95, 99)),
                                ("registration_px", [e.mean_px for e in errors], (50, 99)),

@@ -176,6 +176,27 @@ class LodSection(_Section):
                        "level 0, docs/mesh-lod.md)")
 
 
+class GovernorSection(_Section):
+    """The quality governor (dpmhw.session.governor, docs/session.md): steps the live settings down a
+    ladder of cheaper rungs while the render rate misses its target, and back up when there is room."""
+
+    enabled: bool = Field(True, description="hold the render rate by trading quality for speed (off: the settings "
+                          "stay as configured and set)")
+    target_fps: float | None = Field(None, ge=1.0, le=1000.0, description="render rate to hold; unset: the display's "
+                                     "refresh rate (the sink's timing)")
+    latency_budget_ms: float = Field(40.0, gt=0.0, le=10000.0, description="a frame's own time (start to present), "
+                                     "90th percentile over the short window, above this also steps down")
+    down_window_s: float = Field(0.5, ge=0.05, le=60.0, description="seconds of frames the rate is measured over "
+                                 "before stepping down (a CPU hog is answered within about twice this)")
+    down_margin: float = Field(0.1, ge=0.0, le=0.9, description="step down when the rate is below target by more "
+                               "than this fraction")
+    up_window_s: float = Field(3.0, ge=0.1, le=600.0, description="seconds at one level, measured, before a step up "
+                               "is considered, at least down_window_s (doubles after each step up that had to be "
+                               "undone, up to 16×)")
+    headroom: float = Field(0.15, ge=0.0, le=4.0, description="step up only if the rate predicted for the better rung "
+                            "(from the measured one and the rungs' measured costs) beats the target by this fraction")
+
+
 class PredictionSection(_Section):
     enabled: bool = Field(True, description="extrapolate tracked poses to the display time")
     model: Literal["velocity", "acceleration"] = Field("velocity", description="constant velocity, or constant linear acceleration")
@@ -306,6 +327,7 @@ class SessionConfig(_Section):
     render: RenderSection = RenderSection()
     reuse: ReuseSection = ReuseSection()
     lod: LodSection = LodSection()  # docs/lod.md
+    governor: GovernorSection = GovernorSection()
     prediction: PredictionSection = PredictionSection()
     bindings: list[Binding] = Field(default_factory=list, description="empty: every scene object with a rigid_body")
     tracker: TrackerSection = TrackerSection()
@@ -391,6 +413,8 @@ LIVE_FIELDS: dict[str, tuple[str, str]] = {
     "split_screen": ("reuse", "split_screen"),
     "prediction": ("prediction", "enabled"),
     "filter": ("render", "filter"),
+    "adaptive_rays": ("render", "adaptive_rays"),
+    "lod_rays": ("lod", "rays"),
 }
 
 

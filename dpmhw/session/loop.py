@@ -48,6 +48,7 @@ from dpmhw.reconstruct.settings import FILTER_MODES, REUSE_MODES
 from dpmhw.reconstruct.stage import ReconstructStage
 from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
+from dpmhw.session.governor import Governor
 from dpmhw.session.heartbeat import Heartbeat
 from dpmhw.session.metrics import LoopMetrics
 from dpmhw.session.prediction import PosePredictor
@@ -126,6 +127,7 @@ class FrameRecord:
     stages_s: dict
     windows: tuple = ()  # per photon window: (photon mid ns, {rigid body id: Pose shown})
     rendered: int = 0  # the number of the rendered frame it shows (several presents may show one)
+    governor_level: int = 0  # the quality governor's level when it was presented (0: the configured settings)
 
 
 @dataclass(frozen=True)
@@ -202,7 +204,7 @@ def reconstruct_stage(config: SessionConfig, scene, renderer, gbuffer, clock) ->
                             background=scene.render.background, viewer=scene.viewer_position,
                             warmup=config.reuse.warmup, gbuffer=gbuffer, clock=clock,
                             adaptive=AdaptiveSampler(renderer, gbuffer, r.adaptive_rays, r.adaptive_threshold)
-                            if gbuffer is not None and r.adaptive_rays > 0 else None,
+                            if gbuffer is not None else None,  # budget 0 samples nothing; a live setting may raise it
                             lod=tile_refiner(renderer, gbuffer, config.lod),
                             analytic=(r.analytic_floor, r.analytic_specular_floor) if r.analytic else None)
 
@@ -277,6 +279,10 @@ class SessionLoop:
         self._settings = config.live_settings()
         self._accepted = self._settings
         self._pending: LiveSettings | None = None
+        self._pinned: set[str] = set()  # live settings the operator set: the governor leaves them alone
+        self.governor = Governor(config.governor, self.timing.refresh_hz, clock, inert=frozenset(
+            name for name, part in (("adaptive_rays", self.reconstruct.adaptive), ("lod_rays", self.reconstruct.lod))
+            if part is None))
         self._reset_requested = False
         self._lock = threading.Lock()  # guards the published references and the queue only
         self._output_lock = threading.Lock()  # serialises going dark / going live
@@ -413,20 +419,25 @@ class SessionLoop:
         with self._lock:
             return self._accepted
 
-    def update_settings(self, patch: dict) -> LiveSettings:
+    def update_settings(self, patch: dict, *, operator: bool = True) -> LiveSettings:
         """Validate `patch` against the accepted settings and queue it for the next frame (a patch
-        that changes no value queues nothing: the loop applies only real changes)."""
+        that changes no value queues nothing: the loop applies only real changes). An operator's
+        fields are pinned (the governor works around them); the governor's (`operator=False`)
+        skip pinned fields. Under the lock, so neither overwrites the other with a stale base."""
         from pydantic import ValidationError
 
         with self._lock:
             base = self._accepted
-        try:
-            new = LiveSettings.model_validate({**base.model_dump(), **patch})
-        except ValidationError as exc:
-            raise SettingsError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
-        if new == base:
-            return base
-        with self._lock:
+            if not operator:
+                patch = {k: v for k, v in patch.items() if k not in self._pinned}
+            try:
+                new = LiveSettings.model_validate({**base.model_dump(), **patch})
+            except ValidationError as exc:
+                raise SettingsError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+            if operator:
+                self._pinned.update(patch)
+            if new == base:
+                return base
             self._accepted = new
             self._pending = new
         return new
@@ -497,6 +508,7 @@ class SessionLoop:
             reset, self._reset_requested = self._reset_requested, False
         if pending is not None:
             self._settings = pending
+            self.reconstruct.set_budgets(pending.adaptive_rays, pending.lod_rays)
             self.metrics.count("settings_changes_applied")
         if reset:
             self.reconstruct.reset()
@@ -694,6 +706,11 @@ class SessionLoop:
         if self._frame_number == FREEZE_AFTER_FRAMES:
             self._freeze_long_lived()  # what the first frames made (cheap: the rest is frozen since start)
         self.metrics.record_render(stages, t5)
+        with self._lock:
+            pinned = frozenset(self._pinned)
+        patch = self.governor.observe(t5, stages["frame"], stages, settings, pinned)  # the render rate is its to set
+        if patch:
+            self.update_settings(patch, operator=False)
         if resume_at is not None and resume_at > t5:
             self._stop.wait((resume_at - t5) / 1e9)  # less than one frame's work
         if not self._sync_output():
@@ -820,7 +837,8 @@ class SessionLoop:
         record = FrameRecord(self._present_number, cap.job.t_start, t_present, windows[mid][0], windows[mid][1],
                              {b: s.t_exposure_ns for b, s in samples.items()},
                              {b: Pose(np.array(s.rotation), np.array(s.translation)) for b, s in samples.items()},
-                             cap.job.age_s, settings, {**cap.job.stages, **stages}, windows, cap.number)
+                             cap.job.age_s, settings, {**cap.job.stages, **stages}, windows, cap.number,
+                             self.governor.level)
         if self.frame_log is not None:
             self.frame_log.append(record)
             if len(self.frame_log) > self._frame_log_max:
@@ -1030,6 +1048,7 @@ class SessionLoop:
                         "present_lead_ms": round(self._present_lead_ns / 1e6, 3)},
             "render_size": [self.parts.renderer.width, self.parts.renderer.height],  # the shading resolution
             "output_size": list(self.output_size),
+            "governor": self.governor.status(),
         }
         with self._lock:
             self._status = MappingProxyType(snap)

@@ -3,7 +3,8 @@
 One folder per session (`<parent>/session-YYYYmmdd-HHMMSS/`):
 
     config.json    the resolved session config (token masked)
-    frames.csv     one row per presented frame: times, stage durations, every live setting
+    frames.csv     one row per presented frame: times, the quality governor's level (0: the
+                   configured settings), stage durations, every live setting
                    (`LiveSettings`, flags as 0/1), pose used per body
     poses.csv      every tracker sample (body, exposure time, valid, position, quaternion xyzw)
     frames/NNNNNN.png   every `frame_every`-th presented frame
@@ -48,8 +49,7 @@ class SessionRecorder:
         self._frames = csv.writer(self._frames_file)
         self._poses = csv.writer(self._poses_file)
         self._frames.writerow(["number", "t_start_ns", "t_target_ns", "t_present_ns", "sample_age_ms",
-                               *[f"{s}_ms" for s in _STAGES], *LiveSettings.model_fields,
-                               "body", "sample_t_exposure_ns", "x", "y", "z", "qx", "qy", "qz", "qw"])
+                               "governor_level", *[f"{s}_ms" for s in _STAGES], *LiveSettings.model_fields, "body", "sample_t_exposure_ns", "x", "y", "z", "qx", "qy", "qz", "qw"])
         self._poses.writerow(["body", "t_exposure_ns", "t_arrival_ns", "frame_number", "valid", "x", "y", "z",
                               "qx", "qy", "qz", "qw"])
         self._subscription = tracker.subscribe(maxlen=8192) if hasattr(tracker, "subscribe") else None
@@ -81,7 +81,8 @@ class SessionRecorder:
         for body, pose in record.poses.items():
             q = Rotation.from_matrix(pose.R).as_quat()
             self._frames.writerow([record.number, record.t_start_ns, record.t_target_ns, record.t_present_ns,
-                                   round(record.sample_age_s * 1e3, 4), *stages, *settings, body,
+                                   round(record.sample_age_s * 1e3, 4), record.governor_level,
+                                   *stages, *settings, body,
                                    record.sample_t_ns.get(body), *np.round(pose.t, 6),
                                    *np.round(q, 8)])
         if image is not None:

@@ -215,10 +215,29 @@ function renderStatus(st) {
     }
     tbody.appendChild(tr);
   }
+  renderGovernor(st.governor);
   renderDevices(st.devices || {});
   $("counters").textContent = Object.entries(st.counters || {}).map(([k, v]) => `${k.replace(/_/g, " ")}: ${v}`).join(" · ");
   $("frame-info").textContent = `frame ${st.frame_number ?? "–"}, ${st.render_size ? st.render_size.join("×") : ""}`;
   if (st.settings && !document.activeElement?.dataset?.setting) { lastSettings = st.settings; renderSettingValues(st.settings); }
+}
+
+// what the quality governor chose (its rung and the settings it set) and why
+function renderGovernor(g) {
+  const box = $("governor");
+  box.textContent = "";
+  if (!g) return;
+  const shown = {
+    state: g.enabled ? g.rung : "off (settings as configured and set)",
+    target_fps: `${fmt(g.target_fps, 1)} (${g.target_from})`,
+    measured_fps: fmt(g.measured_fps, 1),
+    frame_p90_ms: `${fmt(g.frame_p90_ms, 1)} (budget ${fmt(g.latency_budget_ms, 0)})`,
+    why: g.reason,
+    chose: Object.entries(g.choices || {}).map(([k, v]) => `${k.replace(/_/g, " ")} ${v}`).join(", "),
+    pinned_by_operator: g.pinned,
+    changes: g.changes,
+  };
+  box.appendChild(kv(shown));
 }
 
 function kv(obj) {

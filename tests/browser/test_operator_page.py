@@ -127,6 +127,9 @@ def test_live_frame_updates_and_state_is_in_words(page, tmp_path):
     assert wait_for(lambda: page.find_elements(By.CSS_SELECTOR, "#stages tbody tr"), WAIT_S)
     assert "render" in _text(page, "stages") and "streaming" in _text(page, "devices")
     assert wait_for(lambda: "rate hz" in _text(page, "devices"), WAIT_S)  # computed from the tracker's frame count
+    # what the quality governor chose and why, in words (its rung, its target and the display it came from)
+    assert wait_for(lambda: all(w in _text(page, "governor") for w in ("target fps", "the display's refresh", "why", "chose")),
+                    WAIT_S), _text(page, "governor")
     page.save_screenshot(str(tmp_path / "operator-page.png"))
     assert (tmp_path / "operator-page.png").stat().st_size > 10_000
 

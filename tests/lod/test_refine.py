@@ -208,3 +208,22 @@ def test_fill_gives_untraced_moving_pixels_their_same_object_neighbours_mean():
     samples2 = np.full((2, 3), np.nan, np.float32)
     _fill(np.array([0, 1]), spp2, samples2, np.array([[True]]), 16, gid, normal, Wt, Ht, stamp, fresh, 8)
     assert (spp2 == 0).all() and np.isnan(samples2).all()
+
+
+def test_live_budgets_reach_the_samplers(rig):
+    """The session's live `lod_rays` and `adaptive_rays` (the quality governor's rungs): a new
+    budget holds from the next frame, 0 traces nothing, and raising it again traces again."""
+    native, r, g = rig
+    ref = TileRefiner(r, g, RefineSettings(rays=10**6))
+    st = _stage(native, r, g, ref)
+    traced = []
+    for k, (lod_rays, adaptive_rays) in enumerate([(10**6, 2048), (0, 0), (5_000, 2048)]):
+        st.set_budgets(adaptive_rays, lod_rays)
+        t = 0.2 + k / 60
+        poses = native.object_poses(t)
+        st.apply(r.render(time=t, seed=k, spp=1, poses=poses), mode="motion", alpha=0.2, filter="lobe", poses=poses,
+                 camera=r.camera)
+        assert ref.last_rays <= lod_rays and ref.policy.settings.ray_budget == lod_rays
+        assert st.adaptive.last_rays <= adaptive_rays
+        traced.append((ref.last_rays, st.adaptive.last_pixels))
+    assert traced[0][0] > 0 and traced[1] == (0, 0) and traced[2][0] > 0

@@ -31,6 +31,7 @@ def test_recording_writes_frames_poses_and_pngs_while_running(tmp_path):
     assert numbers == sorted(numbers) and len(numbers) >= 20
     assert float(frames[0]["render_ms"]) >= 0 and frames[0]["body"] == "1"
     live = loop.config.live_settings()  # every live setting, as the frame used it
+    assert all(int(r["governor_level"]) >= 0 for r in frames)  # the quality governor's level per frame
     assert frames[0]["filter"] == live.filter and frames[0]["split_screen"] == str(int(live.split_screen))
     pngs = sorted(p.name for p in (folder / "frames").glob("*.png"))
     assert pngs and all(int(p[:6]) % 5 == 0 for p in pngs)
