@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import os
 import sys
 import threading
 import time
@@ -62,6 +63,8 @@ log = logging.getLogger(__name__)
 
 PRESENT_LEAD_MIN_NS = 3_000_000  # a present begins this long before its refresh at least
 PRESENT_LEAD_STEP_NS = 1_000_000  # added after a present that missed its refresh
+SWITCH_INTERVAL_S = 0.001  # the interpreter's thread switch interval while a session runs
+PRESENT_NICE = -10  # the present thread's nice value, where the process may raise it
 FREEZE_AFTER_FRAMES = 30  # frames presented before what they made is frozen too (gc.freeze; see _freeze_long_lived)
 
 
@@ -235,6 +238,18 @@ def exercise_reprojection(reprojector, scene, size: tuple[int, int]) -> None:
         reprojector.reproject(cap, scene.object_poses(0.25), out, channel=channel)
 
 
+def _raise_thread_priority(nice: int) -> str:
+    """Run the calling thread at `nice` (Linux: per-thread nice values) so that a refresh's present
+    is not queued behind the frame thread's work on a busy machine. Needs CAP_SYS_NICE or an
+    RLIMIT_NICE that allows it; otherwise the thread keeps its priority and the status says so."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+        return f"nice {nice}"
+    except (OSError, AttributeError) as exc:
+        log.info("present thread keeps its priority: %s", exc)
+        return "normal (raising it needs CAP_SYS_NICE or RLIMIT_NICE)"
+
+
 class SessionLoop:
     """Runs one projection session. `start()`, then `stop()` (idempotent) for a verified dark end."""
 
@@ -267,6 +282,7 @@ class SessionLoop:
         self._present_lead_ns = PRESENT_LEAD_MIN_NS  # how long before a refresh its present begins
         self._present_number = 0
         self._present_heartbeat_ns = clock()
+        self._present_priority = "not started"
         self._buffers: list[np.ndarray] = []  # the present thread's output frames, in turn
         self._buffer_turn = 0
         # render frame n+1 beside frame n's reconstruction; not with mesh LOD, whose level switch must hold for
@@ -341,6 +357,10 @@ class SessionLoop:
         self._samples = subscribe(maxlen=4096) if subscribe is not None else None
         self._go_dark("starting: dark until tracking and devices are ready")
         self._freeze_long_lived()  # the full collection's cost is paid here, while dark
+        # a thread that wakes for its refresh waits for the GIL up to the switch interval (5 ms by
+        # default: a third of a 60 Hz period); the present thread's lead must cover that
+        self._switch_interval = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         for name, target in (("session-loop", self._run), ("session-present", self._present_loop),
                              ("session-watchdog", self._watchdog),
                              ("session-deadline", self._stale_deadline), ("session-health", self._health)):
@@ -369,6 +389,7 @@ class SessionLoop:
         self._next = None
         self._go_dark(reason, force=True)
         gc.unfreeze()  # this session's objects may be collected again once it is gone
+        sys.setswitchinterval(getattr(self, "_switch_interval", sys.getswitchinterval()))
         self.reconstruct.close()
         self.final_blank = self._last_blank
         if self._samples is not None:
@@ -753,6 +774,7 @@ class SessionLoop:
     def _present_loop(self) -> None:
         """Wake `_present_lead_ns` before each refresh and present the newest capture, moved to
         each photon window's predicted poses. A present that misses its refresh widens the lead."""
+        self._present_priority = _raise_thread_priority(PRESENT_NICE)
         period = self.timing.period_ns
         last = None
         while not self._stop.is_set():
@@ -1045,7 +1067,8 @@ class SessionLoop:
             "display": {"mode": self.timing.mode, "refresh_hz": self.timing.refresh_hz,
                         "controller_delay_ms": round(self.timing.controller_delay_ns / 1e6, 3),
                         "late_reprojection": self.reprojector is not None,
-                        "present_lead_ms": round(self._present_lead_ns / 1e6, 3)},
+                        "present_lead_ms": round(self._present_lead_ns / 1e6, 3),
+                        "present_priority": self._present_priority},
             "render_size": [self.parts.renderer.width, self.parts.renderer.height],  # the shading resolution
             "output_size": list(self.output_size),
             "governor": self.governor.status(),
