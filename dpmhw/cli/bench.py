@@ -303,6 +303,29 @@ def bench_reproject(
         typer.echo(f"wrote {write_json(rows, json_path)}")
 
 
+@bench_app.command("prediction")
+def bench_prediction(
+    horizon_ms: Annotated[float, typer.Option(min=0.001, max=1000.0, help="How far ahead each prediction reaches.")] = 35.0,
+    noise_mm: Annotated[str, typer.Option(help="Comma-separated marker-noise standard deviations (mm).")] = "0,0.1,0.2,0.5",
+    trajectory: Annotated[BenchTrajectory, typer.Option(help="The mock's trajectory.")] = BenchTrajectory("rotate-oscillate"),
+    seconds: Annotated[float, typer.Option(min=1.0, max=3600.0, help="Trajectory seconds sampled at the tracker's rate.")] = 20.0,
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the rows as JSON here.")] = None,
+) -> None:
+    """The pose predictor's position error at a horizon, per model and history, with marker noise (offline)."""
+    from dpmhw.benchmarks.prediction import PredictionBenchConfig, format_table, run_prediction
+
+    try:
+        cfg = PredictionBenchConfig(trajectory=trajectory.value, horizon_ms=horizon_ms, seconds=seconds,
+                                    noise_mm=tuple(float(v) for v in noise_mm.split(",")))
+    except ValueError as exc:
+        raise typer.BadParameter(f"--noise-mm: {exc}") from None
+    with Progress() as bar:
+        rows = run_prediction(cfg, progress=bar.callback)
+    typer.echo(format_table(rows))
+    if json_path is not None:
+        typer.echo(f"wrote {write_json(rows, json_path)}")
+
+
 @bench_app.command("stages")
 def bench_stages(
     scene: Annotated[str, typer.Argument(help="Scene file or built-in name.")] = "dpm-bunny",
