@@ -32,6 +32,7 @@ import os
 import sys
 import threading
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -280,6 +281,8 @@ class SessionLoop:
         self._predict_lock = threading.Lock()  # the predictor is fed and read by both threads
         self._first_valid: dict[int, int] = {}  # body -> arrival of its first fresh sample since the frame thread last looked
         self._present_lead_ns = PRESENT_LEAD_MIN_NS  # how long before a refresh its present begins
+        self._lead_penalty_ns = 0  # what missed refreshes added to it (see _adapt_lead)
+        self._ready_ns: deque[int] = deque(maxlen=32)  # wake → frame ready to hand over, recent presents
         self._present_number = 0
         self._present_heartbeat_ns = clock()
         self._present_priority = "not started"
@@ -842,9 +845,7 @@ class SessionLoop:
         t2 = self.clock()
         if self.heartbeat is not None:
             self.heartbeat.presented(t2, self._present_allowance_ns())
-        if t_present > vsync:  # missed its refresh: shown a period late, at other poses than predicted
-            self.metrics.count("late_presents")
-            self._present_lead_ns = min(self._present_lead_ns + PRESENT_LEAD_STEP_NS, self.timing.period_ns // 2)
+        self._adapt_lead(t1 - (vsync - self._present_lead_ns), late=t_present > vsync)
         self.safety.mark_started()
         self._present_number += 1
         # lit from the refresh the sink answered; a sink without one answers when it took the frame,
@@ -867,6 +868,20 @@ class SessionLoop:
                 del self.frame_log[0]
         if self.parts.recorder is not None:
             self.parts.recorder.frame(record, cap.image)
+
+    def _adapt_lead(self, ready_ns: int, late: bool) -> None:
+        """The lead: twice the median time from waking to a frame ready to hand over (the last 32
+        presents) plus a penalty that a missed refresh raises by a step and each on-time present
+        wears down; within [PRESENT_LEAD_MIN_NS, half a period]. Short: the lead is prediction
+        horizon, so every millisecond of it costs registration."""
+        if late:  # missed its refresh: shown a period late, at other poses than predicted
+            self.metrics.count("late_presents")
+            self._lead_penalty_ns += PRESENT_LEAD_STEP_NS
+        else:
+            self._lead_penalty_ns = max(0, self._lead_penalty_ns - PRESENT_LEAD_STEP_NS // 20)
+        self._ready_ns.append(max(ready_ns, 0))
+        lead = 2 * int(np.median(self._ready_ns)) + self._lead_penalty_ns
+        self._present_lead_ns = min(max(lead, PRESENT_LEAD_MIN_NS), self.timing.period_ns // 2)
 
     def _present_buffer(self) -> np.ndarray:
         """The next of a few output buffers in turn (a sink may still read the one before)."""
