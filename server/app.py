@@ -204,7 +204,7 @@ def build_app(runtime: Runtime, *, token: str | None = None, trusted_hosts: list
                   description="Status, settings and control of a dynamic projection mapping session.",
                   docs_url=None, redoc_url=None)  # served from local files by add_pages
     app.state.runtime = runtime
-    app.state.png_cache = status.PngCache()  # per app: each presented frame is encoded once
+    app.state.png_cache = status.PngCache()  # per app: a frame is encoded once, a few per second at most
     app.state.token = token if token is not None else os.environ.get("DPMHW_API_TOKEN", "")
     if trusted_hosts is None:
         env = os.environ.get("DPMHW_API_HOSTS", "")
