@@ -38,11 +38,15 @@ __all__ = ["ENDPOINTS", "Storm", "measure", "summarise"]
 ENDPOINTS = ("status", "frame", "patch_noop", "patch_change")
 
 
-def _clients(port: int, clients: int, token: str, timeout_s: float, ready, active, stop, out) -> None:
+def _clients(port: int, clients: int, token: str, timeout_s: float, priority: str, ready, active, stop,
+             out) -> None:
     """The storm's process: `clients` threads, each on one keep-alive connection; every response's
     endpoint, status code (0: timed out or failed) and seconds go to `out` when they stop."""
     import http.client
 
+    from server.process import lower_priority
+
+    lower_priority(priority)
     headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json"}
 
     def client(i: int) -> None:
@@ -50,9 +54,14 @@ def _clients(port: int, clients: int, token: str, timeout_s: float, ready, activ
         got: list[tuple[int, int, float]] = []
         spp = None
         k = i  # clients start at different points of the mix
+        idle = False
         while not stop.is_set():
             if not active.wait(0.05):
+                idle = True
                 continue
+            if idle:  # the server closes a connection idle past its keep-alive: start afresh
+                conn.close()
+                idle = False
             kind = k % 4
             k += 1
             t0 = time.monotonic()
@@ -90,14 +99,14 @@ def _clients(port: int, clients: int, token: str, timeout_s: float, ready, activ
 class Storm:
     """`clients` storm clients in a spawned process; they send only while `active` is set."""
 
-    def __init__(self, port: int, clients: int, token: str, timeout_s: float = 10.0):
+    def __init__(self, port: int, clients: int, token: str, timeout_s: float = 10.0, priority: str = "normal"):
         ctx = multiprocessing.get_context("spawn")
         self.ready, self.active, self._stop = ctx.Event(), ctx.Event(), ctx.Event()
         self._out = ctx.Queue()
         self.clients = clients
         self.process = ctx.Process(target=_clients, name="api-storm", daemon=True,
-                                   args=(port, clients, token, timeout_s, self.ready, self.active, self._stop,
-                                         self._out))
+                                   args=(port, clients, token, timeout_s, priority, self.ready, self.active,
+                                         self._stop, self._out))
         self._records: list[tuple[int, int, float]] = []
         self.lost = 0  # clients whose records never arrived (stuck past the stop)
 
@@ -150,9 +159,10 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / 100.0
 
 
-def _blank_probe(api_url: str, token: str, dark, timeout_s: float = 10.0) -> tuple[int, float | None]:
-    """POST /session/blank on a fresh connection; (status code, seconds from sending it to `dark()`
-    turning true; None if it did not within `timeout_s`)."""
+def _blank_probe(api_url: str, token: str, dark, timeout_s: float = 10.0) -> tuple[int, float | None, float | None]:
+    """POST /session/blank on a fresh connection: (status code, 0 if none within `timeout_s`;
+    seconds from sending it to the response, and to `dark()` turning true; None if not within
+    `timeout_s`)."""
     import http.client
 
     host, port = api_url.rsplit("/", 1)[-1].rsplit(":", 1)
@@ -168,21 +178,25 @@ def _blank_probe(api_url: str, token: str, dark, timeout_s: float = 10.0) -> tup
 
     conn = http.client.HTTPConnection(host, int(port), timeout=timeout_s)
     watcher = threading.Thread(target=watch, daemon=True)
+    code, answered_s = 0, None
+    watcher.start()
+    t0 = time.monotonic()  # the operator's connection is part of the request
     try:
         conn.connect()
-        watcher.start()
-        t0 = time.monotonic()
         conn.request("POST", "/session/blank", headers={"Authorization": f"Bearer {token}"})
         code = conn.getresponse().status
-        watcher.join(timeout_s)
+        answered_s = time.monotonic() - t0
+        watcher.join(max(0.0, t0 + timeout_s - time.monotonic()))
+    except (OSError, http.client.HTTPException):
+        watcher.join(max(0.0, t0 + timeout_s - time.monotonic()))
     finally:
         done.set()
         conn.close()
-    return code, (dark_at[0] - t0) if dark_at else None
+    return code, answered_s, (dark_at[0] - t0) if dark_at else None
 
 
 def measure(clients: int = 200, windows: int = 4, window_s: float = 5.0, blanks: int = 10,
-            overrides: tuple[str, ...] = ()) -> dict:
+            client_priority: str = "normal", overrides: tuple[str, ...] = ()) -> dict:
     """The storm on a `--mock` session (see the module doc); frame rates per window, the API's
     answers per endpoint, and the blank's time to a dark projector."""
     from dpmhw.session.config import load_session_config
@@ -203,7 +217,7 @@ def measure(clients: int = 200, windows: int = 4, window_s: float = 5.0, blanks:
         with ApiProcess(host="127.0.0.1", port=0, token=token, priority=cfg.api.priority) as api:
             api.start(loop)
             cpu0 = {"session": time.process_time(), "api": _cpu_seconds(api.process.pid)}
-            with Storm(api.port, clients, token) as storm:
+            with Storm(api.port, clients, token, priority=client_priority) as storm:
                 cpu0["clients"] = _cpu_seconds(storm.process.pid)
                 time.sleep(window_s)  # settle
                 for w in range(2 * windows):
@@ -234,12 +248,15 @@ def measure(clients: int = 200, windows: int = 4, window_s: float = 5.0, blanks:
 
     quiet = [fps(*s) for s in spans[False]]
     loud = [fps(*s) for s in spans[True]]
-    blank_ms = [None if s is None else round(s * 1e3, 1) for _, s in blank]
-    return {"clients": clients, "windows": windows, "window_s": window_s,
+    def ms(seconds: list[float | None]) -> list[float | None]:
+        return [None if x is None else round(x * 1e3, 1) for x in seconds]
+
+    return {"clients": clients, "client_priority": client_priority, "windows": windows, "window_s": window_s,
             "quiet_fps": [round(x, 2) for x in quiet], "storm_fps": [round(x, 2) for x in loud],
             "fps_ratio_median": round(float(np.median(loud) / np.median(quiet)), 3),
             "api": summarise(records), "clients_lost": lost,
-            "blank_codes": [c for c, _ in blank], "blank_to_dark_ms": blank_ms,
+            "blank_codes": [c for c, _, _ in blank], "blank_answered_ms": ms([a for _, a, _ in blank]),
+            "blank_to_dark_ms": ms([d for _, _, d in blank]),
             "cpu_s": {k: round(v, 1) for k, v in cpu.items()}}
 
 
@@ -249,9 +266,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--windows", type=int, default=4, help="quiet and storm windows, each")
     parser.add_argument("--window-s", type=float, default=5.0)
     parser.add_argument("--blanks", type=int, default=10)
+    parser.add_argument("--client-priority", choices=("idle", "low", "normal"), default="normal",
+                        help="the clients' CPU priority: below the session's stands for clients on other machines")
     parser.add_argument("--set", action="append", default=[], help="session config override, e.g. render.spp=1")
     args = parser.parse_args(argv)
-    print(json.dumps(measure(args.clients, args.windows, args.window_s, args.blanks, tuple(args.set)), indent=1))
+    print(json.dumps(measure(args.clients, args.windows, args.window_s, args.blanks, args.client_priority,
+                             tuple(args.set)), indent=1))
 
 
 if __name__ == "__main__":

@@ -73,16 +73,19 @@ async def metrics(runtime: RuntimeDep) -> Response:
 class PngCache:
     """The latest frame as PNG, encoded at most once per frame and at most once per
     `min_interval_s` however fast frames come (a 1024×768 frame takes tens of ms of the API
-    process's CPU): clients in between get the newest encoded frame. A frame that turns dark or
-    lit is encoded at once, so the page shows a blank as soon as the session reports it."""
+    process's CPU): clients in between, and while an encode is under way, get the newest encoded
+    frame. A frame that turns dark or lit is encoded at once, so the page shows a blank as soon
+    as the session reports it."""
 
     def __init__(self, min_interval_s: float = 0.25, clock=time.monotonic) -> None:
         self.min_interval_s, self.clock = min_interval_s, clock
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the cached PNG and its key
+        self._encode_lock = threading.Lock()
         self._key = None
         self._t = -math.inf
         self._png: tuple[bytes, int, bool] = (b"", 0, False)
         self.encoded = 0
+        self._encoding = False
         self.threads: anyio.CapacityLimiter | None = None  # made inside the server's event loop
 
     def cached(self, frame) -> tuple[bytes, int, bool] | None:
@@ -90,24 +93,32 @@ class PngCache:
         key = (frame.number, frame.t_present_ns, frame.blank)
         with self._lock:
             if key == self._key or (self._key is not None and bool(frame.blank) == self._png[2]
-                                    and self.clock() - self._t < self.min_interval_s):
+                                    and (self._encoding or self.clock() - self._t < self.min_interval_s)):
                 return self._png
         return None
 
     def get(self, frame) -> tuple[bytes, int, bool]:
         """(PNG, frame number, blank): `frame` encoded, unless what is cached may still be served."""
-        with self._lock:
-            key = (frame.number, frame.t_present_ns, frame.blank)
-            if key != self._key and (self._key is None or bool(frame.blank) != self._png[2]
-                                     or self.clock() - self._t >= self.min_interval_s):
+        with self._encode_lock:  # one encode at a time; `cached` answers from the last one meanwhile
+            got = self.cached(frame)
+            if got is not None:  # encoded by the request before this one
+                return got
+            with self._lock:
+                self._encoding = True
+            try:
                 import cv2
 
                 ok, buf = cv2.imencode(".png", np.ascontiguousarray(frame.image[..., ::-1]))
                 if not ok:
                     raise HTTPException(500, "PNG encoding failed")
-                self._key, self._t, self._png = key, self.clock(), (buf.tobytes(), frame.number, bool(frame.blank))
-                self.encoded += 1
-            return self._png
+                with self._lock:
+                    self._key, self._t = (frame.number, frame.t_present_ns, frame.blank), self.clock()
+                    self._png = (buf.tobytes(), frame.number, bool(frame.blank))
+                    self.encoded += 1
+                    return self._png
+            finally:
+                with self._lock:
+                    self._encoding = False
 
 
 @router.get("/frame.png", summary="The latest frame sent to the projector (what the audience sees)",
