@@ -150,8 +150,8 @@ class ApiProcess:
         blank_conn, child_blank_conn = ctx.Pipe(duplex=True)
         process = ctx.Process(
             target=_serve_child, name="dpmhw-api", daemon=True,
-            args=(self.sock, child_conn, child_blank_conn, self.status_slot.name, self.frame_slot.name, self.token, self.priority,
-                  self.stale_after_s, self.trusted_hosts, self.limits, self.command_rate))
+            args=(self.sock, child_conn, child_blank_conn, self.status_slot.name, self.frame_slot.name, self.token,
+                  self.priority, self.stale_after_s, self.trusted_hosts, self.limits, self.command_rate))
         process.start()
         child_conn.close()
         child_blank_conn.close()
@@ -316,9 +316,8 @@ class RemoteRuntime:
     """The `Runtime` the API process serves: reads from the shared slots, commands over the pipe."""
 
     def __init__(self, status_slot: SharedSlot, frame_slot: SharedSlot, conn, blank_conn=None, *,
-                 stale_after_s: float = 1.0,
-                 command_timeout_s: float = 2.0, session_alive=None, command_rate: tuple[float, int] = (20.0, 10),
-                 connection_stats=None):
+                 stale_after_s: float = 1.0, command_timeout_s: float = 2.0, session_alive=None,
+                 command_rate: tuple[float, int] = (20.0, 10), connection_stats=None):
         self.status_slot = status_slot
         # whether the session process still exists, asked per request (None: assumed so). Its last
         # snapshot stays fresh for stale_after_s after it dies; without this, a crashed session

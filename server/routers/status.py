@@ -88,24 +88,28 @@ class PngCache:
         self._encoding = False
         self.threads: anyio.CapacityLimiter | None = None  # made inside the server's event loop
 
-    def cached(self, frame) -> tuple[bytes, int, bool] | None:
-        """(PNG, frame number, blank) to serve for `frame` without encoding, or None when it is due."""
-        key = (frame.number, frame.t_present_ns, frame.blank)
+    def _servable(self, frame) -> bool:
+        return self._key is not None and (
+            self._key == (frame.number, frame.t_present_ns, frame.blank)
+            or bool(frame.blank) == self._png[2] and self.clock() - self._t < self.min_interval_s)
+
+    def take(self, frame) -> tuple[bytes, int, bool] | None:
+        """(PNG, frame number, blank) to serve for `frame` without waiting, or None: then the
+        caller calls `get`. Only one caller at a time is sent to encode; while it does, the others
+        get the last PNG (there is none only before the first frame is encoded)."""
         with self._lock:
-            if key == self._key or (self._key is not None and bool(frame.blank) == self._png[2]
-                                    and (self._encoding or self.clock() - self._t < self.min_interval_s)):
+            if self._servable(frame) or self._encoding and self._key is not None:
                 return self._png
-        return None
+            self._encoding = True
+            return None
 
     def get(self, frame) -> tuple[bytes, int, bool]:
-        """(PNG, frame number, blank): `frame` encoded, unless what is cached may still be served."""
-        with self._encode_lock:  # one encode at a time; `cached` answers from the last one meanwhile
-            got = self.cached(frame)
-            if got is not None:  # encoded by the request before this one
-                return got
-            with self._lock:
-                self._encoding = True
+        """(PNG, frame number, blank): `frame` encoded, unless what is cached may be served."""
+        with self._encode_lock:  # one encode at a time
             try:
+                with self._lock:
+                    if self._servable(frame):  # encoded by the caller before this one
+                        return self._png
                 import cv2
 
                 ok, buf = cv2.imencode(".png", np.ascontiguousarray(frame.image[..., ::-1]))
@@ -117,8 +121,12 @@ class PngCache:
                     self.encoded += 1
                     return self._png
             finally:
-                with self._lock:
-                    self._encoding = False
+                self.release()
+
+    def release(self) -> None:
+        """End the claim `take` gave (`get` does; so does a request cancelled before its `get`)."""
+        with self._lock:
+            self._encoding = False
 
 
 @router.get("/frame.png", summary="The latest frame sent to the projector (what the audience sees)",
@@ -128,11 +136,14 @@ async def frame_png(request: Request, runtime: RuntimeDep) -> Response:
     if frame is None:
         raise HTTPException(404, "no frame has been sent to the projector yet")
     cache = request.app.state.png_cache
-    got = cache.cached(frame)
+    got = cache.take(frame)
     if got is None:  # encode in a worker thread (OpenCV releases the GIL): the event loop goes on serving
         if cache.threads is None:
             cache.threads = anyio.CapacityLimiter(1)
-        got = await anyio.to_thread.run_sync(cache.get, frame, limiter=cache.threads)
+        try:
+            got = await anyio.to_thread.run_sync(cache.get, frame, limiter=cache.threads)
+        finally:
+            cache.release()
     png, number, blank = got
     return Response(png, media_type="image/png",
                     headers={"X-Frame-Number": str(number), "X-Frame-Blank": str(blank).lower(),
