@@ -11,7 +11,9 @@ and sends the few mutating requests (settings, resume, reset-history) over a pip
 thread here, which applies them exactly as an in-process request would; the operator's blank has
 a pipe and a thread of its own, so no other command is ever queued ahead of it. The work this
 process does for the service is therefore bounded whatever the request load: one publish per
-period, plus one per command that changed something. A settings patch that changes no value is
+period, plus one per blank or resume (whose reply reports the new state). A settings change is
+published with the next period (the API process answers its sender's own reads from the
+accepted settings meanwhile). A settings patch that changes no value is
 answered by the API process without a command; the other commands but blank are limited to
 `commands_per_s` (bursts of `command_burst`; beyond: 429 with Retry-After), so a command storm
 cannot make the loop publish more; the blank is never limited. What each client can hold in the
@@ -60,6 +62,7 @@ __all__ = ["ApiProcess", "RemoteRuntime", "bind_api_socket", "lower_priority"]
 log = logging.getLogger(__name__)
 
 _COMMANDS = ("update_settings", "blank", "resume", "reset_history")
+_PUBLISH_AT_ONCE = ("blank", "resume")  # their replies say the state they led to
 _PRIORITIES = ("idle", "low", "normal")
 
 
@@ -279,7 +282,7 @@ class ApiProcess:
                 continue
             reply, changed = self._execute(name, args)
             try:
-                if changed:
+                if changed and name in _PUBLISH_AT_ONCE:
                     self.publish()  # the reply's sender reads its own write in the next status
             except Exception:
                 log.exception("publishing the session status for the API failed")
@@ -364,6 +367,9 @@ class RemoteRuntime:
         payload, silent_s = self._read()
         last = payload["status"]
         out = dict(last, snapshot_age_s=round(silent_s, 3))
+        own = self._own_settings
+        if own is not None and own[0] > payload["t_read_ns"] and "settings" in out:
+            out["settings"] = own[1].model_dump()  # accepted after that snapshot was taken
         if self.connection_stats is not None:
             out["api"] = {**out.get("api", {}), "connections": self.connection_stats()}
         if self._gone() and last.get("state") != "stopped":
