@@ -9,8 +9,9 @@
 
 Each client is one keep-alive connection sending, in turn, `GET /status`, `GET /frame.png` and
 `PATCH /settings` (every other one to the current `spp`, which changes nothing, the others
-toggling `alpha` between two values: those are the commands the API limits), as fast as they are answered. The
-clients run in their own process with the standard library's HTTP client, never in the session's.
+toggling `alpha` between two values: those are the commands the API limits), as fast as they are
+answered. The clients run in their own process with the standard library's HTTP client, never in
+the session's.
 
 `measure` runs a `--mock` session with its API in its own process (`server.process.ApiProcess`,
 as `dpmhw session start` serves it), then alternates quiet and storm windows of equal length, so
@@ -153,12 +154,6 @@ def summarise(records: np.ndarray) -> dict:
     return out
 
 
-def _cpu_seconds(pid: int) -> float:
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / 100.0
-
-
 def _blank_probe(api_url: str, token: str, dark, timeout_s: float = 10.0) -> tuple[int, float | None, float | None]:
     """POST /session/blank on a fresh connection: (status code, 0 if none within `timeout_s`;
     seconds from sending it to the response, and to `dark()` turning true; None if not within
@@ -199,6 +194,7 @@ def measure(clients: int = 200, windows: int = 4, window_s: float = 5.0, blanks:
             client_priority: str = "normal", overrides: tuple[str, ...] = ()) -> dict:
     """The storm on a `--mock` session (see the module doc); frame rates per window, the API's
     answers per endpoint, and the blank's time to a dark projector."""
+    from dpmhw.session.bench import _cpu_seconds
     from dpmhw.session.config import load_session_config
     from dpmhw.session.factory import build_session
     from dpmhw.tracking import wait_for
@@ -208,6 +204,7 @@ def measure(clients: int = 200, windows: int = 4, window_s: float = 5.0, blanks:
     cfg = load_session_config(overrides=["sink.kind=recording", "api.enabled=false", *overrides])
     loop = build_session(cfg, mock=True, frame_log=100_000)
     spans: dict[bool, list[tuple[int, int]]] = {False: [], True: []}
+    session_cpu = {False: 0.0, True: 0.0}  # this process's CPU seconds in quiet and storm windows
     blank = []
     try:
         loop.start()
@@ -223,9 +220,10 @@ def measure(clients: int = 200, windows: int = 4, window_s: float = 5.0, blanks:
                 for w in range(2 * windows):
                     loud = w % 2 == 1
                     (storm.active.set if loud else storm.active.clear)()
-                    t0 = time.monotonic_ns()
+                    t0, c0 = time.monotonic_ns(), time.process_time()
                     time.sleep(window_s)
                     spans[loud].append((t0, time.monotonic_ns()))
+                    session_cpu[loud] += time.process_time() - c0
                 storm.active.set()
                 for _ in range(blanks):
                     time.sleep(1.0)
@@ -257,7 +255,11 @@ def measure(clients: int = 200, windows: int = 4, window_s: float = 5.0, blanks:
             "api": summarise(records), "clients_lost": lost,
             "blank_codes": [c for c, _, _ in blank], "blank_answered_ms": ms([a for _, a, _ in blank]),
             "blank_to_dark_ms": ms([d for _, _, d in blank]),
-            "cpu_s": {k: round(v, 1) for k, v in cpu.items()}}
+            "cpu_s": {k: round(v, 1) for k, v in cpu.items()},
+            # the session process's CPU use (cores) in each kind of window: more under the storm is
+            # work the API costs it (publishes, commands); less is CPU the storm took from it
+            "session_cores": {"quiet": round(session_cpu[False] / (windows * window_s), 2),
+                              "storm": round(session_cpu[True] / (windows * window_s), 2)}}
 
 
 def main(argv: list[str] | None = None) -> None:
