@@ -15,24 +15,22 @@ import typer
 from dpmhw.cli.apps import app
 
 
-def describe_displays(found, native: tuple[int, int] | None, configured: int) -> list[str]:
+def describe_displays(found, native: tuple[int, int], configured: int) -> list[str]:
     """The lines `dpmhw displays` prints for `found` (a `drivers.displays.DisplayList`), given
-    the projector's native size (None: unknown) and the configured `sink.display`."""
+    the projector's native size and the configured `sink.display`."""
     if not found.displays:
         return [found.problem]
     lines = []
     for d in found.displays:
         hz = f" @ {d.refresh_hz[0]} Hz" if d.refresh_hz else " (refresh rate not reported)"
         more = f" (also {', '.join(map(str, d.refresh_hz[1:]))} Hz)" if len(d.refresh_hz) > 1 else ""
-        marks = [m for m, on in (("projector's native size", native is not None and d.size == native),
+        marks = [m for m, on in (("projector's native size", d.size == native),
                                  ("sink.display", d.index == configured)) if on]
         name = f" {d.name!r}" if d.name else ""
         lines.append(f"display {d.index}:{name} {d.size[0]}×{d.size[1]}{hz}{more}"
                      + (f"  <- {', '.join(marks)}" if marks else ""))
     if configured >= len(found.displays):
         lines.append(f"sink.display = {configured}: no such display ({len(found.displays)} attached)")
-    if native is None:
-        return lines
     size = f"{native[0]}×{native[1]}"
     matching = [d.index for d in found.displays if d.size == native]
     if not matching:
