@@ -393,10 +393,7 @@ class RemoteRuntime:
         return LiveSettings.model_validate(payload["settings"])
 
     def update_settings(self, patch: dict) -> LiveSettings:
-        current = self.settings()  # what this process last had accepted, or the newer snapshot
-        if all(getattr(current, k, _MISSING) == v for k, v in patch.items()):
-            return current  # changes nothing: the session is not asked (nor made to publish)
-        self._admit("update_settings")
+        self._admit("update_settings")  # a patch that changes nothing never gets here (`routers.settings`)
         settings, accepted_ns = self._call("update_settings", dict(patch))
         new = LiveSettings.model_validate(settings)
         self._own_settings = (accepted_ns, new)
@@ -461,8 +458,6 @@ class RemoteRuntime:
             raise RuntimeError(f"the session failed to {name}: {value}")
         return value
 
-
-_MISSING = object()
 
 
 class _TokenBucket:
