@@ -246,6 +246,7 @@ def measure(clients: int = 200, windows: int = 4, window_s: float = 5.0, blanks:
 
     quiet = [fps(*s) for s in spans[False]]
     loud = [fps(*s) for s in spans[True]]
+
     def ms(seconds: list[float | None]) -> list[float | None]:
         return [None if x is None else round(x * 1e3, 1) for x in seconds]
 
