@@ -64,7 +64,8 @@ from dpmhw.limits import check_file_size, max_mesh_bytes, render_memory_limit
 from dpmhw.textures import BYTES_PER_TEXEL, Texture, decode_texture, open_texture, parse_mtl
 
 __all__ = ["ARCHIVE_FORMATS", "BYTES_PER_OTHER_BYTE", "BYTES_PER_TRIANGLE", "BYTES_PER_VERTEX", "MESH_FORMATS",
-           "PROCESS_BYTES", "DecodedMesh", "MeshCounts", "MeshPart", "budget_problem", "count_mesh", "mesh_parts", "read_mesh"]
+           "PROCESS_BYTES", "DecodedMesh", "MeshCounts", "MeshPart", "budget_problem", "charge", "count_file",
+           "count_mesh", "mesh_parts", "read_mesh", "scene_budget_problem"]
 
 BYTES_PER_TRIANGLE = 450
 BYTES_PER_VERTEX = 200
@@ -146,19 +147,40 @@ def file_type(name: str) -> str:
 
 # ------------------------------------------------------------------ budget
 
+def charge(counts: MeshCounts) -> int:
+    """Bytes a mesh of `counts` holds at its peak while it is loaded and traced (no process share)."""
+    return (counts.vertices * BYTES_PER_VERTEX + counts.triangles * BYTES_PER_TRIANGLE
+            + int(counts.other_bytes * BYTES_PER_OTHER_BYTE) + counts.texels * BYTES_PER_TEXEL)
+
+
+def _over_limit(need: int) -> str:
+    return (f"need about {need / 2**20:,.0f} MiB to load and trace ({BYTES_PER_TRIANGLE} bytes per triangle, "
+            f"{BYTES_PER_VERTEX} per vertex, {PROCESS_BYTES >> 20} MiB for the process), over the render memory "
+            f"limit of {render_memory_limit() / 2**20:,.0f} MiB (raise it with DPMHW_RENDER_MEMORY_MB)")
+
+
 def budget_problem(counts: MeshCounts) -> str | None:
     """Why a mesh of `counts` would take too much memory to load and trace, or None when it fits."""
-    limit = render_memory_limit()
-    need = (PROCESS_BYTES + counts.vertices * BYTES_PER_VERTEX + counts.triangles * BYTES_PER_TRIANGLE
-            + int(counts.other_bytes * BYTES_PER_OTHER_BYTE) + counts.texels * BYTES_PER_TEXEL)
-    if need <= limit:
+    need = PROCESS_BYTES + charge(counts)
+    if need <= render_memory_limit():
         return None
     other = f" and {counts.other_bytes / 2**20:,.0f} MiB of other text" if counts.other_bytes >= 2**20 else ""
     other += f" and a texture of {counts.texels:,} texels ({BYTES_PER_TEXEL} bytes each)" if counts.texels else ""
-    return (f"{counts.triangles:,} triangles and {counts.vertices:,} vertices{other} ({counts.how}) need about "
-            f"{need / 2**20:,.0f} MiB to load and trace ({BYTES_PER_TRIANGLE} bytes per triangle, {BYTES_PER_VERTEX} per "
-            f"vertex, {PROCESS_BYTES >> 20} MiB for the process), over the render memory limit of "
-            f"{limit / 2**20:,.0f} MiB (raise it with DPMHW_RENDER_MEMORY_MB)")
+    return f"{counts.triangles:,} triangles and {counts.vertices:,} vertices{other} ({counts.how}) {_over_limit(need)}"
+
+
+def scene_budget_problem(meshes: dict[str, MeshCounts]) -> str | None:
+    """Why the meshes of one scene (name → counts), all held at once, would take too much memory;
+    None when they fit together. Names every mesh, largest first."""
+    need = PROCESS_BYTES + sum(charge(c) for c in meshes.values())
+    if need <= render_memory_limit():
+        return None
+    triangles = sum(c.triangles for c in meshes.values())
+    vertices = sum(c.vertices for c in meshes.values())
+    each = ", ".join(f"{name}: {c.triangles:,} triangles, {charge(c) / 2**20:,.0f} MiB"
+                     for name, c in sorted(meshes.items(), key=lambda item: -charge(item[1])))
+    return (f"the scene's {len(meshes)} meshes together, {triangles:,} triangles and {vertices:,} vertices ({each}), "
+            f"{_over_limit(need)}")
 
 
 # ------------------------------------------------------------------ compressed containers
@@ -272,28 +294,35 @@ def mesh_parts(path: Path) -> list[MeshPart]:
     return parts
 
 
-def read_mesh(path: Path) -> DecodedMesh:
-    """The mesh file at `path`, all its meshes concatenated, each counted and charged to the
-    budget (with an OBJ's texture) before trimesh decodes it. Raises ValueError with the reason."""
+def count_file(path: Path) -> tuple[list[MeshPart], MeshCounts]:
+    """The meshes in the file at `path` (its size already checked) and what they decode to
+    together, with an albedo texture's texels, counted before anything decodes them. Raises
+    ValueError with the reason."""
     parts = mesh_parts(path)
-    counts = []
+    total = None
     for part in parts:
         try:
-            counts.append(count_mesh(part))
+            counts = count_mesh(part)
         except ValueError as exc:
             raise ValueError(_member(parts, part) + describe(exc)) from None
         except Exception as exc:  # a header of the right syntax and the wrong shape (a list for a number, ...)
             raise ValueError(f"{_member(parts, part)}the {part.file_type.upper()} header is malformed: "
                              f"{type(exc).__name__}: {describe(exc)}") from exc
-    surfaces = [_surface(part) for part in parts]
-    images = [(image, name) for image, name, _ in surfaces if image is not None]
+        total = counts if total is None else total + counts
+    images = [(image, name) for image, name, _ in (_surface(part) for part in parts) if image is not None]
     if images and len(parts) > 1:
         raise ValueError(f"texture {images[0][1]}: a texture is rendered on a single mesh file, not on one of "
                          f"{len(parts)} meshes in an archive")
-    total = counts[0]
-    for more in counts[1:]:
-        total = total + more
     total.texels = sum(image.size[0] * image.size[1] for image, _ in images)
+    return parts, total
+
+
+def read_mesh(path: Path) -> DecodedMesh:
+    """The mesh file at `path`, all its meshes concatenated, each counted and charged to the
+    budget (with an OBJ's texture) before trimesh decodes it. Raises ValueError with the reason."""
+    parts, total = count_file(path)
+    surfaces = [_surface(part) for part in parts]
+    images = [(image, name) for image, name, _ in surfaces if image is not None]
     if problem := budget_problem(total):
         raise ValueError(problem)
     import trimesh

@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from dpmhw.errors import CalibrationError, SceneError
-from dpmhw.limits import check_file_size, max_scene_bytes, render_memory_problem
+from dpmhw.limits import check_file_size, max_mesh_bytes, max_scene_bytes, render_memory_problem
+from dpmhw.mesh_limits import MeshCounts, budget_problem, count_file, scene_budget_problem
 from dpmhw.meshes import (DEFAULT_SMOOTH_ANGLE_DEG, TriangleMesh, box_mesh, load_mesh, quad_mesh, smooth_within, sphere_mesh,
-                           stanford_bunny, BOX_FACES)
+                           stanford_bunny, BOX_FACES, BUNNY_DATA)
 from dpmhw.motion import ScriptedMotion
 from dpmhw.transforms import Pose, look_at, rotation_from_euler_xyz_deg, rotation_from_quat_xyzw
 
@@ -366,6 +367,39 @@ def _parse_roughness_map(source: str, table, path: str, mesh: TriangleMesh) -> n
     return np.asarray(values, float)[np.searchsorted(np.asarray(edges, float), s, side="right")]
 
 
+def _check_mesh_budget(source: str, tables: list, base_dir: Path, mesh_override: Path | None) -> None:
+    """Refuse a scene whose meshes, each within the budget, together exceed the render memory
+    limit, before any of them is decoded (`mesh_limits.scene_budget_problem`). A file that cannot
+    be counted, or is over the budget alone, is left to its object's own parse, which names what
+    is wrong with it."""
+    meshes: dict[str, MeshCounts] = {}
+    for i, table in enumerate(tables):
+        if not isinstance(table, dict):
+            continue
+        shape, name = table.get("shape"), table.get("mesh")
+        if shape == "quad" and isinstance(table.get("segments"), list) and len(table["segments"]) == 2 \
+                and all(isinstance(n, int) and 1 <= n <= MAX_QUAD_SEGMENTS for n in table["segments"]):
+            nx, nz = table["segments"]
+            meshes[f"objects[{i}] (quad {nx}×{nz})"] = MeshCounts((nx + 1) * (nz + 1), 2 * nx * nz, "grid")
+        if shape != "mesh" or not isinstance(name, str):
+            continue
+        override = mesh_override or os.environ.get("DPMHW_BUNNY")
+        if name == "builtin:bunny" and not override:
+            with np.load(BUNNY_DATA) as data:
+                meshes[f"objects[{i}] builtin:bunny"] = MeshCounts(len(data["vertices_e6"]), len(data["faces"]), "package data")
+            continue
+        path = Path(override) if name == "builtin:bunny" else base_dir / name
+        try:
+            check_file_size(path, max_mesh_bytes(), "mesh file", "DPMHW_MAX_MESH_MB")
+            counts = count_file(path)[1]
+        except (ValueError, OSError):
+            continue
+        if budget_problem(counts) is None:  # one over the budget alone: its object's parse says so
+            meshes[f"objects[{i}] {path}"] = counts
+    if problem := scene_budget_problem(meshes):
+        raise SceneError(source, "objects", problem)
+
+
 def _parse_object(source: str, table, index: int, base_dir: Path, notes: list[str], mesh_override) -> ObjectSpec:
     path = f"objects[{index}]"
     f = _Fields(source, table, path, OBJECT_FIELDS)
@@ -427,6 +461,7 @@ def parse_scene(text: str, source: str, base_dir: Path, mesh_override: Path | No
     objects_table = section("objects")
     if not isinstance(objects_table, list) or not objects_table:
         top.fail("objects", "expected at least one [[objects]] table")
+    _check_mesh_budget(source, objects_table, base_dir, mesh_override)
     notes: list[str] = []
     objects = [_parse_object(source, t, i, base_dir, notes, mesh_override) for i, t in enumerate(objects_table)]
     names = [o.name for o in objects]

@@ -14,6 +14,9 @@ or `max_header_bytes` of them (431; the HTTP server bounds a head that arrives i
 parsed; validation errors (422) name the field without
 echoing the input (which may be huge, or NaN that JSON cannot carry).
 
+At most `MAX_CONCURRENT_REQUESTS` requests are served at once; the rest wait their turn, except
+the operator's `POST /session/blank`, which is served at once (`_OperatorFirst`).
+
 Every response says how a browser may use it (`_SecurityHeaders`): never inside a frame
 (X-Frame-Options DENY, CSP frame-ancestors), never sniffed as another type (nosniff), and a
 Content-Security-Policy that lets a page run and load only this server's own files
@@ -22,6 +25,7 @@ Content-Security-Policy that lets a page run and load only this server's own fil
 
 from __future__ import annotations
 
+import asyncio
 import os
 import socket
 
@@ -51,6 +55,8 @@ MAX_HEADERS = 64  # a browser sends about 20
 MAX_HEADER_BYTES = 8 * 1024  # request line and headers together
 DEFAULT_TRUSTED_HOSTS = ("127.0.0.1", "localhost")
 _SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+MAX_CONCURRENT_REQUESTS = 16  # served at once (`_OperatorFirst`); a browser opens about 6 connections
+_NEVER_WAIT = frozenset({"/session/blank", "/status/stream"})
 
 
 def trusted_hosts_for(bind_host: str) -> list[str]:
@@ -146,6 +152,44 @@ class _LimitHeaders:
         await self.app(scope, receive, send)
 
 
+class _OperatorFirst:
+    """ASGI middleware: at most `limit` requests are worked on at once (until their answer starts);
+    the others wait, costing the event loop nothing, for a place. The operator's blank never waits (nor does a status stream,
+    which would hold a place for its whole life), so under a storm of requests the work ahead of
+    a blank in the event loop is at most `limit` requests, however many are queued."""
+
+    def __init__(self, app: ASGIApp, limit: int):
+        self.app, self.limit = app, limit
+        self._places: tuple[asyncio.AbstractEventLoop, asyncio.Semaphore] | None = None
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["path"] in _NEVER_WAIT:
+            await self.app(scope, receive, send)
+            return
+        loop = asyncio.get_running_loop()
+        if self._places is None or self._places[0] is not loop:  # a semaphore belongs to one event loop
+            self._places = (loop, asyncio.Semaphore(self.limit))
+        places = self._places[1]
+        await places.acquire()
+        held = True
+
+        def release() -> None:
+            nonlocal held
+            if held:
+                held = False
+                places.release()
+
+        async def sending(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                release()  # the work is done; a client slow to read its answer holds no place
+            await send(message)
+
+        try:
+            await self.app(scope, receive, sending)
+        finally:
+            release()
+
+
 class _SecurityHeaders:
     """ASGI middleware: the security headers on every response (a route's own CSP is kept)."""
 
@@ -195,7 +239,8 @@ def _validation_errors(exc: RequestValidationError) -> list[dict]:
 
 def build_app(runtime: Runtime, *, token: str | None = None, trusted_hosts: list[str] | tuple[str, ...] | None = None,
               max_body_bytes: int = MAX_BODY_BYTES, max_headers: int = MAX_HEADERS,
-              max_header_bytes: int = MAX_HEADER_BYTES) -> FastAPI:
+              max_header_bytes: int = MAX_HEADER_BYTES,
+              max_concurrent_requests: int = MAX_CONCURRENT_REQUESTS) -> FastAPI:
     """The service over `runtime`; `token` guards the mutating routes (None reads DPMHW_API_TOKEN;
     no token at all: they all answer 401). `trusted_hosts` are the Host names clients may use
     (None: DPMHW_API_HOSTS, comma-separated, else loopback names only). The caller owns the
@@ -204,13 +249,15 @@ def build_app(runtime: Runtime, *, token: str | None = None, trusted_hosts: list
                   description="Status, settings and control of a dynamic projection mapping session.",
                   docs_url=None, redoc_url=None)  # served from local files by add_pages
     app.state.runtime = runtime
-    app.state.png_cache = status.PngCache()  # per app: each presented frame is encoded once
+    app.state.png_cache = status.PngCache()  # per app: a frame is encoded once, a few per second at most
     app.state.token = token if token is not None else os.environ.get("DPMHW_API_TOKEN", "")
     if trusted_hosts is None:
         env = os.environ.get("DPMHW_API_HOSTS", "")
         trusted_hosts = [h.strip() for h in env.split(",") if h.strip()] or list(DEFAULT_TRUSTED_HOSTS)
     # Starlette runs the middleware added last first: the headers (on every answer, refusals too),
-    # header count and size, Host, then token and body size.
+    # header count and size, Host, then token and body size (a body arrives whole before), a
+    # place among the requests worked on at once.
+    app.add_middleware(_OperatorFirst, limit=max_concurrent_requests)
     app.add_middleware(_GuardMutations, max_body_bytes=max_body_bytes)
     app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(trusted_hosts))
     app.add_middleware(_LimitHeaders, max_headers=max_headers, max_bytes=max_header_bytes)

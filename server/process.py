@@ -7,10 +7,13 @@
 The session process (this one) owns the devices and the loop. A publisher thread here copies the
 loop's status (every `publish_period_s`, and at once after a command) and its latest frame into
 two shared-memory slots (`shared_slot.py`); the API process answers reads from those slots alone,
-and sends the few mutating requests (settings, blank, resume, reset-history) over a pipe to a
-command thread here, which applies them exactly as an in-process request would. The work this
+and sends the few mutating requests (settings, resume, reset-history) over a pipe to a command
+thread here, which applies them exactly as an in-process request would; the operator's blank has
+a pipe and a thread of its own, so no other command is ever queued ahead of it. The work this
 process does for the service is therefore bounded whatever the request load: one publish per
-period, plus one per command that changed something. A settings patch that changes no value is
+period, plus one per blank or resume (whose reply reports the new state). A settings change is
+published with the next period (the API process answers its sender's own reads from the
+accepted settings meanwhile). A settings patch that changes no value is
 answered by the API process without a command; the other commands but blank are limited to
 `commands_per_s` (bursts of `command_burst`; beyond: 429 with Retry-After), so a command storm
 cannot make the loop publish more; the blank is never limited. What each client can hold in the
@@ -59,6 +62,7 @@ __all__ = ["ApiProcess", "RemoteRuntime", "bind_api_socket", "lower_priority"]
 log = logging.getLogger(__name__)
 
 _COMMANDS = ("update_settings", "blank", "resume", "reset_history")
+_PUBLISH_AT_ONCE = ("blank", "resume")  # their replies say the state they led to
 _PRIORITIES = ("idle", "low", "normal")
 
 
@@ -109,7 +113,7 @@ class ApiProcess:
         self._frame_key: tuple | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._conn = None
+        self._conn = self._blank_conn = None  # commands; the operator's blank alone
         self.process = None
         self.restarts = 0
         self.last_exit = ""  # why the previous API process ended ("" if none did)
@@ -133,9 +137,11 @@ class ApiProcess:
         except BaseException:
             self.close()
             raise
-        for name, target in (("api-publisher", self._publish_loop), ("api-commands", self._serve_commands),
-                             ("api-keeper", self._keep)):
-            t = threading.Thread(target=target, name=name, daemon=True)
+        for name, target, args in (("api-publisher", self._publish_loop, ()),
+                                   ("api-commands", self._serve_commands, ("_conn",)),
+                                   ("api-blank", self._serve_commands, ("_blank_conn",)),
+                                   ("api-keeper", self._keep, ())):
+            t = threading.Thread(target=target, args=args, name=name, daemon=True)
             t.start()
             self._threads.append(t)
         return self
@@ -144,21 +150,26 @@ class ApiProcess:
         """Start one API process on the bound socket and wait until it serves."""
         ctx = multiprocessing.get_context("spawn")  # never fork a process running native threads
         conn, child_conn = ctx.Pipe(duplex=True)
+        blank_conn, child_blank_conn = ctx.Pipe(duplex=True)
         process = ctx.Process(
             target=_serve_child, name="dpmhw-api", daemon=True,
-            args=(self.sock, child_conn, self.status_slot.name, self.frame_slot.name, self.token, self.priority,
-                  self.stale_after_s, self.trusted_hosts, self.limits, self.command_rate))
+            args=(self.sock, child_conn, child_blank_conn, self.status_slot.name, self.frame_slot.name, self.token,
+                  self.priority, self.stale_after_s, self.trusted_hosts, self.limits, self.command_rate))
         process.start()
         child_conn.close()
+        child_blank_conn.close()
         self.process = process
         try:
-            self._wait_ready(conn)  # before the command thread may read this pipe
+            self._wait_ready(conn)  # before the command threads may read these pipes
         except BaseException:
             conn.close()
+            blank_conn.close()
             raise
-        old, self._conn = self._conn, conn
-        if old is not None:
-            old.close()
+        old = (self._conn, self._blank_conn)
+        self._conn, self._blank_conn = conn, blank_conn
+        for c in old:
+            if c is not None:
+                c.close()
         self._state = "serving"
 
     def _wait_ready(self, conn) -> None:
@@ -218,8 +229,9 @@ class ApiProcess:
         self._state = "closed"
         if self.process is not None:
             stop_process(self.process, grace_s=5.0)  # SIGTERM: uvicorn finishes open requests and exits
-        if self._conn is not None:
-            self._conn.close()
+        for conn in (self._conn, self._blank_conn):
+            if conn is not None:
+                conn.close()
         self.sock.close()
         for slot in (self.status_slot, self.frame_slot):
             if slot is not None:
@@ -256,9 +268,11 @@ class ApiProcess:
             except Exception:  # never let the service take the session down
                 log.exception("publishing the session status for the API failed")
 
-    def _serve_commands(self) -> None:
+    def _serve_commands(self, pipe: str) -> None:
+        """Execute the commands arriving on the pipe named `pipe` (the attribute: a restarted API
+        process gets new pipes), one at a time, in order."""
         while not self._stop.is_set():
-            conn = self._conn
+            conn = getattr(self, pipe)
             try:
                 if not conn.poll(0.2):
                     continue
@@ -268,7 +282,7 @@ class ApiProcess:
                 continue
             reply, changed = self._execute(name, args)
             try:
-                if changed:
+                if changed and name in _PUBLISH_AT_ONCE:
                     self.publish()  # the reply's sender reads its own write in the next status
             except Exception:
                 log.exception("publishing the session status for the API failed")
@@ -304,9 +318,9 @@ def bind_api_socket(host: str, port: int) -> socket.socket:
 class RemoteRuntime:
     """The `Runtime` the API process serves: reads from the shared slots, commands over the pipe."""
 
-    def __init__(self, status_slot: SharedSlot, frame_slot: SharedSlot, conn, *, stale_after_s: float = 1.0,
-                 command_timeout_s: float = 2.0, session_alive=None, command_rate: tuple[float, int] = (20.0, 10),
-                 connection_stats=None):
+    def __init__(self, status_slot: SharedSlot, frame_slot: SharedSlot, conn, blank_conn=None, *,
+                 stale_after_s: float = 1.0, command_timeout_s: float = 2.0, session_alive=None,
+                 command_rate: tuple[float, int] = (20.0, 10), connection_stats=None):
         self.status_slot = status_slot
         # whether the session process still exists, asked per request (None: assumed so). Its last
         # snapshot stays fresh for stale_after_s after it dies; without this, a crashed session
@@ -315,8 +329,10 @@ class RemoteRuntime:
         self.frame_slot = frame_slot
         self.stale_after_s = stale_after_s
         self.command_timeout_s = command_timeout_s
-        self._conn = conn
-        self._call_lock = threading.Lock()
+        # the operator's blank has a pipe (and a session thread) of its own, so that no other
+        # command is ever ahead of it; each pipe carries one command at a time
+        commands = (conn, threading.Lock())
+        self._pipes = {"commands": commands, "blank": commands if blank_conn is None else (blank_conn, threading.Lock())}
         self._ids = itertools.count(1)
         self._cache_lock = threading.Lock()
         self._payload: tuple[int, int, dict] | None = None  # (sequence, published ns, decoded)
@@ -351,6 +367,9 @@ class RemoteRuntime:
         payload, silent_s = self._read()
         last = payload["status"]
         out = dict(last, snapshot_age_s=round(silent_s, 3))
+        own = self._own_settings
+        if own is not None and own[0] > payload["t_read_ns"] and "settings" in out:
+            out["settings"] = own[1].model_dump()  # accepted after that snapshot was taken
         if self.connection_stats is not None:
             out["api"] = {**out.get("api", {}), "connections": self.connection_stats()}
         if self._gone() and last.get("state") != "stopped":
@@ -374,18 +393,14 @@ class RemoteRuntime:
         return LiveSettings.model_validate(payload["settings"])
 
     def update_settings(self, patch: dict) -> LiveSettings:
-        current = self.settings()  # what this process last had accepted, or the newer snapshot
-        pinned = self._read()[0]["status"].get("governor", {}).get("pinned", ())
-        if all(getattr(current, k, _MISSING) == v and k in pinned for k, v in patch.items()):
-            return current  # changes nothing, pins nothing new: the session is not asked (nor made to publish)
-        self._admit("update_settings")
+        self._admit("update_settings")  # a patch that changes nothing never gets here (`routers.settings`)
         settings, accepted_ns = self._call("update_settings", dict(patch))
         new = LiveSettings.model_validate(settings)
         self._own_settings = (accepted_ns, new)
         return new
 
     def blank(self) -> None:
-        self._call("blank")
+        self._call("blank", pipe="blank")
 
     def resume(self) -> tuple[bool, str]:
         self._admit("resume")
@@ -419,19 +434,20 @@ class RemoteRuntime:
         self._frame = (seq, frame)  # one reference swap: readers see the old or the new pair
         return frame
 
-    def _call(self, name: str, *args) -> Any:
+    def _call(self, name: str, *args, pipe: str = "commands") -> Any:
         """Send one command and wait for its reply (bounded: a stuck session → 503, not a hang)."""
-        with self._call_lock:
+        conn, lock = self._pipes[pipe]
+        with lock:
             request_id = next(self._ids)
             try:
-                self._conn.send((request_id, name, args))
+                conn.send((request_id, name, args))
                 deadline = time.monotonic() + self.command_timeout_s
                 while True:
                     left = deadline - time.monotonic()
-                    if left <= 0 or not self._conn.poll(left):
+                    if left <= 0 or not conn.poll(left):
                         raise RuntimeUnavailable(f"the session did not answer {name!r} within "
                                                  f"{self.command_timeout_s:g} s (stuck?)")
-                    reply_id, outcome, value = self._conn.recv()
+                    reply_id, outcome, value = conn.recv()
                     if reply_id == request_id:
                         break  # older replies belong to requests that already timed out
             except (EOFError, OSError) as exc:
@@ -442,8 +458,6 @@ class RemoteRuntime:
             raise RuntimeError(f"the session failed to {name}: {value}")
         return value
 
-
-_MISSING = object()
 
 
 class _TokenBucket:
@@ -466,7 +480,7 @@ class _TokenBucket:
             return (1 - self._tokens) / self.rate
 
 
-def _serve_child(sock: socket.socket, conn, status_name: str, frame_name: str, token: str, priority: str,
+def _serve_child(sock: socket.socket, conn, blank_conn, status_name: str, frame_name: str, token: str, priority: str,
                  stale_after_s: float, trusted_hosts: list[str], limits: ConnectionLimits,
                  command_rate: tuple[float, int]) -> None:
     """The API process: uvicorn on the inherited socket, serving a `RemoteRuntime`."""
@@ -477,7 +491,7 @@ def _serve_child(sock: socket.socket, conn, status_name: str, frame_name: str, t
     lower_priority(priority)
     parent = multiprocessing.parent_process()
     options = limits.uvicorn_options()
-    runtime = RemoteRuntime(SharedSlot.attach(status_name), SharedSlot.attach(frame_name), conn,
+    runtime = RemoteRuntime(SharedSlot.attach(status_name), SharedSlot.attach(frame_name), conn, blank_conn,
                             stale_after_s=stale_after_s, session_alive=parent.is_alive if parent is not None else None,
                             command_rate=command_rate, connection_stats=options["http"].guard.stats)
     app = build_app(runtime=runtime, token=token, trusted_hosts=trusted_hosts, max_headers=limits.max_headers,

@@ -13,6 +13,7 @@ def _register() -> None:
     # Importing the command modules attaches their commands to the apps above.
     from dpmhw.cli import render  # noqa: F401
     from dpmhw.cli import bench  # noqa: F401
+    from dpmhw.cli import displays  # noqa: F401
     import importlib
 
     for optional in ("dpmhw.cli.mock", "dpmhw.cli.calibrate", "dpmhw.cli.projector", "dpmhw.cli.session",

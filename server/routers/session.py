@@ -1,12 +1,15 @@
 """Session control: blank, resume, reset the temporal history (bearer token required).
 
-Plain `def` handlers: they run in the thread pool, because a runtime in another process waits
-(bounded) for the session's reply and must not hold up the event loop that serves /status.
+A runtime in another process waits (bounded) for the session's reply, which must not hold up the
+event loop that serves /status: so the handlers wait in worker threads. Resume and reset-history
+are plain `def` (the shared thread pool); the blank waits in threads of its own
+(`BLANK_THREADS`), so a pool full of settings patches never queues the operator's blank.
 """
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends
+import anyio
+from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse
 
 from server.deps import RuntimeDep, require_token
@@ -16,9 +19,15 @@ router = APIRouter(prefix="/session", tags=["session"], dependencies=[Depends(re
                    responses={401: {"description": "missing or wrong bearer token"}})
 
 
+BLANK_THREADS = 4
+
+
 @router.post("/blank", response_model=ActionResult, summary="Go dark now; stays dark until resume")
-def blank(runtime: RuntimeDep) -> ActionResult:
-    runtime.blank()
+async def blank(request: Request, runtime: RuntimeDep) -> ActionResult:
+    state = request.app.state
+    if getattr(state, "blank_threads", None) is None:  # made inside the server's event loop
+        state.blank_threads = anyio.CapacityLimiter(BLANK_THREADS)
+    await anyio.to_thread.run_sync(runtime.blank, limiter=state.blank_threads)
     return ActionResult(ok=True, message="blank requested; the next frame is dark", state=runtime.status()["state"])
 
 

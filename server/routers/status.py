@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import threading
+import time
 
+import anyio
 import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.responses import JSONResponse, PlainTextResponse, StreamingResponse
@@ -68,24 +71,62 @@ async def metrics(runtime: RuntimeDep) -> Response:
 
 
 class PngCache:
-    """Encodes each presented frame at most once, however many clients ask for it."""
+    """The latest frame as PNG, encoded at most once per frame and at most once per
+    `min_interval_s` however fast frames come (a 1024×768 frame takes tens of ms of the API
+    process's CPU): clients in between, and while an encode is under way, get the newest encoded
+    frame. A frame that turns dark or lit is encoded at once, so the page shows a blank as soon
+    as the session reports it."""
 
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
+    def __init__(self, min_interval_s: float = 0.25, clock=time.monotonic) -> None:
+        self.min_interval_s, self.clock = min_interval_s, clock
+        self._lock = threading.Lock()  # the cached PNG and its key
+        self._encode_lock = threading.Lock()
         self._key = None
-        self._png = b""
+        self._t = -math.inf
+        self._png: tuple[bytes, int, bool] = (b"", 0, False)
+        self.encoded = 0
+        self._encoding = False
+        self.threads: anyio.CapacityLimiter | None = None  # made inside the server's event loop
 
-    def get(self, frame) -> bytes:
-        key = (frame.number, frame.t_present_ns, frame.blank)
+    def _servable(self, frame) -> bool:
+        return self._key is not None and (
+            self._key == (frame.number, frame.t_present_ns, frame.blank)
+            or bool(frame.blank) == self._png[2] and self.clock() - self._t < self.min_interval_s)
+
+    def take(self, frame) -> tuple[bytes, int, bool] | None:
+        """(PNG, frame number, blank) to serve for `frame` without waiting, or None: then the
+        caller calls `get`. Only one caller at a time is sent to encode; while it does, the others
+        get the last PNG (there is none only before the first frame is encoded)."""
         with self._lock:
-            if key != self._key:
+            if self._servable(frame) or self._encoding and self._key is not None:
+                return self._png
+            self._encoding = True
+            return None
+
+    def get(self, frame) -> tuple[bytes, int, bool]:
+        """(PNG, frame number, blank): `frame` encoded, unless what is cached may be served."""
+        with self._encode_lock:  # one encode at a time
+            try:
+                with self._lock:
+                    if self._servable(frame):  # encoded by the caller before this one
+                        return self._png
                 import cv2
 
                 ok, buf = cv2.imencode(".png", np.ascontiguousarray(frame.image[..., ::-1]))
                 if not ok:
                     raise HTTPException(500, "PNG encoding failed")
-                self._key, self._png = key, buf.tobytes()
-            return self._png
+                with self._lock:
+                    self._key, self._t = (frame.number, frame.t_present_ns, frame.blank), self.clock()
+                    self._png = (buf.tobytes(), frame.number, bool(frame.blank))
+                    self.encoded += 1
+                    return self._png
+            finally:
+                self.release()
+
+    def release(self) -> None:
+        """End the claim `take` gave (`get` does; so does a request cancelled before its `get`)."""
+        with self._lock:
+            self._encoding = False
 
 
 @router.get("/frame.png", summary="The latest frame sent to the projector (what the audience sees)",
@@ -94,6 +135,16 @@ async def frame_png(request: Request, runtime: RuntimeDep) -> Response:
     frame = runtime.latest_frame()
     if frame is None:
         raise HTTPException(404, "no frame has been sent to the projector yet")
-    return Response(request.app.state.png_cache.get(frame), media_type="image/png",
-                    headers={"X-Frame-Number": str(frame.number), "X-Frame-Blank": str(bool(frame.blank)).lower(),
+    cache = request.app.state.png_cache
+    got = cache.take(frame)
+    if got is None:  # encode in a worker thread (OpenCV releases the GIL): the event loop goes on serving
+        if cache.threads is None:
+            cache.threads = anyio.CapacityLimiter(1)
+        try:
+            got = await anyio.to_thread.run_sync(cache.get, frame, limiter=cache.threads)
+        finally:
+            cache.release()
+    png, number, blank = got
+    return Response(png, media_type="image/png",
+                    headers={"X-Frame-Number": str(number), "X-Frame-Blank": str(blank).lower(),
                              "Cache-Control": "no-store"})

@@ -174,11 +174,26 @@ async function loadSettings() {
 // ---- status --------------------------------------------------------------------------------
 const STATE_WORDS = {
   running: "Projecting",
-  blanked: "Dark (on purpose)",
   fault: "Dark: fault",
   starting: "Starting (dark)",
   stopped: "Stopped (dark)",
 };
+
+// "blanked" is every deliberate dark spell; its words say whose: the operator's blank, a cause
+// such as lost tracking, the wait for an explicit resume, or the hold-off after a cause cleared
+// (the session resumes by itself when it ends).
+function stateWords(st) {
+  const state = st.state || "unknown";
+  if (state !== "blanked") return STATE_WORDS[state] || state;
+  const names = (st.causes || []).map((c) => c.name);
+  if (names.includes("operator")) return "Dark: operator blank";
+  if (names.includes("tracking")) return "Dark: tracking lost";
+  if (names.length) return "Dark: " + names.join(", ");
+  if ((st.reason || "").includes("explicit resume")) return "Dark: waiting for resume";
+  const cleared = /^(\S+) cleared/.exec(st.reason || "");  // safety.py: "<cause> cleared … ago; holding off …"
+  if (cleared && cleared[1] !== "operator") return `Dark: ${cleared[1]} hold-off (resumes by itself)`;
+  return "Dark: hold-off (resumes by itself)";
+}
 
 function push(series, v) { series.push(v === undefined || v === null ? NaN : Number(v)); if (series.length > HISTORY) series.shift(); }
 function fmt(v, digits = 1) { return v === undefined || v === null || Number.isNaN(Number(v)) ? "–" : Number(v).toFixed(digits); }
@@ -186,7 +201,7 @@ function fmt(v, digits = 1) { return v === undefined || v === null || Number.isN
 function renderStatus(st) {
   const state = st.state || "unknown";
   $("state-box").className = "state " + state;
-  $("state").textContent = STATE_WORDS[state] || state;
+  $("state").textContent = stateWords(st);
   $("reason").textContent = st.reason ? "— " + st.reason : (st.output_on ? "— output on" : "");
   const causes = $("causes");
   causes.textContent = "";
@@ -218,7 +233,10 @@ function renderStatus(st) {
   renderGovernor(st.governor);
   renderDevices(st.devices || {});
   $("counters").textContent = Object.entries(st.counters || {}).map(([k, v]) => `${k.replace(/_/g, " ")}: ${v}`).join(" · ");
-  $("frame-info").textContent = `frame ${st.frame_number ?? "–"}, ${st.render_size ? st.render_size.join("×") : ""}`;
+  const output = st.output_size ? `, ${st.output_size.join("×")} output` : "";
+  const shaded = st.render_size && st.output_size && st.render_size.join() !== st.output_size.join()
+    ? ` (shaded at ${st.render_size.join("×")})` : "";
+  $("frame-info").textContent = `frame ${st.frame_number ?? "–"}${output}${shaded}`;
   if (st.settings && !document.activeElement?.dataset?.setting) { lastSettings = st.settings; renderSettingValues(st.settings); }
 }
 

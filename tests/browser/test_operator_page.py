@@ -39,10 +39,14 @@ WAIT_S = 30  # for what must happen eventually: generous, as only broken code wa
 
 
 @pytest.fixture(scope="module")
-def session_url():
-    # api.priority=low: a SCHED_IDLE API process gets next to no CPU beside a CPU hog
+def session():
+    """(API URL, the start command's output lines so far) of a `session start --mock`."""
+    # api.priority=low: a SCHED_IDLE API process gets next to no CPU beside a CPU hog; a generous
+    # tracking stale limit and watchdog: on a loaded machine the loop is late by far more than the
+    # defaults allow (and a loop that presents late is killed as hung), which these tests do not test
     args = ["session", "start", "--mock", "--status-every", "0", "--port", "0",
-            "--set", "render.width=64", "--set", "render.height=48", "--set", "api.priority=low"]
+            "--set", "render.width=64", "--set", "render.height=48", "--set", "api.priority=low",
+            "--set", "safety.stale_after_ms=1000", "--set", "safety.watchdog_s=5"]
     proc = subprocess.Popen([sys.executable, "-c", "from dpmhw.cli import main; main()", *args],
                             env={**os.environ, "DPMHW_API_TOKEN": TOKEN},
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -58,7 +62,7 @@ def session_url():
         url = next(m.group(1) for line in lines if (m := re.search(r"API on (http://\S+)", line)))
         if not wait_for(lambda: _get(url, "/status").get("state") == "running", 60):
             pytest.fail(f"session never ran: {_get(url, '/status')}")
-        yield url
+        yield url, lines
     finally:
         proc.terminate()
         try:
@@ -68,6 +72,11 @@ def session_url():
             proc.wait(timeout=10)
         reader.join(timeout=10)
         proc.stdout.close()
+
+
+@pytest.fixture(scope="module")
+def session_url(session):
+    return session[0]
 
 
 def _get(url: str, path: str) -> dict:
@@ -123,6 +132,8 @@ def test_live_frame_updates_and_state_is_in_words(page, tmp_path):
     first = int(img.get_attribute("data-frame-number"))
     assert wait_for(lambda: int(img.get_attribute("data-frame-number") or 0) > first, WAIT_S), "the frame never changed"
     assert wait_for(lambda: page.execute_script("return arguments[0].naturalWidth", img) == 64, WAIT_S)
+    # the caption gives the output size, what /frame.png is, and the shading size beside it
+    assert wait_for(lambda: "64×48 output (shaded at 16×12)" in _text(page, "frame-info"), WAIT_S), _text(page, "frame-info")
     assert wait_for(lambda: _text(page, "state") == "Projecting", WAIT_S), _text(page, "state")  # tracking may lag under load
     assert wait_for(lambda: page.find_elements(By.CSS_SELECTOR, "#stages tbody tr"), WAIT_S)
     assert "render" in _text(page, "stages") and "streaming" in _text(page, "devices")
@@ -166,7 +177,7 @@ def test_rejections_show_the_api_reason(page, session_url):
 def test_blank_then_resume_from_the_page(page, session_url, tmp_path):
     _enter_token(page)
     page.find_element(By.ID, "blank").click()
-    assert wait_for(lambda: _text(page, "state") == "Dark (on purpose)", WAIT_S), _text(page, "state")
+    assert wait_for(lambda: _text(page, "state") == "Dark: operator blank", WAIT_S), _text(page, "state")
     assert _get(session_url, "/status")["state"] == "blanked"
     assert wait_for(lambda: "operator" in _text(page, "causes"), WAIT_S), _text(page, "causes")  # beside any tracking cause on a loaded machine
     img = page.find_element(By.ID, "frame")
@@ -189,3 +200,45 @@ def test_docs_and_redoc_render_from_local_assets(browser, session_url):
     # ReDoc's "API docs by Redocly" footer badge is the one remote image; it hides itself offline.
     remote = [u for u in urls if not u.startswith((session_url, "data:", "blob:"))]
     assert urls and remote in ([], ["https://cdn.redoc.ly/redoc/logo-mini.svg"]), urls
+
+
+def test_start_up_output_gives_the_operator_page_address(session):
+    url, lines = session
+    assert any(line.strip() == f"operator page: {url}/ (it says why while the session is not up yet)"
+               for line in lines), "".join(lines)
+
+
+def test_a_hold_off_an_operator_blank_and_lost_tracking_are_told_apart(page):
+    """The page's words for statuses made by the session's own safety monitor (fake clock)."""
+    from dpmhw.session.safety import SafetyMonitor
+
+    now = [0]
+    safety = SafetyMonitor(holdoff_s=2.0, clock=lambda: now[0])
+    safety.mark_started()
+
+    def words() -> str:
+        view = safety.view()
+        st = {"state": view.state.value, "reason": view.reason, "output_on": view.output_on,
+              "causes": [{"name": c.name, "kind": c.kind, "reason": c.reason} for c in view.causes]}
+        return page.execute_script("return stateWords(arguments[0])", st)
+
+    assert words() == "Projecting"
+    safety.update("tracking", True, "rigid body 1: no sample yet (tracker lost)")
+    assert words() == "Dark: tracking lost"
+    now[0] += 10**9
+    safety.update("tracking", False)
+    assert safety.view().state.value == "blanked"
+    assert words() == "Dark: tracking hold-off (resumes by itself)"
+    safety.operator_blank()
+    assert words() == "Dark: operator blank"
+    safety.request_resume()
+    assert words() == "Dark: hold-off (resumes by itself)"
+    now[0] += 3 * 10**9
+    assert words() == "Projecting"
+    manual = SafetyMonitor(holdoff_s=0.0, resume="manual", clock=lambda: now[0])
+    manual.mark_started()
+    manual.update("tracking", True, "lost")
+    manual.update("tracking", False)
+    view = manual.view()
+    st = {"state": view.state.value, "reason": view.reason, "causes": []}
+    assert page.execute_script("return stateWords(arguments[0])", st) == "Dark: waiting for resume"

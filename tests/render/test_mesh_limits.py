@@ -403,3 +403,55 @@ def test_mangled_headers_load_or_are_refused_in_one_line(tmp_path):
                 assert str(path) in message and "\n" not in message and not message.rstrip().endswith(":"), message
                 outcomes["refused"] += 1
     assert min(outcomes.values()) > 20, outcomes  # else the mutations exercise only one side
+
+
+def test_a_scene_whose_meshes_fit_alone_but_not_together_is_refused_before_decoding(tmp_path, monkeypatch):
+    """Three grids, each within the budget, together over it: the scene is refused naming every
+    file and the totals, and no mesh is decoded (trimesh is never asked)."""
+    import trimesh
+
+    from dpmhw.errors import SceneError
+    from dpmhw.scene_file import load_scene
+
+    for name in ("a", "b", "c"):
+        (tmp_path / f"{name}.obj").write_text(grid_obj(100))  # 10,201 vertices, 20,000 triangles each
+    one = (10_201 * BYTES_PER_VERTEX + 20_000 * BYTES_PER_TRIANGLE) / 2**20
+    scene = tmp_path / "scene.toml"
+    scene.write_text("""
+[render]
+width = 16
+height = 12
+background = [0.1, 0.1, 0.1]
+
+[camera]
+fx = 10.0
+fy = 10.0
+cx = 8.0
+cy = 6.0
+position = [0.0, 0.0, 2.0]
+look_at = [0.0, 0.0, 0.0]
+""" + "".join(f'\n[[objects]]\nshape = "mesh"\nmesh = "{n}.obj"\nsmooth = false\n' for n in "abc"))
+    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", str(int(256 + 2.5 * one)))  # room for two and a half
+    decoded = []
+    real_load = trimesh.load
+    monkeypatch.setattr(trimesh, "load", lambda *a, **kw: decoded.append(1) or real_load(*a, **kw))
+    with pytest.raises(SceneError) as info:
+        load_scene(scene)
+    message = str(info.value)
+    assert "\n" not in message and decoded == []
+    for name in ("a", "b", "c"):
+        assert str(tmp_path / f"{name}.obj") in message
+    assert "3 meshes together, 60,000 triangles and 30,603 vertices" in message
+    assert f"about {256 + 3 * one:,.0f} MiB" in message and "DPMHW_RENDER_MEMORY_MB" in message
+    monkeypatch.setenv("DPMHW_RENDER_MEMORY_MB", str(int(256 + 3 * one) + 1))  # all three fit
+    assert len(load_scene(scene).objects) == 3 and len(decoded) == 3
+
+
+def test_the_scene_budget_counts_the_built_in_bunny_and_quad_grids():
+    from dpmhw.mesh_limits import scene_budget_problem
+
+    bunny = MeshCounts(35_947, 69_451, "package data")
+    grid = MeshCounts(1025 ** 2, 2 * 1024 ** 2, "grid")
+    assert scene_budget_problem({"bunny": bunny, "quad": grid}) is None
+    message = scene_budget_problem({"bunny": bunny, **{f"quad {i}": grid for i in range(5)}})
+    assert message.startswith("the scene's 6 meshes together, 10,555,211 triangles") and "4,608 MiB" in message

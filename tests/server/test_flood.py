@@ -209,3 +209,43 @@ def test_commands_that_change_nothing_cost_the_loop_nothing_and_a_storm_is_limit
         assert admitted <= 3 + 5.0 * elapsed  # the burst, then the rate
         assert client.post("/session/blank", headers=AUTH).status_code == 200
         assert client.post("/session/blank", headers=AUTH).status_code == 200
+
+
+def _storm_keeps_blank_and_status_answering(clients: int, storm_s: float):
+    """`clients` storm clients (status, frame, no-op and changing PATCH) for `storm_s`; meanwhile
+    the operator's blank on a fresh connection darkens the projector and /status answers."""
+    from server.storm import ENDPOINTS, Storm, summarise
+
+    with _session_and_api(commands_per_s=5.0, command_burst=3) as (loop, api, client):
+        applied0 = loop.status()["counters"].get("settings_changes_applied", 0)
+        with Storm(api.port, clients, TOKEN, timeout_s=WAIT_S) as storm:
+            storm.active.set()
+            t0 = time.monotonic()
+            time.sleep(storm_s / 2)
+            with httpx.Client(base_url=api.url, timeout=WAIT_S) as operator:
+                assert operator.get("/status").status_code == 200
+                assert loop.parts.projector.dark is False
+                assert operator.post("/session/blank", headers=AUTH).status_code == 200
+                assert wait_for(lambda: loop.parts.projector.dark, WAIT_S)  # read back from the projector
+                assert loop.status()["state"] == "blanked"
+            time.sleep(storm_s / 2)
+        elapsed = time.monotonic() - t0
+        records = storm.results()
+        assert storm.lost == 0
+        got = summarise(records)
+        assert all(got[name]["requests"] > 0 for name in ENDPOINTS), got
+        for name in ("status", "frame", "patch_noop"):  # answered, never limited (no-op patches cost nothing)
+            assert got[name]["codes"] == {"200": got[name]["requests"]}, (name, got[name])
+        assert set(got["patch_change"]["codes"]) <= {"200", "429"}, got["patch_change"]
+        applied = loop.status()["counters"].get("settings_changes_applied", 0) - applied0
+        assert applied <= 3 + 5.0 * (elapsed + 1), (applied, elapsed)  # the burst, then the rate
+        assert api.process.is_alive()
+
+
+def test_blank_and_status_answer_through_a_mixed_request_storm():
+    _storm_keeps_blank_and_status_answering(clients=16, storm_s=2.0)
+
+
+@pytest.mark.slow
+def test_blank_and_status_answer_through_a_200_client_mixed_storm():
+    _storm_keeps_blank_and_status_answering(clients=200, storm_s=10.0)
