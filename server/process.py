@@ -59,6 +59,8 @@ from server.shared_slot import SharedSlot, SlotTornError
 
 __all__ = ["ApiProcess", "RemoteRuntime", "bind_api_socket", "lower_priority"]
 
+_MISSING = object()  # a field the settings lack (never equal to a value)
+
 log = logging.getLogger(__name__)
 
 _COMMANDS = ("update_settings", "blank", "resume", "reset_history")
@@ -393,7 +395,9 @@ class RemoteRuntime:
         return LiveSettings.model_validate(payload["settings"])
 
     def update_settings(self, patch: dict) -> LiveSettings:
-        self._admit("update_settings")  # a patch that changes nothing never gets here (`routers.settings`)
+        if any(getattr(self.settings(), k, _MISSING) != v for k, v in patch.items()):
+            self._admit("update_settings")  # only a change counts against the command rate: one that only pins
+            # fields (the operator's, against the governor) costs the loop a comparison (`routers.settings`)
         settings, accepted_ns = self._call("update_settings", dict(patch))
         new = LiveSettings.model_validate(settings)
         self._own_settings = (accepted_ns, new)

@@ -33,7 +33,7 @@ FLOOD = 2000
 def _session_and_api(fd_limit: int | None = None, **kw):
     """A started fake session and its API process, spawned with soft RLIMIT_NOFILE `fd_limit`
     (a spawned child inherits the limit; this process's own is put back at once)."""
-    loop = fake_session().start()
+    loop = fake_session(["governor.enabled=false"]).start()  # what changes the settings here is the clients alone
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     api = ApiProcess(port=0, token=TOKEN, publish_period_s=0.02, priority="low", **kw)
     try:
