@@ -821,15 +821,16 @@ class SessionLoop:
             image = self._present_buffer()
             with self._predict_lock:
                 self._drain_samples()
-                for w, t in zip(self.timing.windows, mids):
-                    poses, used = list(cap.poses), {}
-                    for index, body in self.parts.bindings.items():
-                        predicted = self.predictor.predict(body, t, enabled=settings.prediction)
-                        if predicted is None:
-                            return
-                        poses[index], horizon_ns = predicted
-                        used[body] = predicted[0]
-                    windows.append((t, used, poses, w.channel))
+                per_body = {body: self.predictor.predict_many(body, mids, enabled=settings.prediction)
+                            for body in set(self.parts.bindings.values())}
+            if any(p is None for p in per_body.values()):
+                return
+            for k, (w, t) in enumerate(zip(self.timing.windows, mids)):
+                poses, used = list(cap.poses), {}
+                for index, body in self.parts.bindings.items():
+                    poses[index], horizon_ns = per_body[body][k]
+                    used[body] = poses[index]
+                windows.append((t, used, poses, w.channel))
             for _, _, poses, channel in windows:
                 self.reprojector.reproject(cap.reprojection, poses, image, channel=channel)
         else:  # as rendered: every window shows the poses the frame was predicted to
@@ -872,16 +873,17 @@ class SessionLoop:
     def _adapt_lead(self, ready_ns: int, late: bool) -> None:
         """The lead: twice the median time from waking to a frame ready to hand over (the last 32
         presents) plus a penalty that a missed refresh raises by a step and each on-time present
-        wears down; within [PRESENT_LEAD_MIN_NS, half a period]. Short: the lead is prediction
-        horizon, so every millisecond of it costs registration."""
+        wears down; within [PRESENT_LEAD_MIN_NS, ¾ of a period]. Short: the lead is prediction
+        horizon, so every millisecond of it costs registration; but a missed refresh costs more (the
+        display shows the last frame again, a period older than its poses)."""
         if late:  # missed its refresh: shown a period late, at other poses than predicted
             self.metrics.count("late_presents")
             self._lead_penalty_ns += PRESENT_LEAD_STEP_NS
         else:
-            self._lead_penalty_ns = max(0, self._lead_penalty_ns - PRESENT_LEAD_STEP_NS // 20)
+            self._lead_penalty_ns = max(0, self._lead_penalty_ns - PRESENT_LEAD_STEP_NS // 600)  # a step in ~10 s
         self._ready_ns.append(max(ready_ns, 0))
         lead = 2 * int(np.median(self._ready_ns)) + self._lead_penalty_ns
-        self._present_lead_ns = min(max(lead, PRESENT_LEAD_MIN_NS), self.timing.period_ns // 2)
+        self._present_lead_ns = min(max(lead, PRESENT_LEAD_MIN_NS), self.timing.period_ns * 3 // 4)
 
     def _present_buffer(self) -> np.ndarray:
         """The next of a few output buffers in turn (a sink may still read the one before)."""

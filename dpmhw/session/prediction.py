@@ -106,6 +106,19 @@ class PosePredictor:
         kept = self._samples.get(rigid_body_id)
         return estimate_motion(list(kept), self.model) if kept else None
 
+    def predict_many(self, rigid_body_id: int, targets_ns, enabled: bool = True) -> list[tuple[Pose, int]] | None:
+        """`predict` at each of `targets_ns`, the motion estimated once (a present's photon windows)."""
+        kept = self._samples.get(rigid_body_id)
+        if not kept:
+            return None
+        if not enabled:
+            newest = kept[-1]
+            pose = Pose(np.array(newest.rotation), np.array(newest.translation))
+            return [(pose, 0) for _ in targets_ns]
+        motion = estimate_motion(list(kept), self.model)
+        horizons = [min(max(t - motion.t_ns, 0), self.max_horizon_ns) for t in targets_ns]
+        return [(extrapolate(motion, motion.t_ns + h), h) for h in horizons]
+
     def predict(self, rigid_body_id: int, t_target_ns: int, enabled: bool = True) -> tuple[Pose, int] | None:
         """(pose at `t_target_ns`, horizon in ns actually used), or None with no sample yet.
 
