@@ -85,6 +85,7 @@ def status_line(status: dict) -> str:
     """One line of a session's status, as `session start` prints it every few seconds."""
     lat = status.get("latency_ms", {})
     line = (f"[{status.get('state')}] frames={status.get('frame_number')} fps={status.get('fps', 0):.1f} "
+            f"(rendered {status.get('render_fps', 0):.1f}/s) "
             f"latency p50/p95/p99={lat.get('p50')}/{lat.get('p95')}/{lat.get('p99')} ms")
     api = status.get("api") or {}
     if api.get("restarts"):

@@ -214,7 +214,7 @@ function renderStatus(st) {
   const lat = st.latency_ms || {};
   const reg = st.registration_px && typeof st.registration_px === "object" ? st.registration_px.p50 : st.registration_px;
   push(history.fps, st.fps); push(history.p50, lat.p50); push(history.p99, lat.p99); push(history.reg, reg);
-  $("v-fps").textContent = fmt(st.fps);
+  $("v-fps").textContent = `${fmt(st.fps)} presented, ${fmt(st.render_fps)} rendered`;
   $("v-lat").textContent = `${fmt(lat.p50, 2)} / ${fmt(lat.p99, 2)}`;
   $("v-reg").textContent = reg === undefined ? "(not measured by this session)" : fmt(reg, 2);
   plot($("plot-fps"), [[history.fps, "#2b7bb9"]], "fps");
