@@ -298,12 +298,12 @@ def _photon_windows(records, exposures) -> list[tuple[int, object, dict, int]]:
     if exposures is None:
         return [(t, r, pose, k) for r in records for k, (t, pose) in enumerate(r.windows)]
     at = np.array([r.t_present_ns for r in records])
+    shown_by = np.searchsorted(at, [e.scanout_ns for e in exposures], side="right") - 1
     out = []
-    for e in exposures:
-        k = int(np.searchsorted(at, e.scanout_ns, side="right")) - 1
-        if k < 0 or e.scanout_ns > at[-1]:
+    for e, i in zip(exposures, shown_by):
+        if i < 0 or e.scanout_ns > at[-1]:
             continue  # before the measured presents, or after them
-        r = records[k]
+        r = records[i]
         k = e.channel if len(r.windows) > 1 and e.channel is not None else 0
         out.append(((e.t_start_ns + e.t_end_ns) // 2, r, r.windows[k][1], k))
     return out

@@ -176,7 +176,6 @@ class _Capture:
     number: int
     job: "_Job"
     image: np.ndarray  # (H, W, 3) uint8, read-only
-    poses: list  # scene object index -> Pose rendered
     reprojection: Any
 
 
@@ -274,6 +273,8 @@ class SessionLoop:
         self.reconstruct = reconstruct_stage(config, scene, self._renderer, parts.gbuffer, clock)
         self.mesh_lod = mesh_lod(parts.renderer, parts.gbuffer, config.lod)  # mesh levels (None: off)
         # the display: when each present becomes light (refresh grid, controller delay, photon windows)
+        self._bodies = tuple(sorted(set(parts.bindings.values())))  # the tracked rigid bodies
+        self._switch_interval = sys.getswitchinterval()  # the interpreter's, put back at stop
         self.timing: DisplayTiming = getattr(parts.sink, "timing", None) or DisplayTiming()
         self._vsync_phase = parts.sink.vsync_phase_ns() if hasattr(parts.sink, "vsync_phase_ns") else 0
         self.reprojector = self._reprojector() if config.prediction.late_reprojection else None
@@ -362,7 +363,6 @@ class SessionLoop:
         self._freeze_long_lived()  # the full collection's cost is paid here, while dark
         # a thread that wakes for its refresh waits for the GIL up to the switch interval (5 ms by
         # default: a third of a 60 Hz period); the present thread's lead must cover that
-        self._switch_interval = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         for name, target in (("session-loop", self._run), ("session-present", self._present_loop),
                              ("session-watchdog", self._watchdog),
@@ -392,7 +392,7 @@ class SessionLoop:
         self._next = None
         self._go_dark(reason, force=True)
         gc.unfreeze()  # this session's objects may be collected again once it is gone
-        sys.setswitchinterval(getattr(self, "_switch_interval", sys.getswitchinterval()))
+        sys.setswitchinterval(self._switch_interval)
         self.reconstruct.close()
         self.final_blank = self._last_blank
         if self._samples is not None:
@@ -544,7 +544,7 @@ class SessionLoop:
         """Feed the predictor; report tracking causes. Returns (samples, oldest age) or None."""
         tracker = self.parts.tracker
         status = tracker.status()
-        bodies = set(self.parts.bindings.values())
+        bodies = self._bodies
         with self._predict_lock:
             self._drain_samples()
             first_valid, self._first_valid = self._first_valid, {}  # body -> arrival of its first fresh sample since the last turn
@@ -556,7 +556,7 @@ class SessionLoop:
             self.safety.update("tracker", True, f"tracker link {status.state.value}: {status.reason}", "fault")
         samples = {}
         problems = []
-        for body in sorted(bodies):
+        for body in bodies:
             s = tracker.latest(body)
             if s is None:
                 where = f" from {self.parts.tracker_address}" if self.parts.tracker_address else ""
@@ -586,7 +586,7 @@ class SessionLoop:
         remembers when each body's first fresh sample arrived, for the frame thread's hold-off."""
         if self._samples is None:
             return
-        bodies = set(self.parts.bindings.values())
+        bodies = self._bodies
         for sample in self._samples.drain():
             if sample.rigid_body_id in bodies:
                 self.predictor.observe(sample)
@@ -772,7 +772,7 @@ class SessionLoop:
             else:
                 ids, depth = frame.object_id.reshape(-1), frame.depth.reshape(-1)
             reprojection = self.reprojector.capture(image, ids, depth, list(job.poses), lit_box)
-        return _Capture(self._frame_number + 1, job, image, list(job.poses), reprojection)
+        return _Capture(self._frame_number + 1, job, image, reprojection)
 
     def _present_loop(self) -> None:
         """Wake `_present_lead_ns` before each refresh and present the newest capture, moved to
@@ -807,7 +807,7 @@ class SessionLoop:
             return
         t0 = self.clock()
         samples = {}
-        for body in sorted(set(self.parts.bindings.values())):
+        for body in self._bodies:
             s = self.parts.tracker.latest(body)
             if s is None or not s.valid or t0 - s.t_exposure_ns > self.stale_ns:
                 self.metrics.count("presents_withheld")  # the frame thread or the deadline goes dark
@@ -822,11 +822,11 @@ class SessionLoop:
             with self._predict_lock:
                 self._drain_samples()
                 per_body = {body: self.predictor.predict_many(body, mids, enabled=settings.prediction)
-                            for body in set(self.parts.bindings.values())}
+                            for body in self._bodies}
             if any(p is None for p in per_body.values()):
                 return
             for k, (w, t) in enumerate(zip(self.timing.windows, mids)):
-                poses, used = list(cap.poses), {}
+                poses, used = list(cap.job.poses), {}
                 for index, body in self.parts.bindings.items():
                     poses[index], horizon_ns = per_body[body][k]
                     used[body] = poses[index]
@@ -1013,7 +1013,7 @@ class SessionLoop:
         frame). Sleeps until the earliest body's
         deadline (at most 20 ms, so new samples move it) and only reads `tracker.latest`; the
         frame thread keeps owning the tracking cause and its clearing."""
-        bodies = sorted(set(self.parts.bindings.values()))
+        bodies = self._bodies
         while not self._stop.is_set():
             if not self._output_on or not bodies:
                 self._stop.wait(0.02)

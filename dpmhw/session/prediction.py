@@ -125,12 +125,5 @@ class PosePredictor:
         With `enabled` False the newest measured pose is returned unchanged (horizon 0), which
         is the baseline prediction is compared against.
         """
-        kept = self._samples.get(rigid_body_id)
-        if not kept:
-            return None
-        if not enabled:
-            newest = kept[-1]
-            return Pose(np.array(newest.rotation), np.array(newest.translation)), 0
-        motion = estimate_motion(list(kept), self.model)
-        horizon = min(max(t_target_ns - motion.t_ns, 0), self.max_horizon_ns)
-        return extrapolate(motion, motion.t_ns + horizon), horizon
+        predicted = self.predict_many(rigid_body_id, (t_target_ns,), enabled)
+        return None if predicted is None else predicted[0]
