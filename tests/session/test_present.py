@@ -79,3 +79,16 @@ def test_mock_session_reprojects_each_photon_window_to_its_own_instant(mode):
         assert np.median(shown_err) < np.median(rendered_err)
     finally:
         loop.stop()
+
+
+def test_each_lit_exposure_is_matched_to_the_present_it_scanned_out():
+    """A refresh with no new frame shows the last present again (a repeat, at that present's
+    poses); exposures before the first or after the last measured present are left out."""
+    from types import SimpleNamespace as N
+
+    from dpmhw.session.bench import _photon_windows
+
+    records = [N(t_present_ns=100, windows=((110, {1: "a"}),)), N(t_present_ns=200, windows=((210, {1: "b"}),))]
+    lit = [N(scanout_ns=v, channel=None, t_start_ns=v, t_end_ns=v + 20) for v in (50, 100, 150, 200, 250)]
+    assert [(t, r.t_present_ns, pose[1], k) for t, r, pose, k in _photon_windows(records, lit)] == [
+        (110, 100, "a", 0), (160, 100, "a", 0), (210, 200, "b", 0)]
