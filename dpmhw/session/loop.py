@@ -136,6 +136,9 @@ class FrameRecord:
 
 @dataclass(frozen=True)
 class LatestFrame:
+    """The newest present (what `/frame.png` serves): its number among the presents, its refresh,
+    and the rendered frame it showed (before the late reprojection moved it), or the black one."""
+
     number: int
     t_present_ns: int
     image: np.ndarray  # (H, W, 3) uint8, read-only
@@ -746,7 +749,6 @@ class SessionLoop:
                 return False
             with self._lock:
                 self._capture = capture
-                self._latest = LatestFrame(self._frame_number, t5, image, settings, blank=False)
         return True
 
     # ---- the present thread: one present per refresh, never waiting for a render ----------
@@ -863,6 +865,8 @@ class SessionLoop:
                              {b: Pose(np.array(s.rotation), np.array(s.translation)) for b, s in samples.items()},
                              cap.job.age_s, settings, {**cap.job.stages, **stages}, windows, cap.number,
                              self.governor.level)
+        with self._lock:
+            self._latest = LatestFrame(self._present_number, t_present, cap.image, settings, blank=False)
         if self.frame_log is not None:
             self.frame_log.append(record)
             if len(self.frame_log) > self._frame_log_max:
@@ -966,7 +970,7 @@ class SessionLoop:
                 try:
                     t = self.parts.sink.present(black, self.clock())
                     with self._lock:
-                        self._latest = LatestFrame(self._frame_number, t, black, self._settings, blank=True)
+                        self._latest = LatestFrame(self._present_number, t, black, self._settings, blank=True)
                     black_shown = True
                 except Exception as exc:
                     self.safety.update("sink", True, f"cannot present a black frame: {type(exc).__name__}: {exc}", "fault")

@@ -89,7 +89,7 @@ def test_mocked_session_end_to_end(session):
 
         def six_rendered():
             f = loop.latest_frame()
-            if f is not None and not f.blank and f.settings.alpha == alpha:
+            if f is not None and not f.blank and f.settings.alpha == alpha and all(f.image is not i for i in seen.values()):
                 seen[f.number] = f.image
             return len(seen) >= 6
         assert wait_for(six_rendered, 30)
