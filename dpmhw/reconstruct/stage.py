@@ -46,7 +46,8 @@ from __future__ import annotations
 import math
 import time
 from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -56,6 +57,7 @@ from dpmhw.reconstruct.filter import cross_bilateral, mode_code
 from dpmhw.reconstruct.guides import Guides
 from dpmhw.reconstruct.reuse import ReuseSettings, TemporalReuse
 from dpmhw.reconstruct.upsample import upsample
+from dpmhw.stage_runner import Stage, run_timed
 
 __all__ = ["ReconstructStage", "StageOutput"]
 
@@ -64,6 +66,26 @@ __all__ = ["ReconstructStage", "StageOutput"]
 class _Ahead:
     frame: Future  # the next frame's render
     update: Future  # the G-buffer update for it: (lit box, seconds)
+
+
+@dataclass
+class _Work:
+    """One `apply`: its inputs, its sub-stages' seconds and what its stages made."""
+
+    frame: Any
+    mode: str
+    alpha: float
+    filter: str
+    exposure: float
+    poses: Any
+    camera: Any
+    st: dict = field(default_factory=dict)  # seconds per sub-stage
+    box: tuple[int, int, int, int] = (0, 0, 0, 0)  # the lit box
+    radiance: np.ndarray | None = None  # the exact path's reused radiance
+    d: np.ndarray | None = None  # the shading branch's diffuse and specular (reused, filtered) and emitted light
+    s: np.ndarray | None = None
+    emitted: np.ndarray | None = None
+    image: Any = None  # the output frame, or the future of its background copy
 
 
 @dataclass
@@ -164,9 +186,6 @@ class ReconstructStage:
         if self.lod is not None:
             self.lod.set_rays(lod_rays)
 
-    def _now(self) -> float:
-        return self.clock() / 1e9
-
     def reset(self) -> None:
         for r in (self.reuse, self.reuse_d, self.reuse_s):
             r.reset()
@@ -192,9 +211,9 @@ class ReconstructStage:
 
     def _update_gbuffer(self, poses, frame) -> tuple[tuple[int, int, int, int], float]:
         """The native G-buffer brought to `poses` (moving objects' region re-traced): (lit box, seconds)."""
-        t0 = self._now()
+        t0 = self.clock()
         box = self.gbuffer.update(poses if poses is not None else [], shading=frame, mode=self.gbuffer_mode)
-        return box, self._now() - t0
+        return box, (self.clock() - t0) / 1e9
 
     def _update_native(self, box) -> None:
         """This stage's native guides (and analytic products) from the G-buffer's last update."""
@@ -260,16 +279,22 @@ class ReconstructStage:
     def _drop_ahead(self) -> None:
         self._take_ahead(None)
 
-    def _shading_branch(self, frame, filter: str, poses, camera):
-        """Shading-resolution guides, demodulation, reuse and filter (reads nothing native);
-        returns (diffuse, specular, emitted, {reuse, filter} seconds)."""
-        t1 = self._now()
+    # ---- the stages (each a function of one `apply`'s `_Work`) -------------------------------------
+    def _reuse_radiance(self, w: _Work) -> None:
+        w.radiance = self.reuse.update_frame(w.frame, poses=w.poses, camera=w.camera)
+
+    def _encode_frame(self, w: _Work) -> None:
+        w.image = encode_srgb8(np.ascontiguousarray(w.radiance.reshape(-1, 3)), self.W, w.exposure)
+
+    def _demodulate_and_reuse(self, w: _Work) -> None:
+        """Shading-resolution guides, demodulation and reuse (reads nothing native)."""
+        frame = w.frame
         low = self.low
         low.update(frame.object_id, frame.position, frame.normal, frame.depth, frame.albedo, frame.specular_albedo,
                    frame.roughness, self.viewer, (0, self.h, 0, self.w))
         diffuse = np.asarray(frame.diffuse, np.float32).reshape(-1, 3)
         specular = np.asarray(frame.specular, np.float32).reshape(-1, 3)
-        emitted = np.asarray(frame.radiance, np.float32).reshape(-1, 3) - diffuse - specular
+        w.emitted = np.asarray(frame.radiance, np.float32).reshape(-1, 3) - diffuse - specular
         if self.analytic is not None:  # the ratios to the analytic terms (+ floors)
             an = self.analytic[0]
             an.update(frame.object_id, frame.position, frame.normal, frame.roughness, low.albedo, low.spec_albedo,
@@ -281,12 +306,40 @@ class ReconstructStage:
             s_in = (specular / low.spec_albedo).reshape(self.h, self.w, 3)
         # both histories move in lockstep: one reprojection serves both
         shared = self.reuse_d.settings.mode == "motion" and self.reuse_s.follows_same_frames(self.reuse_d)
-        rp = self.reuse_d.reprojection(frame.object_id, frame.model_position, camera) if shared else None
-        d = self.reuse_d.update(d_in, frame.object_id, frame.model_position, poses, camera, rp)
-        s = self.reuse_s.update(s_in, frame.object_id, frame.model_position, poses, camera, rp)
-        t2 = self._now()
-        d, s, _ = cross_bilateral(d, s, low, filter)
-        return d, s, emitted, {"reuse": t2 - t1, "filter": self._now() - t2}
+        rp = self.reuse_d.reprojection(frame.object_id, frame.model_position, w.camera) if shared else None
+        w.d = self.reuse_d.update(d_in, frame.object_id, frame.model_position, w.poses, w.camera, rp)
+        w.s = self.reuse_s.update(s_in, frame.object_id, frame.model_position, w.poses, w.camera, rp)
+
+    def _filter(self, w: _Work) -> None:
+        w.d, w.s, _ = cross_bilateral(w.d, w.s, self.low, w.filter)
+
+    def _gbuffer_at_frame(self, w: _Work) -> None:
+        """The native G-buffer at this frame: brought there beside the last frame, or now; its
+        seconds are the update's own (on whichever thread it ran)."""
+        early = self._take_ahead(w.frame)
+        w.box, w.st["gbuffer"] = early if early is not None else self._update_gbuffer(w.poses, w.frame)
+
+    def _upsample(self, w: _Work) -> None:
+        native = self.native if self.analytic is None else replace(
+            self.native, albedo=self.analytic[1].diffuse_products, spec_albedo=self.analytic[1].specular_products)
+        upsample(self.low, w.d, w.s, w.emitted, native, w.filter, w.box, self.background, self._radiance, self._wsum,
+                 self._unresolved)
+
+    def _refine_tiles(self, w: _Work) -> None:
+        """Native paths in the tiles planned before the upsampling."""
+        self.lod.refine(self._radiance, self._wsum, self._unresolved, w.box, w.poses if w.poses is not None else [],
+                        w.frame.seed, 1.0 if w.mode == "off" else w.alpha)
+
+    def _sample_adaptively(self, w: _Work) -> None:
+        self.adaptive.refine(self._radiance, self._wsum, self._unresolved, w.box, w.poses if w.poses is not None else [],
+                             w.frame.seed, 1.0 if w.mode == "off" else w.alpha, self.native.id)
+
+    def _encode_lit_box(self, w: _Work) -> None:
+        """The background frame (copied on the helper thread, or now) with the lit box encoded into it."""
+        w.image = self._background_copy(w.exposure) if w.image is None else w.image.result()
+        y0, y1, x0, x1 = w.box
+        if y1 > y0 and x1 > x0:
+            encode_srgb8(self._radiance, self.W, w.exposure, w.box, w.image)
 
     def _analytic_setup(self, frame, poses) -> None:
         """The floors from the first frame's terms; moving emitters: new polygons, every native pixel again."""
@@ -326,70 +379,42 @@ class ReconstructStage:
         if self._exact is not None and exact != self._exact:
             self.reset()  # the other path's history stopped being updated: it shows another moment
         self._exact = exact
-        t0 = self._now()
-        st: dict[str, float] = {}
+        w = _Work(frame, mode, alpha, filter, exposure, poses, camera)
         if exact:
-            radiance = self.reuse.update_frame(frame, poses=poses, camera=camera)
-            t1 = self._now()
-            image = encode_srgb8(np.ascontiguousarray(radiance.reshape(-1, 3)), self.W, exposure)
-            st.update(gbuffer=0.0, reuse=t1 - t0, filter=0.0, upsample=0.0, post=self._now() - t1)
-            return StageOutput(image.reshape(self.H, self.W, 3), st, (0, self.H, 0, self.W), 0)
+            w.st = dict.fromkeys(("gbuffer", "reuse", "filter", "upsample"), 0.0)
+            run_timed((Stage("reuse", self._reuse_radiance), Stage("post", self._encode_frame)), w, self.clock, w.st)
+            return StageOutput(w.image.reshape(self.H, self.W, 3), w.st, (0, self.H, 0, self.W), 0)
 
         if self.analytic is not None:
             self._analytic_setup(frame, poses)
-        # the shading-resolution branch on the helper thread while the native G-buffer updates here
-        branch = None
+        shading = (Stage("reuse", self._demodulate_and_reuse), Stage("filter", self._filter))
         if self.gbuffer is not None:
+            # the shading-resolution branch on the helper thread while the native G-buffer updates here
             if self._helper is None:
                 self._helper = ThreadPoolExecutor(1, thread_name_prefix="reconstruct", initializer=_one_kernel_thread)
-            branch = self._helper.submit(self._shading_branch, frame, filter, poses, camera)
-            image = self._helper.submit(self._background_copy, exposure)  # the frame to draw into, after the branch
+            st_low: dict[str, float] = {}
+            branch = self._helper.submit(run_timed, shading, w, self.clock, st_low)
+            w.image = self._helper.submit(self._background_copy, exposure)  # the frame to draw into, after the branch
             try:
-                early = self._take_ahead(frame)
-                box, st["gbuffer"] = early if early is not None else self._update_gbuffer(poses, frame)
-                t_native = self._now()
-                self._update_native(box)
-                st["gbuffer"] += self._now() - t_native
-                if next_frame is not None and self.lod is None:
-                    self._start_ahead(next_frame)
+                run_timed((Stage("gbuffer", self._gbuffer_at_frame, timed=False),
+                            Stage("gbuffer", lambda w: self._update_native(w.box)),
+                            Stage("ahead", lambda w: self._start_ahead(next_frame), timed=False)
+                            if next_frame is not None and self.lod is None else None), w, self.clock, w.st)
             finally:
-                d, s, emitted, st_low = branch.result()  # never leave the branch running into the next frame
+                branch.result()  # never leave the branch running into the next frame
+            w.st.update(st_low)
         else:
-            box = (0, self.H, 0, self.W)
-            st["gbuffer"] = 0.0
-            d, s, emitted, st_low = self._shading_branch(frame, filter, poses, camera)
-            image = None
-        st.update(st_low)
-        t3 = self._now()
-
-        if self.lod is not None:  # --- LOD: plan from the previous output before the upsampling overwrites it
-            self.lod.plan(self._radiance, box)
-            t_lod = self._now() - t3
-            t3 = self._now()
-        native = self.native if self.analytic is None else replace(
-            self.native, albedo=self.analytic[1].diffuse_products, spec_albedo=self.analytic[1].specular_products)
-        upsample(self.low, d, s, emitted, native, filter, box, self.background, self._radiance, self._wsum, self._unresolved)
-        t4 = self._now()
-        st["upsample"] = t4 - t3
-
-        if self.lod is not None:  # --- LOD: native paths in the planned tiles
-            self.lod.refine(self._radiance, self._wsum, self._unresolved, box, poses if poses is not None else [],
-                            frame.seed, 1.0 if mode == "off" else alpha)
-            t5 = self._now()
-            st["lod"] = t_lod + t5 - t4
-            t4 = t5
-
-        st["adaptive"] = 0.0
-        if self.adaptive is not None:
-            self.adaptive.refine(self._radiance, self._wsum, self._unresolved, box, poses if poses is not None else [],
-                                 frame.seed, 1.0 if mode == "off" else alpha, self.native.id)
-            t5 = self._now()
-            st["adaptive"] = t5 - t4
-            t4 = t5
-        image = self._background_copy(exposure) if image is None else image.result()
-        if box[1] > box[0] and box[3] > box[2]:
-            encode_srgb8(self._radiance, self.W, exposure, box, image)
-        st["post"] = self._now() - t4
-        y0, y1, x0, x1 = box
+            w.box = (0, self.H, 0, self.W)
+            w.st["gbuffer"] = 0.0
+            run_timed(shading, w, self.clock, w.st)
+        if self.adaptive is None:
+            w.st["adaptive"] = 0.0
+        lod = self.lod is not None
+        run_timed((Stage("lod", lambda w: self.lod.plan(self._radiance, w.box)) if lod else None,  # from the last output
+                    Stage("upsample", self._upsample),
+                    Stage("lod", self._refine_tiles) if lod else None,
+                    Stage("adaptive", self._sample_adaptively) if self.adaptive is not None else None,
+                    Stage("post", self._encode_lit_box)), w, self.clock, w.st)
+        y0, y1, x0, x1 = w.box
         unresolved = int(self._unresolved.reshape(self.H, self.W)[y0:y1, x0:x1].sum())
-        return StageOutput(image.reshape(self.H, self.W, 3), st, box, unresolved)
+        return StageOutput(w.image.reshape(self.H, self.W, 3), w.st, w.box, unresolved)

@@ -55,6 +55,7 @@ from dpmhw.session.heartbeat import Heartbeat
 from dpmhw.session.metrics import LoopMetrics
 from dpmhw.session.prediction import PosePredictor
 from dpmhw.session.safety import SafetyMonitor, SessionState
+from dpmhw.stage_runner import Fault, Stage, StageFailed, run_timed
 from dpmhw.tracking import Tracker, TrackerState
 from dpmhw.transforms import Pose
 
@@ -200,6 +201,22 @@ class _Job:
     resume_at: int | None
     seed: int
     frame: Any = None
+
+
+@dataclass
+class _Made:
+    """What one iteration's stages made of its job."""
+
+    job: _Job
+    frame: Any = None  # the rendered `Frame`
+    output: Any = None  # the reconstruction's `StageOutput`
+    capture: _Capture | None = None
+
+
+# what a failure of the frame thread's stages means (any other exception is a fault of the loop itself)
+_RENDER_FAULTS = (Fault(Exception, "render", "render_errors", "render failed: {type}: {exc}"),)
+_RECONSTRUCT_FAULTS = (Fault(NonFiniteFrameError, "render", None, "post-processing refused the frame: {exc}"),
+                       Fault(Exception, "render", "reuse_errors", "reconstruction failed: {type}: {exc}"))
 
 
 def reconstruct_stage(config: SessionConfig, scene, renderer, gbuffer, clock) -> ReconstructStage:
@@ -656,14 +673,18 @@ class SessionLoop:
                     self.config.render.seed + self._frame_number + (1 if ahead else 0))
 
     def _render(self, job: "_Job"):
-        t = self.clock()
-        if self.mesh_lod is not None:  # this frame's mesh levels, before its render
-            self.mesh_lod.choose(job.poses, self.parts.renderer.camera.pose)
-            t1 = self.clock()
-            job.stages["mesh_lod"], t = (t1 - t) / 1e9, t1
-        frame = self._renderer.render(time=job.scene_time, seed=job.seed, spp=job.settings.spp, poses=job.poses)
-        job.stages["render"] = (self.clock() - t) / 1e9
-        return frame
+        """This frame's mesh levels, then its render (on the render thread when started ahead)."""
+        made = _Made(job)
+        run_timed((Stage("mesh_lod", self._choose_levels) if self.mesh_lod is not None else None,
+                    Stage("render", self._shade)), made, self.clock, job.stages)
+        return made.frame
+
+    def _choose_levels(self, made: _Made) -> None:
+        self.mesh_lod.choose(made.job.poses, self.parts.renderer.camera.pose)
+
+    def _shade(self, made: _Made) -> None:
+        job = made.job
+        made.frame = self._renderer.render(time=job.scene_time, seed=job.seed, spp=job.settings.spp, poses=job.poses)
 
     def _prefetch(self) -> None:
         """Pipelining: prepare the next frame and start its render on the render thread now, so it
@@ -693,42 +714,21 @@ class SessionLoop:
             job = self._prepare(self._apply_queued(), ahead=False)
             if not isinstance(job, _Job):
                 return job
-        try:  # rendered now, or started ahead (pipelining)
-            frame = self._render(job) if job.frame is None else job.frame.result()
-            self.safety.update("render", False)
-        except Exception as exc:
-            return self._stage_failed("render", "render_errors", f"render failed: {type(exc).__name__}: {exc}")
-        settings, stages, poses, t_start, resume_at = job.settings, job.stages, job.poses, job.t_start, job.resume_at
-        if self.pipeline:
-            self._prefetch()
+        made = _Made(job)
         try:
-            nxt = self._next  # started ahead: the stage brings the native G-buffer to it early
-            out = self.reconstruct.apply(frame, mode=settings.reuse_mode, alpha=settings.alpha, filter=settings.filter,
-                                         split_screen=settings.split_screen, exposure=self.config.render.exposure,
-                                         poses=poses, camera=getattr(self.parts.renderer, "camera", None),
-                                         next_frame=(nxt.poses, nxt.frame) if nxt is not None else None)
-        except NonFiniteFrameError as exc:
-            return self._stage_failed("render", None, f"post-processing refused the frame: {exc}")
-        except Exception as exc:
-            return self._stage_failed("render", "reuse_errors", f"reconstruction failed: {type(exc).__name__}: {exc}")
-        image = out.image
-        image.setflags(write=False)
-        stages.update(out.stages_s)
-        if self.mesh_lod is not None:  # the output's visibility per object, for the next choice
-            t3 = self.clock()
-            self._observe_mesh_lod(image, frame)
-            stages["mesh_lod"] += (self.clock() - t3) / 1e9
-        t4 = self.clock()
-        # the newest sample may have gone stale while this frame was made: never light it then
-        # (dark within stale_after_ms + one frame), and take in what arrived meanwhile
-        if self._check_tracking(t4) is None:
-            self._sync_output()
-            self.metrics.count("frames_withheld")
+            made_all = run_timed((
+                Stage("render", self._rendered, _RENDER_FAULTS, timed=False),  # timed where it ran
+                Stage("prefetch", lambda made: self._prefetch(), timed=False) if self.pipeline else None,
+                Stage("reconstruct", self._reconstructed, _RECONSTRUCT_FAULTS, timed=False),  # times its sub-stages
+                Stage("mesh_lod", self._observe_levels) if self.mesh_lod is not None else None,
+                Stage("capture", self._captured)), made, self.clock, job.stages)
+        except StageFailed as failed:
+            return self._stage_failed(failed.cause, failed.counter, failed.reason)
+        if not made_all:
             return False
-        capture = self._capture_frame(job, image, out.lit_box, frame)
+        settings, stages, resume_at = job.settings, job.stages, job.resume_at
         t5 = self.clock()
-        stages["capture"] = (t5 - t4) / 1e9
-        stages["frame"] = (t5 - t_start) / 1e9
+        stages["frame"] = (t5 - job.t_start) / 1e9
         self._frame_number += 1
         if self._frame_number == FREEZE_AFTER_FRAMES:
             self._freeze_long_lived()  # what the first frames made (cheap: the rest is frozen since start)
@@ -748,7 +748,38 @@ class SessionLoop:
                 self.metrics.count("frames_withheld")
                 return False
             with self._lock:
-                self._capture = capture
+                self._capture = made.capture
+        return True
+
+    def _rendered(self, made: _Made) -> None:
+        """The frame, rendered now or started ahead (pipelining)."""
+        job = made.job
+        made.frame = self._render(job) if job.frame is None else job.frame.result()
+        self.safety.update("render", False)
+
+    def _reconstructed(self, made: _Made) -> None:
+        settings, nxt = made.job.settings, self._next  # started ahead: the stage brings the native G-buffer to it early
+        out = self.reconstruct.apply(made.frame, mode=settings.reuse_mode, alpha=settings.alpha, filter=settings.filter,
+                                     split_screen=settings.split_screen, exposure=self.config.render.exposure,
+                                     poses=made.job.poses, camera=getattr(self.parts.renderer, "camera", None),
+                                     next_frame=(nxt.poses, nxt.frame) if nxt is not None else None)
+        out.image.setflags(write=False)
+        made.job.stages.update(out.stages_s)
+        made.output = out
+
+    def _observe_levels(self, made: _Made) -> None:
+        """The output's visibility per object, for the next choice of mesh levels."""
+        self._observe_mesh_lod(made.output.image, made.frame)
+
+    def _captured(self, made: _Made) -> bool:
+        """Keep the frame for the presents, unless the newest sample went stale while it was made
+        (never light it then: dark within stale_after_ms + one frame); takes in what arrived meanwhile."""
+        if self._check_tracking(self.clock()) is None:
+            self._sync_output()
+            self.metrics.count("frames_withheld")
+            return False
+        out = made.output
+        made.capture = self._capture_frame(made.job, out.image, out.lit_box, made.frame)
         return True
 
     # ---- the present thread: one present per refresh, never waiting for a render ----------
