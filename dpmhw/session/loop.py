@@ -274,7 +274,11 @@ class SessionLoop:
     """Runs one projection session. `start()`, then `stop()` (idempotent) for a verified dark end."""
 
     def __init__(self, config: SessionConfig, parts: SessionParts, *, frame_log: int = 0,
-                 clock: Callable[[], int] = time.monotonic_ns, heartbeat: Heartbeat | None = None):
+                 clock: Callable[[], int] = time.monotonic_ns, wait: Callable[[float], bool] | None = None,
+                 heartbeat: Heartbeat | None = None):
+        """`clock` (nanoseconds) and `wait` are time as the loop's threads see it: `wait(seconds)`
+        sleeps up to that long and returns True once the loop is stopping (default: the stop
+        event's wait, which returns early then); a test drives both with a simulated clock."""
         self.config = config
         self.parts = parts
         self.clock = clock
@@ -330,6 +334,7 @@ class SessionLoop:
         self.first_lit = threading.Event()  # set when the output first goes on (the show's clock starts)
         self.first_lit_at: float | None = None  # time.monotonic() then (one clock for every process here)
         self._stop = threading.Event()
+        self._wait = wait if wait is not None else self._stop.wait
         self._threads: list[threading.Thread] = []
         self._heartbeat_ns = clock()
         self._status: MappingProxyType = MappingProxyType({})
@@ -519,11 +524,12 @@ class SessionLoop:
             self._heartbeat_ns = self.clock()
             self._publish()
             if not presented:
-                self._stop.wait(self._idle_wait_s(poll_s))
+                if self._wait(self._idle_wait_s(poll_s)):
+                    break
             else:  # no faster than the display shows frames: a newer one would only replace it unseen
                 rest = t_begin + self.timing.period_ns - self.clock()
-                if rest > 0:
-                    self._stop.wait(rest / 1e9)
+                if rest > 0 and self._wait(rest / 1e9):
+                    break
 
     def _idle_wait_s(self, poll_s: float) -> float:
         """Sleep after a dark turn: `poll_s`, but wake the resume lead before the hold-off ends,
@@ -739,7 +745,7 @@ class SessionLoop:
         if patch:
             self.update_settings(patch, operator=False)
         if resume_at is not None and resume_at > t5:
-            self._stop.wait((resume_at - t5) / 1e9)  # less than one frame's work
+            self._wait((resume_at - t5) / 1e9)  # less than one frame's work
         if not self._sync_output():
             self.metrics.count("frames_withheld")  # rendered while dark (keeps causes observable)
             return False
@@ -1023,7 +1029,7 @@ class SessionLoop:
     # ---- watchdog and device health ---------------------------------------------------------
     def _watchdog(self) -> None:
         period = min(self.watchdog_ns / 4e9, 0.1)
-        while not self._stop.wait(period):
+        while not self._wait(period):
             now = self.clock()
             age = now - self._heartbeat_ns
             if self._output_on:  # a lit output needs its present thread as well
@@ -1051,17 +1057,20 @@ class SessionLoop:
         bodies = self._bodies
         while not self._stop.is_set():
             if not self._output_on or not bodies:
-                self._stop.wait(0.02)
+                if self._wait(0.02):
+                    break
                 continue
             now = self.clock()
             newest = {b: self.parts.tracker.latest(b) for b in bodies}
             if any(s is None for s in newest.values()):
-                self._stop.wait(0.02)
+                if self._wait(0.02):
+                    break
                 continue
             body, s = min(newest.items(), key=lambda kv: kv[1].t_exposure_ns)
             due = s.t_exposure_ns + self.stale_ns
             if now <= due:
-                self._stop.wait(min(due - now + 1, 20_000_000) / 1e9)
+                if self._wait(min(due - now + 1, 20_000_000) / 1e9):
+                    break
                 continue
             reason = self._stale_reason(body, now - s.t_exposure_ns, " (deadline)")
             self.metrics.count("stale_deadline_trips")
@@ -1087,7 +1096,8 @@ class SessionLoop:
                         projector.reconnect()
                     except Exception as rexc:
                         log.info("projector reconnect failed: %s", rexc)
-            self._stop.wait(interval)
+            if self._wait(interval):
+                break
 
     # ---- snapshots -------------------------------------------------------------------------
     def _publish(self, force: bool = False) -> None:

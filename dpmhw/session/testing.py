@@ -133,8 +133,9 @@ def flat_frame(width: int, height: int, seed: int = 0):
 
 
 
-def fake_session(overrides=(), renderer=None, projector=True, tracker=None, frame_log=2000):
-    """A SessionLoop (not started) over the doubles and an in-memory sink, 32×24 dpm-bunny."""
+def fake_session(overrides=(), renderer=None, projector=True, tracker=None, frame_log=2000, **loop_kw):
+    """A SessionLoop (not started) over the doubles and an in-memory sink, 32×24 dpm-bunny;
+    `loop_kw` goes to the loop (e.g. a simulated `clock` and `wait`)."""
     from dpmhw.scene_file import load_scene
     from dpmhw.session.config import load_session_config
     from dpmhw.session.factory import resolve_bindings
@@ -147,7 +148,7 @@ def fake_session(overrides=(), renderer=None, projector=True, tracker=None, fram
     parts = SessionParts(scene, renderer or FlatRenderer(), tracker or FakeTracker(), RecordingSink(max_frames=4096),
                          resolve_bindings(cfg, scene), FakeProjector() if projector else None)
     parts.tracker.start()
-    return SessionLoop(cfg, parts, frame_log=frame_log)
+    return SessionLoop(cfg, parts, frame_log=frame_log, **loop_kw)
 
 
 def wait_for(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.005) -> bool:
