@@ -62,10 +62,16 @@ EDGE_DEPTH_REL = 0.02  # 2×2 shading taps further apart in depth than this: tra
 MODES = ("raster", "edges", "trace")
 
 
-def _attributes_py(index, d, t, obj, prim, u, v, tri, R, T, alb, tex, spec, alpha, viewer, use_viewer, cam_fwd,
-                g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough):
-    """G-buffer attributes of pixels `index` from their camera rays' hits (d, t, obj, prim, u, v
-    indexed by pixel); the renderer's first-vertex helpers (`kernels.shade` at depth 0)."""
+def _attributes_py(index, d, hits, scene, view, out):
+    """G-buffer attributes of pixels `index` from their camera rays' directions `d` and `hits`
+    (t, obj, prim, u, v), all indexed by pixel; the renderer's first-vertex helpers (`kernels.shade`
+    at depth 0). scene : (tri, R, T, albedo, textures, specular, alpha), the geometry's tables at the
+    current poses; view : (viewer, use_viewer, cam_fwd); out : the G-buffer's (id, position,
+    normal, depth, albedo, spec_albedo, roughness), written at `index`."""
+    t, obj, prim, u, v = hits
+    tri, R, T, alb, tex, spec, alpha = scene
+    viewer, use_viewer, cam_fwd = view
+    g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough = out
     for k in nb.prange(index.shape[0]):
         p = index[k]
         ob = obj[p]
@@ -384,9 +390,10 @@ class NativeGBuffer:
 
     def _attributes(self, index, d, hits, R, T) -> None:
         g = self.geometry
-        _attribute_kernels[len(index) >= PARALLEL_MIN_PIXELS](index, d, hits.t, hits.obj, hits.prim, hits.u, hits.v, g.tri, R, T, g.obj_albedo, g.textures, g.obj_specular,
-                    g.obj_alpha, self.viewer, self.use_viewer, self.cam_fwd, self.id, self.position, self.normal,
-                    self.depth, self.albedo, self.spec_albedo, self.roughness)
+        _attribute_kernels[len(index) >= PARALLEL_MIN_PIXELS](
+            index, d, (hits.t, hits.obj, hits.prim, hits.u, hits.v),
+            (g.tri, R, T, g.obj_albedo, g.textures, g.obj_specular, g.obj_alpha), (self.viewer, self.use_viewer, self.cam_fwd),
+            (self.id, self.position, self.normal, self.depth, self.albedo, self.spec_albedo, self.roughness))
 
     def _raster_setup(self) -> None:
         """What the rasteriser keeps: each pixel's ray as an ideal image-plane point and its depth
