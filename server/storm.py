@@ -194,7 +194,7 @@ def measure(clients: int = 200, windows: int = 4, window_s: float = 5.0, blanks:
             client_priority: str = "normal", overrides: tuple[str, ...] = ()) -> dict:
     """The storm on a `--mock` session (see the module doc); frame rates per window, the API's
     answers per endpoint, and the blank's time to a dark projector."""
-    from dpmhw.session.bench import _cpu_seconds
+    from dpmhw.benchmarks.session import _cpu_seconds
     from dpmhw.session.config import load_session_config
     from dpmhw.session.factory import build_session
     from dpmhw.session.testing import wait_for

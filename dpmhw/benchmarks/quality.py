@@ -20,7 +20,7 @@ with FLIP beside PSNR and SSIM, as flat rows.
 
 References are rendered once and cached on disk (`cache_dir`, `references.ReferenceCache`).
 The sweep's independent units run here, or wherever the injected `run_units` sends them
-(`dpmhw.cluster.bench.run_units_on_ray`).
+(`dpmhw.benchmarks.quality_ray.run_units_on_ray`).
 
 Costs per row: ms per frame for render, reuse, post-processing and their total, medians over
 the frames of the run (plain n-spp rows: over their repeats). The machine may be shared:
@@ -311,7 +311,7 @@ def run_units_here(units: list[QualityConfig], cache: ReferenceCache, progress: 
 def run_quality(cfg: QualityConfig, cache_dir: Path | None = None, out_dir: Path | None = None, progress: Callable | None = None,
                 pool=None, run_units: UnitRunner | None = None) -> dict:
     """`pool`: a dpmhw.cluster RayPool; references then render on it as blocks of passes.
-    `run_units`: where the sweep units run (default: here); `dpmhw.cluster.bench.run_units_on_ray`
+    `run_units`: where the sweep units run (default: here); `dpmhw.benchmarks.quality_ray.run_units_on_ray`
     runs them as Ray tasks (their ms are the workers', their CPU seconds reported as ray_units)."""
     progress = progress or (lambda desc, done, total: None)
     cache = ReferenceCache(cache_dir, threads=cfg.threads, progress=progress, pool=pool)

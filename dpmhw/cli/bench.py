@@ -51,7 +51,7 @@ def bench_quality(
     import functools
 
     from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
-    from dpmhw.cluster.bench import run_units_on_ray
+    from dpmhw.benchmarks.quality_ray import run_units_on_ray
     from dpmhw.cluster.ray_pool import connect
     from dpmhw.errors import DpmhwError
 
@@ -171,7 +171,7 @@ def bench_ray_scaling(
 ) -> None:
     """Wall time of one render in process and on local Ray at 1, 2, … workers (docs/cluster.md)."""
     from dpmhw.cluster.ray_pool import import_ray
-    from dpmhw.cluster.scaling import format_table, plot as plot_png, run_scaling
+    from dpmhw.benchmarks.ray_scaling import format_table, plot as plot_png, run_scaling
     from dpmhw.errors import DpmhwError
 
     try:

@@ -171,7 +171,7 @@ def bench_session(
     sets: SetOpt = None,
 ) -> None:
     """Registration at photon time vs ground truth with/without late reprojection and prediction, fps, latency, frame time under API load."""
-    from dpmhw.session.bench import CASES, format_table, run_bench
+    from dpmhw.benchmarks.session import CASES, format_table, run_bench
 
     trajectories = tuple(t.value for t in trajectory) if trajectory else ("linear", "rotate-oscillate")
     modes = tuple(m.value for m in api_mode) if api_mode else ("process", "thread")
@@ -200,7 +200,7 @@ def bench_session(
     series = {c["case"]: c.pop("series") for c in results["cases"] if "series" in c}
     typer.echo(format_table(results))
     if series:
-        from dpmhw.session.bench_plots import plot_bench_session
+        from dpmhw.benchmarks.session_plots import plot_bench_session
 
         typer.echo(f"wrote {plot_bench_session(results['cases'], series, plot)}")
     if json_path is not None:

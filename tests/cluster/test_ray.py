@@ -99,7 +99,7 @@ def test_bench_quality_on_ray_matches_local_and_its_references_are_reused_locall
 
     from dpmhw.benchmarks.quality import QualityConfig, format_table, run_quality
     from dpmhw.benchmarks.references import ReferenceCache
-    from dpmhw.cluster.bench import run_units_on_ray
+    from dpmhw.benchmarks.quality_ray import run_units_on_ray
     from dpmhw.sequence import scaled_scene
 
     cfg = dataclasses.replace(

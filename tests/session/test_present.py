@@ -86,7 +86,7 @@ def test_each_lit_exposure_is_matched_to_the_present_it_scanned_out():
     poses); exposures before the first or after the last measured present are left out."""
     from types import SimpleNamespace as N
 
-    from dpmhw.session.bench import _photon_windows
+    from dpmhw.benchmarks.session import _photon_windows
 
     records = [N(t_present_ns=100, windows=((110, {1: "a"}),)), N(t_present_ns=200, windows=((210, {1: "b"}),))]
     lit = [N(scanout_ns=v, channel=None, t_start_ns=v, t_end_ns=v + 20) for v in (50, 100, 150, 200, 250)]

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import cv2
 
-from dpmhw.session.bench_plots import bench_series, plot_bench_session
+from dpmhw.benchmarks.session_plots import bench_series, plot_bench_session
 
 
 def _case(n: int = 50, step: int = 5):

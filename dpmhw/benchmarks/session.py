@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dpmhw.session.bench_plots import bench_series
+from dpmhw.benchmarks.session_plots import bench_series
 from dpmhw.session.config import load_session_config
 from dpmhw.session.testing import wait_for
 from dpmhw.transforms import Pose
