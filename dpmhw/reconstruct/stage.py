@@ -397,9 +397,9 @@ class ReconstructStage:
             w.image = self._helper.submit(self._background_copy, exposure)  # the frame to draw into, after the branch
             try:
                 run_timed((Stage("gbuffer", self._gbuffer_at_frame, timed=False),
-                            Stage("gbuffer", lambda w: self._update_native(w.box)),
-                            Stage("ahead", lambda w: self._start_ahead(next_frame), timed=False)
-                            if next_frame is not None and self.lod is None else None), w, self.clock, w.st)
+                           Stage("gbuffer", lambda w: self._update_native(w.box)),
+                           Stage("ahead", lambda w: self._start_ahead(next_frame), timed=False)
+                           if next_frame is not None and self.lod is None else None), w, self.clock, w.st)
             finally:
                 branch.result()  # never leave the branch running into the next frame
             w.st.update(st_low)
@@ -410,11 +410,12 @@ class ReconstructStage:
         if self.adaptive is None:
             w.st["adaptive"] = 0.0
         lod = self.lod is not None
-        run_timed((Stage("lod", lambda w: self.lod.plan(self._radiance, w.box)) if lod else None,  # from the last output
-                    Stage("upsample", self._upsample),
-                    Stage("lod", self._refine_tiles) if lod else None,
-                    Stage("adaptive", self._sample_adaptively) if self.adaptive is not None else None,
-                    Stage("post", self._encode_lit_box)), w, self.clock, w.st)
+        # tile refinement plans from the last output before the upsampling overwrites it
+        run_timed((Stage("lod", lambda w: self.lod.plan(self._radiance, w.box)) if lod else None,
+                   Stage("upsample", self._upsample),
+                   Stage("lod", self._refine_tiles) if lod else None,
+                   Stage("adaptive", self._sample_adaptively) if self.adaptive is not None else None,
+                   Stage("post", self._encode_lit_box)), w, self.clock, w.st)
         y0, y1, x0, x1 = w.box
         unresolved = int(self._unresolved.reshape(self.H, self.W)[y0:y1, x0:x1].sum())
         return StageOutput(w.image.reshape(self.H, self.W, 3), w.st, w.box, unresolved)

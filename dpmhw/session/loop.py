@@ -682,7 +682,7 @@ class SessionLoop:
         """This frame's mesh levels, then its render (on the render thread when started ahead)."""
         made = _Made(job)
         run_timed((Stage("mesh_lod", self._choose_levels) if self.mesh_lod is not None else None,
-                    Stage("render", self._shade)), made, self.clock, job.stages)
+                   Stage("render", self._shade)), made, self.clock, job.stages)
         return made.frame
 
     def _choose_levels(self, made: _Made) -> None:
