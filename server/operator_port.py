@@ -253,14 +253,14 @@ class OperatorListener:
         host = headers.get("host", "")
         if _host_name(host) not in self.trusted_hosts:
             raise _Refused(400, f"Host header {host[:80]!r} is not one this service answers to")
-        declared = headers.get("content-length", "0")
-        if int(declared) > self.max_body_bytes:  # h11 has checked that it is a number
-            raise _Refused(413, f"request body of {declared} bytes exceeds the limit of {self.max_body_bytes} bytes")
         if path == "/session/blank":
             problem = bearer_problem(headers.get("authorization"), self.token)
             if problem is not None:
                 raise _Refused(401, problem, ((b"WWW-Authenticate", b"Bearer"),))
-        else:
+        declared = headers.get("content-length", "0")
+        if int(declared) > self.max_body_bytes:  # h11 has checked that it is a number
+            raise _Refused(413, f"request body of {declared} bytes exceeds the limit of {self.max_body_bytes} bytes")
+        if path == "/status":
             wait_s = self._status_rate.take()
             if wait_s > 0:
                 raise _Refused(429, f"too many status requests: at most {self._status_rate.rate:g} per second",
