@@ -64,10 +64,14 @@ class _Refused(Exception):
         self.status, self.detail, self.headers = status, detail, headers
 
 
+class _Evicted(Exception):
+    """The connection gave its place to a newer one."""
+
+
 class OperatorListener:
     """Blank and status on `sock` (bound and listening; never closed here: it may outlive this
     listener, as the API's does); see module doc. `blank()` returns (ok, message, state) once the
-    projector is dark or the attempt failed; `status()` returns the status as a JSON object."""
+    projector is dark or the attempt failed; `status()` returns the status, a JSON object's bytes."""
 
     def __init__(self, sock: socket.socket, *, blank: Callable[[], tuple[bool, str, str]],
                  status: Callable[[], bytes], token: str, trusted_hosts: list[str] | tuple[str, ...],
@@ -283,10 +287,6 @@ class OperatorListener:
                     break
         except OSError:
             pass
-
-
-class _Evicted(Exception):
-    """The connection gave its place to a newer one."""
 
 
 def _host_name(host: str) -> str:

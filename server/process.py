@@ -21,6 +21,11 @@ API process (connections, time, header size) is bounded by `server.guard` (`limi
 process runs at a lower CPU priority (by default Linux's SCHED_IDLE: it gets the CPU time the
 loop leaves idle, so requests wait for the loop rather than the other way round).
 
+The operator's reserved port (`server.operator_port`, `operator_port`/`operator_sock`) is served
+by threads of this process, not the API process: its blank is executed as the blank pipe's is, on
+its own thread, and its status is the last one published. So blank and status stay reachable
+whatever the API process's load, priority or state (restarting, stopped).
+
 If the session process stops publishing (wedged, or gone), the API process keeps answering and
 reports `fault` with the age of the last snapshot; it exits by itself when this process dies.
 
@@ -507,7 +512,6 @@ class RemoteRuntime:
         if outcome != "ok":
             raise RuntimeError(f"the session failed to {name}: {value}")
         return value
-
 
 
 def _serve_child(sock: socket.socket, conn, blank_conn, status_name: str, frame_name: str, token: str, priority: str,

@@ -105,15 +105,16 @@ def start(
         if not token:
             token = secrets.token_urlsafe(18)
             typer.echo(f"no api.token / DPMHW_API_TOKEN set; this session's token: {token}")
-        for field in ("port", "operator_port"):  # both held here for the whole show
+        bound = []  # both held here for the whole show
+        for field in ("port", "operator_port"):
             try:
-                bound = bind_api_socket(cfg.api.host, getattr(cfg.api, field))
+                bound.append(bind_api_socket(cfg.api.host, getattr(cfg.api, field)))
             except OSError as exc:
-                if sock is not None:
-                    sock.close()
+                for s in bound:
+                    s.close()
                 _fail(OSError(f"api.{field}: cannot listen on {cfg.api.host}:{getattr(cfg.api, field)}: "
                               f"{exc.strerror or exc}"))
-            sock, operator_sock = (bound, None) if field == "port" else (sock, bound)
+        sock, operator_sock = bound
         host = f"[{cfg.api.host}]" if ":" in cfg.api.host else cfg.api.host
         typer.echo(f"operator page: http://{host}:{sock.getsockname()[1]}/ (it says why while the session is not up yet)")
         typer.echo(f"operator port (blank and status, whatever the load on the page's port): "
