@@ -167,10 +167,14 @@ def _flood(host: str, port: int, connections: int, active, stop, ready, out) -> 
         nonlocal opened
         try:
             sock = socket.create_connection((host, port), timeout=5)
+        except OSError:
+            return  # refused: tried again on the next round
+        try:
             if partial[i % 3]:
                 sock.sendall(partial[i % 3])
-        except OSError:
-            return  # refused or reset at once: tried again on the next round
+        except OSError:  # reset at once: tried again on the next round
+            sock.close()
+            return
         sock.setblocking(False)
         selector.register(sock, selectors.EVENT_READ, i)
         opened += 1
