@@ -28,6 +28,8 @@ The app bounds the headers it is handed (`server.app`: count and size, 431).
 from __future__ import annotations
 
 import resource
+import threading
+import time
 from dataclasses import dataclass
 
 import h11
@@ -35,7 +37,7 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from server.app import MAX_HEADER_BYTES, MAX_HEADERS
 
-__all__ = ["ConnectionGuard", "ConnectionLimits", "GuardedH11Protocol"]
+__all__ = ["ConnectionGuard", "ConnectionLimits", "GuardedH11Protocol", "TokenBucket"]
 
 _WAITING = (h11.IDLE, h11.SEND_BODY)  # the client's side of a request that has not arrived whole
 
@@ -148,3 +150,23 @@ class GuardedH11Protocol(H11Protocol):
         """Drop the connection (its request, if begun, sees a disconnect)."""
         self._forget()
         self.transport.abort()
+
+
+class TokenBucket:
+    """At most `burst` at once, refilled at `rate` per second; `take()` returns 0 when admitted,
+    else the seconds until the next would be."""
+
+    def __init__(self, rate: float, burst: int, clock=time.monotonic):
+        self.rate, self.burst, self.clock = rate, burst, clock
+        self._tokens, self._t = float(burst), clock()
+        self._lock = threading.Lock()
+
+    def take(self) -> float:
+        with self._lock:
+            now = self.clock()
+            self._tokens = min(self.burst, self._tokens + (now - self._t) * self.rate)
+            self._t = now
+            if self._tokens >= 1:
+                self._tokens -= 1
+                return 0.0
+            return (1 - self._tokens) / self.rate

@@ -21,6 +21,11 @@ API process (connections, time, header size) is bounded by `server.guard` (`limi
 process runs at a lower CPU priority (by default Linux's SCHED_IDLE: it gets the CPU time the
 loop leaves idle, so requests wait for the loop rather than the other way round).
 
+The operator's reserved port (`server.operator_port`, `operator_port`/`operator_sock`) is served
+by threads of this process, not the API process: its blank is executed as the blank pipe's is, on
+its own thread, and its status is the last one published. So blank and status stay reachable
+whatever the API process's load, priority or state (restarting, stopped).
+
 If the session process stops publishing (wedged, or gone), the API process keeps answering and
 reports `fault` with the age of the last snapshot; it exits by itself when this process dies.
 
@@ -54,7 +59,9 @@ from dpmhw.session.config import LiveSettings
 from dpmhw.session.loop import LatestFrame, SettingsError
 from server.app import trusted_hosts_for
 from server.deps import Runtime, RuntimeBusy, RuntimeUnavailable
-from server.guard import ConnectionLimits
+from server.guard import ConnectionLimits, TokenBucket
+from server.operator_port import OperatorListener
+from server.routers.status import public_status
 from server.shared_slot import SharedSlot, SlotTornError
 
 __all__ = ["ApiProcess", "RemoteRuntime", "bind_api_socket", "lower_priority"]
@@ -89,7 +96,8 @@ class ApiProcess:
                  publish_period_s: float = 0.05, stale_after_s: float = 1.0, status_capacity: int = 1 << 20,
                  start_timeout_s: float = 60.0, restart_backoff_s: float = 0.5, restart_backoff_max_s: float = 8.0,
                  stable_after_s: float = 30.0, sock: socket.socket | None = None,
-                 limits: ConnectionLimits | None = None, commands_per_s: float = 20.0, command_burst: int = 10):
+                 limits: ConnectionLimits | None = None, commands_per_s: float = 20.0, command_burst: int = 10,
+                 operator_port: int | None = 0, operator_sock: socket.socket | None = None):
         self.runtime: Runtime | None = None
         self.token = token
         if priority not in _PRIORITIES:
@@ -108,6 +116,13 @@ class ApiProcess:
         self.host, self.port = self.sock.getsockname()[:2]
         # the Host names clients may use: the bound address too, so a lab-network bind works as is
         self.trusted_hosts = trusted_hosts_for(self.host)
+        # the operator's reserved listener (`server.operator_port`), on the API's address; None: none
+        if operator_sock is None and operator_port is not None:
+            operator_sock = bind_api_socket(self.host, operator_port)
+        self.operator_sock = operator_sock
+        self.operator: OperatorListener | None = None
+        self._published: tuple[int, dict] | None = None  # (read ns, status) of the last publish
+        self._operator_cache: tuple[int, bytes] | None = None  # that status as the operator port answers it
         self.status_capacity = status_capacity
         self.status_slot: SharedSlot | None = None
         self.frame_slot: SharedSlot | None = None
@@ -134,6 +149,10 @@ class ApiProcess:
         self.status_slot = SharedSlot.create(self.status_capacity)
         self.frame_slot = SharedSlot.create(width * height * 3)
         self.publish()
+        if self.operator_sock is not None:  # first: it serves while the API process starts or restarts
+            self.operator = OperatorListener(self.operator_sock, blank=self.operator_blank,
+                                             status=self.operator_status, token=self.token,
+                                             trusted_hosts=self.trusted_hosts).start()
         try:
             self._spawn()
         except BaseException:
@@ -220,11 +239,14 @@ class ApiProcess:
     def health(self) -> dict:
         """The service's own state, part of the published status."""
         return {"state": self._state, "pid": None if self.process is None else self.process.pid,
-                "restarts": self.restarts, "last_exit": self.last_exit, "url": self.url}
+                "restarts": self.restarts, "last_exit": self.last_exit, "url": self.url,
+                "operator": None if self.operator is None else self.operator.stats()}
 
     def close(self) -> None:
         """Stop the API process (graceful, then killed), the threads, and remove the slots."""
         self._stop.set()
+        if self.operator is not None:
+            self.operator.close()
         for t in self._threads:  # first, so that the keeper starts nothing new
             t.join(5)
         self._threads.clear()
@@ -235,6 +257,8 @@ class ApiProcess:
             if conn is not None:
                 conn.close()
         self.sock.close()
+        if self.operator_sock is not None:
+            self.operator_sock.close()
         for slot in (self.status_slot, self.frame_slot):
             if slot is not None:
                 slot.close()
@@ -250,18 +274,45 @@ class ApiProcess:
     def publish(self) -> None:
         """Copy the runtime's status (and a new latest frame) into the shared slots."""
         t_read = time.monotonic_ns()
-        payload = {"status": {**self.runtime.status(), "api": self.health()}, "ready": self.runtime.ready(),
+        status = {**self.runtime.status(), "api": self.health()}
+        payload = {"status": status, "ready": self.runtime.ready(),
                    "settings": self.runtime.settings().model_dump(), "t_read_ns": t_read}
         data = json.dumps(payload, separators=(",", ":")).encode()
         frame = self.runtime.latest_frame()
         with self._write_lock:
             self.status_slot.write(data)
+            if self._published is None or t_read > self._published[0]:
+                self._published = (t_read, status)
             if frame is not None:
                 key = (frame.number, frame.t_present_ns, bool(frame.blank))
                 if key != self._frame_key and frame.image.size <= self.frame_slot.capacity:
                     h, w = frame.image.shape[:2]
                     self.frame_slot.write(frame.image, (frame.number, frame.t_present_ns, int(frame.blank), h, w))
                     self._frame_key = key
+
+    def operator_status(self) -> bytes:
+        """The last published status as `GET /status` answers it, with its age (JSON; serialised
+        once per publish, whatever the request rate)."""
+        t_read, status = self._published
+        cached = self._operator_cache
+        if cached is None or cached[0] != t_read:
+            cached = self._operator_cache = (t_read, json.dumps(public_status(status), separators=(",", ":")).encode())
+        age_s = (time.monotonic_ns() - t_read) / 1e9
+        return cached[1][:-1] + b',"snapshot_age_s":%.3f}' % age_s
+
+    def operator_blank(self) -> tuple[bool, str, str]:
+        """The operator port's blank: as the API process's (on the caller's thread), then published,
+        so the answer and the next status say the state it led to."""
+        (outcome, value), changed = self._execute("blank", ())
+        if changed:
+            try:
+                self.publish()
+            except Exception:
+                log.exception("publishing the session status for the API failed")
+        state = str(self._published[1].get("state", ""))
+        if outcome != "ok":
+            return False, str(value), state
+        return True, "blanked: dark until resume", state
 
     def _publish_loop(self) -> None:
         while not self._stop.wait(self.publish_period_s):
@@ -340,7 +391,7 @@ class RemoteRuntime:
         self._payload: tuple[int, int, dict] | None = None  # (sequence, published ns, decoded)
         self._frame: tuple[int, LatestFrame] | None = None
         self._own_settings: tuple[int, LiveSettings] | None = None  # from our last accepted PATCH
-        self._bucket = _TokenBucket(*command_rate)  # every command but blank
+        self._bucket = TokenBucket(*command_rate)  # every command but blank
         self.connection_stats = connection_stats  # this process's connections (`server.guard`), or None
 
     def _read(self) -> tuple[dict, float]:
@@ -461,27 +512,6 @@ class RemoteRuntime:
         if outcome != "ok":
             raise RuntimeError(f"the session failed to {name}: {value}")
         return value
-
-
-
-class _TokenBucket:
-    """At most `burst` at once, refilled at `rate` per second; `take()` returns 0 when admitted,
-    else the seconds until the next would be."""
-
-    def __init__(self, rate: float, burst: int):
-        self.rate, self.burst = rate, burst
-        self._tokens, self._t = float(burst), time.monotonic()
-        self._lock = threading.Lock()
-
-    def take(self) -> float:
-        with self._lock:
-            now = time.monotonic()
-            self._tokens = min(self.burst, self._tokens + (now - self._t) * self.rate)
-            self._t = now
-            if self._tokens >= 1:
-                self._tokens -= 1
-                return 0.0
-            return (1 - self._tokens) / self.rate
 
 
 def _serve_child(sock: socket.socket, conn, blank_conn, status_name: str, frame_name: str, token: str, priority: str,

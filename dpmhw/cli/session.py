@@ -65,7 +65,8 @@ def start(
     sets: SetOpt = None,
     mock: MockOpt = False,
     host: Annotated[Optional[str], typer.Option(help="API bind address (default 127.0.0.1; api.host).")] = None,
-    port: Annotated[Optional[int], typer.Option(help="API port (api.port; 0 picks a free one).")] = None,
+    port: Annotated[Optional[int], typer.Option(help="API port (api.port; 0 picks a free one, and a free operator port too).")] = None,
+    operator_port: Annotated[Optional[int], typer.Option(help="The operator's reserved port for blank and status (api.operator_port; 0 picks a free one).")] = None,
     no_api: Annotated[bool, typer.Option("--no-api", help="Run the loop without the HTTP service.")] = False,
     record: Annotated[bool, typer.Option("--record", help="Record poses, timings and some frames (recording.*).")] = False,
     duration: Annotated[Optional[float], typer.Option(min=0.1, help="Stop after this many seconds (default: Ctrl-C / SIGTERM).")] = None,
@@ -80,6 +81,8 @@ def start(
 
     extra = [f"api.host={json.dumps(host)}"] if host else []
     extra += [f"api.port={port}"] if port is not None else []
+    if operator_port is not None or port == 0:
+        extra.append(f"api.operator_port={operator_port or 0}")
     extra += ["api.enabled=false"] if no_api else []
     extra += ["recording.enabled=true"] if record else []
     from dpmhw.session.instance import SessionLock
@@ -94,7 +97,7 @@ def start(
         typer.echo(lock.warning)
     from dpmhw.session.supervisor import Supervisor
 
-    sock = token = None
+    sock = operator_sock = token = None
     if cfg.api.enabled:
         from server.process import bind_api_socket
 
@@ -102,20 +105,29 @@ def start(
         if not token:
             token = secrets.token_urlsafe(18)
             typer.echo(f"no api.token / DPMHW_API_TOKEN set; this session's token: {token}")
-        try:
-            sock = bind_api_socket(cfg.api.host, cfg.api.port)  # held here for the whole show
-        except OSError as exc:
-            _fail(OSError(f"api.port: cannot listen on {cfg.api.host}:{cfg.api.port}: {exc.strerror or exc}"))
+        bound = []  # both held here for the whole show
+        for field in ("port", "operator_port"):
+            try:
+                bound.append(bind_api_socket(cfg.api.host, getattr(cfg.api, field)))
+            except OSError as exc:
+                for s in bound:
+                    s.close()
+                _fail(OSError(f"api.{field}: cannot listen on {cfg.api.host}:{getattr(cfg.api, field)}: "
+                              f"{exc.strerror or exc}"))
+        sock, operator_sock = bound
         host = f"[{cfg.api.host}]" if ":" in cfg.api.host else cfg.api.host
         typer.echo(f"operator page: http://{host}:{sock.getsockname()[1]}/ (it says why while the session is not up yet)")
+        typer.echo(f"operator port (blank and status, whatever the load on the page's port): "
+                   f"http://{host}:{operator_sock.getsockname()[1]}")
     try:
-        code = Supervisor(cfg, mock=mock, token=token or "", sock=sock, duration=duration,
-                          status_every=status_every, echo=typer.echo).run()
+        code = Supervisor(cfg, mock=mock, token=token or "", sock=sock, operator_sock=operator_sock,
+                          duration=duration, status_every=status_every, echo=typer.echo).run()
     except (DpmhwError, OSError, RuntimeError) as exc:
         _fail(exc)
     finally:
-        if sock is not None:
-            sock.close()
+        for s in (sock, operator_sock):
+            if s is not None:
+                s.close()
         lock.release()
     raise typer.Exit(code=code)
 

@@ -299,11 +299,22 @@ class ApiSection(_Section):
     enabled: bool = True
     host: str = "127.0.0.1"
     port: int = Field(8765, ge=0, le=65535)
+    operator_port: int = Field(8766, ge=0, le=65535, description="the operator's reserved port on the same address: "
+                               "POST /session/blank and GET /status only, served by the session process, out of "
+                               "reach of the main port's load (0 picks a free one)")
     token: str = Field("", pattern=r"^([A-Za-z0-9._~+/-]+=*)?$", description="bearer token for mutating endpoints "
                        "(RFC 6750 token characters); DPMHW_API_TOKEN overrides")
     priority: Literal["idle", "low", "normal"] = Field(
         "idle", description="CPU priority of the API process: idle (Linux SCHED_IDLE: runs only on otherwise idle "
                             "CPU time, so the loop always goes first), low (nice 10), normal")
+
+    @field_validator("operator_port")
+    @classmethod
+    def _two_ports(cls, operator_port: int, info) -> int:
+        port = info.data.get("port")
+        if operator_port and operator_port == port:
+            raise ValueError(f"must differ from api.port ({port})")
+        return operator_port
 
 
 class RecordingSection(_Section):

@@ -492,7 +492,12 @@ class SessionLoop:
         return new
 
     def blank(self) -> None:
+        """The operator's blank: dark on the caller's thread before this returns (black frame,
+        projector idled and read back), not at the loop thread's next look at the safety state,
+        which may be a render away."""
         self.safety.operator_blank()
+        if self._output_on:
+            self._go_dark(self.safety.view().reason)
 
     def resume(self) -> tuple[bool, str]:
         return self.safety.request_resume()

@@ -18,8 +18,8 @@ parent
   that does not answer gives "NOT confirmed dark", and the attempts go on while staying dark;
 - puts a black full-screen window on the projector's display if the session used one;
 - logs the exit status or the signal;
-- answers `/status` with `fault` and the reason on the API port (`FaultResponder`) while no
-  loop process serves it;
+- answers `/status` with `fault` and the reason on the API port and the operator port
+  (`FaultResponder`) while no loop process serves them;
 - restarts the loop process if `safety.restart = "on-crash"` (`RestartPolicy`: backoff, and at
   most `restart_limit` restarts within `restart_window_s`), else stays dark until stopped.
 
@@ -27,9 +27,10 @@ Nothing from outside can hold the main thread: the loop process's messages are r
 thread (a message half-sent by a process that was then stopped blocks only that thread), and
 every HTTP connection to the fault responder is served on a thread of its own with a timeout.
 
-Who holds the API port: the parent binds it once and keeps it for the whole show; each loop
-process receives a copy and serves the full API from its own API process (server/process.py,
-which also restarts that one if it dies). So the port is never free for another program to take
+Who holds the API port and the operator's reserved port: the parent binds them once (`dpmhw
+session start` does) and keeps them for the whole show; each loop process receives copies, serves
+the full API from its own API process (server/process.py, which also restarts that one if it dies)
+and blank and status on the operator port from its own threads (server/operator_port.py). So the port is never free for another program to take
 between restarts, clients queue instead of being refused, the full API sits next to the state
 it reports, and the parent stays small (no web framework, no render code: little to crash).
 
@@ -233,6 +234,7 @@ class ChildArgs:
     mock: bool
     usb: tuple[str, bytes] | None  # the out-of-process DLPC900 emulator (mock sessions)
     sock: socket.socket | None  # the API's listening socket (None: no API)
+    operator_sock: socket.socket | None  # the operator's reserved one (`server.operator_port`)
     token: str
     status_every: float
     supervisor: dict  # what the status reports about the supervision (pid, starts, last crash)
@@ -332,8 +334,10 @@ def run_child(args: ChildArgs, conn) -> None:
         if args.sock is not None:
             from server.process import ApiProcess
 
-            api = ApiProcess(sock=args.sock, token=args.token, priority=config.api.priority).start(runtime)
-            echo(f"API on {api.url} (docs at {api.url}/docs); API process pid {api.process.pid}")
+            api = ApiProcess(sock=args.sock, operator_sock=args.operator_sock, operator_port=None, token=args.token,
+                             priority=config.api.priority).start(runtime)
+            echo(f"API on {api.url} (docs at {api.url}/docs); API process pid {api.process.pid}"
+                 + (f"; operator port {api.operator.url}" if api.operator is not None else ""))
         send("started", {"pid": os.getpid(), "api_pid": api.process.pid if api else None})
         if args.on_started is not None:
             args.on_started(loop)
@@ -409,7 +413,8 @@ class Supervisor:
     lets a caller add to the loop process, e.g. the tests' injected faults."""
 
     def __init__(self, config: SessionConfig, *, mock: bool = False, token: str = "",
-                 sock: socket.socket | None = None, duration: float | None = None, status_every: float = 2.0,
+                 sock: socket.socket | None = None, operator_sock: socket.socket | None = None,
+                 duration: float | None = None, status_every: float = 2.0,
                  echo: Callable[[str], None] = print, stop_timeout_s: float = 30.0,
                  idle_timeout_s: float = 10.0, on_loop_started: Callable[[Any], None] | None = None):
         self.config, self.mock, self.token, self.sock = config, mock, token, sock
@@ -419,7 +424,9 @@ class Supervisor:
         s = config.safety
         self.policy = RestartPolicy(s.restart_limit if s.restart == "on-crash" else 0, s.restart_window_s,
                                     s.restart_backoff_s)
-        self.responder = FaultResponder(sock) if sock is not None else None
+        # what answers the API port and the operator's while no loop process does
+        self.responders = [FaultResponder(s) for s in (sock, operator_sock) if s is not None]
+        self.operator_sock = operator_sock
         self.emulator = None
         self.usb: tuple[str, bytes] | None = None
         self.starts = 0
@@ -491,8 +498,8 @@ class Supervisor:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
             self._close_window()
-            if self.responder is not None:
-                self.responder.stop()
+            for responder in self.responders:
+                responder.stop()
             if self.emulator is not None:
                 self.emulator.close()
 
@@ -532,7 +539,8 @@ class Supervisor:
         self.starts += 1
         ctx = multiprocessing.get_context("spawn")
         ours, theirs = ctx.Pipe()
-        args = ChildArgs(self.config.model_dump(), self.mock, self.usb, self.sock, self.token, self.status_every,
+        args = ChildArgs(self.config.model_dump(), self.mock, self.usb, self.sock, self.operator_sock, self.token,
+                         self.status_every,
                          {"pid": os.getpid(), "starts": self.starts, "crashes": self.crashes,
                           "last_crash": self.last_crash, "restart": self.config.safety.restart},
                          Heartbeat(), self.on_loop_started)
@@ -540,7 +548,7 @@ class Supervisor:
         child.start()
         theirs.close()
         self._close_window()
-        if self.starts > 1 and self.responder is not None:
+        if self.starts > 1 and self.responders:
             self._report_fault(f"{self.last_crash}; restarting: loop process pid {child.pid} is starting")
         self.echo(f"loop process pid {child.pid} (start {self.starts})")
         return child, _Link(child, ours, args.heartbeat)
@@ -553,8 +561,8 @@ class Supervisor:
             if self._loop_started is None:
                 self._loop_started = time.monotonic()
                 self._set_deadline()
-            if self.responder is not None:
-                self.responder.stop()  # the loop process's own API serves the port now
+            for responder in self.responders:
+                responder.stop()  # the loop process's own API serves the ports now
         elif kind == "lit" and self._first_lit is None:
             self._first_lit = payload
             compiled = f", {self.compile_s:.1f} s of it compiling the render kernels" if self.compile_s else ""
@@ -700,15 +708,13 @@ class Supervisor:
         self._serve_status("fault", reason)
 
     def _serve_status(self, state: str, reason: str, **extra) -> None:
-        """What the API port answers while no loop process serves it (starting, compiling, a fault)."""
-        if self.responder is None:
-            return
-        self.responder.set_status({
-            "state": state, "reason": reason, "output_on": False, **extra,
-            "supervisor": {"pid": os.getpid(), "starts": self.starts, "crashes": self.crashes,
-                           "last_crash": self.last_crash, "restart": self.config.safety.restart, "loop_pid": None},
-        })
-        self.responder.start()
+        """What the API and operator ports answer while no loop process serves them (starting, compiling, a fault)."""
+        status = {"state": state, "reason": reason, "output_on": False, **extra,
+                  "supervisor": {"pid": os.getpid(), "starts": self.starts, "crashes": self.crashes,
+                                 "last_crash": self.last_crash, "restart": self.config.safety.restart, "loop_pid": None}}
+        for responder in self.responders:
+            responder.set_status(status)
+            responder.start()
 
     def _stay_dark(self) -> None:
         """No more restarts: keep reporting the fault (and the black window) until stopped."""

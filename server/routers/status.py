@@ -23,15 +23,16 @@ from server.prometheus import render_metrics
 router = APIRouter(tags=["status"])
 
 
-def _jsonable(status: dict) -> dict:
+def public_status(status: dict) -> dict:
+    """The status as /status answers it (the histograms are /metrics's)."""
     out = dict(status)
-    out.pop("histograms", None)  # /metrics has them
+    out.pop("histograms", None)
     return out
 
 
 @router.get("/status", summary="Session state with its reason, fps, latency, stage timings, devices, settings")
 async def get_status(runtime: RuntimeDep) -> JSONResponse:
-    return JSONResponse(_jsonable(runtime.status()))
+    return JSONResponse(public_status(runtime.status()))
 
 
 @router.get("/status/stream", summary="Server-Sent Events: one status object per `interval`",
@@ -44,7 +45,7 @@ async def stream_status(request: Request, runtime: RuntimeDep,
         while count is None or sent < count:
             if await request.is_disconnected():
                 return
-            yield f"event: status\ndata: {json.dumps(_jsonable(runtime.status()))}\n\n"
+            yield f"event: status\ndata: {json.dumps(public_status(runtime.status()))}\n\n"
             sent += 1
             if count is not None and sent >= count:
                 return

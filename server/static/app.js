@@ -203,6 +203,11 @@ function renderStatus(st) {
   $("state-box").className = "state " + state;
   $("state").textContent = stateWords(st);
   $("reason").textContent = st.reason ? "— " + st.reason : (st.output_on ? "— output on" : "");
+  const operator = st.api && st.api.operator;
+  if (operator && operator.url) {  // kept when the page later gets no answer: that is when it is needed
+    $("operator-port").textContent = `If this page stops answering, the operator port still blanks and reports: ` +
+      `POST ${operator.url}/session/blank (with the token), GET ${operator.url}/status`;
+  }
   const causes = $("causes");
   causes.textContent = "";
   for (const c of st.causes || []) {

@@ -208,6 +208,15 @@ def test_start_up_output_gives_the_operator_page_address(session):
                for line in lines), "".join(lines)
 
 
+def test_the_start_output_and_the_page_give_the_operator_port(session, page):
+    url, lines = session
+    operator = _get(url, "/status")["api"]["operator"]["url"]
+    assert operator != url and any(line.startswith("operator port") and line.strip().endswith(operator)
+                                   for line in lines), "".join(lines)
+    assert _get(operator, "/status")["state"] == _get(url, "/status")["state"]
+    assert wait_for(lambda: f"POST {operator}/session/blank" in _text(page, "operator-port"), WAIT_S)
+
+
 def test_a_hold_off_an_operator_blank_and_lost_tracking_are_told_apart(page):
     """The page's words for statuses made by the session's own safety monitor (fake clock)."""
     from dpmhw.session.safety import SafetyMonitor

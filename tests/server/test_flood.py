@@ -249,3 +249,24 @@ def test_blank_and_status_answer_through_a_mixed_request_storm():
 @pytest.mark.slow
 def test_blank_and_status_answer_through_a_200_client_mixed_storm():
     _storm_keeps_blank_and_status_answering(clients=200, storm_s=10.0)
+
+
+def test_the_storm_tools_flood_holds_connections_and_the_probes_reach_both_ports():
+    """`server.storm`'s flood keeps its connections up as the API evicts them, and its status
+    probes report each port apart."""
+    from server.storm import Flood, Probes
+
+    limits = ConnectionLimits(request_timeout_s=600, keep_alive_s=600, max_connections=16)
+    with _session_and_api(limits=limits) as (loop, api, client):
+        with Flood(api.port, 40) as flood, Probes([api.url, api.operator.url], period_s=0.05) as probes:
+            flood.active.set()
+            # more than the cap were held at once: the API evicted some, and the flood reopened them
+            assert wait_for(lambda: client.get("/status").json()["api"]["connections"]["evicted"] > 24, WAIT_S)
+            probes.active.set()
+            time.sleep(1.0)  # a second of probes under the flood
+            probes.active.clear()
+            flood.active.clear()
+        assert flood.opened > 40
+        got = probes.summary(["main", "operator"])
+        for name in ("main", "operator"):
+            assert got[name]["requests"] > 0 and set(got[name]["codes"]) == {"200"}, got

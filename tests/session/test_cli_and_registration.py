@@ -105,6 +105,18 @@ def test_start_mock_with_api_on_loopback(runner, monkeypatch):
     assert "this session's token" not in r.output  # the env token is used, not a generated one
 
 
+def test_start_names_a_busy_operator_port(runner, monkeypatch):
+    import socket
+
+    monkeypatch.setenv("DPMHW_API_TOKEN", "cli-token")
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        busy = taken.getsockname()[1]
+        r = runner.invoke(app, ["session", "start", "--mock", "--port", "0", "--operator-port", str(busy),
+                                "--duration", "1", "--status-every", "0", *SMALL])
+    assert r.exit_code == 2 and f"api.operator_port: cannot listen on 127.0.0.1:{busy}" in r.output, r.output
+    assert "loop process" not in r.output  # refused before anything started
+
+
 def test_start_reports_bad_bindings_as_an_error(runner):
     r = runner.invoke(app, ["session", "start", "--mock", "--no-api", "--duration", "1", *SMALL,
                             "--set", 'bindings=[{rigid_body = 1, object = "teapot"}]'])

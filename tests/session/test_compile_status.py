@@ -1,4 +1,4 @@
-"""While the kernels compile ahead of a first show, the API port says so: `/status` gives the
+"""While the kernels compile ahead of a first show, the API port (and the operator port) says so: `/status` gives the
 state `compiling` with the progress, and the operator page's address a page that says it in words."""
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ def _get(port: int, path: str) -> tuple[int, str, str]:
 
 
 def test_the_api_port_says_compiling_with_progress(monkeypatch):
-    sock = socket.create_server(("127.0.0.1", 0))
+    sock, operator_sock = socket.create_server(("127.0.0.1", 0)), socket.create_server(("127.0.0.1", 0))
     port = sock.getsockname()[1]
     seen: dict = {}
 
@@ -32,6 +32,7 @@ def test_the_api_port_says_compiling_with_progress(monkeypatch):
         p = CompileProgress(done=3, expected=37, elapsed_s=4.2, eta_s=20.0, groups_left=["path tracing"])
         progress(p)
         seen["status"] = _get(port, "/status")
+        seen["operator"] = _get(operator_sock.getsockname()[1], "/status")  # the operator's port says the same
         seen["page"] = _get(port, "/")
         p.groups_left, p.done, p.elapsed_s = [], 37, 30.0
         progress(p)
@@ -39,12 +40,15 @@ def test_the_api_port_says_compiling_with_progress(monkeypatch):
 
     monkeypatch.setattr(warmup, "compile_kernels", compile_kernels)
     lines: list[str] = []
-    sup = Supervisor(load_session_config(None), sock=sock, echo=lines.append)
+    sup = Supervisor(load_session_config(None), sock=sock, operator_sock=operator_sock, echo=lines.append)
     try:
         assert sup._ready_kernels() and sup.compile_s == 30.0
     finally:
-        sup.responder.stop()
+        for responder in sup.responders:
+            responder.stop()
         sock.close()
+        operator_sock.close()
+    assert seen["operator"] == seen["status"]
     assert seen["before"]["state"] == "starting" and not seen["before"]["output_on"]
     code, kind, body = seen["status"]
     status = json.loads(body)

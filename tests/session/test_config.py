@@ -39,6 +39,7 @@ def test_file_and_overrides_merge(tmp_path):
         ("[render]\nsppp = 2\n", [], "render.sppp"),
         ("", ["reuse.mode=magic"], "reuse.mode"),
         ("", ["api.port=70000"], "api.port"),
+        ("", ["api.port=9000", "api.operator_port=9000"], "api.operator_port"),
         ("", ["safety.stale_after_ms=-1"], "safety.stale_after_ms"),
         ('[[bindings]]\nrigid_body = -2\nobject = "bunny"\n', [], "bindings[0].rigid_body"),
         ("[render]\nwidth = 640\n", [], "render"),

@@ -476,3 +476,19 @@ def test_render_seed_offsets_every_frames_seed(make_loop):
     loop.stop()
     assert renderer.seen and min(renderer.seen) >= seed
     assert len(set(renderer.seen)) > 1  # a new seed per frame
+
+
+def test_the_operator_blank_is_dark_before_it_returns_even_while_a_render_hangs(make_loop):
+    """The blank goes dark on the caller's thread (black frame, projector idled and read back),
+    not when the frame thread next looks, which here is never: its render hangs."""
+    loop = make_loop(["safety.watchdog_s=60"]).start()
+    renderer, sink = loop.parts.renderer, loop.parts.sink
+    assert wait_for(lambda: state(loop) == "running" and not loop.parts.projector.dark, WAIT_S)
+    renderer.block.clear()  # every render from now on waits until the test releases it
+    try:
+        loop.blank()
+        assert loop.parts.projector.dark and loop.parts.projector.calls[-1] == "blank"
+        assert not list(sink.frames)[-1].frame.any()  # the last frame the sink took is black
+        assert state(loop) == "blanked" and loop.latest_frame().blank
+    finally:
+        renderer.block.set()
