@@ -319,6 +319,8 @@ class MockSection(_Section):
                            "stale)")
     latency_ms: float = Field(4.5, ge=0.0, le=1000.0)
     speed: float = Field(1.0, gt=0.0, le=100.0, description="scales every velocity of the trajectory")
+    marker_noise_mm: float = Field(0.0, ge=0.0, le=10.0, description="Gaussian noise (standard deviation) on each "
+                                   "marker of the NatNet mock; the pose it streams is then fitted to the noisy markers")
 
 
 class SessionConfig(_Section):
