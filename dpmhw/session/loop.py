@@ -67,7 +67,8 @@ PRESENT_LEAD_STEP_NS = 1_000_000  # added after a present that missed its refres
 PRESENT_LEAD_QUANTILE = 98.0  # of the recent times from waking to a frame ready to hand over
 PRESENT_LEAD_HISTORY = 240  # presents the quantile is taken over (4 s at 60 Hz)
 SWITCH_INTERVAL_S = 0.001  # the interpreter's thread switch interval while a session runs
-PRESENT_NICE = -10  # the present thread's nice value, where the process may raise it
+PRESENT_RT_PRIORITY = 10  # the present thread's SCHED_FIFO priority, where the process may set it
+PRESENT_NICE = -10  # else its nice value, where the process may raise it
 FREEZE_AFTER_FRAMES = 30  # frames presented before what they made is frozen too (gc.freeze; see _freeze_long_lived)
 
 
@@ -243,16 +244,24 @@ def exercise_reprojection(reprojector, scene, size: tuple[int, int]) -> None:
         reprojector.reproject(cap, scene.object_poses(0.25), out, channel=channel)
 
 
-def _raise_thread_priority(nice: int) -> str:
-    """Run the calling thread at `nice` (Linux: per-thread nice values) so that a refresh's present
-    is not queued behind the frame thread's work on a busy machine. Needs CAP_SYS_NICE or an
-    RLIMIT_NICE that allows it; otherwise the thread keeps its priority and the status says so."""
+def _raise_thread_priority(rt_priority: int, nice: int) -> str:
+    """Run the calling thread ahead of the frame thread's work, so that a refresh's present is
+    not queued behind it on a busy machine: SCHED_FIFO at `rt_priority` (Linux; needs
+    CAP_SYS_NICE or an RLIMIT_RTPRIO that allows it: it then preempts every normal thread at
+    once), else the per-thread nice value `nice`, else as it is; the status says which. The
+    thread sleeps most of each period, and the kernel's real-time throttling bounds it anyway."""
+    tid = threading.get_native_id()
     try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(rt_priority))
+        return f"SCHED_FIFO {rt_priority}"
+    except (OSError, AttributeError) as exc:
+        log.info("present thread: no real-time priority: %s", exc)
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, nice)
         return f"nice {nice}"
     except (OSError, AttributeError) as exc:
         log.info("present thread keeps its priority: %s", exc)
-        return "normal (raising it needs CAP_SYS_NICE or RLIMIT_NICE)"
+        return "normal (raising it needs CAP_SYS_NICE, RLIMIT_RTPRIO or RLIMIT_NICE)"
 
 
 class SessionLoop:
@@ -781,7 +790,7 @@ class SessionLoop:
     def _present_loop(self) -> None:
         """Wake `_present_lead_ns` before each refresh and present the newest capture, moved to
         each photon window's predicted poses. A present that misses its refresh widens the lead."""
-        self._present_priority = _raise_thread_priority(PRESENT_NICE)
+        self._present_priority = _raise_thread_priority(PRESENT_RT_PRIORITY, PRESENT_NICE)
         period = self.timing.period_ns
         last = None
         while not self._stop.is_set():
