@@ -11,6 +11,8 @@ the pattern timeline without sleeping.
 
 from __future__ import annotations
 
+import bisect
+
 import struct
 import time
 from dataclasses import dataclass, field
@@ -390,6 +392,8 @@ class DLPC900Model:
         self.error_code = 0
         self.error_description = ""
         self._timeline: RecentLog = RecentLog()  # DisplayedPattern of finished runs
+        self._dark_changes: RecentLog = RecentLog(1000)  # (t_ns, dark) whenever `dark` changed
+        self._note_dark()
 
     @property
     def run_started_ns(self) -> int | None:
@@ -411,6 +415,20 @@ class DLPC900Model:
         leds = self.led_enable & 0x07 or (self.led_enable & 0x08 and self._sequencer_lights())
         return self.standby or self.idle or self.parked or not leds
 
+    def dark_at(self, t_ns: int) -> bool:
+        """`dark` as it was at `t_ns`, from the commands' record (the video side scans out
+        refreshes after the fact, and a refresh the projector spent dark must stay dark)."""
+        changes = self._dark_changes
+        k = bisect.bisect_right(changes, (t_ns, True)) - 1
+        if k < 0 or k == len(changes) - 1:  # since the last command: as it is now
+            return self.dark
+        return changes[k][1]
+
+    def _note_dark(self) -> None:
+        d = self.dark
+        if not self._dark_changes or self._dark_changes[-1][1] != d:
+            self._dark_changes.append((self.clock(), d))
+
     def _sequencer_lights(self) -> bool:
         # With the sequencer in control, light flows in video mode or while a pattern runs.
         return self.display_mode == 0 or self.sequencer == "running"
@@ -428,6 +446,7 @@ class DLPC900Model:
         """Sequencer abort: the hardware-status abort bit sets and the sequence stops."""
         self.hw_status |= 0x40
         self._stop("abort")
+        self._note_dark()
 
     def trigger(self, t_ns: int | None = None) -> None:
         self.trigger_times.append(self.clock() if t_ns is None else t_ns)
@@ -452,6 +471,7 @@ class DLPC900Model:
             raise CommandError(ERR_INVALID_PARAMETER,
                                f"command 0x{opcode:04X} takes {sorted(sizes)} data bytes, got {len(data)}")
         writer(self, data)
+        self._note_dark()
         return b""
 
     # reads

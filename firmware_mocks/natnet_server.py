@@ -220,11 +220,24 @@ class NatNetServerConfig:
     clock_drift_ppm: float = 0.0  # the server clock runs this much fast against the host's
     dropout_prob: float = 0.0  # per body per frame: tracked flag off
     marker_noise_m: float = 0.0  # std dev of marker position noise
+    solve_from_markers: bool = False  # the pose fitted to the noisy markers (Motive's solve), not the true one
     truncate_prob: float = 0.0  # per frame
     corrupt_prob: float = 0.0  # per frame
     client_timeout_s: float = 5.0  # unicast clients without a keep-alive for this long are dropped
     seed: int = 0
     app_name: str = "Motive"
+
+
+def _fit_rigid(model: np.ndarray, seen) -> tuple[tuple[float, ...], tuple[float, float, float]]:
+    """The rotation (row-major) and translation that carry the body's `model` markers closest
+    to the `seen` ones, in the least-squares sense (Kabsch: the SVD of their cross-covariance,
+    a reflection excluded)."""
+    b = np.asarray(seen, np.float64)
+    ca, cb = model.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((model - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return tuple(rot.reshape(-1).tolist()), tuple((cb - rot @ ca).tolist())
 
 
 class NatNetServer:
@@ -494,6 +507,10 @@ class NatNetServer:
             if cfg.marker_noise_m > 0:
                 noise = rng.normal(0.0, cfg.marker_noise_m, (len(ideal), 3)).tolist()
                 markers = [(ix + nx, iy + ny, iz + nz) for (ix, iy, iz), (nx, ny, nz) in zip(ideal, noise)]
+                if cfg.solve_from_markers:  # the pose as the tracker solves it: fitted to what it saw
+                    (r00, r01, r02, r10, r11, r12, r20, r21, r22), (px, py, pz) = _fit_rigid(obj.markers, markers)
+                    ideal = [(r00 * mx + r01 * my + r02 * mz + px, r10 * mx + r11 * my + r12 * mz + py,
+                              r20 * mx + r21 * my + r22 * mz + pz) for mx, my, mz in obj.markers.tolist()]
                 residuals = [math.sqrt((mx - ix) ** 2 + (my - iy) ** 2 + (mz - iz) ** 2)
                              for (mx, my, mz), (ix, iy, iz) in zip(markers, ideal)]
             else:

@@ -182,7 +182,7 @@ class VideoLink:
     def _scan_out(self, number: int, v: int, frame: np.ndarray, *, repeat: bool) -> None:
         m = self.model
         t = v + self.delay_ns
-        if m.dark:
+        if m.dark_at(t):
             return
         mode = m.settled_display_mode
         if mode == 0:

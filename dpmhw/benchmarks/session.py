@@ -196,8 +196,11 @@ STAGE_KEYS = ("gbuffer", "render", "reuse", "filter", "upsample", "adaptive", "l
               "reproject", "present")
 
 
+MEASURED_POSE_EVERY = 4  # the measured-pose comparison on every 4th evaluated window (a reference, not the goal)
+
+
 def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 0, height: int = 0,
-             spp: int = 1, max_eval_windows: int = 120, overrides: tuple[str, ...] = (), progress=None) -> dict:
+             spp: int = 1, max_eval_windows: int = 1000, overrides: tuple[str, ...] = (), progress=None) -> dict:
     """Run one mocked session and measure it (see module doc). width/height: the output size
     (0: the projector's native size); the shading scale and filter come from `overrides`.
 
@@ -205,9 +208,11 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     filter, alpha, display, reprojection, output_width, output_height, fps (presents/s),
     fps_median (1 / median present interval), render_fps, latency_ms_p50/p95/p99 (sample exposure →
     photon mid), frame_ms_p50/p95/p99 (rendered frames), registration_px_p50/p99 at photon time over
-    every photon window (and _max_, measured-pose and vertex variants; registration_px_p99_window<k>
+    every photon window (up to `max_eval_windows`, else evenly spaced ones; the measured-pose variant on every
+    `MEASURED_POSE_EVERY`th of them) (and _max_, measured-pose and vertex variants; registration_px_p99_window<k>
     per sub-frame in pattern mode), <stage>_ms_p50 for every
-    loop stage, late_presents, frame counts. `progress(text)` hears how the analysis goes."""
+    loop stage, late_presents (while measured), new_windows_per_s and repeated_windows (the emulated
+    projector's), frame counts. `progress(text)` hears how the analysis goes."""
     from dpmhw.render.cameras import PinholeCamera
     from dpmhw.session.factory import build_session, prepare_scene
     from dpmhw.session.registration import registration_error
@@ -222,7 +227,8 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         if not wait_for(lambda: loop.status()["state"] == "running", 60):
             raise RuntimeError(f"bench {case.label}: the session did not start: {loop.status()['reason']}")
         time.sleep(warmup_s)
-        first = loop.status()["frame_number"]
+        before = loop.status()
+        first, late_before = before["frame_number"], before["counters"].get("late_presents", 0)
         time.sleep(seconds)
         status = loop.status()
         records = [r for r in list(loop.frame_log) if r.number > first and r.number <= status["frame_number"]]
@@ -249,8 +255,8 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
             progress(f"{case.label}: registration of photon window {k + 1}/{len(evaluated)}")
         truth = Pose(*world.pose(body, t_photon / 1e9))
         errors.append(registration_error(camera, mesh.vertices, mesh.faces, pose[body], truth))
-        # had it shown the measured pose: prediction on/off paired on identical timing
-        measured.append(registration_error(camera, mesh.vertices, mesh.faces, r.measured[body], truth))
+        if k % MEASURED_POSE_EVERY == 0:  # had it shown the measured pose: paired on identical timing
+            measured.append(registration_error(camera, mesh.vertices, mesh.faces, r.measured[body], truth))
     rendered = {r.rendered: r for r in records}  # a frame presented more than once counts once
     frame_ms = [r.stages_s["frame"] * 1e3 for r in rendered.values()]
     latency_ms = [(sum(t for t, _ in r.windows) / len(r.windows) - r.sample_t_ns[body]) / 1e6 for r in records]
@@ -266,7 +272,8 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         "frames": len(records), "fps": round((len(records) - 1) / span_s, 2) if span_s > 0 else 0.0,
         "fps_median": round(1.0 / float(np.median(intervals_s)), 2) if len(intervals_s) and np.median(intervals_s) > 0 else 0.0,
         "render_fps": round((len(rendered) - 1) / span_s, 2) if span_s > 0 else 0.0,
-        "late_presents": status["counters"].get("late_presents", 0),
+        "late_presents": status["counters"].get("late_presents", 0) - late_before,  # while measured
+        **_light_counts(video, records),
         # the quality governor's levels over the measured frames (0: the configured settings) and its last reason
         "governor_level_min": min(r.governor_level for r in records),
         "governor_level_max": max(r.governor_level for r in records),
@@ -286,6 +293,20 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         out[f"registration_px_p99_window{w}"] = _pct([e.mean_px for e, (*_, k) in zip(errors, evaluated) if k == w], (99,))[0]
     out["series"] = bench_series(records, latency_ms, [t for t, *_ in evaluated], errors)  # for the plots; not a JSON row
     return out
+
+
+def _light_counts(exposures, records) -> dict:
+    """From the emulated projector, over the measured presents' span: (sub-)frames lit per
+    second with a new picture (`new_windows_per_s`: 180 in pattern mode at 60 Hz when every
+    present makes its refresh) and those lit again for want of one (`repeated_windows`: each
+    shows its picture a period after the instant it was predicted for). None without it."""
+    if exposures is None:
+        return {"new_windows_per_s": None, "repeated_windows": None}
+    t0, t1 = records[0].t_present_ns, records[-1].t_present_ns
+    inside = [e for e in exposures if t0 <= e.scanout_ns < t1]
+    fresh = sum(not e.repeat for e in inside)
+    return {"new_windows_per_s": round(fresh / ((t1 - t0) / 1e9), 2) if t1 > t0 else 0.0,
+            "repeated_windows": len(inside) - fresh}
 
 
 def _photon_windows(records, exposures) -> list[tuple[int, object, dict, int]]:
@@ -418,11 +439,13 @@ def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int =
 
 def format_table(bench: dict) -> str:
     results = bench["cases"]
-    head = (f"{'case':<52} {'fps':>6} {'render':>6} {'lat p50':>8} {'p95':>7} {'p99':>7} {'frame p99':>9} "
+    head = (f"{'case':<52} {'fps':>6} {'render':>6} {'late':>5} {'new/s':>6} {'lat p50':>8} {'p95':>7} {'p99':>7} {'frame p99':>9} "
             f"{'reg p50':>8} {'reg p99':>8} {'vert p50':>8} {'unpred p50':>10} {'p99':>7}")
     lines = [head, "-" * len(head)] if results else []
     for r in results:
-        lines.append(f"{r['case']:<52} {r['fps']:>6.1f} {r['render_fps']:>6.1f} {r['latency_ms_p50']:>8.1f} "
+        new = "-" if r.get("new_windows_per_s") is None else f"{r['new_windows_per_s']:.0f}"
+        lines.append(f"{r['case']:<52} {r['fps']:>6.1f} {r['render_fps']:>6.1f} {r['late_presents']:>5} {new:>6} "
+                     f"{r['latency_ms_p50']:>8.1f} "
                      f"{r['latency_ms_p95']:>7.1f} {r['latency_ms_p99']:>7.1f} "
                      f"{r['frame_ms_p99']:>9.1f} {r['registration_px_p50']:>8.2f} {r['registration_px_p99']:>8.2f} "
                      f"{r['vertex_px_p50']:>8.2f} {r['registration_measured_pose_px_p50']:>10.2f} "
@@ -446,7 +469,8 @@ def format_table(bench: dict) -> str:
     if not results:
         return "\n".join(lines)
     lines.append(f"display {results[0]['display']} ({results[0]['photon_windows']} photon windows per present); fps: presents/s, "
-                 "render: rendered frames/s; latency: tracker mid-exposure → photons; reg: symmetric outline distance "
+                 "render: rendered frames/s; late: presents that missed their refresh; new/s: (sub-)frames lit with a new "
+                 "picture per second; latency: tracker mid-exposure → photons; reg: symmetric outline distance "
                  "between the silhouette shown and the true one at each photon window's middle, in projector pixels "
                  f"({results[0]['projector_width']}×{results[0]['projector_height']}; output "
                  f"{results[0]['output_width']}×{results[0]['output_height']}); vert: mean vertex displacement; "

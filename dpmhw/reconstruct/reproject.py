@@ -313,6 +313,35 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf
     stats[0], stats[1], stats[2], stats[3], stats[4] = moved, dropped, holes, dis, vacated
 
 
+@nb.njit(cache=True, nogil=True)
+def _reproject_windows(img, dst, M, channels, moves, full_base, segments, moving, px, py, pz, fx, fy, cx, cy, dist,
+                       W, H, arrays, plate_z, zbuf, src, cover, sid, dest, zout, stats, boxes):
+    """Every photon window of one present in one call (one release of the GIL): `dst` = the
+    captured image (all channels at once when `full_base`, else each window's own channel), then
+    for each window w that `moves`, its points moved by `M[w]` and splatted into its channel
+    (`channels[w]`, −1: all). `arrays`: the capture's (pixel, plate, colour); window w stamps
+    `cover` with 2·(sid + w). stats[w]: moved, dropped, holes, disoccluded, vacated; boxes[w]:
+    the splats' (y0, y1, x0, x1)."""
+    pixel, plate, colour = arrays
+    out = dst.reshape(-1, 3)
+    if full_base:
+        _base(img, -1, dst)
+    for w in range(channels.shape[0]):
+        ch = channels[w]
+        if not full_base:
+            _base(img, ch, dst)
+        if not moves[w]:
+            continue
+        y0, y1, x0, x1 = H, 0, W, 0
+        for o in moving:
+            a, e = segments[o], segments[o + 1]
+            b = _project(px[a:e], py[a:e], pz[a:e], M[w, o], fx, fy, cx, cy, dist, W, H, dest[a:e], zout[a:e])
+            y0, y1, x0, x1 = min(y0, b[0]), max(y1, b[1]), min(x0, b[2]), max(x1, b[3])
+        _splat(pixel, plate, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf, src, cover, 2 * (sid + w),
+               out, stats[w])
+        boxes[w, 0], boxes[w, 1], boxes[w, 2], boxes[w, 3] = y0, y1, x0, x1
+
+
 # ---- checks ----------------------------------------------------------------------------------------
 def _poses(poses, n: int, name: str = "poses") -> tuple[np.ndarray, np.ndarray]:
     """`n` finite rigid poses as stacked R (n, 3, 3) and t (n, 3), or a ValueError naming the
@@ -421,6 +450,14 @@ class Reprojector:
 
     def reproject(self, capture: Capture, poses: Sequence[Pose], out: np.ndarray, channel: int | None = None) -> ReprojectStats:
         """`out` = the capture moved to `poses` (only channel `channel` of it when given)."""
+        return self.reproject_windows(capture, [(poses, channel)], out)[0]
+
+    def reproject_windows(self, capture: Capture, windows: Sequence[tuple[Sequence[Pose], int | None]],
+                          out: np.ndarray) -> list[ReprojectStats]:
+        """`out` = the capture moved to each window's poses, in the window's channel: one window
+        of all channels (channel None), or windows of distinct channels 0–2 (a present's
+        sub-frames). One kernel call for all of them, so the present thread releases the GIL
+        once; each window gives the same bits as its own `reproject`."""
         W, H = self.width, self.height
         if not isinstance(capture, Capture) or capture.image.shape != (H, W, 3) or len(capture.R) != len(self.dynamic):
             raise ValueError(f"capture: expected a Capture of this Reprojector ({W}×{H}), got {type(capture).__name__}")
@@ -430,38 +467,53 @@ class Reprojector:
             raise ValueError(f"out: expected a writable C-contiguous ({H}, {W}, 3) uint8 array, got {got}")
         if np.may_share_memory(out, capture.image):
             raise ValueError("out: is the capture's own image (the capture must stay as it was rendered)")
-        if channel is not None and (not isinstance(channel, (int, np.integer)) or isinstance(channel, bool)
-                                    or not 0 <= channel <= 2):
-            raise ValueError(f"channel: expected None, 0, 1 or 2, got {channel!r}")
-        R, t = _poses(poses, len(self.dynamic))
-        ch = -1 if channel is None else int(channel)
-        img, dst = capture.image.reshape(-1), out.reshape(-1)
+        windows = list(windows)
+        channels = np.array([self._channel(c, k) for k, (_, c) in enumerate(windows)], np.int64)
+        if len(windows) == 0 or (len(windows) > 1 and (-1 in channels or len(set(channels.tolist())) < len(windows))):
+            raise ValueError(f"windows: expected one window of all channels or windows of distinct channels 0–2, "
+                             f"got channels {[None if c < 0 else int(c) for c in channels]}")
         n, seg = capture.lit, capture.segments
-        moving = [k for k in self._moving if seg[k + 1] > seg[k]]
-        if not moving or all(np.array_equal(R[k], capture.R[k]) and np.array_equal(t[k], capture.t[k]) for k in moving):
-            _base(img, ch, dst)  # nothing moves: the captured image itself
-            return ReprojectStats(n, n, 0, 0, 0, 0, capture.box if n else None)
-        M = np.empty((len(R), 12), np.float32)  # model → camera: R_camᵀ (R_k·m + t_k − t_cam), row-major 3×4
-        M.reshape(-1, 3, 4)[:, :, :3] = np.einsum("ji,kjl->kil", self.cam_R, R)
-        M.reshape(-1, 3, 4)[:, :, 3] = (t - self.cam_t) @ self.cam_R
+        moving = np.array([k for k in self._moving if seg[k + 1] > seg[k]], np.int64)
+        M = np.zeros((len(windows), len(self.dynamic), 3, 4), np.float32)  # model → camera: R_camᵀ (R_k·m + t_k − t_cam)
+        moves = np.zeros(len(windows), np.bool_)
+        for w, (poses, _) in enumerate(windows):
+            R, t = _poses(poses, len(self.dynamic), f"windows[{w}] poses" if len(windows) > 1 else "poses")
+            moves[w] = any(not (np.array_equal(R[k], capture.R[k]) and np.array_equal(t[k], capture.t[k])) for k in moving)
+            M[w, :, :, :3] = np.einsum("ji,kjl->kil", self.cam_R, R)
+            M[w, :, :, 3] = (t - self.cam_t) @ self.cam_R
+        full_base = channels[0] < 0 or len(windows) == 3
         dest, zout = np.empty(n, np.int32), np.empty(n, np.float32)
-        stats = np.zeros(5, np.int64)
-        y0, y1, x0, x1 = H, 0, W, 0
+        stats = np.zeros((len(windows), 5), np.int64)
+        boxes = np.zeros((len(windows), 4), np.int64)
         px, py, pz = capture.point
         with self._present_lock:
-            self._sid += 1
-            if self._sid >= 2**30 - 1:  # the stamps wrap only after 2³⁰ presents; then start over
+            if self._sid + len(windows) >= 2**30 - 1:  # the stamps wrap only after 2³⁰ windows; then start over
                 self._cover[:] = 0
-                self._sid = 1
-            for k in moving:
-                a, e = seg[k], seg[k + 1]
-                b = _project(px[a:e], py[a:e], pz[a:e], M[k], *self._intrinsics, W, H, dest[a:e], zout[a:e])
-                y0, y1, x0, x1 = min(y0, b[0]), max(y1, b[1]), min(x0, b[2]), max(x1, b[3])
-            _base(img, ch, dst)
-            _splat(capture.pixel, capture.plate, capture.colour, dest, zout, self._plate_z, W, y0, y1, x0, x1, ch,
-                   self._zbuf, self._src, self._cover, 2 * self._sid, dst.reshape(-1, 3), stats)
-        moved, dropped, holes, dis, vacated = (int(v) for v in stats)
-        return ReprojectStats(n, moved, dropped, holes, dis, vacated, (y0, y1, x0, x1) if y1 > y0 else None)
+                self._sid = 0
+            sid = self._sid + 1
+            self._sid += len(windows)
+            _reproject_windows(capture.image.reshape(-1), out.reshape(-1), M.reshape(len(windows), -1, 12), channels,
+                               moves, full_base, seg, moving, px, py, pz, *self._intrinsics, W, H,
+                               (capture.pixel, capture.plate, capture.colour), self._plate_z, self._zbuf, self._src,
+                               self._cover, sid, dest, zout, stats, boxes)
+        result = []
+        for w in range(len(windows)):
+            if not moves[w]:  # nothing moves: the captured image itself
+                result.append(ReprojectStats(n, n, 0, 0, 0, 0, capture.box if n else None))
+                continue
+            moved, dropped, holes, dis, vacated = (int(v) for v in stats[w])
+            y0, y1, x0, x1 = (int(v) for v in boxes[w])
+            result.append(ReprojectStats(n, moved, dropped, holes, dis, vacated, (y0, y1, x0, x1) if y1 > y0 else None))
+        return result
+
+    @staticmethod
+    def _channel(channel, w: int) -> int:
+        if channel is None:
+            return -1
+        if not isinstance(channel, (int, np.integer)) or isinstance(channel, bool) or not 0 <= channel <= 2:
+            raise ValueError(f"channel: expected None, 0, 1 or 2, got {channel!r}" if w == 0 else
+                             f"windows[{w}] channel: expected None, 0, 1 or 2, got {channel!r}")
+        return int(channel)
 
     def _box(self, box) -> tuple[int, int, int, int]:
         if box is None:

@@ -587,7 +587,7 @@ def _flat(a, dtype=np.float32, cols=3) -> np.ndarray:
     return a.reshape(-1) if cols == 1 else a.reshape(-1, cols)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _tile_order(flags, every, W, y0, y1, x0, x1):
     """Pixels of the box (all if `every`, else those flagged) in 4×4 tile order, rows then
     columns inside a tile: 16 consecutive entries of a dense box are one tile (one coherent packet)."""

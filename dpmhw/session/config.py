@@ -199,8 +199,9 @@ class GovernorSection(_Section):
 
 class PredictionSection(_Section):
     enabled: bool = Field(True, description="extrapolate tracked poses to the display time")
-    model: Literal["velocity", "acceleration"] = Field("velocity", description="constant velocity, or constant linear acceleration")
-    history: int = Field(8, ge=2, le=64, description="recent samples used to estimate the derivatives")
+    model: Literal["velocity", "acceleration"] = Field("acceleration", description="constant linear acceleration, or "
+                                                      "constant velocity (docs/session.md compares them by marker noise)")
+    history: int = Field(24, ge=2, le=64, description="recent samples used to estimate the derivatives (24: 67 ms at 360 Hz)")
     late_reprojection: bool = Field(True, description="at each present, move the newest rendered frame to the poses "
                                     "predicted for its photon windows from the newest tracker sample (dpmhw.reconstruct.reproject)")
     max_horizon_ms: float = Field(150.0, gt=0.0, le=2000.0, description="never extrapolate further than this")
@@ -329,6 +330,8 @@ class MockSection(_Section):
                            "stale)")
     latency_ms: float = Field(4.5, ge=0.0, le=1000.0)
     speed: float = Field(1.0, gt=0.0, le=100.0, description="scales every velocity of the trajectory")
+    marker_noise_mm: float = Field(0.0, ge=0.0, le=10.0, description="Gaussian noise (standard deviation) on each "
+                                   "marker of the NatNet mock; the pose it streams is then fitted to the noisy markers")
 
 
 class SessionConfig(_Section):

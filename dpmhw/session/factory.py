@@ -233,7 +233,8 @@ def start_mock_rig(config: SessionConfig, scene: Scene, bindings: dict[int, int]
         else:
             server = NatNetServer(world, NatNetServerConfig(
                 unicast=True, command_port=0, interface="127.0.0.1", rate_hz=m.rate_hz, latency_ms=m.latency_ms,
-                software_latency_ms=min(0.9, m.latency_ms)))
+                software_latency_ms=min(0.9, m.latency_ms), marker_noise_m=m.marker_noise_mm / 1e3,
+                solve_from_markers=True))
             stack.callback(server.stop)
             server.start()
             over = {"command_port": server.command_port}

@@ -64,9 +64,12 @@ __all__ = ["FrameRecord", "LatestFrame", "ProjectorControl", "Renderer", "Sessio
 log = logging.getLogger(__name__)
 
 PRESENT_LEAD_MIN_NS = 3_000_000  # a present begins this long before its refresh at least
-PRESENT_LEAD_STEP_NS = 1_000_000  # added after a present that missed its refresh
+PRESENT_LEAD_STEP_NS = 1_000_000  # added after a present that missed its refresh, and the margin over the quantile
+PRESENT_LEAD_QUANTILE = 98.0  # of the recent times from waking to a frame ready to hand over
+PRESENT_LEAD_HISTORY = 240  # presents the quantile is taken over (4 s at 60 Hz)
 SWITCH_INTERVAL_S = 0.001  # the interpreter's thread switch interval while a session runs
-PRESENT_NICE = -10  # the present thread's nice value, where the process may raise it
+PRESENT_RT_PRIORITY = 10  # the present thread's SCHED_FIFO priority, where the process may set it
+PRESENT_NICE = -10  # else its nice value, where the process may raise it
 FREEZE_AFTER_FRAMES = 30  # frames presented before what they made is frozen too (gc.freeze; see _freeze_long_lived)
 
 
@@ -258,16 +261,24 @@ def exercise_reprojection(reprojector, scene, size: tuple[int, int]) -> None:
         reprojector.reproject(cap, scene.object_poses(0.25), out, channel=channel)
 
 
-def _raise_thread_priority(nice: int) -> str:
-    """Run the calling thread at `nice` (Linux: per-thread nice values) so that a refresh's present
-    is not queued behind the frame thread's work on a busy machine. Needs CAP_SYS_NICE or an
-    RLIMIT_NICE that allows it; otherwise the thread keeps its priority and the status says so."""
+def _raise_thread_priority(rt_priority: int, nice: int) -> str:
+    """Run the calling thread ahead of the frame thread's work, so that a refresh's present is
+    not queued behind it on a busy machine: SCHED_FIFO at `rt_priority` (Linux; needs
+    CAP_SYS_NICE or an RLIMIT_RTPRIO that allows it: it then preempts every normal thread at
+    once), else the per-thread nice value `nice`, else as it is; the status says which. The
+    thread sleeps most of each period, and the kernel's real-time throttling bounds it anyway."""
+    tid = threading.get_native_id()
     try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(rt_priority))
+        return f"SCHED_FIFO {rt_priority}"
+    except (OSError, AttributeError) as exc:
+        log.info("present thread: no real-time priority: %s", exc)
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, nice)
         return f"nice {nice}"
     except (OSError, AttributeError) as exc:
         log.info("present thread keeps its priority: %s", exc)
-        return "normal (raising it needs CAP_SYS_NICE or RLIMIT_NICE)"
+        return "normal (raising it needs CAP_SYS_NICE, RLIMIT_RTPRIO or RLIMIT_NICE)"
 
 
 class SessionLoop:
@@ -307,7 +318,7 @@ class SessionLoop:
         self._first_valid: dict[int, int] = {}  # body -> arrival of its first fresh sample since the frame thread last looked
         self._present_lead_ns = PRESENT_LEAD_MIN_NS  # how long before a refresh its present begins
         self._lead_penalty_ns = 0  # what missed refreshes added to it (see _adapt_lead)
-        self._ready_ns: deque[int] = deque(maxlen=32)  # wake → frame ready to hand over, recent presents
+        self._ready_ns: deque[int] = deque(maxlen=PRESENT_LEAD_HISTORY)  # wake → frame ready to hand over
         self._present_number = 0
         self._present_heartbeat_ns = clock()
         self._present_priority = "not started"
@@ -821,7 +832,7 @@ class SessionLoop:
     def _present_loop(self) -> None:
         """Wake `_present_lead_ns` before each refresh and present the newest capture, moved to
         each photon window's predicted poses. A present that misses its refresh widens the lead."""
-        self._present_priority = _raise_thread_priority(PRESENT_NICE)
+        self._present_priority = _raise_thread_priority(PRESENT_RT_PRIORITY, PRESENT_NICE)
         period = self.timing.period_ns
         last = None
         while not self._stop.is_set():
@@ -875,8 +886,7 @@ class SessionLoop:
                     poses[index], horizon_ns = per_body[body][k]
                     used[body] = poses[index]
                 windows.append((t, used, poses, w.channel))
-            for _, _, poses, channel in windows:
-                self.reprojector.reproject(cap.reprojection, poses, image, channel=channel)
+            self.reprojector.reproject_windows(cap.reprojection, [(poses, channel) for _, _, poses, channel in windows], image)
         else:  # as rendered: every window shows the poses the frame was predicted to
             image = cap.image
             windows = [(t, cap.job.used, None, None) for t in mids]
@@ -917,18 +927,20 @@ class SessionLoop:
             self.parts.recorder.frame(record, cap.image)
 
     def _adapt_lead(self, ready_ns: int, late: bool) -> None:
-        """The lead: twice the median time from waking to a frame ready to hand over (the last 32
-        presents) plus a penalty that a missed refresh raises by a step and each on-time present
-        wears down; within [PRESENT_LEAD_MIN_NS, ¾ of a period]. Short: the lead is prediction
-        horizon, so every millisecond of it costs registration; but a missed refresh costs more (the
-        display shows the last frame again, a period older than its poses)."""
+        """The lead: the 98th percentile of the time from the planned wake to a frame ready to hand
+        over (the last 240 presents), plus a step of margin, plus a penalty that a missed refresh
+        raises by a step and on-time presents wear down (a step in ~10 s); within
+        [PRESENT_LEAD_MIN_NS, ¾ of a period]. The lead is prediction horizon, but with motion
+        predicted to the photon a few milliseconds more of it cost far less registration than a
+        missed refresh (the display shows the last frame again, a period older than its poses)."""
         if late:  # missed its refresh: shown a period late, at other poses than predicted
             self.metrics.count("late_presents")
             self._lead_penalty_ns += PRESENT_LEAD_STEP_NS
         else:
-            self._lead_penalty_ns = max(0, self._lead_penalty_ns - PRESENT_LEAD_STEP_NS // 600)  # a step in ~10 s
+            self._lead_penalty_ns = max(0, self._lead_penalty_ns - PRESENT_LEAD_STEP_NS // 600)
         self._ready_ns.append(max(ready_ns, 0))
-        lead = 2 * int(np.median(self._ready_ns)) + self._lead_penalty_ns
+        ready = int(np.percentile(self._ready_ns, PRESENT_LEAD_QUANTILE))
+        lead = ready + PRESENT_LEAD_STEP_NS + self._lead_penalty_ns
         self._present_lead_ns = min(max(lead, PRESENT_LEAD_MIN_NS), self.timing.period_ns * 3 // 4)
 
     def _present_buffer(self) -> np.ndarray:

@@ -28,28 +28,33 @@ __all__ = ["RegistrationError", "registration_error", "silhouette"]
 
 
 @nb.njit(cache=True, nogil=True)
-def _fill_triangles(tri, mask):
-    """Set every pixel whose centre (x + ½, y + ½) lies inside or on one of `tri` ((n, 3, 2) pixel
-    coordinates, either winding): the union of the triangles, each visiting only its bounding box."""
+def _fill_faces(px, front, faces, x0, y0, mask):
+    """Set every pixel of `mask` (the image part whose top-left pixel is (x0, y0)) whose centre
+    (x + ½, y + ½) lies inside or on a face whose three vertices are in front of the camera
+    (`px`: the vertices' pixel coordinates; either winding): the union of the faces, each
+    visiting only its bounding box."""
     H, W = mask.shape
-    for k in range(tri.shape[0]):
-        x0, y0, x1, y1 = tri[k, 0, 0], tri[k, 0, 1], tri[k, 1, 0], tri[k, 1, 1]
-        x2, y2 = tri[k, 2, 0], tri[k, 2, 1]
-        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+    for k in range(faces.shape[0]):
+        i0, i1, i2 = faces[k, 0], faces[k, 1], faces[k, 2]
+        if not (front[i0] and front[i1] and front[i2]):
+            continue
+        x0_, y0_, x1, y1 = px[i0, 0] - x0, px[i0, 1] - y0, px[i1, 0] - x0, px[i1, 1] - y0
+        x2, y2 = px[i2, 0] - x0, px[i2, 1] - y0
+        area = (x1 - x0_) * (y2 - y0_) - (x2 - x0_) * (y1 - y0_)
         if area == 0.0:
             continue
         s = 1.0 if area > 0 else -1.0
-        lo_x = max(int(math.floor(min(x0, x1, x2) - 0.5)), 0)
-        hi_x = min(int(math.ceil(max(x0, x1, x2) - 0.5)), W - 1)
-        lo_y = max(int(math.floor(min(y0, y1, y2) - 0.5)), 0)
-        hi_y = min(int(math.ceil(max(y0, y1, y2) - 0.5)), H - 1)
+        lo_x = max(int(math.floor(min(x0_, x1, x2) - 0.5)), 0)
+        hi_x = min(int(math.ceil(max(x0_, x1, x2) - 0.5)), W - 1)
+        lo_y = max(int(math.floor(min(y0_, y1, y2) - 0.5)), 0)
+        hi_y = min(int(math.ceil(max(y0_, y1, y2) - 0.5)), H - 1)
         for y in range(lo_y, hi_y + 1):
             py = y + 0.5
             for x in range(lo_x, hi_x + 1):
-                px = x + 0.5
-                e0 = s * ((x1 - x0) * (py - y0) - (y1 - y0) * (px - x0))
-                e1 = s * ((x2 - x1) * (py - y1) - (y2 - y1) * (px - x1))
-                e2 = s * ((x0 - x2) * (py - y2) - (y0 - y2) * (px - x2))
+                px_ = x + 0.5
+                e0 = s * ((x1 - x0_) * (py - y0_) - (y1 - y0_) * (px_ - x0_))
+                e1 = s * ((x2 - x1) * (py - y1) - (y2 - y1) * (px_ - x1))
+                e2 = s * ((x0_ - x2) * (py - y2) - (y0_ - y2) * (px_ - x2))
                 if e0 >= 0.0 and e1 >= 0.0 and e2 >= 0.0:
                     mask[y, x] = 1
 
@@ -59,12 +64,14 @@ def silhouette(camera: PinholeCamera, vertices: np.ndarray, faces: np.ndarray, p
     """(H, W) bool: pixels (by their centres) covered by the mesh at `pose` (object→world) seen by
     `camera`; with `window` (y0, y1, x0, x1) only that part of the image (the same pixels, cropped)."""
     px, in_front = camera.project(pose.apply(vertices))
-    keep = in_front[faces].all(axis=1)
+    return _silhouette_px(camera, px, in_front, faces, window)
+
+
+def _silhouette_px(camera, px, in_front, faces, window) -> np.ndarray:
     y0, y1, x0, x1 = window if window is not None else (0, camera.height, 0, camera.width)
     mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
-    tri = np.ascontiguousarray(px[faces[keep]] - (x0, y0), np.float64)
-    if len(tri):
-        _fill_triangles(tri, mask)
+    _fill_faces(np.ascontiguousarray(px, np.float64), np.ascontiguousarray(in_front, np.bool_),
+                np.ascontiguousarray(faces, np.int64), float(x0), float(y0), mask)
     return mask.astype(bool)
 
 
@@ -106,8 +113,8 @@ def registration_error(camera: PinholeCamera, vertices: np.ndarray, faces: np.nd
     window = _window(camera, px_a[front_a], px_b[front_b])
     if window[1] <= window[0] or window[3] <= window[2]:
         return RegistrationError(float("inf"), float("inf"), vertex)
-    a = _outline(silhouette(camera, vertices, faces, shown, window))
-    b = _outline(silhouette(camera, vertices, faces, true, window))
+    a = _outline(_silhouette_px(camera, px_a, front_a, faces, window))
+    b = _outline(_silhouette_px(camera, px_b, front_b, faces, window))
     if not a.any() or not b.any():
         return RegistrationError(float("inf"), float("inf"), vertex)
     # distance of every pixel to the nearest outline pixel of the other silhouette

@@ -72,6 +72,26 @@ def test_idle_projector_shows_nothing(clock):
     assert not link.exposures and link.frames_shown == 1
 
 
+def test_refreshes_the_projector_spent_dark_stay_dark_when_scanned_out_later(clock):
+    """The link scans out refreshes lazily (at the next present or poll): one the projector
+    spent idle (a blank, by command) shows nothing, though it is lit again by then."""
+    model = DLPC900Model(width=6, height=4, clock=clock)
+    link = VideoLink(model, clock=clock, phase_ns=clock(), block=False)
+    t0 = clock()
+    link.present(_frame(), t0)
+    clock.advance(P60 + P60 // 2)
+    link.poll()  # the refresh at t0 + P60 lit
+    model.execute(0x0201, bytes([1]), False)  # idle on: dark
+    clock.advance(3 * P60)
+    model.execute(0x0201, bytes([0]), False)  # lit again before anything scanned out the gap
+    link.present(_frame(1), clock())
+    clock.advance(2 * P60)
+    link.poll()
+    assert [(r.frame, (r.scanout_ns - t0) // P60, r.repeat) for r in link.exposures] == [(0, 1, False), (1, 5, False),
+                                                                                       (1, 6, True)]
+    assert model.dark_at(t0 + 2 * P60) and not model.dark_at(t0 + P60) and not model.dark_at(clock())
+
+
 def test_driver_configures_video_pattern_mode_byte_for_byte(dlp, emu, clock):
     link = VideoLink(emu.model, clock=clock, sleep=clock.sleep)  # the source: sync locked
     emu.model.command_log.clear()

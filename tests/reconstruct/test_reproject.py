@@ -215,3 +215,27 @@ def test_bad_input_names_the_argument():
     for call, name in cases:
         with pytest.raises(ValueError, match=f"^{name}"):
             call()
+
+
+def test_a_presents_windows_in_one_call_give_each_windows_own_bits():
+    """Three sub-frames (one channel each, each at its own poses; one of them unmoved) in one
+    call equal three `reproject` calls; bad window sets are refused, naming the window."""
+    cam = _camera(dist=(-0.2, 0.05, 0.001, -0.001, 0.0))
+    image, ids, depth = _planes(cam, [(0, 1.2, (5, 60, 5, 80)), (1, 0.9, (20, 40, 30, 50))])
+    rp = Reprojector(cam, [False, True])
+    cap = rp.capture(image, ids, depth, [_shifted(), _shifted()])
+    windows = [([_shifted(), _shifted(0.01 * k, -0.004 * k)], k) for k in range(3)]
+    one_by_one = np.full_like(image, 5)
+    expected = [rp.reproject(cap, poses, one_by_one, channel=ch) for poses, ch in windows]
+    together = np.full_like(image, 9)
+    assert rp.reproject_windows(cap, windows, together) == expected
+    assert np.array_equal(together, one_by_one)
+    assert expected[0].moved == cap.lit and expected[2].vacated > 0  # window 0 unmoved, window 2 moved
+    alone = np.zeros_like(image)  # a single window of all channels
+    assert rp.reproject_windows(cap, [(windows[2][0], None)], alone) == [rp.reproject(cap, windows[2][0], together)]
+    assert np.array_equal(alone, together)
+    ok = windows[0][0]
+    for bad, name in (([(ok, 0), (ok, 0)], "windows"), ([(ok, None), (ok, 1)], "windows"), ([], "windows"),
+                      ([(ok, 0), (ok, 4)], r"windows\[1\] channel"), ([(ok, 0), ([ok[0]], 1)], r"windows\[1\] poses")):
+        with pytest.raises(ValueError, match=f"^{name}"):
+            rp.reproject_windows(cap, bad, together)

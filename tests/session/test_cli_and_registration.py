@@ -173,12 +173,14 @@ def test_bench_session_command(runner, tmp_path):
     assert (tmp_path / "bench.png").stat().st_size > 10_000
     results = json.loads(out.read_text())
     assert not any("series" in x for x in results["cases"])  # plotted, not written as rows
-    assert [x["prediction"] for x in results["cases"]] == [True, False]
+    assert [(x["prediction"], x["reprojection"]) for x in results["cases"]] == [(True, True), (True, False), (False, False)]
     assert all(x["frames"] > 2 and x["registration_px_p50"] is not None for x in results["cases"])
     for x in results["cases"]:  # the flat row docs/session.md documents
         assert (x["output_width"], x["output_height"]) == (64, 48)
         assert {"scene", "method", "shading_scale", "filter", "alpha", "fps_median", "latency_ms_p99",
-                "registration_px_p99", "gbuffer_ms_p50", "upsample_ms_p50"} <= set(x)
+                "registration_px_p99", "gbuffer_ms_p50", "upsample_ms_p50", "late_presents", "new_windows_per_s",
+                "repeated_windows"} <= set(x)
+        assert x["new_windows_per_s"] > 0  # the emulated projector lit new pictures
         assert not any(isinstance(v, (dict, list)) for v in x.values())
     assert [x["api_mode"] for x in results["api_load"]] == ["process", "thread"]
     for load in results["api_load"]:

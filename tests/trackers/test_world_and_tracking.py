@@ -304,3 +304,38 @@ def test_turning_trajectories_rotate_about_y_as_scipy_does():
     for traj, rate in ((RotateWhileOscillating(), RotateWhileOscillating().spin_rad_s), (Circular(), 2 * np.pi / Circular().period_s)):
         rot, _ = traj.pose(t)
         np.testing.assert_allclose(rot, Rotation.from_rotvec((rate * t)[:, None] * np.array([0.0, 1.0, 0.0])).as_matrix(), atol=1e-12)
+
+
+def test_a_pose_solved_from_noisy_markers_is_their_least_squares_fit():
+    """With `solve_from_markers`, the streamed pose carries the model markers closest to the
+    noisy ones: near the truth (within a few noise deviations), not equal to it, and no other
+    pose fits the markers better (checked against small perturbations of it)."""
+    from firmware_mocks.natnet_server import NatNetServer, NatNetServerConfig
+    from dpmhw.transforms import rotation_about_axis
+
+    world = World.demo("rotate-oscillate", count=1)
+    noise = 0.0005
+    server = NatNetServer(world, NatNetServerConfig(command_port=0, unicast=True, marker_noise_m=noise,
+                                                    solve_from_markers=True, seed=2))
+    try:
+        content = server.build_frame(7, 123, 0.37e9)
+    finally:
+        server.stop()
+    (_, pos, quat, err, _), = content.rigid_bodies
+    obj = next(iter(world.objects.values()))
+    rot_true, pos_true = world.pose(obj.rigid_body_id, 0.37)
+    rot = Rotation.from_quat(quat).as_matrix()
+    seen = np.array(dict(content.marker_sets)[obj.name])
+
+    def cost(R, t):
+        return float(np.sum((obj.markers @ R.T + t - seen) ** 2))
+
+    assert 0 < np.linalg.norm(np.array(pos) - pos_true) < 5 * noise
+    assert np.degrees(Rotation.from_matrix(rot @ rot_true.T).magnitude()) < 2.0
+    best = cost(rot, np.array(pos))
+    assert best < cost(rot_true, pos_true)
+    for axis in np.eye(3):
+        for d in (-1e-4, 1e-4):
+            assert best <= cost(rotation_about_axis(axis, d) @ rot, np.array(pos))
+            assert best <= cost(rot, np.array(pos) + d * axis)
+    assert err == pytest.approx(np.linalg.norm(obj.markers @ rot.T + np.array(pos) - seen, axis=1).mean(), rel=1e-6)
