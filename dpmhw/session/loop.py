@@ -841,7 +841,7 @@ class SessionLoop:
             if last is not None and vsync <= last:
                 vsync = last + period
             wake = vsync - self._present_lead_ns
-            if wake > now and self._stop.wait((wake - now) / 1e9):
+            if wake > now and self._wait((wake - now) / 1e9):
                 break
             self._present_heartbeat_ns = self.clock()
             try:
