@@ -65,6 +65,7 @@ log = logging.getLogger(__name__)
 
 PRESENT_LEAD_MIN_NS = 3_000_000  # a present begins this long before its refresh at least
 PRESENT_LEAD_STEP_NS = 1_000_000  # added after a present that missed its refresh, and the margin over the quantile
+PRESENT_HANDOFF_NS = 300_000  # a frame ready later than this before its refresh is made again for the next
 PRESENT_LEAD_QUANTILE = 98.0  # of the recent times from waking to a frame ready to hand over
 PRESENT_LEAD_HISTORY = 240  # presents the quantile is taken over (4 s at 60 Hz)
 SWITCH_INTERVAL_S = 0.001  # the interpreter's thread switch interval while a session runs
@@ -845,7 +846,7 @@ class SessionLoop:
                 break
             self._present_heartbeat_ns = self.clock()
             try:
-                self._present(vsync)
+                vsync = self._present(vsync) or vsync
                 self.safety.update("present", False)
             except Exception as exc:  # a bug in the present path: dark, visible, keep going
                 log.exception("present failed")
@@ -853,60 +854,60 @@ class SessionLoop:
                 self._go_dark(f"present failed: {exc}")
             last = vsync
 
-    def _present(self, vsync: int) -> None:
+    def _present(self, vsync: int) -> int | None:
         """One refresh: the newest capture, if the output is lit and tracking is fresh, reprojected
-        per photon window and handed to the sink for `vsync`."""
+        per photon window and handed to the sink for `vsync`. A reprojected frame ready too late
+        for `vsync` is made again for the refresh after (counted in `retargeted_presents`): the
+        refresh it reaches then shows the poses meant for it. Returns the refresh presented for."""
         with self._lock:
             cap = self._capture
         if cap is None or not self._output_on:
-            return
+            return None
         t0 = self.clock()
+        planned_wake = vsync - self._present_lead_ns
         samples = {}
         for body in self._bodies:
             s = self.parts.tracker.latest(body)
             if s is None or not s.valid or t0 - s.t_exposure_ns > self.stale_ns:
                 self.metrics.count("presents_withheld")  # the frame thread or the deadline goes dark
-                return
+                return None
             samples[body] = s
         settings = cap.job.settings
-        mids = self.timing.photon_mid_ns(vsync)
-        windows = []
-        horizon_ns = cap.job.horizon_ns
         if cap.reprojection is not None:
-            image = self._present_buffer()
-            with self._predict_lock:
-                self._drain_samples()
-                per_body = {body: self.predictor.predict_many(body, mids, enabled=settings.prediction)
-                            for body in self._bodies}
-            if any(p is None for p in per_body.values()):
-                return
-            for k, (w, t) in enumerate(zip(self.timing.windows, mids)):
-                poses, used = list(cap.job.poses), {}
-                for index, body in self.parts.bindings.items():
-                    poses[index], horizon_ns = per_body[body][k]
-                    used[body] = poses[index]
-                windows.append((t, used, poses, w.channel))
-            self.reprojector.reproject_windows(cap.reprojection, [(poses, channel) for _, _, poses, channel in windows], image)
+            made = self._reproject_for(cap, vsync, settings)
+            if made is None:
+                return None
+            ready = self.clock()
+            missed = ready > vsync - PRESENT_HANDOFF_NS
+            if missed:
+                self.metrics.count("retargeted_presents")
+                vsync += self.timing.period_ns
+                made = self._reproject_for(cap, vsync, settings)
+                if made is None:
+                    return None
+            image, windows, horizon_ns = made
         else:  # as rendered: every window shows the poses the frame was predicted to
-            image = cap.image
-            windows = [(t, cap.job.used, None, None) for t in mids]
+            image, horizon_ns = cap.image, cap.job.horizon_ns
+            windows = [(t, cap.job.used) for t in self.timing.photon_mid_ns(vsync)]
             samples = cap.job.samples
+            ready = self.clock()
+            missed = False
         t1 = self.clock()
         with self._output_lock:  # the deadline thread may have gone dark since: never light after it
             if not self._output_on:
                 self.metrics.count("presents_withheld")
-                return
+                return None
             t_present = self.parts.sink.present(image, vsync)
         t2 = self.clock()
         if self.heartbeat is not None:
             self.heartbeat.presented(t2, self._present_allowance_ns())
-        self._adapt_lead(t1 - (vsync - self._present_lead_ns), late=t_present > vsync)
+        self._adapt_lead(ready - planned_wake, late=missed or t_present > vsync)
         self.safety.mark_started()
         self._present_number += 1
         # lit from the refresh the sink answered; a sink without one answers when it took the frame,
         # which a display would show at its next refresh
         shown = self.timing.photon_mid_ns(self.timing.next_vsync(max(t_present, vsync), self._vsync_phase))
-        windows = tuple((t, used) for t, (_, used, _, _) in zip(shown, windows))
+        windows = tuple((t, used) for t, (_, used) in zip(shown, windows))
         oldest = min(s.t_exposure_ns for s in samples.values())
         latency_s = (sum(shown) / len(shown) - oldest) / 1e9
         stages = {"reproject": (t1 - t0) / 1e9, "present": (t2 - t1) / 1e9}
@@ -925,6 +926,29 @@ class SessionLoop:
                 del self.frame_log[0]
         if self.parts.recorder is not None:
             self.parts.recorder.frame(record, cap.image)
+        return vsync
+
+    def _reproject_for(self, cap: _Capture, vsync: int, settings) -> tuple[np.ndarray, list, int] | None:
+        """The capture moved to the poses predicted for each photon window of `vsync`: (image,
+        [(photon mid, {body: pose shown})], horizon used), or None before any sample."""
+        mids = self.timing.photon_mid_ns(vsync)
+        with self._predict_lock:
+            self._drain_samples()
+            per_body = {body: self.predictor.predict_many(body, mids, enabled=settings.prediction)
+                        for body in self._bodies}
+        if any(p is None for p in per_body.values()):
+            return None
+        image = self._present_buffer()
+        windows, moves, horizon_ns = [], [], cap.job.horizon_ns
+        for k, (w, t) in enumerate(zip(self.timing.windows, mids)):
+            poses, used = list(cap.job.poses), {}
+            for index, body in self.parts.bindings.items():
+                poses[index], horizon_ns = per_body[body][k]
+                used[body] = poses[index]
+            windows.append((t, used))
+            moves.append((poses, w.channel))
+        self.reprojector.reproject_windows(cap.reprojection, moves, image)
+        return image, windows, horizon_ns
 
     def _adapt_lead(self, ready_ns: int, late: bool) -> None:
         """The lead: the 98th percentile of the time from the planned wake to a frame ready to hand

@@ -92,3 +92,46 @@ def test_each_lit_exposure_is_matched_to_the_present_it_scanned_out():
     lit = [N(scanout_ns=v, channel=None, t_start_ns=v, t_end_ns=v + 20) for v in (50, 100, 150, 200, 250)]
     assert [(t, r.t_present_ns, pose[1], k) for t, r, pose, k in _photon_windows(records, lit)] == [
         (110, 100, "a", 0), (160, 100, "a", 0), (210, 200, "b", 0)]
+
+
+def test_a_present_ready_too_late_for_its_refresh_is_made_again_for_the_next():
+    """A reprojection that finishes after its refresh (made slow here once) is predicted and
+    reprojected again for the refresh after: that present is counted late and retargeted, the
+    refresh it reaches carries it, and its pose is where the body is then (not a period off)."""
+    import time
+
+    from dpmhw.session.config import load_session_config
+    from dpmhw.session.factory import build_session
+
+    cfg = load_session_config(overrides=["render.width=64", "render.height=48", "api.enabled=false",
+                                         "mock.trajectory=rotate-oscillate", "safety.stale_after_ms=500"])
+    loop = build_session(cfg, mock=True, frame_log=1000)
+    try:
+        loop.start()
+        assert wait_for(lambda: len(loop.frame_log) >= 10, WAIT_S), loop.status()
+        made_for = loop._reproject_for
+        slowed: list[int] = []
+
+        def slow_once(cap, vsync, settings):
+            made = made_for(cap, vsync, settings)
+            if not slowed:
+                slowed.append(vsync)
+                time.sleep(max(0.0, (vsync - loop.clock()) / 1e9) + 0.002)  # ready only after its refresh
+            return made
+
+        loop._reproject_for = slow_once
+        period = loop.timing.period_ns
+        assert wait_for(lambda: slowed and any(r.t_present_ns >= slowed[0] + period for r in list(loop.frame_log)),
+                        WAIT_S), loop.status()
+        counted = lambda: loop.status()["counters"]  # noqa: E731  (the status is published, not live)
+        assert wait_for(lambda: counted().get("retargeted_presents", 0) >= 1 and counted().get("late_presents", 0) >= 1,
+                        WAIT_S), loop.status()
+        r = next(r for r in list(loop.frame_log) if r.t_present_ns >= slowed[0] + period)
+        assert r.t_present_ns == slowed[0] + period  # the refresh after the one it missed
+        assert [t for t, _ in r.windows] == loop.timing.photon_mid_ns(r.t_present_ns)
+        body = next(iter(loop.parts.bindings.values()))
+        world = loop.parts.mock.world
+        for t, poses in r.windows:  # predicted for the instant it is lit: well under the period's motion
+            assert np.linalg.norm(poses[body].t - world.pose(body, t / 1e9)[1]) < 1e-3
+    finally:
+        loop.stop()
