@@ -113,7 +113,7 @@ def _trace_pixels(acc, R, T, o, d, index, first, end, s_t, s_obj, s_prim, s_u, s
             p = index[a + i]
             rows[i] = p
             t[p], obj[p], prim[p], u[p], v[p] = s_t[p], s_obj[p], s_prim[p], s_u[p], s_v[p]
-        traversal.closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, True)
+        traversal.closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, bool(True))
 
 
 @nb.njit(inline="always")

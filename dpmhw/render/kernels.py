@@ -1003,7 +1003,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     jitter_on, jkey, corners, cam_R, width, cam_d = jitter
     if jitter_on:
         jittered_directions(corners, cam_R, width, jkey, first, end, cam_d)
-        traversal.closest_range(acc, R, T, camera_o, cam_d, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], False)
+        traversal.closest_range(acc, R, T, camera_o, cam_d, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], bool(False))
     else:
         trace_static, s_t, s_obj, s_prim, s_u, s_v, r_tri, r_vw, r_faces, r_obj, r_prim, r_origin = static
         if trace_static and r_tri.shape[0] > 0:  # rasterised: each pixel's triangle known, its hit resolved here
@@ -1013,9 +1013,9 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
         if complete_primary:
             for i in range(first, end):
                 p_t[i], p_obj[i], p_prim[i], p_u[i], p_v[i] = s_t[i], s_obj[i], s_prim[i], s_u[i], s_v[i]
-            traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], True)
+            traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], bool(True))
     traced_shadow = traced_next = 0
-    depth = 0
+    depth = np.int64(0)  # not a literal 0: shade would be compiled for it too (see traversal's flags)
     while True:
         nx_o, nx_d = (ray_o0, ray_d0) if depth % 2 == 0 else (ray_o1, ray_d1)
         if depth == 0:  # the first vertex: its surface (unless kept), then this pass's samples
@@ -1032,7 +1032,7 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
             traced_shadow += n_shadow
         if depth >= depth_limit or n_next == 0:
             return traced_shadow, traced_next
-        traversal.closest_range(acc, R, T, nx_o, nx_d, first, first + n_next, h_t, h_obj, h_prim, h_u, h_v, packets[0], False)
+        traversal.closest_range(acc, R, T, nx_o, nx_d, first, first + n_next, h_t, h_obj, h_prim, h_u, h_v, packets[0], bool(False))
         traced_next += n_next
         count = n_next
         depth += 1
