@@ -131,16 +131,16 @@ def _static_back(p, s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough, g_id, g_p
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
-def _classify(W, H, box, w, h, low, dynamic, static, out, static_px, trace, changed):
+def _classify(W, H, box, w, h, low, dynamic, static, gbuf, static_px, trace, changed):
     """Per native pixel of `box` (y0, y1, x0, x1): interpolate (1), keep static (2) or trace (0,
     flag in `trace`). `low`: the shading frame's attributes (w × h), `static` the cached static
-    ones, `out` the G-buffer's, each flat and in `ATTRIBUTES` order. `changed`: whether the
+    ones, `gbuf` the G-buffer's, each flat and in `ATTRIBUTES` order. `changed`: whether the
     pixel's attributes may differ from the last update's (False only for a pixel that kept its
     cached static attributes and held them already)."""
     y0, y1, x0, x1 = box
     lid, lpos, lnrm, ldep, lalb, lspec, lrough = low
     s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough = static
-    g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough = out
+    g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough = gbuf
     sx = w / W
     sy = h / H
     for y in nb.prange(y0, y1):
@@ -300,13 +300,13 @@ def _raster_moving(faces, cam, rect, ideal, qx_col, qy_row, separable, dcz, W, b
 
 
 @nb.njit(cache=True, nogil=True)
-def _raster_pixels(W, box, stamp, sid, static_px, static, out):
+def _raster_pixels(W, box, stamp, sid, static_px, static, gbuf):
     """Pixels of `box` (y0, y1, x0, x1) a moving object covers (returned, row-major: their
     attributes come from their hits); every other pixel of the box gets its cached `static`
-    attributes back into `out` (both in `ATTRIBUTES` order)."""
+    attributes back into `gbuf` (both in `ATTRIBUTES` order)."""
     y0, y1, x0, x1 = box
     s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough = static
-    g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough = out
+    g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough = gbuf
     out = np.empty((y1 - y0) * (x1 - x0), np.int64)
     n = 0
     for y in range(y0, y1):

@@ -33,7 +33,7 @@ def make_accel(objects, tri_offsets, threads: int):
 
 
 def _triangle_rows(mesh, alpha: np.ndarray | None = None) -> np.ndarray:
-    """`SceneGeometry.tri` rows of one mesh (columns: kernels.TRI_V0 and beside it). TRI_ALPHA:
+    """`SceneGeometry.tri` rows of one mesh (columns: kernels.TRI_V0 … TRI_ALPHA). TRI_ALPHA:
     each triangle's GGX α from a roughness map; 0 (no map) = the object's (obj_alpha)."""
     tri = mesh.triangles
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])

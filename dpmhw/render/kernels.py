@@ -346,8 +346,8 @@ def shade(depth, max_bounces, mis_last, key, first, count, rd, nx_o, nx_d, scn, 
     doc), compacting as it goes. Serial and without the GIL: the integrator runs one image
     segment per call, on several threads at once.
 
-    `rd`: the paths' ray directions; their hits are `work`'s. `scn`, `film`, `work`: the tuples
-    of trace_segment. `tri`: rows of TRI_COLS (see TRI_V0). `tex`: the albedo textures
+    `rd`: the paths' ray directions, their hits in `work`'s h_*. `scn`, `film`, `work`: the
+    tuples of trace_segment. `tri`: rows of TRI_COLS (TRI_V0 …). `tex`: the albedo textures
     (albedo_at). `light_world` : (L, 12) rows of the emissive triangles in world space (v0, e1,
     e2, normal: SceneGeometry.light_rows), so light sampling transforms nothing per vertex.
     Writes the film at each path's pixel, and, packed from row `first`: the shadow rays (sh_o,
@@ -989,8 +989,9 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     the first vertices' surfaces (first_surface), computed here unless ready (kept by the
     integrator while the camera and every object stay put); work = (pixel, beta, kd, prev_pdf,
     prev_env, sh_o, sh_d, sh_tmax, sh_c, sh_pix, blocked, ray_o0, ray_d0, ray_o1, ray_d1, h_t,
-    h_obj, h_prim, h_u, h_v): per-path arrays, kept between frames (depth d writes the rays
-    ray_*{d % 2} and reads the other pair's hits into h_*). `jitter` = (on, jitter key, pixel corners, camera rotation,
+    h_obj, h_prim, h_u, h_v): per-path arrays, kept between frames; the vertices at depth d
+    write their continuation rays into ray_o{d % 2}, ray_d{d % 2}, whose hits the next depth
+    reads from h_*. `jitter` = (on, jitter key, pixel corners, camera rotation,
     image width, cam_d): when on, the camera rays are generated through a random point of each
     pixel into cam_d (which `primary_dirs` must then be) and traced here in full. Returns (shadow rays,
     continuation rays), or (−1, −1) if a path outlived 4096 bounces."""

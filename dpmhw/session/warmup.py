@@ -148,23 +148,21 @@ def _reconstruction(config_data: dict) -> None:
 # docs/first-run.md. They weigh the progress and its ETA (a kernel not listed is not counted).
 EXPECTED_S: dict[str, dict[str, float]] = {
     "path tracing": {
-        "render.kernels.sample_first": 14.6, "render.kernels.shade": 12.4, "render.embree.traversal._closest_rows": 7.0,
-        "render.kernels.trace_segment": 4.0, "render.kernels.trace_segments": 3.7,
-        "render.embree.traversal.occluded_range": 1.8, "render.kernels.first_surface": 1.7, "render.static_raster._raster": 1.5,
-        "render.static_raster._setup": 1.4, "render.embree.traversal.closest_rows": 1.2, "render.embree.traversal.closest_range": 0.8,
-        "render.static_raster.resolve_range": 0.5, "render.kernels.jittered_directions": 0.5,
-        "render.static_raster._to_camera": 0.4, "render.embree.traversal.tile_order_range": 0.4,
-        "render.embree.traversal.closest_tiles": 0.4,
+        "render.kernels.shade": 5.9, "render.kernels._sample_block_glossy": 4.9, "render.kernels._sample_block_lambert": 4.4,
+        "render.kernels.trace_segment": 3.0, "render.kernels.trace_segments": 2.9, "render.embree.traversal._closest_rows": 2.4,
+        "render.kernels.first_surface": 2.2, "render.embree.traversal.occluded_range": 1.5, "render.kernels.sample_first": 1.5,
+        "render.static_raster._raster": 1.5, "render.static_raster._setup": 1.1, "render.embree.traversal.closest_rows": 0.6,
+        "render.static_raster.resolve_range": 0.5, "render.static_raster._to_camera": 0.5, "render.kernels.jittered_directions": 0.4,
+        "render.embree.traversal.closest_tiles": 0.3, "render.embree.traversal.closest_range": 0.3,
     },
     "G-buffer and reconstruction": {
-        "reconstruct.analytic._evaluate_block": 5.6, "reconstruct.upsample._upsample_kernel": 4.6,
-        "reconstruct.analytic._products_kernel": 3.1, "reconstruct.reuse._motion_py": 3.1,
-        "render.gbuffer._classify": 2.9, "render.gbuffer._attributes_py": 2.3,
-        "reconstruct.filter._filter_kernel": 2.1, "reconstruct.guides._guides_kernel": 1.3,
-        "reconstruct.reuse._reproject_py": 1.2, "reconstruct.reuse._same_pixel_py": 1.2,
-        "render.gbuffer._restore_kernel": 1.1, "reconstruct.analytic._row_counts": 0.8,
-        "render.gbuffer._trace_pixels": 0.7, "postprocess._encode_kernel": 0.6,
-        "reconstruct.adaptive._candidates": 0.4, "render.gbuffer._tile_order": 0.3,
+        "reconstruct.analytic._evaluate_block": 4.7, "reconstruct.upsample._upsample_kernel": 4.1, "render.gbuffer._attributes_py": 2.8,
+        "reconstruct.reuse._motion_py": 2.7, "reconstruct.filter._filter_kernel": 2.0, "render.gbuffer._classify": 2.0,
+        "reconstruct.analytic._products_kernel": 1.9, "reconstruct.guides._guides_kernel": 1.5, "reconstruct.reproject._splat": 1.2,
+        "render.gbuffer._restore_kernel": 1.2, "reconstruct.reuse._reproject_py": 1.0, "reconstruct.reuse._same_pixel_py": 1.0,
+        "reconstruct.analytic._row_counts": 0.7, "render.gbuffer._trace_pixels": 0.6, "reconstruct.adaptive._merge": 0.6,
+        "reconstruct.reproject._column_run": 0.6, "postprocess._encode_kernel": 0.5, "reconstruct.reproject._project": 0.5,
+        "render.embree.traversal.closest16": 0.3,
     },
 }
 
