@@ -1,8 +1,8 @@
 """Readying the numba kernels before the loop needs them.
 
 A first run on a machine compiles every kernel a session calls (numba type inference, then LLVM);
-most of it goes to the path tracer's `trace_segments`, whose callees (`shade`, `sample_first`,
-the Embree queries) are compiled while it is typed. numba keeps compiled code on disk (in
+about half of it goes to the path tracer's `trace_segments`, whose callees (`shade`,
+`sample_first`, the Embree queries) are compiled while it is typed. numba keeps compiled code on disk (in
 `NUMBA_CACHE_DIR` when set, else in `__pycache__` beside the sources, or a per-user cache when
 those are read-only), so later runs load it in a second or two. The cache is per CPU, numba
 version and source file: a new machine, an update or a new install compiles again.
