@@ -60,6 +60,7 @@ from dpmhw.transforms import Pose
 ROI_MARGIN_PX = 4  # plus 1 % of the box size: lens distortion between the hull's projected corners
 EDGE_DEPTH_REL = 0.02  # 2×2 shading taps further apart in depth than this: trace the native pixel
 MODES = ("raster", "edges", "trace")
+ATTRIBUTES = ("id", "position", "normal", "depth", "albedo", "spec_albedo", "roughness")  # a pixel's, as NativeGBuffer's arrays
 
 
 def _attributes_py(index, d, hits, scene, view, out):
@@ -98,7 +99,7 @@ def _attributes_py(index, d, hits, scene, view, out):
         g_alb[p, 0], g_alb[p, 1], g_alb[p, 2] = kernels.albedo_at(alb, tex, ob, i, u[p], v[p])
         for c in range(3):
             g_spec[p, c] = spec[ob, c]
-        g_rough[p] = math.sqrt(tri[i, 21] if tri[i, 21] > 0.0 else alpha[ob])  # per-triangle α: a roughness map
+        g_rough[p] = math.sqrt(tri[i, kernels.TRI_ALPHA] if tri[i, kernels.TRI_ALPHA] > 0.0 else alpha[ob])  # per-triangle α: a roughness map
 
 
 _attribute_kernels = serial_and_parallel(_attributes_py)
@@ -118,7 +119,7 @@ def _trace_pixels(acc, R, T, o, d, index, first, end, s_t, s_obj, s_prim, s_u, s
             p = index[a + i]
             rows[i] = p
             t[p], obj[p], prim[p], u[p], v[p] = s_t[p], s_obj[p], s_prim[p], s_u[p], s_v[p]
-        traversal.closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, True)
+        traversal.closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, bool(True))
 
 
 @nb.njit(inline="always")
@@ -136,12 +137,16 @@ def _static_back(p, s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough, g_id, g_p
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
-def _classify(W, H, y0, y1, x0, x1, w, h, lid, lpos, lnrm, ldep, lalb, lspec, lrough, dynamic,
-              s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough,
-              g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough, static_px, trace, changed):
-    """Per native pixel of the box: interpolate (1), keep static (2) or trace (0, flag in `trace`).
-    `changed`: whether the pixel's attributes may differ from the last update's (False only for
-    a pixel that kept its cached static attributes and held them already)."""
+def _classify(W, H, box, w, h, low, dynamic, static, gbuf, static_px, trace, changed):
+    """Per native pixel of `box` (y0, y1, x0, x1): interpolate (1), keep static (2) or trace (0,
+    flag in `trace`). `low`: the shading frame's attributes (w × h), `static` the cached static
+    ones, `gbuf` the G-buffer's, each flat and in `ATTRIBUTES` order. `changed`: whether the
+    pixel's attributes may differ from the last update's (False only for a pixel that kept its
+    cached static attributes and held them already)."""
+    y0, y1, x0, x1 = box
+    lid, lpos, lnrm, ldep, lalb, lspec, lrough = low
+    s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough = static
+    g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough = gbuf
     sx = w / W
     sy = h / H
     for y in nb.prange(y0, y1):
@@ -301,10 +306,13 @@ def _raster_moving(faces, cam, rect, ideal, qx_col, qy_row, separable, dcz, W, b
 
 
 @nb.njit(cache=True, nogil=True)
-def _raster_pixels(W, y0, y1, x0, x1, stamp, sid, static_px, s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough,
-                   g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough):
-    """Pixels of the box a moving object covers (returned, row-major: their attributes come from
-    their hits); every other pixel of the box gets its cached static attributes back."""
+def _raster_pixels(W, box, stamp, sid, static_px, static, gbuf):
+    """Pixels of `box` (y0, y1, x0, x1) a moving object covers (returned, row-major: their
+    attributes come from their hits); every other pixel of the box gets its cached `static`
+    attributes back into `gbuf` (both in `ATTRIBUTES` order)."""
+    y0, y1, x0, x1 = box
+    s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough = static
+    g_id, g_pos, g_normal, g_depth, g_alb, g_spec, g_rough = gbuf
     out = np.empty((y1 - y0) * (x1 - x0), np.int64)
     n = 0
     for y in range(y0, y1):
@@ -374,6 +382,10 @@ class NativeGBuffer:
             self._pool.shutdown(wait=True)
             self._pool = None
 
+    def _attribute_arrays(self, static: bool = False) -> tuple:
+        """The G-buffer's arrays (or its cached static ones) in `ATTRIBUTES` order."""
+        return tuple(self._static[k] if static else getattr(self, k) for k in ATTRIBUTES)
+
     # ---- static part, once -----------------------------------------------------------------
     def _trace_static(self) -> None:
         hits = self.geometry.accel.intersect_static(self._o, self._d, width=self.width)
@@ -382,7 +394,7 @@ class NativeGBuffer:
         index = np.arange(self.width * self.height, dtype=np.int64)
         R, T = self.geometry.poses(self.scene.object_poses(0.0))
         self._attributes(index, self._d, hits, R, T)
-        self._static = {k: getattr(self, k).copy() for k in ("id", "position", "normal", "depth", "albedo", "spec_albedo", "roughness")}
+        self._static = {k: getattr(self, k).copy() for k in ATTRIBUTES}
         self.static_px = np.ones(len(index), np.bool_)  # the pixel holds its cached static attributes
         self._static["static_px"] = self.static_px.copy()
         self._static_lit = _bbox(self.id.reshape(self.height, self.width) >= 0)
@@ -455,23 +467,18 @@ class NativeGBuffer:
             _raster_moving(faces, cpos, rect, self._ideal, self._qx_col, self._qy_row, self._margin_rel == 0.0, self._dcz, W,
                     bands, i, prim0, self._stamp, self._sid, s.t,
                     h.t, h.obj, h.prim, h.u, h.v)
-        st = self._static
-        index = _raster_pixels(W, *box, self._stamp, self._sid, self.static_px, st["id"], st["position"], st["normal"],
-                               st["depth"], st["albedo"], st["spec_albedo"], st["roughness"], self.id, self.position,
-                               self.normal, self.depth, self.albedo, self.spec_albedo, self.roughness)
+        index = _raster_pixels(W, box, self._stamp, self._sid, self.static_px, self._attribute_arrays(static=True), self._attribute_arrays())
         self._attributes(index, self._d, h, R, T)
         self.pixels_rasterised = len(index)
 
     def _interpolate(self, box, f) -> np.ndarray:
         """Fill the box from the shading frame where it is smooth; returns the pixels to trace."""
         h, w = f.object_id.shape
-        st = self._static
         trace = self._trace_flags
-        _classify(self.width, self.height, *box, w, h, _flat(f.object_id, np.int32, 1), _flat(f.position), _flat(f.normal),
-                  _flat(f.depth, np.float32, 1), _flat(f.albedo), _flat(f.specular_albedo), _flat(f.roughness, np.float32, 1),
-                  self._is_dynamic, st["id"], st["position"], st["normal"], st["depth"], st["albedo"], st["spec_albedo"],
-                  st["roughness"], self.id, self.position, self.normal, self.depth, self.albedo, self.spec_albedo,
-                  self.roughness, self.static_px, trace, self.changed)
+        low = (_flat(f.object_id, np.int32, 1), _flat(f.position), _flat(f.normal), _flat(f.depth, np.float32, 1), _flat(f.albedo),
+               _flat(f.specular_albedo), _flat(f.roughness, np.float32, 1))
+        _classify(self.width, self.height, box, w, h, low, self._is_dynamic, self._attribute_arrays(static=True), self._attribute_arrays(),
+                  self.static_px, trace, self.changed)
         return _tile_order(trace, False, self.width, *box)
 
     def roi(self, poses: list[Pose]) -> tuple[int, int, int, int] | None:

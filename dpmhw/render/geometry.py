@@ -11,7 +11,7 @@ import numpy as np
 
 from dpmhw.render.embree import capi
 from dpmhw.render.embree.accel import EmbreeAccel
-from dpmhw.render.kernels import MIN_ALPHA
+from dpmhw.render.kernels import MIN_ALPHA, TRI_ALPHA, TRI_COLS, TRI_E1, TRI_E2, TRI_N0, TRI_NG, TRI_V0
 from dpmhw.scene_file import Scene
 from dpmhw.transforms import Pose
 
@@ -33,17 +33,18 @@ def make_accel(objects, tri_offsets, threads: int):
 
 
 def _triangle_rows(mesh, alpha: np.ndarray | None = None) -> np.ndarray:
-    """`SceneGeometry.tri` rows of one mesh (see kernels.shade for the layout). Column 21: each
-    triangle's GGX α from a roughness map; 0 (no map) = the object's (obj_alpha)."""
+    """`SceneGeometry.tri` rows of one mesh (columns: kernels.TRI_V0 … TRI_ALPHA). TRI_ALPHA:
+    each triangle's GGX α from a roughness map; 0 (no map) = the object's (obj_alpha)."""
     tri = mesh.triangles
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normal = cross / np.linalg.norm(cross, axis=1, keepdims=True)
-    rows = np.zeros((len(tri), 24), f32)
-    rows[:, 0:3], rows[:, 3:6], rows[:, 6:9], rows[:, 9:12] = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], normal
+    rows = np.zeros((len(tri), TRI_COLS), f32)
+    rows[:, TRI_V0:TRI_V0 + 3], rows[:, TRI_E1:TRI_E1 + 3], rows[:, TRI_E2:TRI_E2 + 3] = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    rows[:, TRI_NG:TRI_NG + 3] = normal
     corner = mesh.vertex_normals[mesh.faces] if mesh.vertex_normals is not None else np.repeat(normal[:, None], 3, 1)
-    rows[:, 12:21] = corner.reshape(len(tri), 9)
+    rows[:, TRI_N0:TRI_N0 + 9] = corner.reshape(len(tri), 9)  # the three corners' normals, TRI_N0, TRI_N1, TRI_N2
     if alpha is not None:
-        rows[:, 21] = alpha
+        rows[:, TRI_ALPHA] = alpha
     return rows
 
 

@@ -357,15 +357,16 @@ class PathIntegrator:
         light_world = self.geometry.light_rows(R, T)
         if jitter_key is not None:  # camera rays through random points of the pixels, into the work buffer
             primary_dirs = w.cam_d
+        # the kernels' tuples (kernels.trace_segment)
+        g = self.geometry
+        scn = (g.tri, R, T, g.obj_albedo, g.textures, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area, light_world, g.light_obj,
+               g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd)
+        films = (film["emit"], film["diff"], film["spec"], nonfinite)
+        gb = (gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer)
+        work = (w.pixel, w.beta, w.kd, w.prev_pdf, w.prev_env, w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.blocked,
+                w.ray_o[0], w.ray_d[0], w.ray_o[1], w.ray_d[1], w.hits.t, w.hits.obj, w.hits.prim, w.hits.u, w.hits.v)
+        prim = (primary.t, primary.obj, primary.prim, primary.u, primary.v)
         if self._fused_native():  # queries from inside the kernel: one native call per thread
-            g = self.geometry
-            scn = (g.tri, R, T, g.obj_albedo, g.textures, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area, light_world, g.light_obj,
-                   g.light_cdf, g.p_env, g.background, viewer, self.use_viewer, cam_fwd)
-            films = (film["emit"], film["diff"], film["spec"], nonfinite)
-            gb = (gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer)
-            work = (w.pixel, w.beta, w.kd, w.prev_pdf, w.prev_env, w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.blocked,
-                    w.ray_o[0], w.ray_d[0], w.ray_o[1], w.ray_d[1], w.hits.t, w.hits.obj, w.hits.prim, w.hits.u, w.hits.v)
-            prim = (primary.t, primary.obj, primary.prim, primary.u, primary.v)
             # the static camera hits: traced per segment for a new pose, copied into `primary`'s
             # rows and completed with the moving objects (static_hits given), or primary itself
             cache = static_hits if static_hits is not None else primary
@@ -391,8 +392,6 @@ class PathIntegrator:
         else:
             if trace_static or radiance is not None:
                 raise ValueError("trace_static and radiance need the fused path")
-            films = (film["emit"], film["diff"], film["spec"], nonfinite)
-            gb = (gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth, gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer)
 
             def run(segment):
                 first, count = segment
@@ -401,21 +400,22 @@ class PathIntegrator:
                 if jitter_key is not None:
                     kernels.jittered_directions(corners, cam_R, self.width, jitter_key, first, first + count, primary_dirs)
                     accel.intersect_range(camera_o, primary_dirs, first, first + count, R, T, primary, packets=self.packets[0])
-                return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, light_world, cam_fwd,
-                                           viewer, film, gbuf, nonfinite, write_gbuffer, surface_ready, w)
+                return self._trace_segment(first, count, key, camera_o, primary_dirs, static_hits, primary, prim, R, T, scn, films, gb, work,
+                                           surface_ready, w)
 
             jobs = [(int(a), int(c)) for a, c in zip(w.starts, w.full_counts) if c > 0]
         results = list(self._pool.map(run, jobs)) if self._pool is not None else [run(j) for j in jobs]
         self.counts.occluded += sum(r[0] for r in results)
         self.counts.intersect += sum(r[1] for r in results)
 
-    def _trace_segment(self, first, count, key, camera_o, primary_dirs, static_hits, primary, R, T, light_world, cam_fwd, viewer,
-                       film, gbuf, nonfinite, write_gbuffer, surface_ready, w: "_Work") -> tuple[int, int]:
+    def _trace_segment(self, first, count, key, camera_o, primary_dirs, static_hits, primary, prim, R, T, scn, films, gb, work,
+                       surface_ready, w: "_Work") -> tuple[int, int]:
         """All bounces of the paths through pixels [first, first + count), with Python between
         the stages (the same kernels and queries as kernels.trace_segment, so the same image);
         their rows in the work buffers are the same range. `static_hits`: the camera rays'
         cached hits on static objects, to complete with the moving objects into `primary` first
-        (None: `primary` is ready). Returns (shadow rays, continuation rays) traced."""
+        (None: `primary` is ready); `prim`, `scn`, `films`, `gb`, `work`: the kernels' tuples of
+        `primary` and `w`. Returns (shadow rays, continuation rays) traced."""
         g = self.geometry
         end = first + count
         if static_hits is not None:
@@ -428,26 +428,15 @@ class PathIntegrator:
         while True:
             if depth == 0:  # the first vertex: its surface (unless kept), then this pass's samples
                 if not surface_ready:
-                    kernels.first_surface(first, end, primary_dirs, primary.t, primary.obj, primary.prim, primary.u, primary.v, g.tri,
-                                          R, T, g.obj_albedo, g.textures, g.obj_specular, g.obj_alpha, g.obj_emission, g.background, viewer,
-                                          self.use_viewer, cam_fwd, w.surf, gbuf.id, gbuf.model, gbuf.pos, gbuf.normal, gbuf.depth,
-                                          gbuf.alb, gbuf.spec, gbuf.rough, write_gbuffer, self.split)
-                n_shadow, n_next = kernels.sample_first(
-                    first, end, key, w.surf, light_world, g.light_obj, g.light_cdf, g.obj_emission, g.obj_pdf_area, g.p_env,
-                    g.background, self.max_bounces > 0 or self.mis_last, self.split, film["emit"], nonfinite, w.sh_o, w.sh_d,
-                    w.sh_tmax, w.sh_c, w.sh_pix, w.pixel, w.beta, w.kd, w.prev_pdf, w.prev_env, w.ray_o[rays], w.ray_d[rays],
-                    *kernels.block_scratch())
+                    kernels.first_surface(first, end, primary_dirs, prim, scn, w.surf, gb, self.split)
+                n_shadow, n_next = kernels.sample_first(first, end, key, w.surf, w.ray_o[rays], w.ray_d[rays], scn, films, work,
+                                                        self.max_bounces > 0 or self.mis_last, self.split, kernels.block_scratch())
             else:
-                n_shadow, n_next = kernels.shade(
-                    depth, self.max_bounces, self.mis_last, key, first, count, w.pixel, w.ray_d[1 - rays],
-                    w.hits.t, w.hits.obj, w.hits.prim, w.hits.u, w.hits.v, w.beta, w.kd, w.prev_pdf, w.prev_env,
-                    g.tri, R, T, g.obj_albedo, g.textures, g.obj_specular, g.obj_alpha, g.obj_emission, g.obj_pdf_area,
-                    light_world, g.light_obj, g.light_cdf, g.p_env, g.background, film["diff"], film["spec"], nonfinite,
-                    w.sh_o, w.sh_d, w.sh_tmax, w.sh_c, w.sh_pix, w.ray_o[rays], w.ray_d[rays], self.split,
-                )
+                n_shadow, n_next = kernels.shade(depth, self.max_bounces, self.mis_last, key, first, count, w.ray_d[1 - rays],
+                                                 w.ray_o[rays], w.ray_d[rays], scn, films, work, self.split)
             if n_shadow:
                 g.accel.occluded_range(w.sh_o, w.sh_d, w.sh_tmax, first, first + n_shadow, R, T, w.blocked, packets=self.packets[1])
-                kernels.add_unoccluded(first, n_shadow, w.sh_pix, w.sh_c, w.blocked, film["diff"], film["spec"], self.split)
+                kernels.add_unoccluded(first, n_shadow, w.sh_pix, w.sh_c, w.blocked, films[1], films[2], self.split)
                 traced_shadow += n_shadow
             if depth >= last_depth or n_next == 0:
                 return traced_shadow, traced_next

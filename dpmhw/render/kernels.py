@@ -60,6 +60,13 @@ OFFSET_REL32, TINY32 = np.float32(OFFSET_REL), np.float32(1e-20)
 TINY_LEN32, MIN_COS32 = np.float32(1e-12), np.float32(1e-6)
 LUM_R, LUM_G, LUM_B = np.float32(0.2126), np.float32(0.7152), np.float32(0.0722)
 
+# Columns of `SceneGeometry.tri`, (F, TRI_COLS) float32 rows in each object's model space (one hit
+# touches two cache lines): the first vertex, the edges v1 − v0 and v2 − v0, the unit geometric
+# normal, the three corners' shading normals, and the triangle's GGX α where its object has a
+# roughness map (else 0: the object's α applies).
+TRI_V0, TRI_E1, TRI_E2, TRI_NG, TRI_N0, TRI_N1, TRI_N2, TRI_ALPHA = 0, 3, 6, 9, 12, 15, 18, 21
+TRI_COLS = 24
+
 
 @nb.njit(inline="always", **_jit)
 def _mix64(x):
@@ -244,9 +251,10 @@ def _light_index(light_cdf, ut):
 @nb.njit(inline="always", **_jit)
 def geometric_normal(tri, R, ob, i):
     """World-space unit geometric normal of triangle i (`tri` rows, see `shade`) of object ob."""
-    g0 = R[ob, 0, 0] * tri[i, 9] + R[ob, 0, 1] * tri[i, 10] + R[ob, 0, 2] * tri[i, 11]
-    g1 = R[ob, 1, 0] * tri[i, 9] + R[ob, 1, 1] * tri[i, 10] + R[ob, 1, 2] * tri[i, 11]
-    g2 = R[ob, 2, 0] * tri[i, 9] + R[ob, 2, 1] * tri[i, 10] + R[ob, 2, 2] * tri[i, 11]
+    n0, n1, n2 = tri[i, TRI_NG], tri[i, TRI_NG + 1], tri[i, TRI_NG + 2]
+    g0 = R[ob, 0, 0] * n0 + R[ob, 0, 1] * n1 + R[ob, 0, 2] * n2
+    g1 = R[ob, 1, 0] * n0 + R[ob, 1, 1] * n1 + R[ob, 1, 2] * n2
+    g2 = R[ob, 2, 0] * n0 + R[ob, 2, 1] * n1 + R[ob, 2, 2] * n2
     return g0, g1, g2
 
 
@@ -256,15 +264,15 @@ def hit_point(tri, R, T, ob, i, u, v):
     space, and its interpolated shading normal in world space (not normalised). Straight-line
     code: inlined into a loop, it adds no reference counting (see traversal)."""
     w0 = F1 - u - v  # F1, not 1.0: a float64 literal here made the whole shading frame float64
-    pm0 = tri[i, 0] + u * tri[i, 3] + v * tri[i, 6]
-    pm1 = tri[i, 1] + u * tri[i, 4] + v * tri[i, 7]
-    pm2 = tri[i, 2] + u * tri[i, 5] + v * tri[i, 8]
+    pm0 = tri[i, TRI_V0] + u * tri[i, TRI_E1] + v * tri[i, TRI_E2]
+    pm1 = tri[i, TRI_V0 + 1] + u * tri[i, TRI_E1 + 1] + v * tri[i, TRI_E2 + 1]
+    pm2 = tri[i, TRI_V0 + 2] + u * tri[i, TRI_E1 + 2] + v * tri[i, TRI_E2 + 2]
     p0 = R[ob, 0, 0] * pm0 + R[ob, 0, 1] * pm1 + R[ob, 0, 2] * pm2 + T[ob, 0]
     p1 = R[ob, 1, 0] * pm0 + R[ob, 1, 1] * pm1 + R[ob, 1, 2] * pm2 + T[ob, 1]
     p2 = R[ob, 2, 0] * pm0 + R[ob, 2, 1] * pm1 + R[ob, 2, 2] * pm2 + T[ob, 2]
-    sm0 = w0 * tri[i, 12] + u * tri[i, 15] + v * tri[i, 18]
-    sm1 = w0 * tri[i, 13] + u * tri[i, 16] + v * tri[i, 19]
-    sm2 = w0 * tri[i, 14] + u * tri[i, 17] + v * tri[i, 20]
+    sm0 = w0 * tri[i, TRI_N0] + u * tri[i, TRI_N1] + v * tri[i, TRI_N2]
+    sm1 = w0 * tri[i, TRI_N0 + 1] + u * tri[i, TRI_N1 + 1] + v * tri[i, TRI_N2 + 1]
+    sm2 = w0 * tri[i, TRI_N0 + 2] + u * tri[i, TRI_N1 + 2] + v * tri[i, TRI_N2 + 2]
     s0 = R[ob, 0, 0] * sm0 + R[ob, 0, 1] * sm1 + R[ob, 0, 2] * sm2
     s1 = R[ob, 1, 0] * sm0 + R[ob, 1, 1] * sm1 + R[ob, 1, 2] * sm2
     s2 = R[ob, 2, 0] * sm0 + R[ob, 2, 1] * sm1 + R[ob, 2, 2] * sm2
@@ -332,27 +340,16 @@ def face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2, v0, v1, v2, use
 
 
 @nb.njit(nogil=True, **_jit_shading)
-def shade(
-    depth, max_bounces, mis_last, key, first, count, pixel, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v,
-    beta, kd, prev_pdf, prev_env,
-    tri,
-    obj_R, obj_t, obj_alb, tex, obj_spec, obj_alpha, obj_emit, obj_pdfA,
-    light_world, light_obj, light_cdf, p_env, background,
-    film_diff, film_spec, nonfinite,
-    sh_o, sh_d, sh_tmax, sh_c, sh_pix,
-    nx_o, nx_d, split,
-):
+def shade(depth, max_bounces, mis_last, key, first, count, rd, nx_o, nx_d, scn, film, work, split):
     """One wavefront step at a vertex after the first (depth ≥ 1: the first is
     first_surface + sample_first) over the paths in rows [first, first + count) (see module
     doc), compacting as it goes. Serial and without the GIL: the integrator runs one image
     segment per call, on several threads at once.
 
-    `tri` : (F, 24) float32 rows of v0, e1 = v1 − v0, e2 = v2 − v0, unit geometric normal and the
-    three corner shading normals, all in model space: one hit touches two cache lines. Column 21:
-    the triangle's GGX α where its object has a roughness map, else 0 (then obj_alpha applies).
-    `tex`: the albedo textures (albedo_at).
-    `light_world` : (L, 12) rows of the emissive triangles in world space (v0, e1, e2, normal:
-    SceneGeometry.light_rows), so light sampling transforms nothing per vertex.
+    `rd`: the paths' ray directions, their hits in `work`'s h_*. `scn`, `film`, `work`: the
+    tuples of trace_segment. `tri`: rows of TRI_COLS (TRI_V0 …). `tex`: the albedo textures
+    (albedo_at). `light_world` : (L, 12) rows of the emissive triangles in world space (v0, e1,
+    e2, normal: SceneGeometry.light_rows), so light sampling transforms nothing per vertex.
     Writes the film at each path's pixel, and, packed from row `first`: the shadow rays (sh_o,
     sh_d, sh_tmax, sh_pix, with their diffuse and specular contributions in sh_c[:, 0:3] and
     sh_c[:, 3:6], added if unoccluded) and the surviving paths (pixel, beta, kd, prev_pdf, prev_env
@@ -363,6 +360,9 @@ def shade(
     environment light's pdf of that direction (prev_env), both for MIS. `split` False (no object
     has a specular lobe): every path is diffuse, so kd, film_spec and sh_c[:, 3:6] are neither
     read nor written."""
+    tri, obj_R, obj_t, obj_alb, tex, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_world, light_obj, light_cdf, p_env, background, _, _, _ = scn
+    _, film_diff, film_spec, nonfinite = film
+    pixel, beta, kd, prev_pdf, prev_env, sh_o, sh_d, sh_tmax, sh_c, sh_pix, _, _, _, _, _, hit_t, hit_obj, hit_prim, hit_u, hit_v = work
     p_env = np.float32(p_env)  # 0, ½ or 1: exact
     p_area = F1 - p_env
     has_bg = background[0] > 0.0 or background[1] > 0.0 or background[2] > 0.0
@@ -423,8 +423,8 @@ def shade(
         g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, front = face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2,
                                                                     F0, F0, F0, False)
         alpha = obj_alpha[ob]
-        if tri[tri_i, 21] > 0.0:  # per-triangle α (a scene's roughness_map)
-            alpha = tri[tri_i, 21]
+        if tri[tri_i, TRI_ALPHA] > 0.0:  # per-triangle α (a scene's roughness_map)
+            alpha = tri[tri_i, TRI_ALPHA]
         ar, ag, ab = albedo_at(obj_alb, tex, ob, tri_i, u, v)
         wd = _lum(ar * (F1 - obj_spec[ob, 0]), ag * (F1 - obj_spec[ob, 1]), ab * (F1 - obj_spec[ob, 2]))
         ws = _lum(obj_spec[ob, 0], obj_spec[ob, 1], obj_spec[ob, 2])
@@ -561,15 +561,17 @@ NO_SHADOW = np.float32(-1.0)  # a block table's tmax where no shadow ray is trac
 
 
 @nb.njit(nogil=True, **_jit_shading)
-def first_surface(first, end, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v, tri, obj_R, obj_t, obj_alb, tex, obj_spec, obj_alpha, obj_emit,
-                  background, viewer, use_viewer, cam_fwd, surf, gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec,
-                  gb_rough, write_gbuffer, split):
+def first_surface(first, end, rd, primary, scn, surf, gb, split):
     """The frame-independent part of the first vertex of pixels [first, end) (camera rays rd,
-    their hits): surf[S_*, pixel] (see above), and the G-buffer rows when `write_gbuffer`.
+    their hits `primary`): surf[S_*, pixel] (see above), and the G-buffer rows when its
+    `write_gbuffer` (`primary`, `scn`, `gb`: the tuples of trace_segment).
     Each column is written once, and only what sample_first reads: a pixel that reflects
     nothing gets S_ACTIVE 0 and its S_EMIT (its other columns keep stale, finite values, which
     its vector lane computes with and discards); without specular lobes (`split` False) the
     S_SPEC, S_ALPHA and S_PSPEC columns are not read."""
+    hit_t, hit_obj, hit_prim, hit_u, hit_v = primary
+    tri, obj_R, obj_t, obj_alb, tex, obj_spec, obj_alpha, obj_emit, _, _, _, _, _, background, viewer, use_viewer, cam_fwd = scn
+    gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer = gb
     has_bg = background[0] > 0.0 or background[1] > 0.0 or background[2] > 0.0
     for k in range(first, end):
         if k + PREFETCH_AHEAD < end and hit_prim[k + PREFETCH_AHEAD] >= 0:
@@ -602,8 +604,8 @@ def first_surface(first, end, rd, hit_t, hit_obj, hit_prim, hit_u, hit_v, tri, o
             for c in range(3):
                 surf[S_EMIT + c, k] = obj_emit[ob, c]
         alpha = obj_alpha[ob]
-        if tri[i, 21] > 0.0:  # per-triangle α (a scene's roughness_map)
-            alpha = tri[i, 21]
+        if tri[i, TRI_ALPHA] > 0.0:  # per-triangle α (a scene's roughness_map)
+            alpha = tri[i, TRI_ALPHA]
         ar, ag, ab = albedo_at(obj_alb, tex, ob, i, hit_u[k], hit_v[k])
         if write_gbuffer:
             gb_id[k] = ob
@@ -760,6 +762,18 @@ def _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, g
         oblk[O_ENV * LSB + j] = p_env * cos_i * INV_PI32
 
 
+# The two lobe sets as kernels of their own (the body inlined once into each), which LLVM inlines
+# into sample_first: numba types each once instead of re-typing both inside sample_first.
+@nb.njit(nogil=True, **_jit_vector)
+def _sample_block_glossy(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf):
+    _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, True)
+
+
+@nb.njit(nogil=True, **_jit_vector)
+def _sample_block_lambert(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf):
+    _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, False)
+
+
 @nb.njit(nogil=True, cache=True)
 def block_scratch():
     """The per-thread scratch of sample_first (allocated per thread and pass, not per call)."""
@@ -767,16 +781,19 @@ def block_scratch():
 
 
 @nb.njit(nogil=True, **_jit_vector)
-def sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env, background, sample_bsdf, split,
-                 film_emit, nonfinite, sh_o, sh_d, sh_tmax, sh_c, sh_pix, pixel, beta, kd, prev_pdf, prev_env, nx_o, nx_d, lblk, oblk):
+def sample_first(first, end, key, surf, nx_o, nx_d, scn, film, work, sample_bsdf, split, scratch):
     """The first vertex's samples at pixels [first, end) from their surfaces (first_surface), in
     blocks: the lights gathered (scalar), the samples (vectorised), then written out (scalar):
     the emission seen directly into film_emit, and packed from row `first` the shadow rays
     (sh_*, as `shade` writes them) and the paths that continue (pixel, beta, kd, prev_pdf,
     prev_env, nx_o, nx_d). Packed, not at their pixels' rows: where most pixels see nothing
     (an object in front of an empty background) the queries then cost what the hits cost.
-    `lblk`, `oblk`: scratch of LIGHT_COLS · LSB and OUT_COLS · LSB floats (block_scratch()).
-    Returns (shadow rays, continuation rays)."""
+    `scn`, `film`, `work`: the tuples of trace_segment; `scratch` = (lblk, oblk): LIGHT_COLS · LSB
+    and OUT_COLS · LSB floats (block_scratch()). Returns (shadow rays, continuation rays)."""
+    _, _, _, _, _, _, _, obj_emit, obj_pdfA, light_world, light_obj, light_cdf, p_env, background, _, _, _ = scn
+    film_emit, _, _, nonfinite = film
+    pixel, beta, kd, prev_pdf, prev_env, sh_o, sh_d, sh_tmax, sh_c, sh_pix = work[:10]
+    lblk, oblk = scratch
     p_env = np.float32(p_env)  # 0, ½ or 1: exact
     p_area = F1 - p_env
     ns = nc = first
@@ -795,9 +812,9 @@ def sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_e
             continue
         _gather_lights(key, a, m, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env, p_area, lblk)
         if split:
-            _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, True)
+            _sample_block_glossy(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf)
         else:
-            _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, False)
+            _sample_block_lambert(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf)
         for j in range(m):
             k = a + j
             bad = oblk[O_BAD * LSB + j]
@@ -964,25 +981,30 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
     rather than in a separate pass over the image, so the work is spread over the threads with
     everything else and the hits are still in cache when shaded. With `complete_primary` the static hits are copied into `primary`'s rows and the
     moving objects traced (from camera_o along primary_dirs). `packets` = (continuation, shadow): 16-wide
-    packets of consecutive rows, or single rays. Tuples, see the integrator: scn (scene tables),
-    film (emit, diff, spec, nonfinite), gb (G-buffer arrays and write flag), surface (ready,
-    surf): the first vertices' surfaces (first_surface), computed here unless ready (kept by the
-    integrator while the camera and every object stay put), work (per-path arrays, kept between frames). `jitter` = (on, jitter key, pixel corners, camera rotation,
+    packets of consecutive rows, or single rays. The tuples, as the integrator builds them:
+    scn = (tri, R, T, obj_alb, tex, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_world,
+    light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd): the scene's tables
+    (SceneGeometry) and the objects' poses; film = (emit, diff, spec, nonfinite); gb = (id, model,
+    pos, normal, depth, alb, spec, rough, write_gbuffer): the G-buffer; surface = (ready, surf):
+    the first vertices' surfaces (first_surface), computed here unless ready (kept by the
+    integrator while the camera and every object stay put); work = (pixel, beta, kd, prev_pdf,
+    prev_env, sh_o, sh_d, sh_tmax, sh_c, sh_pix, blocked, ray_o0, ray_d0, ray_o1, ray_d1, h_t,
+    h_obj, h_prim, h_u, h_v): per-path arrays, kept between frames; the vertices at depth d
+    write their continuation rays into ray_o{d % 2}, ray_d{d % 2}, whose hits the next depth
+    reads from h_*. `jitter` = (on, jitter key, pixel corners, camera rotation,
     image width, cam_d): when on, the camera rays are generated through a random point of each
     pixel into cam_d (which `primary_dirs` must then be) and traced here in full. Returns (shadow rays,
     continuation rays), or (−1, −1) if a path outlived 4096 bounces."""
-    tri, R, T, obj_alb, tex, obj_spec, obj_alpha, obj_emit, obj_pdfA, light_world, light_obj, light_cdf, p_env, background, viewer, use_viewer, cam_fwd = scn
-    film_emit, film_diff, film_spec, nonfinite = film
-    gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb, gb_spec, gb_rough, write_gbuffer = gb
+    R, T = scn[1], scn[2]
+    _, film_diff, film_spec, _ = film
     surface_ready, surf = surface
-    (pixel, beta, kd, prev_pdf, prev_env, sh_o, sh_d, sh_tmax, sh_c, sh_pix, blocked,
-     ray_o0, ray_d0, ray_o1, ray_d1, h_t, h_obj, h_prim, h_u, h_v) = work
+    _, _, _, _, _, sh_o, sh_d, sh_tmax, sh_c, sh_pix, blocked, ray_o0, ray_d0, ray_o1, ray_d1, h_t, h_obj, h_prim, h_u, h_v = work
     p_t, p_obj, p_prim, p_u, p_v = primary
     end = first + count
     jitter_on, jkey, corners, cam_R, width, cam_d = jitter
     if jitter_on:
         jittered_directions(corners, cam_R, width, jkey, first, end, cam_d)
-        traversal.closest_range(acc, R, T, camera_o, cam_d, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], False)
+        traversal.closest_range(acc, R, T, camera_o, cam_d, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], bool(False))
     else:
         trace_static, s_t, s_obj, s_prim, s_u, s_v, r_tri, r_vw, r_faces, r_obj, r_prim, r_origin = static
         if trace_static and r_tri.shape[0] > 0:  # rasterised: each pixel's triangle known, its hit resolved here
@@ -992,33 +1014,26 @@ def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_
         if complete_primary:
             for i in range(first, end):
                 p_t[i], p_obj[i], p_prim[i], p_u[i], p_v[i] = s_t[i], s_obj[i], s_prim[i], s_u[i], s_v[i]
-            traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], True)
+            traversal.closest_range(acc_moving, R, T, camera_o, primary_dirs, first, end, p_t, p_obj, p_prim, p_u, p_v, packets[0], bool(True))
     traced_shadow = traced_next = 0
-    depth = 0
+    depth = np.int64(0)  # not a literal 0: shade would be compiled for it too (see traversal's flags)
     while True:
         nx_o, nx_d = (ray_o0, ray_d0) if depth % 2 == 0 else (ray_o1, ray_d1)
         if depth == 0:  # the first vertex: its surface (unless kept), then this pass's samples
             if not surface_ready:
-                first_surface(first, end, primary_dirs, p_t, p_obj, p_prim, p_u, p_v, tri, R, T, obj_alb, tex, obj_spec, obj_alpha, obj_emit,
-                              background, viewer, use_viewer, cam_fwd, surf, gb_id, gb_model, gb_pos, gb_normal, gb_depth, gb_alb,
-                              gb_spec, gb_rough, write_gbuffer, split)
-            n_shadow, n_next = sample_first(first, end, key, surf, light_world, light_obj, light_cdf, obj_emit, obj_pdfA, p_env,
-                                            background, max_bounces > 0 or mis_last, split, film_emit, nonfinite, sh_o, sh_d, sh_tmax,
-                                            sh_c, sh_pix, pixel, beta, kd, prev_pdf, prev_env, nx_o, nx_d, scratch[0], scratch[1])
+                first_surface(first, end, primary_dirs, primary, scn, surf, gb, split)
+            n_shadow, n_next = sample_first(first, end, key, surf, nx_o, nx_d, scn, film, work, max_bounces > 0 or mis_last, split,
+                                            scratch)
         else:
             rd = ray_d1 if depth % 2 == 0 else ray_d0
-            n_shadow, n_next = shade(
-                depth, max_bounces, mis_last, key, first, count, pixel, rd, h_t, h_obj, h_prim, h_u, h_v,
-                beta, kd, prev_pdf, prev_env, tri, R, T, obj_alb, tex, obj_spec, obj_alpha, obj_emit, obj_pdfA,
-                light_world, light_obj, light_cdf, p_env, background, film_diff, film_spec, nonfinite,
-                sh_o, sh_d, sh_tmax, sh_c, sh_pix, nx_o, nx_d, split)
+            n_shadow, n_next = shade(depth, max_bounces, mis_last, key, first, count, rd, nx_o, nx_d, scn, film, work, split)
         if n_shadow:
             traversal.occluded_range(acc, R, T, sh_o, sh_d, sh_tmax, first, first + n_shadow, blocked, packets[1])
             add_unoccluded(first, n_shadow, sh_pix, sh_c, blocked, film_diff, film_spec, split)
             traced_shadow += n_shadow
         if depth >= depth_limit or n_next == 0:
             return traced_shadow, traced_next
-        traversal.closest_range(acc, R, T, nx_o, nx_d, first, first + n_next, h_t, h_obj, h_prim, h_u, h_v, packets[0], False)
+        traversal.closest_range(acc, R, T, nx_o, nx_d, first, first + n_next, h_t, h_obj, h_prim, h_u, h_v, packets[0], bool(False))
         traced_next += n_next
         count = n_next
         depth += 1

@@ -303,7 +303,7 @@ class RtcAccel:
         h = (hits.t, hits.obj, hits.prim, hits.u, hits.v)
         if width and n % width == 0:  # camera rays, one per pixel: 4×4 tiles
             order = self._tile_order(width, n // width)
-            self._split(lambda a, e: closest_rows(self.acc_static, R, T, origins, directions, order, a, e, *h, True), n)
+            self._split(lambda a, e: closest_rows(self.acc_static, R, T, origins, directions, order, a, e, *h, True, False), n)
         else:
-            self._split(lambda a, e: closest_range(self.acc_static, R, T, origins, directions, a, e, *h, True), n)
+            self._split(lambda a, e: closest_range(self.acc_static, R, T, origins, directions, a, e, *h, True, False), n)
         return hits

@@ -106,6 +106,10 @@ def scratch16():
 
 NO_ORDER = np.zeros(0, np.int64)
 
+# Flags and row numbers are passed between these kernels as run-time values (`bool(True)`,
+# `np.int64(0)`), never as literals: numba compiles a callee once per literal value it is given,
+# and these loops are the longest compiles after the shading kernels'.
+
 
 # The query loops below hold the whole per-ray / per-packet work in their own body: the scene
 # tables are unpacked once, every array is indexed with scalars, and the only helpers inlined
@@ -114,7 +118,7 @@ NO_ORDER = np.zeros(0, np.int64)
 # call: ~10 atomic operations per ray, each stalling behind the ray Embree had just written.
 # Single camera rays ran at 6.0 Mrays/CPU-s instead of 12.8 (packets, amortising it, were unchanged).
 @nb.njit(nogil=True, cache=True)
-def closest_rows(acc, R, T, o, d, order, first, end, t, obj, prim, u, v, packets, resume=False):
+def closest_rows(acc, R, T, o, d, order, first, end, t, obj, prim, u, v, packets, resume):
     """Closest hits of the rays order[first:end] (rows first..end - 1 if `order` is empty) of
     o, d, written to the same rows of t, obj, prim, u, v (inf / −1 on a miss; global triangle
     index). 16 consecutive entries per packet, or one ray per call (`packets` False).
@@ -181,16 +185,16 @@ def _closest_rows(acc, R, T, f, iv, valid, o, d, order, first, end, t, obj, prim
 
 
 @nb.njit(nogil=True, cache=True)
-def closest_range(acc, R, T, o, d, first, end, t, obj, prim, u, v, packets, resume=False):
+def closest_range(acc, R, T, o, d, first, end, t, obj, prim, u, v, packets, resume):
     """Closest hits of rows [first, end) (see closest_rows)."""
-    closest_rows(acc, R, T, o, d, NO_ORDER, first, end, t, obj, prim, u, v, packets, resume)
+    closest_rows(acc, R, T, o, d, np.empty(0, np.int64), first, end, t, obj, prim, u, v, packets, resume)
 
 
 @nb.njit(nogil=True, cache=True)
 def closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, resume):
     """One packet: closest hits of the rays rows[:n], n ≤ 16 (see closest_rows), in the
     caller's scratch16() f, iv, valid."""
-    _closest_rows(acc, R, T, f, iv, valid, o, d, rows, 0, n, t, obj, prim, u, v, True, resume)
+    _closest_rows(acc, R, T, f, iv, valid, o, d, rows, np.int64(0), n, t, obj, prim, u, v, bool(True), resume)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -216,7 +220,7 @@ def tile_order_range(width, first, end):
 def tile_order(width, height):
     """Row-major pixel indices of the whole image in 4×4-tile order (tile row ty starts at
     4 * ty * width)."""
-    return tile_order_range(width, 0, width * height)
+    return tile_order_range(width, np.int64(0), width * height)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -225,7 +229,7 @@ def closest_tiles(acc, R, T, o, d, width, first, end, t, obj, prim, u, v):
     16-wide packets in tile order: what `RtcAccel.intersect_static` does for the whole image,
     done by one image segment in its own thread."""
     order = tile_order_range(width, first, end)
-    closest_rows(acc, R, T, o, d, order, 0, order.shape[0], t, obj, prim, u, v, True)
+    closest_rows(acc, R, T, o, d, order, np.int64(0), order.shape[0], t, obj, prim, u, v, bool(True), bool(False))
 
 
 @nb.njit(nogil=True, cache=True)
