@@ -251,15 +251,15 @@ def exercise_stage(stage: ReconstructStage, frames, camera):
 
 def exercise_reprojection(reprojector, scene, size: tuple[int, int]) -> None:
     """Capture a synthetic frame (the first moving object everywhere) and reproject it after a
-    move, into every channel and into one: what a present calls, compiled before presents need it."""
+    move: what a present calls, with the loop's types (a frame is read-only once made),
+    compiled before presents need it."""
     W, H = size
     moving = next((k for k, o in enumerate(scene.objects) if o.is_dynamic), 0)
     image = np.zeros((H, W, 3), np.uint8)
+    image.setflags(write=False)
     cap = reprojector.capture(image, np.full(H * W, moving, np.int32), np.ones(H * W, np.float32),
                               scene.object_poses(0.0), (0, H, 0, W))
-    out = np.zeros_like(image)
-    for channel in (None, 0):
-        reprojector.reproject(cap, scene.object_poses(0.25), out, channel=channel)
+    reprojector.reproject(cap, scene.object_poses(0.25), np.zeros_like(image))
 
 
 def _raise_thread_priority(rt_priority: int, nice: int) -> str:
