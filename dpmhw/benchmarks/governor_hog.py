@@ -118,6 +118,13 @@ def second_rows(ev: dict, seconds: float, hog_s: float, reasons: list[str] | Non
     return rows
 
 
+def level_steps(ev: dict) -> tuple[list[float], list[int]]:
+    """The governor's level over time: (times, levels) at the first present and at each change."""
+    level, t = ev["level"], ev["present_t"]
+    keep = np.flatnonzero(np.r_[True, level[1:] != level[:-1]]) if len(level) else np.zeros(0, int)
+    return t[keep].round(4).tolist(), level[keep].tolist()
+
+
 def _mean_rate(t: np.ndarray, n: np.ndarray, lo: float, hi: float) -> float | None:
     if hi - lo <= 0:
         return None
@@ -194,6 +201,7 @@ def run_governor_hog(*, seconds: float = 25.0, hog_after: float = 10.0, hog_proc
         t0 = clock()
         cpu["quiet"], rendered["quiet"] = time.process_time(), loop.status()["frames_rendered"]
         hog_ns = t0 + int(hog_after * 1e9)
+        last = loop.status()
         for k in range(int(math.ceil(seconds))):
             end_ns = t0 + int(min(k + 1, seconds) * 1e9)
             if not hog and hog_ns <= end_ns:  # the hog starts inside this second
@@ -204,8 +212,10 @@ def run_governor_hog(*, seconds: float = 25.0, hog_after: float = 10.0, hog_proc
             st = loop.status()
             g = st["governor"]
             reasons.append(g["reason"])
-            say(f"t {k + 1:>3d} s  {f'hog ({n_hog} processes)' if hog else 'quiet':<17}  presents {st['fps']:5.1f}/s  "
-                f"renders {st['render_fps']:5.1f}/s  level {g['level']} ({g['rung']})")
+            say(f"t {k + 1:>3d} s  {f'hog ({n_hog} processes)' if hog else 'quiet':<17}  "
+                f"presents {st['frame_number'] - last['frame_number']:>3d}  renders {st['frames_rendered'] - last['frames_rendered']:>3d}  "
+                f"{g['rung']}")
+            last = st
         status = loop.status()
         cpu["end"], rendered["end"] = time.process_time(), status["frames_rendered"]
         records = list(loop.frame_log)
@@ -241,6 +251,7 @@ def run_governor_hog(*, seconds: float = 25.0, hog_after: float = 10.0, hog_proc
         rows += _quality_rows(cfg, held, say)
     series = {name: tuple(np.round(x, 4).tolist() for x in trailing_rate(ev[f"{name}_t"], ev[f"{name}_n"], seconds))
               for name in ("present", "render")}
+    series["level"] = level_steps(ev)
     return {"rows": rows, "series": series}
 
 
@@ -309,23 +320,27 @@ def plot(result: dict, path: str | Path, title: str = "") -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     rows = result["rows"]
     s = next(r for r in rows if r["kind"] == "summary")
-    sec = [r for r in rows if r["kind"] == "second"]
     fig = Figure(figsize=(11, 4.8), dpi=100, layout="constrained")
     ax = fig.subplots()
+    same = s["present_threshold_fps"] == s["render_threshold_fps"]
     for name, colour in (("present", "tab:blue"), ("render", "tab:orange")):
         grid, rate = result["series"][name]
         ax.plot(grid, rate, color=colour, lw=1.2, label=f"{name}s/s (trailing {WINDOW_S:g} s)")
-        ax.axhline(s[f"{name}_threshold_fps"], color=colour, ls=":", lw=1,
-                   label=f"{name} threshold {s[f'{name}_threshold_fps']:g}/s")
+        if not (same and name == "render"):
+            ax.axhline(s[f"{name}_threshold_fps"], color="0.3" if same else colour, ls=":", lw=1.2,
+                       label=f"{'threshold' if same else name + ' threshold'} {s[f'{name}_threshold_fps']:g}/s "
+                             f"(target × (1 − {s['threshold_margin']:g}))")
     ax.axvline(s["hog_after_s"], color="k", lw=1.2, ls="--", label=f"hog starts ({s['hog_processes']} busy processes)")
     ax.axvspan(s["hog_after_s"], s["seconds"], color="0.9", zorder=0)
     ax.set(xlabel="time since the measurement started (s)", ylabel="frames per second", xlim=(0, s["seconds"]), ylim=(0, None))
     ax.grid(alpha=0.3)
     lv = ax.twinx()
-    lv.step([r["t_s"] + 1 for r in sec], [np.nan if r["governor_level"] is None else r["governor_level"] for r in sec],
-            where="pre", color="tab:green", lw=1.5, label="governor level (end of each second)")
+    t, level = result["series"]["level"]
+    if level:
+        lv.step([*t, s["seconds"]], [*level, level[-1]], where="post", color="tab:green", lw=1.5,
+                label="governor level (at each present)")
     lv.set_ylabel("governor level (0: configured)")
-    lv.set_ylim(-0.2, max(4, *(r["governor_level_max"] or 0 for r in sec)) + 0.5)
+    lv.set_ylim(-0.2, max([4, *level]) + 0.5)
     handles = ax.get_legend_handles_labels()[0] + lv.get_legend_handles_labels()[0]
     ax.legend(handles, [h.get_label() for h in handles], fontsize=8, loc="lower left")
     ax.set_title(title or f"dpmhw bench governor: {s['scene']}, hog at {s['hog_after_s']:.1f} s")

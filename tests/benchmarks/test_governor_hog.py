@@ -83,6 +83,12 @@ def test_events_and_seconds_count_each_rendered_frame_once_and_the_unshown_ones(
     assert rows[0]["frame_ms_p50"] == pytest.approx(20.0)
 
 
+def test_level_steps_keep_the_first_present_and_each_change():
+    ev = gh.events(_records(0, seconds=4.0, level_from=(2.0, 3)), 0)
+    t, level = gh.level_steps(ev)
+    assert level == [0, 3] and t[0] == pytest.approx(0.5 / 60, abs=1e-4) and t[1] == pytest.approx(2.0, abs=1 / 60)
+
+
 def test_summary_thresholds_follow_the_governor_margin():
     t0 = 0
     ev = gh.events(_records(t0, seconds=6.0), t0)
@@ -103,6 +109,7 @@ def _result():
     quality = {"kind": "quality", "held": "configured", "level": 0, "filter": "lobe", "adaptive_rays": 2048, "psnr_db": 40.0,
                "psnr_db_object": 28.2, "cpu_ms": 33.0, "cpu_vs_level0": 1.0}
     series = {n: gh.trailing_rate(ev[f"{n}_t"], ev[f"{n}_n"], 6.0) for n in ("present", "render")}
+    series["level"] = gh.level_steps(ev)
     return {"rows": [*rows, summary, quality], "series": series}
 
 
