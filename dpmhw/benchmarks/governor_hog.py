@@ -47,6 +47,8 @@ SETTLED_AFTER_S = 2.0  # the "under the hog" rates leave out the hog's first 2 s
 def counted(t: np.ndarray, n: np.ndarray, x: np.ndarray) -> np.ndarray:
     """The running count `n` (non-decreasing, at the sorted event times `t`) at the times `x`:
     the count of the last event at or before each; 0 before the first."""
+    if not len(t):
+        return np.zeros(np.shape(x))
     i = np.searchsorted(t, x, side="right") - 1
     return np.where(i >= 0, np.asarray(n, float)[np.maximum(i, 0)], 0.0)
 

@@ -37,6 +37,15 @@ def test_recovery_after_a_dip_is_when_the_trailing_rate_is_back_and_stays():
     assert below == pytest.approx(2.1, abs=0.15)
 
 
+def test_no_events_give_zero_rates_and_empty_seconds():
+    ev = gh.events([], 0)
+    grid, rate = gh.trailing_rate(ev["render_t"], ev["render_n"], 3.0)
+    assert np.all(rate == 0)
+    rows = gh.second_rows(ev, 3.0, 1.0)
+    assert [(r["present_fps"], r["render_fps"], r["governor_level"]) for r in rows] == [(0, 0, None)] * 3
+    assert gh.level_steps(ev) == ([], [])
+
+
 def test_recovery_is_zero_without_a_dip_and_none_when_never_back():
     t = _times([(0, 20, 60)])
     grid, rate = gh.trailing_rate(t, np.arange(1, len(t) + 1), 20.0)
