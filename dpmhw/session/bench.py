@@ -404,7 +404,7 @@ def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int =
               **kw) -> dict:
     """Every trajectory with prediction and late reprojection on, prediction alone, and neither
     (unless not `cases`), each row with its CPU-ms per rendered frame against Mitsuba's 1-spp
-    frame (`mitsuba_ratio`, if `mitsuba`), then (if `api_clients`) the API-load comparison for
+    frame (`mitsuba_yardstick`, if `mitsuba`), then (if `api_clients`) the API-load comparison for
     each of `api_modes`. `progress(label)` hears each case begin, `note(text)` how its analysis goes."""
     results = []
     for case in [BenchCase(t, p, r) for t in trajectories for p, r in CASES] if cases else []:
@@ -414,7 +414,7 @@ def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int =
     if results and mitsuba:
         if progress is not None:
             progress("Mitsuba's 1-spp frame of the same scene")
-        yardstick = mitsuba_ratio(kw.get("width", 0), kw.get("height", 0), kw.get("overrides", ()))
+        yardstick = mitsuba_yardstick(kw.get("width", 0), kw.get("height", 0), kw.get("overrides", ()))
         for row in results:
             ratio = None if yardstick["mitsuba_cpu_ms"] is None else round(row["cpu_ms_per_rendered_frame"] / yardstick["mitsuba_cpu_ms"], 4)
             row.update(yardstick, cpu_over_mitsuba=ratio)
@@ -428,7 +428,7 @@ def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int =
     return {"cases": results, "api_load": load}
 
 
-def mitsuba_ratio(width: int = 0, height: int = 0, overrides: tuple[str, ...] = ()) -> dict:
+def mitsuba_yardstick(width: int = 0, height: int = 0, overrides: tuple[str, ...] = ()) -> dict:
     """Mitsuba 3's 1-spp frame of the session's scene at its output size and camera
     (`benchmarks.mitsuba.one_spp_frame`), as row keys; without mitsuba (or a scene it cannot
     take) the figures are None and `mitsuba_note` says why."""
@@ -461,13 +461,14 @@ def format_table(bench: dict) -> str:
             lines.append(f"  {r['case']:<50} {r['method']:<24} " + " ".join(
                 f"{r[f'{k}_ms_p50']:.2f}" if r[f"{k}_ms_p50"] is not None else "-" for k in STAGE_KEYS))
     if results:
-        r0 = results[0]
-        yardstick = ("Mitsuba: " + r0["mitsuba_note"] if r0.get("mitsuba_cpu_ms") is None else
-                     f"× Mitsuba {r0['mitsuba_version']} {r0['mitsuba_variant']}'s 1-spp frame of the same scene, size and camera, "
-                     f"{r0['mitsuba_cpu_ms']:.1f} CPU-ms ({r0['mitsuba_wall_ms']:.1f} ms wall, {r0['mitsuba_threads']} threads, "
-                     f"median of {r0['mitsuba_frames']}{'; ' + r0['mitsuba_note'] if r0['mitsuba_note'] else ''})") \
-            if "mitsuba_note" in r0 else ""
-        lines.append(f"CPU-ms per rendered frame (the session process){', and ' + yardstick if yardstick else ''}:")
+        r0, head = results[0], "CPU-ms per rendered frame (the session process)"
+        if r0.get("mitsuba_cpu_ms") is not None:
+            head += (f", and × Mitsuba {r0['mitsuba_version']} {r0['mitsuba_variant']}'s 1-spp frame of the same scene, size "
+                     f"and camera: {r0['mitsuba_cpu_ms']:.1f} CPU-ms ({r0['mitsuba_wall_ms']:.1f} ms wall, {r0['mitsuba_threads']} "
+                     f"threads, median of {r0['mitsuba_frames']}{'; ' + r0['mitsuba_note'] if r0['mitsuba_note'] else ''})")
+        elif r0.get("mitsuba_note"):
+            head += f" (Mitsuba: {r0['mitsuba_note']})"
+        lines.append(head + ":")
         for r in results:
             ratio = f" = {r['cpu_over_mitsuba']:.3f}×" if r.get("cpu_over_mitsuba") is not None else ""
             lines.append(f"  {r['case']:<50} {r['cpu_ms_per_rendered_frame']:.1f}{ratio}")

@@ -178,13 +178,13 @@ def test_bench_session_command(runner, tmp_path):
 
 def test_bench_session_mitsuba_yardstick_is_skipped_with_a_note(monkeypatch):
     from dpmhw.benchmarks import mitsuba as mb
-    from dpmhw.session.bench import mitsuba_ratio
+    from dpmhw.session.bench import mitsuba_yardstick
 
     def absent(*args, **kwargs):
         raise mb.MitsubaUnavailable("mitsuba is not installed: pip install -e '.[mitsuba]'")
 
     monkeypatch.setattr(mb, "one_spp_frame", absent)
-    row = mitsuba_ratio(64, 48)
+    row = mitsuba_yardstick(64, 48)
     assert row["mitsuba_cpu_ms"] is None and row["mitsuba_variant"] is None
     assert row["mitsuba_note"] == "skipped: mitsuba is not installed: pip install -e '.[mitsuba]'"
 
