@@ -111,7 +111,7 @@ def second_rows(ev: dict, seconds: float, hog_s: float, reasons: list[str] | Non
         rendered = (ev["render_t"] >= lo) & (ev["render_t"] < hi)
         before_lo, before_hi = counted(ev["render_t"], ev["render_n"], np.array([lo, hi]) - 1e-9)
         shown = ev["level"][presented]
-        rows.append({"kind": "second", "t_s": lo, "hog": lo >= hog_s, "present_fps": int(presented.sum()),
+        rows.append({"kind": "second", "t_s": lo, "hog": hi > hog_s, "present_fps": int(presented.sum()),
                      "render_fps": int(before_hi - before_lo),
                      "frame_ms_p50": round(float(np.median(ev["frame_ms"][rendered])), 3) if rendered.any() else None,
                      "governor_level": int(shown[-1]) if len(shown) else None,

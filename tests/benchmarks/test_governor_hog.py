@@ -88,6 +88,7 @@ def test_events_and_seconds_count_each_rendered_frame_once_and_the_unshown_ones(
     assert [r["present_fps"] for r in rows] == [60, 60, 60, 60]
     assert [r["render_fps"] for r in rows] == [31, 30, 30, 30]  # second 0 holds the unshown frame
     assert [r["hog"] for r in rows] == [False, False, True, True]
+    assert [r["hog"] for r in gh.second_rows(ev, 4.0, hog_s=1.5)] == [False, True, True, True]  # it ran in second 1
     assert [r["governor_level"] for r in rows] == [0, 0, 3, 3] and rows[3]["governor_reason"] == "d"
     assert rows[0]["frame_ms_p50"] == pytest.approx(20.0)
 
