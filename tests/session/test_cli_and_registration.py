@@ -161,7 +161,7 @@ def test_bench_session_command(runner, tmp_path):
     assert (tmp_path / "bench.png").stat().st_size > 10_000
     results = json.loads(out.read_text())
     assert not any("series" in x for x in results["cases"])  # plotted, not written as rows
-    assert [x["prediction"] for x in results["cases"]] == [True, False]
+    assert [(x["prediction"], x["reprojection"]) for x in results["cases"]] == [(True, True), (True, False), (False, False)]
     assert all(x["frames"] > 2 and x["registration_px_p50"] is not None for x in results["cases"])
     for x in results["cases"]:  # the flat row docs/session.md documents
         assert (x["output_width"], x["output_height"]) == (64, 48)
