@@ -11,9 +11,9 @@ the bench's own priority; default one per core) and run to the end. From the ses
 - **rates** every 0.1 s over a trailing 1-s window, for the plot and the recovery;
 - **recovery**: a rate is *below target* under `target × (1 − governor.down_margin)`, the
   governor's own threshold (the render target is `governor.target_fps`, the present target the
-  display's refresh). `*_recovery_s`: from the hog's start until the trailing rate is back at or
-  above the threshold and stays there for `SETTLE_S` (0 if it never dropped, None if it was not
-  back before the end); `*_below_s`: the time below the threshold after the hog started;
+  display's refresh). `*_recovery_s`: from the hog's start until, after the first dip, the
+  trailing rate is back at or above the threshold and stays there for `SETTLE_S` (0 if it never
+  dropped, None if it was not back before the end); `*_below_s`: the time below the threshold after the hog started;
 - then (unless `quality=False`) the PSNR inside the objects of the configuration the governor
   held just before the hog and at the end, beside the configured one
   (`governor_ladder.measure`: the session's stage offline on a few frames against the 64-spp
@@ -33,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["format_table", "plot", "recovery", "run_governor_hog", "second_rows", "trailing_rate"]
+__all__ = ["counted", "events", "format_table", "level_steps", "plot", "recovery", "run_governor_hog", "second_rows",
+           "summarize", "trailing_rate"]
 
 HOG_CODE = "while True: pass"
 WINDOW_S = 1.0  # the trailing window a rate is measured over
