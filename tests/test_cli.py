@@ -45,6 +45,8 @@ def test_help_shows_bracketed_defaults_and_no_bool_metavar():
     (["bench", "session", "--api-mode", "fork"], "--api-mode"),
     (["bench", "reproject", "--trajectory", "zigzag"], "--trajectory"),
     (["bench", "stages", "--trajectory", "zigzag"], "--trajectory"),
+    (["bench", "governor", "--trajectory", "zigzag"], "--trajectory"),
+    (["bench", "governor", "--hog-processes", "0"], "--hog-processes"),
     (["mock", "natnet", "--version", "5.0"], "--version"),
     (["mock", "natnet", "--data-port", "0"], "--data-port"),
     (["mock", "serial", "--model", "XX"], "--model"),
@@ -53,6 +55,11 @@ def test_bad_choices_fail_at_parse_time_naming_the_option(args, option):
     result = _run(*args)
     assert result.exit_code == 2
     assert f"Invalid value for '{option}'" in result.output
+
+
+def test_bench_governor_refuses_a_hog_after_the_end():
+    result = _run("bench", "governor", "--seconds", "5", "--hog-after", "5")
+    assert result.exit_code == 2 and "--hog-after 5 must be less than --seconds 5" in result.output
 
 
 def test_render_alpha_error_names_the_option(tmp_path):

@@ -48,25 +48,33 @@ def ladder_levels() -> list[dict]:
 
 
 def run(scene_name: str = "dpm-bunny", reps: int = 3) -> dict:
+    return dict(rows=measure(scene_name, ladder_levels(), reps), machine=machine_info())
+
+
+def measure(scene_name: str, configs: list[dict], reps: int = 1, frames: range = FRAMES, eval_k: tuple[int, ...] = EVAL_K,
+            shading_scale: float = 0.25) -> list[dict]:
+    """CPU-ms and PSNR (over the frame, inside the mesh objects) of each configuration in
+    `configs` (dicts with `level`, `filter`, `adaptive_rays`, `reuse_mode`, `alpha`; every `level`
+    distinct) on the timeline `frames` of the module doc, PSNR at the frames `eval_k` (in `frames`)."""
     native = with_fps(load_scene(scene_name), FPS)
     W, H = native.render.width, native.render.height
     meshes = [i for i, o in enumerate(native.objects) if o.shape == "mesh"]
     full = _Pipeline(native, 1.0, 2)
     try:
         refs = {k: ReferenceCache(None, threads=2).get(native, scene_name, k / FPS, 64, REFERENCE_SEED,
-                                                       integrator=full.integrator) for k in EVAL_K}
+                                                       integrator=full.integrator) for k in eval_k}
     finally:
         full.close()
-    runs = ladder_levels()
+    runs = list(configs)
     stats = {r["level"]: dict(cpu=[], obj=[], psnr=[]) for r in runs}
-    p = _Pipeline(native, 0.25, 2)
+    p = _Pipeline(native, shading_scale, 2)
     try:
         for rep in range(reps):
             stages = {r["level"]: ReconstructStage(
                 (W, H), (p.integrator.width, p.integrator.height), background=native.render.background,
                 viewer=native.viewer_position, gbuffer=p.gbuffer, adaptive=AdaptiveSampler(p.integrator, p.gbuffer, r["adaptive_rays"]))
                 for r in runs}
-            for i, k in enumerate(FRAMES):
+            for i, k in enumerate(frames):
                 poses = native.object_poses(k / FPS)
                 c0 = time.process_time()
                 frame = p.integrator.render(time=k / FPS, seed=k, spp=1, poses=poses)
@@ -93,7 +101,7 @@ def run(scene_name: str = "dpm-bunny", reps: int = 3) -> dict:
                          psnr_db=float(np.mean(s["psnr"])), psnr_db_object=float(np.mean(s["obj"]))))
     for row in rows:
         row["cpu_vs_level0"] = row["cpu_ms"] / rows[0]["cpu_ms"]
-    return dict(rows=rows, machine=machine_info())
+    return rows
 
 
 def main() -> None:

@@ -228,9 +228,9 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
             raise RuntimeError(f"bench {case.label}: the session did not start: {loop.status()['reason']}")
         time.sleep(warmup_s)
         before = loop.status()
-        first, late_before = before["frame_number"], before["counters"].get("late_presents", 0)
+        first, late_before, cpu0 = before["frame_number"], before["counters"].get("late_presents", 0), time.process_time()
         time.sleep(seconds)
-        status = loop.status()
+        status, cpu_s = loop.status(), time.process_time() - cpu0
         records = [r for r in list(loop.frame_log) if r.number > first and r.number <= status["frame_number"]]
         world = loop.parts.mock.world
         video = list(loop.parts.mock.video.exposures) if getattr(loop.parts.mock, "video", None) is not None else None
@@ -272,6 +272,8 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         "frames": len(records), "fps": round((len(records) - 1) / span_s, 2) if span_s > 0 else 0.0,
         "fps_median": round(1.0 / float(np.median(intervals_s)), 2) if len(intervals_s) and np.median(intervals_s) > 0 else 0.0,
         "render_fps": round((len(rendered) - 1) / span_s, 2) if span_s > 0 else 0.0,
+        # the session process's CPU (frame, present, tracker and mock threads) per rendered frame
+        "cpu_ms_per_rendered_frame": round(cpu_s * 1e3 / max(1, status["frames_rendered"] - before["frames_rendered"]), 3),
         "late_presents": status["counters"].get("late_presents", 0) - late_before,  # while measured
         **_light_counts(video, records),
         # the quality governor's levels over the measured frames (0: the configured settings) and its last reason
@@ -418,15 +420,24 @@ CASES = ((True, True), (True, False), (False, False))  # (prediction, late repro
 
 def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int = 4, api_rate_hz: float = 10.0,
               api_modes: tuple[str, ...] = ("process", "thread"), api_windows: int = 6, api_window_s: float = 3.0,
-              api_client_priority: str = "normal", cases: bool = True, progress=None, note=None, **kw) -> dict:
+              api_client_priority: str = "normal", cases: bool = True, mitsuba: bool = True, progress=None, note=None,
+              **kw) -> dict:
     """Every trajectory with prediction and late reprojection on, prediction alone, and neither
-    (unless not `cases`), then (if `api_clients`) the API-load comparison for each of `api_modes`.
-    `progress(label)` hears each case begin, `note(text)` how its analysis goes."""
+    (unless not `cases`), each row with its CPU-ms per rendered frame against Mitsuba's 1-spp
+    frame (`mitsuba_yardstick`, if `mitsuba`), then (if `api_clients`) the API-load comparison for
+    each of `api_modes`. `progress(label)` hears each case begin, `note(text)` how its analysis goes."""
     results = []
     for case in [BenchCase(t, p, r) for t in trajectories for p, r in CASES] if cases else []:
         if progress is not None:
             progress(case.label)
         results.append(run_case(case, progress=note, **kw))
+    if results and mitsuba:
+        if progress is not None:
+            progress("Mitsuba's 1-spp frame of the same scene")
+        yardstick = mitsuba_yardstick(kw.get("width", 0), kw.get("height", 0), kw.get("overrides", ()))
+        for row in results:
+            ratio = None if yardstick["mitsuba_cpu_ms"] is None else round(row["cpu_ms_per_rendered_frame"] / yardstick["mitsuba_cpu_ms"], 4)
+            row.update(yardstick, cpu_over_mitsuba=ratio)
     load = []
     if api_clients:
         if progress is not None:
@@ -435,6 +446,22 @@ def run_bench(trajectories=("linear", "rotate-oscillate"), *, api_clients: int =
         load = run_load_case(trajectories[-1], modes=api_modes, clients=api_clients, rate_hz=api_rate_hz,
                              client_priority=api_client_priority, windows=api_windows, window_s=api_window_s, **size)
     return {"cases": results, "api_load": load}
+
+
+def mitsuba_yardstick(width: int = 0, height: int = 0, overrides: tuple[str, ...] = ()) -> dict:
+    """Mitsuba 3's 1-spp frame of the session's scene at its output size and camera
+    (`benchmarks.mitsuba.one_spp_frame`), as row keys; without mitsuba (or a scene it cannot
+    take) the figures are None and `mitsuba_note` says why."""
+    from dpmhw.benchmarks.mitsuba import MitsubaUnavailable, one_spp_frame
+    from dpmhw.errors import SceneError
+    from dpmhw.session.factory import prepare_scene
+
+    cfg = load_session_config(overrides=[f"render.width={width}", f"render.height={height}", *overrides])
+    try:
+        return one_spp_frame(prepare_scene(cfg), threads=cfg.render.threads)
+    except (MitsubaUnavailable, SceneError) as exc:
+        return {"mitsuba_variant": None, "mitsuba_threads": None, "mitsuba_frames": 0, "mitsuba_cpu_ms": None,
+                "mitsuba_wall_ms": None, "mitsuba_version": None, "mitsuba_note": f"skipped: {exc}"}
 
 
 def format_table(bench: dict) -> str:
@@ -455,6 +482,18 @@ def format_table(bench: dict) -> str:
         for r in results:
             lines.append(f"  {r['case']:<50} {r['method']:<24} " + " ".join(
                 f"{r[f'{k}_ms_p50']:.2f}" if r[f"{k}_ms_p50"] is not None else "-" for k in STAGE_KEYS))
+    if results:
+        r0, head = results[0], "CPU-ms per rendered frame (the session process)"
+        if r0.get("mitsuba_cpu_ms") is not None:
+            head += (f", and × Mitsuba {r0['mitsuba_version']} {r0['mitsuba_variant']}'s 1-spp frame of the same scene, size "
+                     f"and camera: {r0['mitsuba_cpu_ms']:.1f} CPU-ms ({r0['mitsuba_wall_ms']:.1f} ms wall, {r0['mitsuba_threads']} "
+                     f"threads, median of {r0['mitsuba_frames']}{'; ' + r0['mitsuba_note'] if r0['mitsuba_note'] else ''})")
+        elif r0.get("mitsuba_note"):
+            head += f" (Mitsuba: {r0['mitsuba_note']})"
+        lines.append(head + ":")
+        for r in results:
+            ratio = f" = {r['cpu_over_mitsuba']:.3f}×" if r.get("cpu_over_mitsuba") is not None else ""
+            lines.append(f"  {r['case']:<50} {r['cpu_ms_per_rendered_frame']:.1f}{ratio}")
     for load in bench.get("api_load") or []:
         u, b = load["unloaded_frame_ms"], load["loaded_frame_ms"]
         where = "own process" if load["api_mode"] == "process" else "thread of the session process"

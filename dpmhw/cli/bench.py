@@ -10,6 +10,7 @@ import typer
 from dpmhw.cli.apps import bench_app, write_json
 from dpmhw.cli.choices import BenchTrajectory, QualityPart
 from dpmhw.cli.optional_value import optional_values
+from dpmhw.cli.session import SetOpt
 from dpmhw.progress import Progress
 
 
@@ -349,3 +350,36 @@ def bench_stages(
     if json_path is not None:
         keep = {k: result[k] for k in ("scene", "size", "shading", "trajectory", "digest_out", "digest_in") if k in result}
         typer.echo(f"wrote {write_json([{**keep, **r} for r in result['rows']], json_path)}")
+
+
+@bench_app.command("governor")
+def bench_governor(
+    seconds: Annotated[float, typer.Option(min=3.0, max=3600.0, help="Measured seconds (after the warm-up).")] = 25.0,
+    hog_after: Annotated[float, typer.Option(min=1.0, help="Seconds into the measurement the CPU hog starts (it runs to the end).")] = 10.0,
+    hog_processes: Annotated[Optional[int], typer.Option(min=1, max=64, help="Busy processes of the hog, at this command's priority [default: one per core].")] = None,
+    trajectory: Annotated[BenchTrajectory, typer.Option(help="The mock's trajectory.")] = BenchTrajectory("rotate-oscillate"),
+    quality: Annotated[bool, typer.Option("--quality/--no-quality", help="Afterwards, PSNR inside the objects of the configurations the governor held, beside the configured one (offline, a few frames).")] = True,
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the rows (per second, summary, quality) as JSON here.")] = None,
+    plot: Annotated[Path, typer.Option(help="Plot of the rates over time, the hog's start and the governor's level (PNG).")] = Path("bench-governor/bench-governor.png"),
+    sets: SetOpt = None,
+) -> None:
+    """The quality governor against a real CPU hog: a --mock session, busy processes started
+    mid-run; present and render rates per second, the governor's level, the time until the rate
+    is back above target (docs/session.md)."""
+    from dpmhw.benchmarks.governor_hog import format_table, run_governor_hog
+    from dpmhw.benchmarks.governor_hog import plot as plot_hog
+    from dpmhw.errors import DpmhwError
+    from dpmhw.machine import machine_line
+
+    if hog_after >= seconds:
+        raise typer.BadParameter(f"--hog-after {hog_after:g} must be less than --seconds {seconds:g}")
+    try:
+        result = run_governor_hog(seconds=seconds, hog_after=hog_after, hog_processes=hog_processes, trajectory=trajectory.value,
+                                  overrides=tuple(sets or ()), quality=quality, progress=typer.echo)
+    except DpmhwError as exc:  # e.g. a --set the config refuses
+        typer.secho(f"error: {exc}", fg="red", err=True)
+        raise typer.Exit(2)
+    typer.echo(format_table(result["rows"]))
+    typer.echo(f"wrote {plot_hog(result, plot, title=f'dpmhw bench governor ({machine_line()})')}")
+    if json_path is not None:
+        typer.echo(f"wrote {write_json(result['rows'], json_path)}")

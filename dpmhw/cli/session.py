@@ -176,6 +176,7 @@ def bench_session(
     api_window_s: Annotated[float, typer.Option(min=0.5, max=60.0, help="Seconds per load window.")] = 3.0,
     client_priority: Annotated[ClientPriority, typer.Option(help="CPU priority of the load-client process: normal (the strict test: it competes with the loop like any local program), low, idle (as if the clients were on another machine).")] = ClientPriority("normal"),
     api_only: Annotated[bool, typer.Option("--api-only", help="Only the API-load case (skip the registration cases).")] = False,
+    mitsuba: Annotated[bool, typer.Option("--mitsuba/--no-mitsuba", help="Time Mitsuba 3's 1-spp frame of the same scene after the cases and give each case's CPU-ms per rendered frame as a ratio to it (skipped, with a note, without the mitsuba extra).")] = True,
     trajectory: Annotated[Optional[list[BenchTrajectory]], typer.Option(help="Repeatable; default: linear and rotate-oscillate.")] = None,
     display: Annotated[DisplayModeChoice, typer.Option(help="The projector's display mode: video (one 24-bit frame per refresh) or pattern-8bit (three 8-bit sub-frames per refresh, one per colour channel).")] = DisplayModeChoice("video"),
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
@@ -191,7 +192,7 @@ def bench_session(
         raise typer.BadParameter("--api-only needs --api-clients ≥ 1")
     from dpmhw.progress import Progress
 
-    steps = (0 if api_only else len(CASES) * len(trajectories)) + (1 if api_clients else 0)  # run_bench's progress() calls
+    steps = (0 if api_only else len(CASES) * len(trajectories) + int(mitsuba)) + (1 if api_clients else 0)  # run_bench's progress() calls
     with Progress() as bar:
         task = bar.task("bench session", total=steps)
         started: list[str] = []
@@ -205,7 +206,7 @@ def bench_session(
 
         results = run_bench(trajectories, api_clients=api_clients, api_rate_hz=api_rate, api_modes=modes,
                             api_windows=api_windows, api_window_s=api_window_s, api_client_priority=client_priority.value,
-                            cases=not api_only, seconds=seconds,
+                            cases=not api_only, mitsuba=mitsuba, seconds=seconds,
                             width=width, height=height, spp=spp, overrides=(f"display.mode={display.value}", *(sets or ())),
                             progress=on_step, note=on_note)
         task.update(steps, description="bench session")

@@ -3,6 +3,7 @@
 The conversion tests need mitsuba (`pip install -e '.[mitsuba]'`) and skip without it; the
 camera ones use the scalar variant, the render one the LLVM variant and a libLLVM ≥ 16."""
 
+import dataclasses
 import sys
 import textwrap
 
@@ -249,3 +250,19 @@ def test_the_textured_bunny_agrees_with_mitsuba_tile_by_tile(tmp_path):
     # sRGB-decoded or filtered otherwise moves checker tiles by ≫ 2 %
     worst = max(tiles, key=lambda r: abs(r["rel_diff"]))
     assert abs(worst["rel_diff"]) < max(0.02, 3 * worst["rel_stderr"]), worst
+
+
+def test_one_spp_frame_times_what_the_conversion_refuses_and_says_what_it_changed(room):
+    """The cost yardstick of `bench session`: a separate viewer and lens distortion are changed
+    (the same rays), said in the note; a variant this build lacks falls back to the next."""
+    pytest.importorskip("mitsuba")
+    scene = room(width=32, height=24, f=30.0, cx=15.5, cy=11.5)
+    scene = dataclasses.replace(scene, viewer_position=scene.camera.pose.t + 0.3,
+                                camera=dataclasses.replace(scene.camera, dist=np.array([0.01, 0, 0, 0, 0])))
+    row = mb.one_spp_frame(scene, frames=3, threads=1, variants=("no_such_variant", "scalar_rgb"))
+    assert row["mitsuba_variant"] == "scalar_rgb" and row["mitsuba_frames"] == 3
+    assert row["mitsuba_cpu_ms"] > 0 and row["mitsuba_wall_ms"] > 0
+    for said in ("towards the camera", "without lens distortion", "fell back to scalar_rgb"):
+        assert said in row["mitsuba_note"]
+    with pytest.raises(mb.MitsubaUnavailable, match="no_such_variant"):
+        mb.one_spp_frame(scene, frames=3, variants=("no_such_variant",))

@@ -182,10 +182,25 @@ def test_bench_session_command(runner, tmp_path):
                 "repeated_windows"} <= set(x)
         assert x["new_windows_per_s"] > 0  # the emulated projector lit new pictures
         assert not any(isinstance(v, (dict, list)) for v in x.values())
+        assert x["cpu_ms_per_rendered_frame"] > 0 and x["mitsuba_note"] is not None  # skipped (with why) without mitsuba
+        assert (x["cpu_over_mitsuba"] is None) == (x["mitsuba_cpu_ms"] is None)
     assert [x["api_mode"] for x in results["api_load"]] == ["process", "thread"]
     for load in results["api_load"]:
         assert load["requests"] > 0 and load["errors"] == 0 and load["loaded_frames"] > 0 and load["unloaded_frames"] > 0
     assert "API in its own process: 2 clients" in r.output and "API in its thread of the session process" in r.output
+
+
+def test_bench_session_mitsuba_yardstick_is_skipped_with_a_note(monkeypatch):
+    from dpmhw.benchmarks import mitsuba as mb
+    from dpmhw.benchmarks.session import mitsuba_yardstick
+
+    def absent(*args, **kwargs):
+        raise mb.MitsubaUnavailable("mitsuba is not installed: pip install -e '.[mitsuba]'")
+
+    monkeypatch.setattr(mb, "one_spp_frame", absent)
+    row = mitsuba_yardstick(64, 48)
+    assert row["mitsuba_cpu_ms"] is None and row["mitsuba_variant"] is None
+    assert row["mitsuba_note"] == "skipped: mitsuba is not installed: pip install -e '.[mitsuba]'"
 
 
 def test_the_tracker_hint_is_a_command_the_cli_accepts(runner):
