@@ -44,7 +44,7 @@ __all__ = ["ENDPOINTS", "Flood", "Probes", "Storm", "measure", "summarise"]
 ENDPOINTS = ("status", "frame", "patch_noop", "patch_change")
 
 
-def _clients(port: int, clients: int, token: str, timeout_s: float, priority: str, ready, active, stop,
+def _clients(port: int, clients: int, token: str, timeout_s: float, priority: str, active, stop, ready,
              out) -> None:
     """The storm's process: `clients` threads, each on one keep-alive connection; every response's
     endpoint, status code (0: timed out or failed) and seconds go to `out` when they stop."""
@@ -102,37 +102,29 @@ def _clients(port: int, clients: int, token: str, timeout_s: float, priority: st
         t.join()
 
 
-class Storm:
-    """`clients` storm clients in a spawned process; they send only while `active` is set."""
+class _Spawned:
+    """A spawned helper process, `target(*args, active, stop, ready, out)`: it works while
+    `active` is set and puts what it found on `out` when `stop` is set (`_collect` takes it)."""
 
-    def __init__(self, port: int, clients: int, token: str, timeout_s: float = 10.0, priority: str = "normal"):
+    def __init__(self, name: str, target, args: tuple):
         ctx = multiprocessing.get_context("spawn")
         self.ready, self.active, self._stop = ctx.Event(), ctx.Event(), ctx.Event()
         self._out = ctx.Queue()
-        self.clients = clients
-        self.process = ctx.Process(target=_clients, name="api-storm", daemon=True,
-                                   args=(port, clients, token, timeout_s, priority, self.ready, self.active,
-                                         self._stop, self._out))
-        self._records: list[tuple[int, int, float]] = []
-        self.lost = 0  # clients whose records never arrived (stuck past the stop)
+        self.process = ctx.Process(target=target, name=name, daemon=True,
+                                   args=(*args, self.active, self._stop, self.ready, self._out))
 
-    def __enter__(self) -> "Storm":
+    def __enter__(self):
         self.process.start()
         if not self.ready.wait(60):
             self.close()
-            raise RuntimeError("the storm's client process did not start")
+            raise RuntimeError(f"the {self.process.name} process did not start")
         return self
 
-    def close(self, wait_s: float = 30.0) -> None:
-        """Stop the clients (each finishes or times out its request) and collect their records."""
+    def close(self) -> None:
         self.active.clear()
         self._stop.set()
-        deadline = time.monotonic() + wait_s
-        for _ in range(self.clients if self.process.pid is not None else 0):
-            try:
-                self._records += self._out.get(timeout=max(0.1, deadline - time.monotonic()))
-            except queue.Empty:
-                self.lost += 1
+        if self.process.pid is not None:
+            self._collect()
         self.process.join(5)
         if self.process.is_alive():
             self.process.kill()
@@ -140,6 +132,28 @@ class Storm:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    def _collect(self) -> None:
+        raise NotImplementedError
+
+
+class Storm(_Spawned):
+    """`clients` storm clients in a spawned process; they send only while `active` is set."""
+
+    def __init__(self, port: int, clients: int, token: str, timeout_s: float = 10.0, priority: str = "normal"):
+        super().__init__("api-storm", _clients, (port, clients, token, timeout_s, priority))
+        self.clients = clients
+        self._records: list[tuple[int, int, float]] = []
+        self.lost = 0  # clients whose records never arrived (stuck past the stop)
+
+    def _collect(self, wait_s: float = 30.0) -> None:
+        """Each client finishes or times out its request, then sends its records."""
+        deadline = time.monotonic() + wait_s
+        for _ in range(self.clients):
+            try:
+                self._records += self._out.get(timeout=max(0.1, deadline - time.monotonic()))
+            except queue.Empty:
+                self.lost += 1
 
     def results(self) -> np.ndarray:
         """One row per response: endpoint index (`ENDPOINTS`), status code (0: failed), seconds."""
@@ -203,38 +217,19 @@ def _flood(host: str, port: int, connections: int, active, stop, ready, out) -> 
     out.put(opened)
 
 
-class Flood:
+class Flood(_Spawned):
     """`connections` idle and half-sent connections to the API, held from a spawned process while
     `active` is set (see `_flood`)."""
 
     def __init__(self, port: int, connections: int, host: str = "127.0.0.1"):
-        ctx = multiprocessing.get_context("spawn")
-        self.ready, self.active, self._stop = ctx.Event(), ctx.Event(), ctx.Event()
-        self._out = ctx.Queue()
+        super().__init__("api-flood", _flood, (host, port, connections))
         self.opened = 0
-        self.process = ctx.Process(target=_flood, name="api-flood", daemon=True,
-                                   args=(host, port, connections, self.active, self._stop, self.ready, self._out))
 
-    def __enter__(self) -> "Flood":
-        self.process.start()
-        if not self.ready.wait(60):
-            self.close()
-            raise RuntimeError("the flood's process did not start")
-        return self
-
-    def close(self) -> None:
-        self._stop.set()
+    def _collect(self) -> None:
         try:
             self.opened = self._out.get(timeout=30)
         except queue.Empty:
             pass
-        self.process.join(5)
-        if self.process.is_alive():
-            self.process.kill()
-            self.process.join(5)
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def _probe(urls: list[str], period_s: float, timeout_s: float, active, stop, ready, out) -> None:
@@ -267,39 +262,20 @@ def _probe(urls: list[str], period_s: float, timeout_s: float, active, stop, rea
     out.put(got)
 
 
-class Probes:
+class Probes(_Spawned):
     """`GET /status` probes (an operator's, on fresh connections) to each of `urls`, from a
     spawned process, while `active` is set."""
 
     def __init__(self, urls: list[str], period_s: float = 0.1, timeout_s: float = 10.0):
-        ctx = multiprocessing.get_context("spawn")
+        super().__init__("api-probes", _probe, (urls, period_s, timeout_s))
         self.urls = urls
-        self.ready, self.active, self._stop = ctx.Event(), ctx.Event(), ctx.Event()
-        self._out = ctx.Queue()
         self._records: list[tuple[int, int, float]] = []
-        self.process = ctx.Process(target=_probe, name="api-probes", daemon=True,
-                                   args=(urls, period_s, timeout_s, self.active, self._stop, self.ready, self._out))
 
-    def __enter__(self) -> "Probes":
-        self.process.start()
-        if not self.ready.wait(60):
-            self.close()
-            raise RuntimeError("the probes' process did not start")
-        return self
-
-    def close(self) -> None:
-        self._stop.set()
+    def _collect(self) -> None:
         try:
             self._records += self._out.get(timeout=30)
         except queue.Empty:
             pass
-        self.process.join(5)
-        if self.process.is_alive():
-            self.process.kill()
-            self.process.join(5)
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def summary(self, names: list[str]) -> dict:
         """Per url (named by `names`): requests, codes, p50/p99/max latency (ms)."""

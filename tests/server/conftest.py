@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import socket
+
 import pytest
 from fastapi.testclient import TestClient
 
@@ -24,3 +26,14 @@ def loop():
 def client(loop):
     with TestClient(build_app(runtime=loop, token=TOKEN), base_url="http://127.0.0.1") as c:
         yield c
+
+
+def closed_by_server(sock: socket.socket) -> bool:
+    """Whether the server has closed (or reset) this connection; never blocks."""
+    sock.setblocking(False)
+    try:
+        return sock.recv(4096) == b""
+    except BlockingIOError:
+        return False
+    except ConnectionError:
+        return True

@@ -21,6 +21,7 @@ import pytest
 from dpmhw.session.testing import fake_session, wait_for
 from server.guard import ConnectionLimits
 from server.process import ApiProcess
+from tests.server.conftest import closed_by_server
 
 WAIT_S = 60
 TOKEN = "flood-token"
@@ -51,17 +52,6 @@ def _session_and_api(fd_limit: int | None = None, **kw):
         loop.stop()
 
 
-def _closed_by_server(sock: socket.socket) -> bool:
-    """Whether the server has closed (or reset) this connection; never blocks."""
-    sock.setblocking(False)
-    try:
-        return sock.recv(4096) == b""
-    except BlockingIOError:
-        return False
-    except ConnectionError:
-        return True
-
-
 def _flood(api: ApiProcess, n: int) -> list[socket.socket]:
     """`n` connections that never finish a request: a third send nothing, a third half a request
     line, a third a request head without its end."""
@@ -90,7 +80,7 @@ def test_blank_and_status_answer_through_a_flood_beyond_the_descriptor_limit():
         try:
             # the cap is below the API process's descriptor limit: it never ran out of them
             cap = FD_LIMIT - limits.reserved_fds
-            assert wait_for(lambda: sum(not _closed_by_server(s) for s in socks) <= cap, WAIT_S)
+            assert wait_for(lambda: sum(not closed_by_server(s) for s in socks) <= cap, WAIT_S)
             assert len(os.listdir(f"/proc/{api.process.pid}/fd")) < FD_LIMIT
             with httpx.Client(base_url=api.url, timeout=WAIT_S) as fresh:  # a new connection, as an operator's
                 assert fresh.get("/status").status_code == 200
@@ -128,11 +118,11 @@ def test_idle_half_sent_streaming_and_oversized_requests_are_cut_off():
         socks.append(trickle)
         try:
             deadline = time.monotonic() + WAIT_S
-            while time.monotonic() < deadline and not all(_closed_by_server(s) for s in socks):
+            while time.monotonic() < deadline and not all(closed_by_server(s) for s in socks):
                 with contextlib.suppress(OSError):
                     trickle.send(b"G")
                 time.sleep(0.1)
-            assert [_closed_by_server(s) for s in socks] == [True] * len(socks)
+            assert [closed_by_server(s) for s in socks] == [True] * len(socks)
             assert client.get("/status").json()["api"]["connections"]["timed_out"] >= 4  # keep-alive: uvicorn's own
             assert loop.settings().alpha != 100  # the half-sent body was never applied
         finally:
@@ -152,7 +142,7 @@ def test_idle_half_sent_streaming_and_oversized_requests_are_cut_off():
                     got += chunk
             with httpx.Client(base_url=api.url, timeout=WAIT_S) as fresh:
                 assert fresh.get("/status").status_code == 200
-            assert wait_for(lambda: all(_closed_by_server(s) for s in streams[:4]), WAIT_S)
+            assert wait_for(lambda: all(closed_by_server(s) for s in streams[:4]), WAIT_S)
         finally:
             for s in streams:
                 s.close()

@@ -23,6 +23,7 @@ from dpmhw.session.testing import fake_session, wait_for
 from server.guard import ConnectionLimits
 from server.operator_port import OperatorListener
 from server.process import ApiProcess
+from tests.server.conftest import closed_by_server
 
 WAIT_S = 60
 TOKEN = "operator-token"
@@ -78,16 +79,6 @@ def _raw(listener: OperatorListener, data: bytes) -> tuple[int, dict, dict]:
     headers = {k.lower(): v.strip() for k, _, v in (line.partition(":") for line in lines[1:])}
     assert int(headers["content-length"]) == len(body) and headers["connection"] == "close"
     return int(lines[0].split()[1]), headers, json.loads(body)
-
-
-def _closed_by_server(sock: socket.socket) -> bool:
-    sock.setblocking(False)
-    try:
-        return sock.recv(4096) == b""
-    except BlockingIOError:
-        return False
-    except ConnectionError:
-        return True
 
 
 def test_blank_and_status_over_plain_http():
@@ -161,8 +152,8 @@ def test_at_its_cap_a_new_connection_evicts_the_longest_waiting():
     with _listener(request_timeout_s=600, max_connections=3) as (listener, doubles):
         idle = [socket.create_connection((listener.host, listener.port), timeout=WAIT_S) for _ in range(10)]
         try:
-            assert wait_for(lambda: sum(not _closed_by_server(s) for s in idle) <= 3, WAIT_S)
-            assert not any(_closed_by_server(s) for s in idle[-2:])  # the newest kept their places
+            assert wait_for(lambda: sum(not closed_by_server(s) for s in idle) <= 3, WAIT_S)
+            assert not any(closed_by_server(s) for s in idle[-2:])  # the newest kept their places
             code, _, body = _raw(listener, b"POST /session/blank HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer "
                                  + TOKEN.encode() + b"\r\n\r\n")
             assert code == 200 and doubles.blanks == 1
