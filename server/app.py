@@ -37,7 +37,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from dpmhw import __version__
 from server.deps import Runtime, RuntimeBusy, RuntimeUnavailable, bearer_problem
-from server.pages import PAGE_CSP, add_pages
+from server.pages import PAGE_CSP, add_pages, page_csp
 from server.routers import session, settings, status
 
 __all__ = [
@@ -196,8 +196,9 @@ class _SecurityHeaders:
     HEADERS = ((b"x-frame-options", b"DENY"), (b"x-content-type-options", b"nosniff"),
                (b"referrer-policy", b"no-referrer"))
 
-    def __init__(self, app: ASGIApp):
+    def __init__(self, app: ASGIApp, csp: str = PAGE_CSP):
         self.app = app
+        self.csp = csp.encode()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -210,7 +211,7 @@ class _SecurityHeaders:
                 present = {k.lower() for k, _ in headers}
                 headers += [(k, v) for k, v in self.HEADERS if k not in present]
                 if b"content-security-policy" not in present:
-                    headers.append((b"content-security-policy", PAGE_CSP.encode()))
+                    headers.append((b"content-security-policy", self.csp))
                 message = {**message, "headers": headers}
             await send(message)
 
@@ -240,7 +241,7 @@ def _validation_errors(exc: RequestValidationError) -> list[dict]:
 def build_app(runtime: Runtime, *, token: str | None = None, trusted_hosts: list[str] | tuple[str, ...] | None = None,
               max_body_bytes: int = MAX_BODY_BYTES, max_headers: int = MAX_HEADERS,
               max_header_bytes: int = MAX_HEADER_BYTES,
-              max_concurrent_requests: int = MAX_CONCURRENT_REQUESTS) -> FastAPI:
+              max_concurrent_requests: int = MAX_CONCURRENT_REQUESTS, operator_port: int | None = None) -> FastAPI:
     """The service over `runtime`; `token` guards the mutating routes (None reads DPMHW_API_TOKEN;
     no token at all: they all answer 401). `trusted_hosts` are the Host names clients may use
     (None: DPMHW_API_HOSTS, comma-separated, else loopback names only). The caller owns the
@@ -261,7 +262,7 @@ def build_app(runtime: Runtime, *, token: str | None = None, trusted_hosts: list
     app.add_middleware(_GuardMutations, max_body_bytes=max_body_bytes)
     app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(trusted_hosts))
     app.add_middleware(_LimitHeaders, max_headers=max_headers, max_bytes=max_header_bytes)
-    app.add_middleware(_SecurityHeaders)
+    app.add_middleware(_SecurityHeaders, csp=page_csp(trusted_hosts, operator_port))
 
     @app.exception_handler(RuntimeUnavailable)
     async def unavailable(request: Request, exc: RuntimeUnavailable) -> JSONResponse:

@@ -49,7 +49,7 @@ __all__ = ["OperatorListener"]
 
 log = logging.getLogger(__name__)
 
-ROUTES = {"/session/blank": "POST", "/status": "GET"}
+ROUTES = {"/session/blank": "POST", "/status": "GET"}  # and OPTIONS /session/blank: the operator page's preflight
 # JSON only here, so nothing may load, sniff or frame it (the main API's pages have their own policy)
 _HEADERS = ((b"Content-Type", b"application/json"), (b"Cache-Control", b"no-store"), (b"Connection", b"close"),
             (b"X-Content-Type-Options", b"nosniff"), (b"X-Frame-Options", b"DENY"),
@@ -77,19 +77,20 @@ class OperatorListener:
                  status: Callable[[], bytes], token: str, trusted_hosts: list[str] | tuple[str, ...],
                  max_connections: int = 8, request_timeout_s: float = 2.0, max_head_bytes: int = 8 * 1024,
                  max_headers: int = 64, max_body_bytes: int = 1024, status_per_s: float = 50.0,
-                 clock: Callable[[], float] = time.monotonic):
+                 page_port: int | None = None, clock: Callable[[], float] = time.monotonic):
         self.sock = sock
         self.host, self.port = sock.getsockname()[:2]
         self._blank, self._status, self.token = blank, status, token
         self.trusted_hosts = frozenset(h.strip("[]").lower() for h in trusted_hosts)
         self.max_connections, self.request_timeout_s = max_connections, request_timeout_s
         self.max_head_bytes, self.max_headers, self.max_body_bytes = max_head_bytes, max_headers, max_body_bytes
+        self.page_port = page_port  # the operator page's (the main API's) port: its blank may come here (CORS)
         self.clock = clock
         self._status_rate = TokenBucket(status_per_s, max(1, int(status_per_s)), clock)
         self._lock = threading.Lock()
         self._waiting: dict[socket.socket, None] = {}  # insertion order: the longest waiting first
         self._serving: set[socket.socket] = set()
-        self.counts = {"served": 0, "refused": 0, "evicted": 0, "timed_out": 0}
+        self.counts = {"served": 0, "refused": 0, "evicted": 0, "timed_out": 0, "blanks": 0}
         self._wake_r, self._wake_w = socket.socketpair()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -202,7 +203,7 @@ class OperatorListener:
                 parser.receive_data(self._recv(conn, deadline))
             elif isinstance(event, h11.Request):
                 request = event
-                self._admit(request)
+                origin = self._admit(request)
             elif isinstance(event, h11.Data):
                 body_bytes += len(event.data)
                 if body_bytes > self.max_body_bytes:
@@ -216,12 +217,19 @@ class OperatorListener:
                 raise _Evicted
             self._serving.add(conn)
         path = request.target.decode("latin-1").split("?", 1)[0]
+        cors = ((b"Access-Control-Allow-Origin", origin.encode()), (b"Vary", b"Origin")) if origin else ()
+        if request.method == b"OPTIONS":  # the operator page's preflight for its blank
+            return 204, b"", cors + ((b"Access-Control-Allow-Methods", b"POST"),
+                                     (b"Access-Control-Allow-Headers", b"Authorization"),
+                                     (b"Access-Control-Max-Age", b"600"))
         if path == "/status":
-            return 200, self._status(), ()
+            return 200, self._status(), cors
         ok, message, state = self._blank()
         if not ok:
-            return 500, _detail(f"the session failed to blank: {message}"), ()
-        return 200, json.dumps({"ok": True, "message": message, "state": state}).encode(), ()
+            return 500, _detail(f"the session failed to blank: {message}"), cors
+        with self._lock:
+            self.counts["blanks"] += 1
+        return 200, json.dumps({"ok": True, "message": message, "state": state}).encode(), cors
 
     def _recv(self, conn: socket.socket, deadline: float) -> bytes:
         left = deadline - self.clock()
@@ -240,15 +248,17 @@ class OperatorListener:
                     raise _Evicted
         return data  # b"": the client closed its side (h11 then sees the end)
 
-    def _admit(self, request: h11.Request) -> None:
-        """Refuse a request head at once, cheapest check first (before its body is read)."""
+    def _admit(self, request: h11.Request) -> str | None:
+        """Refuse a request head at once, cheapest check first (before its body is read); returns
+        its Origin when that is the operator page's (`_page_origin`), else None."""
         if len(request.headers) > self.max_headers:
             raise _Refused(431, f"the request has {len(request.headers)} headers; the limit is {self.max_headers}")
         path = request.target.decode("latin-1").split("?", 1)[0]
         method = request.method.decode("latin-1")
         if path not in ROUTES:
             raise _Refused(404, f"no {path[:80]!r} on the operator port: it answers POST /session/blank and GET /status")
-        if method != ROUTES[path]:
+        preflight = method == "OPTIONS" and path == "/session/blank"
+        if method != ROUTES[path] and not preflight:
             raise _Refused(405, f"{method[:16]} {path}: the operator port answers only {ROUTES[path]} here",
                            ((b"Allow", ROUTES[path].encode()),))
         headers = {}
@@ -257,6 +267,12 @@ class OperatorListener:
         host = headers.get("host", "")
         if _host_name(host) not in self.trusted_hosts:
             raise _Refused(400, f"Host header {host[:80]!r} is not one this service answers to")
+        origin = self._page_origin(headers.get("origin"))
+        if preflight:
+            if origin is None:
+                raise _Refused(403, f"Origin {headers.get('origin', '')[:80]!r}: only the operator page may ask "
+                                    "its way here")
+            return origin
         if path == "/session/blank":
             problem = bearer_problem(headers.get("authorization"), self.token)
             if problem is not None:
@@ -269,6 +285,18 @@ class OperatorListener:
             if wait_s > 0:
                 raise _Refused(429, f"too many status requests: at most {self._status_rate.rate:g} per second",
                                ((b"Retry-After", str(max(1, math.ceil(wait_s))).encode()),))
+        return origin
+
+    def _page_origin(self, origin: str | None) -> str | None:
+        """`origin` if it is the operator page's, http://<a host this service answers to>:<the
+        page's port>: a browser then lets that page read the answers here (CORS)."""
+        if origin is None or self.page_port is None or not origin.startswith("http://"):
+            return None
+        authority = origin[len("http://"):]
+        name, _, port = authority.rpartition(":")
+        if "/" in authority or port != str(self.page_port) or _host_name(authority) not in self.trusted_hosts:
+            return None
+        return origin if name else None
 
     def _send(self, conn: socket.socket, status: int, body: bytes, headers: tuple) -> None:
         """The answer, then an orderly close: the client's unread bytes are drained briefly, so that

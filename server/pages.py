@@ -23,11 +23,21 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagge
 from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
-__all__ = ["PAGE_CSP", "STATIC_DIR", "add_pages"]
+__all__ = ["PAGE_CSP", "STATIC_DIR", "add_pages", "page_csp"]
 
 STATIC_DIR = Path(__file__).with_name("static")
 PAGE_CSP = ("default-src 'self'; img-src 'self' blob: data:; object-src 'none'; base-uri 'none'; "
             "form-action 'self'; frame-ancestors 'none'")
+
+
+def page_csp(trusted_hosts, operator_port: int | None) -> str:
+    """`PAGE_CSP`, plus the operator port at each name the page may be reached by (the page sends
+    its blank there first: it answers while this server is flooded)."""
+    if operator_port is None:
+        return PAGE_CSP
+    names = sorted({f"[{h}]" if ":" in h and not h.startswith("[") else h for h in trusted_hosts if h != "*"})
+    allowed = " ".join(f"http://{h}:{operator_port}" for h in names)
+    return PAGE_CSP + f"; connect-src 'self' {allowed}"
 
 
 def _docs_csp(page: HTMLResponse, *, eval_: bool = False) -> HTMLResponse:

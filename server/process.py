@@ -152,7 +152,7 @@ class ApiProcess:
         if self.operator_sock is not None:  # first: it serves while the API process starts or restarts
             self.operator = OperatorListener(self.operator_sock, blank=self.operator_blank,
                                              status=self.operator_status, token=self.token,
-                                             trusted_hosts=self.trusted_hosts).start()
+                                             trusted_hosts=self.trusted_hosts, page_port=self.port).start()
         try:
             self._spawn()
         except BaseException:
@@ -175,7 +175,8 @@ class ApiProcess:
         process = ctx.Process(
             target=_serve_child, name="dpmhw-api", daemon=True,
             args=(self.sock, child_conn, child_blank_conn, self.status_slot.name, self.frame_slot.name, self.token,
-                  self.priority, self.stale_after_s, self.trusted_hosts, self.limits, self.command_rate))
+                  self.priority, self.stale_after_s, self.trusted_hosts, self.limits, self.command_rate,
+                  None if self.operator is None else self.operator.port))
         process.start()
         child_conn.close()
         child_blank_conn.close()
@@ -516,7 +517,7 @@ class RemoteRuntime:
 
 def _serve_child(sock: socket.socket, conn, blank_conn, status_name: str, frame_name: str, token: str, priority: str,
                  stale_after_s: float, trusted_hosts: list[str], limits: ConnectionLimits,
-                 command_rate: tuple[float, int]) -> None:
+                 command_rate: tuple[float, int], operator_port: int | None) -> None:
     """The API process: uvicorn on the inherited socket, serving a `RemoteRuntime`."""
     import uvicorn
 
@@ -529,7 +530,7 @@ def _serve_child(sock: socket.socket, conn, blank_conn, status_name: str, frame_
                             stale_after_s=stale_after_s, session_alive=parent.is_alive if parent is not None else None,
                             command_rate=command_rate, connection_stats=options["http"].guard.stats)
     app = build_app(runtime=runtime, token=token, trusted_hosts=trusted_hosts, max_headers=limits.max_headers,
-                    max_header_bytes=limits.max_header_bytes)
+                    max_header_bytes=limits.max_header_bytes, operator_port=operator_port)
     server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on", timeout_graceful_shutdown=2,
                                            **options))
 

@@ -61,9 +61,28 @@ async function send(method, path, body) {
 }
 
 // ---- actions -------------------------------------------------------------------------------
+// The blank goes first to the operator port (served by the session process itself, so it answers
+// while this page's service is flooded or stopped), then, if that did not answer, to the service.
+let operatorPort = null;             // from /status, kept once known
+async function blankAtOperatorPort() {
+  if (!operatorPort || !token()) return null;
+  const stop = new AbortController();
+  const timer = setTimeout(() => stop.abort(), 2000);
+  try {
+    const response = await fetch(`${location.protocol}//${location.hostname}:${operatorPort}/session/blank`,
+      { method: "POST", headers: { "Authorization": "Bearer " + token() }, signal: stop.signal });
+    const data = await response.json().catch(() => null);
+    return response.ok ? data : null;
+  } catch (err) {
+    return null;
+  } finally {
+    clearTimeout(timer);
+  }
+}
+
 for (const [id, path] of [["blank", "/session/blank"], ["resume", "/session/resume"], ["reset-history", "/session/reset-history"]]) {
   $(id).addEventListener("click", async () => {
-    const r = await send("POST", path);
+    const r = (id === "blank" && await blankAtOperatorPort()) || await send("POST", path);
     if (r) say(`${r.message} (state: ${r.state})`, r.ok);
     pollStatus();
   });
@@ -205,8 +224,9 @@ function renderStatus(st) {
   $("reason").textContent = st.reason ? "— " + st.reason : (st.output_on ? "— output on" : "");
   const operator = st.api && st.api.operator;
   if (operator && operator.url) {  // kept when the page later gets no answer: that is when it is needed
-    $("operator-port").textContent = `If this page stops answering, the operator port still blanks and reports: ` +
-      `POST ${operator.url}/session/blank (with the token), GET ${operator.url}/status`;
+    operatorPort = new URL(operator.url).port;
+    $("operator-port").textContent = `Blank goes to the operator port first (${operator.url}), which answers ` +
+      `while this page's service is flooded; GET ${operator.url}/status reports there too.`;
   }
   const causes = $("causes");
   causes.textContent = "";

@@ -175,10 +175,16 @@ def test_rejections_show_the_api_reason(page, session_url):
 
 
 def test_blank_then_resume_from_the_page(page, session_url, tmp_path):
+    """The page's blank goes through the operator port (a cross-origin request the port allows
+    the page alone), resume and reset through the service."""
     _enter_token(page)
+    operator_blanks = lambda: _get(session_url, "/status")["api"]["operator"]["blanks"]  # noqa: E731
+    assert wait_for(lambda: "operator port first" in _text(page, "operator-port"), WAIT_S)
+    before = operator_blanks()
     page.find_element(By.ID, "blank").click()
     assert wait_for(lambda: _text(page, "state") == "Dark: operator blank", WAIT_S), _text(page, "state")
     assert _get(session_url, "/status")["state"] == "blanked"
+    assert wait_for(lambda: operator_blanks() == before + 1, WAIT_S), _get(session_url, "/status")["api"]
     assert wait_for(lambda: "operator" in _text(page, "causes"), WAIT_S), _text(page, "causes")  # beside any tracking cause on a loaded machine
     img = page.find_element(By.ID, "frame")
     assert wait_for(lambda: img.get_attribute("data-blank") == "true", WAIT_S)
@@ -214,7 +220,7 @@ def test_the_start_output_and_the_page_give_the_operator_port(session, page):
     assert operator != url and any(line.startswith("operator port") and line.strip().endswith(operator)
                                    for line in lines), "".join(lines)
     assert _get(operator, "/status")["state"] == _get(url, "/status")["state"]
-    assert wait_for(lambda: f"POST {operator}/session/blank" in _text(page, "operator-port"), WAIT_S)
+    assert wait_for(lambda: f"operator port first ({operator})" in _text(page, "operator-port"), WAIT_S)
 
 
 def test_a_hold_off_an_operator_blank_and_lost_tracking_are_told_apart(page):

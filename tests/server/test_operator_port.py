@@ -78,7 +78,7 @@ def _raw(listener: OperatorListener, data: bytes) -> tuple[int, dict, dict]:
     lines = head.decode("latin-1").split("\r\n")
     headers = {k.lower(): v.strip() for k, _, v in (line.partition(":") for line in lines[1:])}
     assert int(headers["content-length"]) == len(body) and headers["connection"] == "close"
-    return int(lines[0].split()[1]), headers, json.loads(body)
+    return int(lines[0].split()[1]), headers, json.loads(body) if body else None
 
 
 def test_blank_and_status_over_plain_http():
@@ -253,3 +253,42 @@ def test_blanks_from_several_operators_at_once_are_each_answered():
     finally:
         api.close()
         loop.stop()
+
+
+def test_the_operator_page_alone_may_send_its_blank_here_across_origins():
+    """A browser's preflight from the operator page (the API's port at a trusted name) is allowed,
+    and its blank's answer is readable there; any other origin is refused and gets no CORS
+    header, and a request without an Origin (curl, the CLI) is answered as before."""
+    with _listener(page_port=8765) as (listener, doubles):
+        def preflight(origin: str) -> tuple[int, dict]:
+            code, headers, _ = _raw(listener, (
+                "OPTIONS /session/blank HTTP/1.1\r\nHost: 127.0.0.1\r\nOrigin: " + origin + "\r\n"
+                "Access-Control-Request-Method: POST\r\nAccess-Control-Request-Headers: authorization\r\n\r\n"
+            ).encode())
+            return code, headers
+
+        for origin in ("http://127.0.0.1:8765", "http://localhost:8765"):
+            code, headers = preflight(origin)
+            assert code == 204 and headers["access-control-allow-origin"] == origin
+            assert headers["access-control-allow-methods"] == "POST"
+            assert headers["access-control-allow-headers"] == "Authorization"
+        for origin in ("http://evil.example:8765", "http://127.0.0.1:9999", "https://127.0.0.1:8765",
+                       "http://127.0.0.1:8765/x", "null"):
+            code, headers = preflight(origin)
+            assert code == 403 and "access-control-allow-origin" not in headers, origin
+        assert doubles.blanks == 0  # a preflight never blanks
+        code, headers, body = _raw(listener, (
+            f"POST /session/blank HTTP/1.1\r\nHost: 127.0.0.1\r\nOrigin: http://127.0.0.1:8765\r\n"
+            f"Authorization: Bearer {TOKEN}\r\nContent-Length: 0\r\n\r\n").encode())
+        assert code == 200 and body["ok"] and headers["access-control-allow-origin"] == "http://127.0.0.1:8765"
+        code, headers, body = _raw(listener, (
+            f"POST /session/blank HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {TOKEN}\r\n"
+            "Content-Length: 0\r\n\r\n").encode())
+        assert code == 200 and "access-control-allow-origin" not in headers
+        assert doubles.blanks == 2 and listener.stats()["blanks"] == 2
+        code, _, body = _raw(listener, b"OPTIONS /status HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        assert code == 405 and "GET" in body["detail"]
+    with _listener() as (listener, _):  # no page port given: no origin is the page's
+        code, _, _ = _raw(listener, b"OPTIONS /session/blank HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                                    b"Origin: http://127.0.0.1:8765\r\n\r\n")
+        assert code == 403

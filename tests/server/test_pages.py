@@ -80,3 +80,13 @@ def test_docs_pages_allow_their_own_inline_script_by_hash_only(client):
         assert "'unsafe-inline'" not in policy["script-src"] and policy["frame-ancestors"] == ["'none'"]
         assert r.headers["x-frame-options"] == "DENY" and r.headers["x-content-type-options"] == "nosniff"
     assert len(re.findall(r"<script>", client.get("/docs").text)) == 1  # Swagger UI's start-up script
+
+
+def test_the_page_may_reach_the_operator_port_and_nothing_else():
+    """With an operator port the page's policy adds it, at each name the page may be reached by,
+    to what it may connect to (its blank goes there first); without one the policy is as before."""
+    from server.pages import PAGE_CSP, page_csp
+
+    csp = page_csp(["127.0.0.1", "localhost", "::1", "*"], 8766)
+    assert csp == PAGE_CSP + "; connect-src 'self' http://127.0.0.1:8766 http://[::1]:8766 http://localhost:8766"
+    assert page_csp(["127.0.0.1"], None) == PAGE_CSP
