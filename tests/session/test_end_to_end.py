@@ -25,7 +25,7 @@ WAIT_S = 60  # for what must happen eventually (a first frame may wait for numba
 @pytest.fixture
 def session():
     cfg = load_session_config(overrides=[
-        "render.width=64", "render.height=48", "mock.rate_hz=360", "mock.latency_ms=4.5", "mock.speed=0.3",
+        "render.width=64", "render.height=48", "mock.rate_hz=360", "mock.latency_ms=4.5", "mock.speed=0.1",
         f"safety.stale_after_ms={STALE_MS}", "safety.holdoff_s=0.2", "safety.watchdog_s=5", "projector.poll_interval_s=0.05",
         "sink.kind=recording", "reuse.mode=same-pixel"])
     loop = build_session(cfg, mock=True, frame_log=20_000).start()
@@ -142,7 +142,7 @@ def test_serial_tracker_session_on_the_pty_mock():
     """The same loop on the Polhemus emulator (pty) through the real serial driver: the poses
     shown match the world's, and an unplugged tracker is a fault with the projector dark."""
     cfg = load_session_config(overrides=[
-        "tracker.kind=serial", "render.width=64", "render.height=48", "mock.latency_ms=3.5", "mock.speed=0.3",
+        "tracker.kind=serial", "render.width=64", "render.height=48", "mock.latency_ms=3.5", "mock.speed=0.1",
         f"safety.stale_after_ms={STALE_MS}", "safety.holdoff_s=0.2", "projector.poll_interval_s=0.05",
         "sink.kind=recording", "reuse.mode=same-pixel", "prediction.enabled=false"])
     loop = build_session(cfg, mock=True, frame_log=20_000).start()
