@@ -32,12 +32,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import queue
 import threading
 import time
 
 import numpy as np
+
+from dpmhw.benchmarks.load_process import LoadProcess, run_threads
 
 __all__ = ["ENDPOINTS", "Flood", "Probes", "Storm", "measure", "summarise"]
 
@@ -94,50 +95,10 @@ def _clients(port: int, clients: int, token: str, timeout_s: float, priority: st
         conn.close()
         out.put(got)
 
-    threads = [threading.Thread(target=client, args=(i,), daemon=True) for i in range(clients)]
-    for t in threads:
-        t.start()
-    ready.set()
-    for t in threads:
-        t.join()
+    run_threads(clients, client, ready)
 
 
-class _Spawned:
-    """A spawned helper process, `target(*args, active, stop, ready, out)`: it works while
-    `active` is set and puts what it found on `out` when `stop` is set (`_collect` takes it)."""
-
-    def __init__(self, name: str, target, args: tuple):
-        ctx = multiprocessing.get_context("spawn")
-        self.ready, self.active, self._stop = ctx.Event(), ctx.Event(), ctx.Event()
-        self._out = ctx.Queue()
-        self.process = ctx.Process(target=target, name=name, daemon=True,
-                                   args=(*args, self.active, self._stop, self.ready, self._out))
-
-    def __enter__(self):
-        self.process.start()
-        if not self.ready.wait(60):
-            self.close()
-            raise RuntimeError(f"the {self.process.name} process did not start")
-        return self
-
-    def close(self) -> None:
-        self.active.clear()
-        self._stop.set()
-        if self.process.pid is not None:
-            self._collect()
-        self.process.join(5)
-        if self.process.is_alive():
-            self.process.kill()
-            self.process.join(5)
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def _collect(self) -> None:
-        raise NotImplementedError
-
-
-class Storm(_Spawned):
+class Storm(LoadProcess):
     """`clients` storm clients in a spawned process; they send only while `active` is set."""
 
     def __init__(self, port: int, clients: int, token: str, timeout_s: float = 10.0, priority: str = "normal"):
@@ -217,7 +178,7 @@ def _flood(host: str, port: int, connections: int, active, stop, ready, out) -> 
     out.put(opened)
 
 
-class Flood(_Spawned):
+class Flood(LoadProcess):
     """`connections` idle and half-sent connections to the API, held from a spawned process while
     `active` is set (see `_flood`)."""
 
@@ -262,7 +223,7 @@ def _probe(urls: list[str], period_s: float, timeout_s: float, active, stop, rea
     out.put(got)
 
 
-class Probes(_Spawned):
+class Probes(LoadProcess):
     """`GET /status` probes (an operator's, on fresh connections) to each of `urls`, from a
     spawned process, while `active` is set."""
 

@@ -15,7 +15,9 @@ same session under the same machine conditions. The p99 ratio comes with a 90 % 
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import queue
 import socket
 import threading
 import time
@@ -23,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dpmhw.benchmarks.load_process import LoadProcess, run_threads
 from dpmhw.benchmarks.session_plots import bench_series
 from dpmhw.session.config import load_session_config
 from dpmhw.session.testing import wait_for
@@ -59,11 +62,11 @@ def _cpu_seconds(pid: int) -> float | None:
         return None
 
 
-def _load_clients(port: int, clients: int, rate_hz: float, priority: str, ready, active, stop, counts,
-                  latencies) -> None:
+def _load_clients(port: int, clients: int, rate_hz: float, priority: str, counts, active, stop, ready, out) -> None:
     """The load generator's process: `clients` threads polling the read endpoints (bounded), each
     on one keep-alive connection with the standard library's client (little CPU of its own, like
-    a dashboard or a Prometheus scraper)."""
+    a dashboard or a Prometheus scraper); (ok, failed) counted live in `counts`, each client's
+    response times put on `out` when it stops."""
     import http.client
 
     from server.process import lower_priority
@@ -72,7 +75,7 @@ def _load_clients(port: int, clients: int, rate_hz: float, priority: str, ready,
     period_s = 1.0 / rate_hz if rate_hz > 0 else 0.0
     paths = ("/status", "/metrics", "/frame.png")
 
-    def client() -> None:
+    def client(_: int) -> None:
         conn = http.client.HTTPConnection("127.0.0.1", port, timeout=5.0)
         seconds: list[float] = []
         k = 0
@@ -94,14 +97,27 @@ def _load_clients(port: int, clients: int, rate_hz: float, priority: str, ready,
             k += 1
             stop.wait(max(0.0, period_s - (time.monotonic() - t0)))
         conn.close()
-        latencies.put(seconds)
+        out.put(seconds)
 
-    threads = [threading.Thread(target=client, daemon=True) for _ in range(clients)]
-    for t in threads:
-        t.start()
-    ready.set()
-    for t in threads:
-        t.join()
+    run_threads(clients, client, ready)
+
+
+class _LoadClients(LoadProcess):
+    """`_load_clients` in a process of its own; they send only while `active` is set (the load
+    windows)."""
+
+    def __init__(self, port: int, clients: int, rate_hz: float, priority: str):
+        self.counts = multiprocessing.get_context("spawn").Array("q", 2)  # ok, failed
+        super().__init__("api-load-clients", _load_clients, (port, clients, rate_hz, priority, self.counts))
+        self.clients = clients
+        self.response_ms: list[float] = []
+
+    def _collect(self) -> None:
+        for _ in range(self.clients):
+            try:
+                self.response_ms += [x * 1e3 for x in self._out.get(timeout=10)]
+            except queue.Empty:  # a client is stuck: its times are lost, the counts are not
+                break
 
 
 class _ApiLoad:
@@ -113,15 +129,7 @@ class _ApiLoad:
     """
 
     def __init__(self, loop, mode: str, clients: int, rate_hz: float = 10.0, client_priority: str = "normal"):
-        import multiprocessing
-
         self.loop = loop
-        ctx = multiprocessing.get_context("spawn")
-        # clients send only while `active` is set (the load windows)
-        self.ready, self.active, self.stop_event = ctx.Event(), ctx.Event(), ctx.Event()
-        self.counts = ctx.Array("q", 2)  # ok, failed
-        self.latencies_q = ctx.Queue()  # each client's response times, sent when it stops
-        self.response_ms: list[float] = []
         self.api = self.server = None
         if mode == "process":
             from server.process import ApiProcess
@@ -139,19 +147,21 @@ class _ApiLoad:
             self.server_thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
         else:
             raise ValueError(f"api mode must be 'process' or 'thread', not {mode!r}")
-        self.clients = ctx.Process(target=_load_clients, daemon=True, name="api-load-clients",
-                                   args=(self.port, clients, rate_hz, client_priority, self.ready, self.active, self.stop_event,
-                                         self.counts, self.latencies_q))
-        self.n_clients = clients
+        self.clients = _LoadClients(self.port, clients, rate_hz, client_priority)
+        self.active = self.clients.active
         self.cpu_s: dict[str, float | None] = {}
 
     @property
     def requests(self) -> int:
-        return int(self.counts[0])
+        return int(self.clients.counts[0])
 
     @property
     def errors(self) -> int:
-        return int(self.counts[1])
+        return int(self.clients.counts[1])
+
+    @property
+    def response_ms(self) -> list[float]:
+        return self.clients.response_ms
 
     def __enter__(self) -> "_ApiLoad":
         if self.api is not None:
@@ -160,30 +170,19 @@ class _ApiLoad:
             self.server_thread.start()
             if not wait_for(lambda: self.server.started, 10):
                 raise RuntimeError("bench: the API server did not start on 127.0.0.1")
-        self.clients.start()
-        if not self.ready.wait(60):
-            raise RuntimeError("bench: the load-client process did not start")
+        self.clients.__enter__()
         time.sleep(0.5)  # let start-up work (imports, JIT) settle before the first window
         self._cpu0 = self._cpu()
         return self
 
     def _cpu(self) -> dict[str, float | None]:
-        return {"clients": _cpu_seconds(self.clients.pid),
+        return {"clients": _cpu_seconds(self.clients.process.pid),
                 "api": _cpu_seconds(self.api.process.pid) if self.api is not None else None}
 
     def __exit__(self, *exc) -> None:
         cpu = self._cpu()  # spent during the windows (start-up excluded)
         self.cpu_s = {k: None if v is None or self._cpu0[k] is None else v - self._cpu0[k] for k, v in cpu.items()}
-        self.stop_event.set()
-        self.active.set()
-        for _ in range(self.n_clients):
-            try:
-                self.response_ms += [x * 1e3 for x in self.latencies_q.get(timeout=10)]
-            except Exception:  # queue.Empty: a client is stuck; its times are lost, the counts are not
-                break
-        self.clients.join(10)
-        if self.clients.is_alive():
-            self.clients.kill()
+        self.clients.close()
         if self.api is not None:
             self.api.close()
         else:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import NoReturn
 
 import typer
 
@@ -31,6 +32,19 @@ def write_json(data, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2))
     return path
+
+
+def report(table: str, data, json_path: Path | None) -> None:
+    """A benchmark's table on stdout, and its result as JSON at `json_path` when given."""
+    typer.echo(table)
+    if json_path is not None:
+        typer.echo(f"wrote {write_json(data, json_path)}")
+
+
+def fail(exc: Exception) -> NoReturn:
+    """A refused input or an unusable setup (a `DpmhwError`): its one line, exit status 2."""
+    typer.secho(f"error: {exc}", fg="red", err=True)
+    raise typer.Exit(2)
 
 
 def _version(value: bool) -> None:

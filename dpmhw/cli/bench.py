@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli.apps import bench_app, write_json
+from dpmhw.cli.apps import bench_app, fail, report, write_json
 from dpmhw.cli.choices import BenchTrajectory, QualityPart
 from dpmhw.cli.optional_value import optional_values
 from dpmhw.cli.session import SetOpt
@@ -26,9 +26,7 @@ def bench_render(
     from dpmhw.benchmarks.render import bench_render as run, format_table
 
     result = run(scene, frames=frames, threads=threads, mesh=mesh)
-    typer.echo(format_table(result))
-    if json_path is not None:
-        typer.echo(f"wrote {write_json(result, json_path)}")
+    report(format_table(result), result, json_path)
 
 
 @bench_app.command("quality", cls=optional_values({"--ray": "local"}))
@@ -76,8 +74,7 @@ def bench_quality(
     try:
         pool = connect(ray)
     except DpmhwError as exc:
-        typer.secho(f"error: {exc}", fg="red", err=True)
-        raise typer.Exit(2)
+        fail(exc)
     try:
         with Progress() as bar:
             result = run_quality(cfg, cache_dir=cache_dir, out_dir=out_dir, progress=bar.callback, pool=pool,
@@ -181,8 +178,7 @@ def bench_ray_scaling(
     except ValueError:
         raise typer.BadParameter(f"--workers: expected comma-separated integers, got {workers!r}") from None
     except DpmhwError as exc:
-        typer.secho(f"error: {exc}", fg="red", err=True)
-        raise typer.Exit(2)
+        fail(exc)
     if any(w < 1 for w in counts):
         raise typer.BadParameter(f"--workers: expected counts ≥ 1, got {workers!r}")
     result = run_scaling(scene, scale=scale, spp=spp, workers=counts, repeats=repeats,
@@ -250,11 +246,8 @@ def bench_mitsuba(
             if compare_spp:
                 rows += mb.compare(scene, spp=compare_spp, threads=threads, variant=variant, mesh=mesh, progress=bar.callback)
     except DpmhwError as exc:
-        typer.secho(f"error: {exc}", fg="red", err=True)
-        raise typer.Exit(2)
-    typer.echo(mb.format_table(rows))
-    if json_path is not None:
-        typer.echo(f"wrote {write_json(rows, json_path)}")
+        fail(exc)
+    report(mb.format_table(rows), rows, json_path)
     if plot_path is not None:
         plot_path.parent.mkdir(parents=True, exist_ok=True)
         mb.plot(rows, plot_path)
@@ -299,9 +292,7 @@ def bench_reproject(
         raise typer.BadParameter(str(exc)) from None
     with Progress() as bar:
         rows = run_reproject(cfg, progress=bar.callback)
-    typer.echo(format_table(rows))
-    if json_path is not None:
-        typer.echo(f"wrote {write_json(rows, json_path)}")
+    report(format_table(rows), rows, json_path)
 
 
 @bench_app.command("prediction")
@@ -322,9 +313,7 @@ def bench_prediction(
         raise typer.BadParameter(f"--noise-mm: {exc}") from None
     with Progress() as bar:
         rows = run_prediction(cfg, progress=bar.callback)
-    typer.echo(format_table(rows))
-    if json_path is not None:
-        typer.echo(f"wrote {write_json(rows, json_path)}")
+    report(format_table(rows), rows, json_path)
 
 
 @bench_app.command("stages")
@@ -344,8 +333,7 @@ def bench_stages(
     try:
         result = run_stages(scene, frames=frames, warmup=warmup, trajectory=trajectory.value, digest=digest)
     except DpmhwError as exc:  # e.g. a scene without a bound (moving) object
-        typer.secho(f"error: {exc}", fg="red", err=True)
-        raise typer.Exit(2)
+        fail(exc)
     typer.echo(format_table(result))
     if json_path is not None:
         keep = {k: result[k] for k in ("scene", "size", "shading", "trajectory", "digest_out", "digest_in") if k in result}
@@ -377,8 +365,7 @@ def bench_governor(
         result = run_governor_hog(seconds=seconds, hog_after=hog_after, hog_processes=hog_processes, trajectory=trajectory.value,
                                   overrides=tuple(sets or ()), quality=quality, progress=typer.echo)
     except DpmhwError as exc:  # e.g. a --set the config refuses
-        typer.secho(f"error: {exc}", fg="red", err=True)
-        raise typer.Exit(2)
+        fail(exc)
     typer.echo(format_table(result["rows"]))
     typer.echo(f"wrote {plot_hog(result, plot, title=f'dpmhw bench governor ({machine_line()})')}")
     if json_path is not None:

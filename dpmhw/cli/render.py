@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli.apps import app
+from dpmhw.cli.apps import app, fail
 from dpmhw.cli.choices import PixelSampling, ReuseMode, Tonemap
 from dpmhw.cli.optional_value import optional_values
 from dpmhw.progress import Progress
@@ -79,8 +79,7 @@ def render(
     try:
         pool = connect(ray)
     except DpmhwError as exc:
-        typer.secho(f"error: {exc}", fg="red", err=True)
-        raise typer.Exit(2)
+        fail(exc)
     stop = {"requested": False}
 
     def on_sigint(signum, _frame):

@@ -15,7 +15,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from dpmhw.cli.apps import app, bench_app, write_json
+from dpmhw.cli.apps import app, bench_app, fail, write_json
 from dpmhw.cli.choices import ApiMode, BenchTrajectory, ClientPriority, DisplayModeChoice
 
 session_app = typer.Typer(no_args_is_help=True, help="Projection sessions: tracker → prediction → render → projector.")
@@ -33,11 +33,6 @@ def _load(config: Optional[Path], sets: Optional[list[str]], extra: list[str]):
     return load_session_config(config, [*(sets or []), *extra])
 
 
-def _fail(exc: Exception) -> None:
-    typer.echo(f"error: {exc}", err=True)
-    raise typer.Exit(code=2)
-
-
 def _vet(cfg) -> None:
     """On stderr, the memory the output size needs and what costly values cost; refuses a session
     over the memory limit (before anything allocates at that size)."""
@@ -48,10 +43,10 @@ def _vet(cfg) -> None:
     try:
         size = output_size(cfg)
     except DpmhwError as exc:
-        _fail(exc)
+        fail(exc)
     problem = memory_problem(cfg, size)
     if problem is not None:
-        _fail(ValueError(problem))
+        fail(ValueError(problem))
     need, limit = session_memory(*size, cfg.render.shading_scale)
     typer.echo(f"memory: about {need / 2**20:.0f} MiB for a {size[0]}×{size[1]} output at shading_scale "
                f"{cfg.render.shading_scale:g} (limit {limit / 2**20:.0f} MiB: DPMHW_SESSION_MEMORY_MB)", err=True)
@@ -91,7 +86,7 @@ def start(
         cfg = _load(config, sets, extra)
         lock = SessionLock.claim(cfg, mock)  # held until this process ends
     except (DpmhwError, OSError) as exc:
-        _fail(exc)
+        fail(exc)
     _vet(cfg)
     if lock.warning:
         typer.echo(lock.warning)
@@ -112,7 +107,7 @@ def start(
             except OSError as exc:
                 for s in bound:
                     s.close()
-                _fail(OSError(f"api.{field}: cannot listen on {cfg.api.host}:{getattr(cfg.api, field)}: "
+                fail(OSError(f"api.{field}: cannot listen on {cfg.api.host}:{getattr(cfg.api, field)}: "
                               f"{exc.strerror or exc}"))
         sock, operator_sock = bound
         host = f"[{cfg.api.host}]" if ":" in cfg.api.host else cfg.api.host
@@ -123,7 +118,7 @@ def start(
         code = Supervisor(cfg, mock=mock, token=token or "", sock=sock, operator_sock=operator_sock,
                           duration=duration, status_every=status_every, echo=typer.echo).run()
     except (DpmhwError, OSError, RuntimeError) as exc:
-        _fail(exc)
+        fail(exc)
     finally:
         for s in (sock, operator_sock):
             if s is not None:
@@ -149,7 +144,7 @@ def show_config(
     try:
         cfg = _load(config, sets, [])
     except DpmhwError as exc:
-        _fail(exc)
+        fail(exc)
     _vet(cfg)  # from the sizes alone: a session over the memory limit is refused before its scene loads
     try:
         scene = prepare_scene(cfg)
@@ -157,7 +152,7 @@ def show_config(
         if not offline:
             check_devices(cfg, scene)
     except DpmhwError as exc:
-        _fail(exc)
+        fail(exc)
     data = cfg.model_dump()
     data["api"]["token"] = "***" if data["api"]["token"] else ""
     typer.echo(json.dumps(data, indent=2))

@@ -10,7 +10,8 @@ from typing import Annotated, Optional
 import typer
 
 from dpmhw.cli.apps import app, write_json
-from dpmhw.cli.session import ConfigOpt, SetOpt, _fail, _load
+from dpmhw.cli.apps import fail
+from dpmhw.cli.session import ConfigOpt, SetOpt, _load
 
 
 @app.command("warmup")
@@ -30,7 +31,7 @@ def warmup(
     try:
         cfg = _load(config, sets, [])
     except DpmhwError as exc:
-        _fail(exc)
+        fail(exc)
     if json_path is not None and not profile:
         raise typer.BadParameter("--json needs --profile")
     scratch = tempfile.TemporaryDirectory(prefix="dpmhw-profile-cache-") if profile else None

@@ -92,6 +92,7 @@ class Governor:
         self.down_margin = config.down_margin
         self.headroom = config.headroom
         self.ladder = ladder
+        self._fields = frozenset(r.field for r in ladder)
         self.inert = frozenset(inert)
         self.clock = clock
         self.level = 0
@@ -136,7 +137,8 @@ class Governor:
         self.pinned = frozenset(pinned)
         if not self.enabled:
             return None
-        values = settings.model_dump() if hasattr(settings, "model_dump") else dict(settings)
+        model = hasattr(settings, "model_dump")  # LiveSettings, or a mapping: read the ladder's fields only
+        values = {f: getattr(settings, f) if model else settings[f] for f in self._fields}
         if self._base is None:
             self._base = {r.field: values[r.field] for r in self.ladder}
         wanted = {f: v for f, v in self.choices().items() if f not in self.pinned}

@@ -64,7 +64,8 @@ __all__ = ["FrameRecord", "LatestFrame", "ProjectorControl", "Renderer", "Sessio
 log = logging.getLogger(__name__)
 
 PRESENT_LEAD_MIN_NS = 3_000_000  # a present begins this long before its refresh at least
-PRESENT_LEAD_STEP_NS = 1_000_000  # added after a present that missed its refresh, and the margin over the quantile
+PRESENT_LEAD_STEP_NS = 1_000_000  # added after a present that missed its refresh (on-time ones wear it down)
+PRESENT_LEAD_MARGIN_NS = 1_000_000  # over the quantile of the recent times to a frame ready
 PRESENT_HANDOFF_NS = 300_000  # a frame ready later than this before its refresh is made again for the next
 PRESENT_LEAD_QUANTILE = 98.0  # of the recent times from waking to a frame ready to hand over
 PRESENT_LEAD_HISTORY = 240  # presents the quantile is taken over (4 s at 60 Hz)
@@ -952,7 +953,7 @@ class SessionLoop:
 
     def _adapt_lead(self, ready_ns: int, late: bool) -> None:
         """The lead: the 98th percentile of the time from the planned wake to a frame ready to hand
-        over (the last 240 presents), plus a step of margin, plus a penalty that a missed refresh
+        over (the last 240 presents), plus a margin, plus a penalty that a missed refresh
         raises by a step and on-time presents wear down (a step in ~10 s); within
         [PRESENT_LEAD_MIN_NS, ¾ of a period]. The lead is prediction horizon, but with motion
         predicted to the photon a few milliseconds more of it cost far less registration than a
@@ -964,7 +965,7 @@ class SessionLoop:
             self._lead_penalty_ns = max(0, self._lead_penalty_ns - PRESENT_LEAD_STEP_NS // 600)
         self._ready_ns.append(max(ready_ns, 0))
         ready = int(np.percentile(self._ready_ns, PRESENT_LEAD_QUANTILE))
-        lead = ready + PRESENT_LEAD_STEP_NS + self._lead_penalty_ns
+        lead = ready + PRESENT_LEAD_MARGIN_NS + self._lead_penalty_ns
         self._present_lead_ns = min(max(lead, PRESENT_LEAD_MIN_NS), self.timing.period_ns * 3 // 4)
 
     def _present_buffer(self) -> np.ndarray:

@@ -37,3 +37,13 @@ def closed_by_server(sock: socket.socket) -> bool:
         return False
     except ConnectionError:
         return True
+
+
+def open_with(host: str, port: int, sends, timeout_s: float = 60.0) -> list[socket.socket]:
+    """One fresh connection per item of `sends`, each sent its bytes (b"": nothing) and left open."""
+    socks = []
+    for data in sends:
+        s = socket.create_connection((host, port), timeout=timeout_s)
+        s.sendall(data)
+        socks.append(s)
+    return socks

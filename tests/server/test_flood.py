@@ -21,7 +21,7 @@ import pytest
 from dpmhw.session.testing import fake_session, wait_for
 from server.guard import ConnectionLimits
 from server.process import ApiProcess
-from tests.server.conftest import closed_by_server
+from tests.server.conftest import closed_by_server, open_with
 
 WAIT_S = 60
 TOKEN = "flood-token"
@@ -105,11 +105,7 @@ def test_idle_half_sent_streaming_and_oversized_requests_are_cut_off():
         sends = (b"", b"GET /sta", b"GET /status HTTP/1.1\r\nHost: 127.0.0.1\r\n",
                  b"PATCH /settings HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer " + TOKEN.encode()
                  + b"\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{\"alpha\": ")
-        socks = []
-        for data in sends:
-            s = socket.create_connection((api.host, api.port), timeout=WAIT_S)
-            s.sendall(data)
-            socks.append(s)
+        socks = open_with(api.host, api.port, sends, WAIT_S)
         keep_alive = socket.create_connection((api.host, api.port), timeout=WAIT_S)  # idle after one answer
         keep_alive.sendall(b"GET /livez HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
         assert b"200 OK" in keep_alive.recv(4096)

@@ -23,7 +23,7 @@ from dpmhw.session.testing import fake_session, wait_for
 from server.guard import ConnectionLimits
 from server.operator_port import OperatorListener
 from server.process import ApiProcess
-from tests.server.conftest import closed_by_server
+from tests.server.conftest import closed_by_server, open_with
 
 WAIT_S = 60
 TOKEN = "operator-token"
@@ -132,11 +132,7 @@ def test_idle_and_half_sent_connections_time_out_and_never_hold_it():
         sends = (b"", b"GET /sta", b"GET /status HTTP/1.1\r\nHost: 127.0.0.1\r\n",
                  b"POST /session/blank HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer " + TOKEN.encode()
                  + b"\r\nContent-Length: 10\r\n\r\n{")
-        socks = []
-        for data in sends:
-            s = socket.create_connection((listener.host, listener.port), timeout=WAIT_S)
-            s.sendall(data)
-            socks.append(s)
+        socks = open_with(listener.host, listener.port, sends, WAIT_S)
         try:
             answers = [s.recv(4096) for s in socks]  # each gets its 408, then the end
             assert all(a.startswith(b"HTTP/1.1 408 ") and b"no whole request within 0.3 s" in a for a in answers), answers
