@@ -15,7 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BYTES_PER_TEXEL", "MTL_MODELLED", "Texture", "decode_texture", "open_texture", "parse_mtl", "srgb_to_linear"]
+from dpmhw.postprocess import srgb_decode
+
+__all__ = ["BYTES_PER_TEXEL", "MTL_MODELLED", "Texture", "decode_texture", "open_texture", "parse_mtl"]
 
 # Peak bytes per texel of loading a texture: the peak RSS of `load_mesh` on a quad with an
 # incompressible (noise) PNG of 1024², 2048² and 4096² texels over its RSS before, per texel:
@@ -42,13 +44,7 @@ class Texture:
         return self.texels.shape[1], self.texels.shape[0]
 
 
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """The sRGB transfer function inverted, for values in [0, 1]."""
-    c = np.asarray(c, np.float64)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-_LINEAR_OF_BYTE = srgb_to_linear(np.arange(256) / 255.0).astype(np.float32)
+_LINEAR_OF_BYTE = srgb_decode(np.arange(256) / 255.0).astype(np.float32)
 
 
 def open_texture(data: bytes):

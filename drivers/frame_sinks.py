@@ -210,7 +210,7 @@ class WindowSink:
         return bool((np.abs(off - np.round(off)) <= self.VSYNC_TOLERANCE).all() and (np.diff(np.round(off)) >= 1).all())
 
     def _blit(self, frame: np.ndarray) -> None:
-        image = self._pg.image.frombuffer(np.ascontiguousarray(frame).tobytes(), (self.shape[1], self.shape[0]), "RGB")
+        image = self._pg.image.frombuffer(np.ascontiguousarray(frame), (self.shape[1], self.shape[0]), "RGB")  # no copy
         self._surface.blit(image, (0, 0))
 
     def present(self, frame: np.ndarray, t_target_ns: int) -> int:

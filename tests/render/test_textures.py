@@ -11,7 +11,7 @@ from dpmhw.meshes import load_mesh
 from dpmhw.render.gbuffer import NativeGBuffer
 from dpmhw.render.integrator import PathIntegrator
 from dpmhw.scene_file import load_scene
-from dpmhw.textures import srgb_to_linear
+from dpmhw.postprocess import srgb_decode
 
 SIZE = 1.0
 BACKGROUND = 2.0
@@ -71,7 +71,7 @@ def expected_albedo(camera, texture: np.ndarray, albedo=1.0) -> tuple[np.ndarray
 
 
 def linear_checker() -> np.ndarray:
-    return np.repeat(srgb_to_linear(checker() / 255.0)[:, :, None], 3, axis=2)
+    return np.repeat(srgb_decode(checker() / 255.0)[:, :, None], 3, axis=2)
 
 
 # ---------------------------------------------------------------- loading
@@ -83,8 +83,8 @@ def test_an_obj_with_map_kd_loads_uv_and_a_linear_texture(tmp_path):
     assert corner_uv[(-0.5, 0.0, 0.5)] == (0.0, 0.0) and corner_uv[(0.5, 0.0, -0.5)] == (1.0, 1.0)
     texels = mesh.texture.texels
     assert texels.shape == (32, 32, 3) and texels.dtype == np.float32
-    assert texels[0, 0, 0] == pytest.approx(srgb_to_linear(LIGHT / 255), rel=1e-6)  # top-left cell light
-    assert texels[0, 8, 0] == pytest.approx(srgb_to_linear(DARK / 255), rel=1e-6)
+    assert texels[0, 0, 0] == pytest.approx(srgb_decode(LIGHT / 255), rel=1e-6)  # top-left cell light
+    assert texels[0, 8, 0] == pytest.approx(srgb_decode(DARK / 255), rel=1e-6)
     assert mesh.notes == []  # Kd 1 and map_Kd: everything modelled
 
 
@@ -139,7 +139,7 @@ def test_a_gltf_base_colour_texture_loads_and_its_other_textures_are_named(tmp_p
         (tmp_path / ("tex.gltf" if name == "model.gltf" else name)).write_bytes(data)
     mesh = load_mesh(tmp_path / f"tex.{suffix}")
     assert mesh.texture.size == (32, 32)
-    assert mesh.texture.texels[0, 0, 0] == pytest.approx(srgb_to_linear(LIGHT / 255), rel=1e-6)
+    assert mesh.texture.texels[0, 0, 0] == pytest.approx(srgb_decode(LIGHT / 255), rel=1e-6)
     assert {tuple(uv) for uv in mesh.uv} == {(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)}  # v up, as an OBJ's
     assert len(mesh.notes) == 1 and "normalTexture" in mesh.notes[0] and "baseColorTexture" not in mesh.notes[0]
 
@@ -235,7 +235,7 @@ def test_the_albedo_guides_hold_the_texture(tmp_path):
         assert on.sum() > 0.3 * on.size
         got = frame.albedo.reshape(-1, 3)
         np.testing.assert_allclose(got[on], expected[on], atol=2e-3)  # float32 hit points vs float64
-        light = srgb_to_linear(LIGHT / 255) * tint
+        light = srgb_decode(LIGHT / 255) * tint
         assert np.isclose(got[on], light, atol=1e-4).all(axis=1).sum() > 0.3 * on.sum()  # whole cells at the texel value
         for mode in ("trace", "raster"):
             gbuffer = NativeGBuffer(scene, integrator.geometry, scene.render.width, scene.render.height)
