@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 
 from dpmhw.plausibility import PlausibilityGate, PlausibilityLimits
+from dpmhw.thread_priority import TRACKER_RECEIVER, raise_thread_priority
 from dpmhw.tracking import (
     ClockMapping,
     LatestPoses,
@@ -88,6 +89,7 @@ class ReceiverTracker:
         self._last_arrival_ns: int | None = None
         self.frame_taken = False  # the last frame was in order and the gate refused none of it
         self._last_latency_ns: int | None = None
+        self.thread_priority = "not started"
 
     # -- Tracker protocol ----------------------------------------------------------------------
 
@@ -165,7 +167,7 @@ class ReceiverTracker:
         return {"clock_method": self.clock.method, "clock_outliers": self.clock.outliers, "clock_jumps": self.clock.jumps,
                 "internal_errors": self.internal_errors, "last_decode_error": self.last_decode_error,
                 "callback_errors": self._poses.callback_errors, "older_dropped": self._poses.older_dropped,
-                "frame_resyncs": self.frame_resyncs,
+                "frame_resyncs": self.frame_resyncs, "thread_priority": self.thread_priority,
                 **self.gate.counts()}
 
     def _set_state(self, state: TrackerState, reason: str = "") -> None:
@@ -265,6 +267,7 @@ class ReceiverTracker:
     # -- the receiver thread -------------------------------------------------------------------
 
     def _run(self) -> None:
+        self.thread_priority = raise_thread_priority(TRACKER_RECEIVER, f"{self.kind} receiver")
         backoff = self.backoff_initial_s
         last_failure = ""
         while not self._stop.is_set():

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dpmhw.thread_priority import MOCK_DEVICE, raise_thread_priority
 from dpmhw.transforms import quat_xyzw_of_rows
 from firmware_mocks.world import World
 
@@ -387,6 +388,8 @@ class NatNetServer:
     # -- loop ----------------------------------------------------------------------------------
 
     def _run(self) -> None:
+        # the device is another machine: its timing must not follow this process's load
+        raise_thread_priority(MOCK_DEVICE, "NatNet mock")
         cfg = self.config
         period_ticks = cfg.clock_hz / cfg.rate_hz
         period_ns = 1e9 / cfg.rate_hz

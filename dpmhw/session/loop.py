@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import gc
 import logging
-import os
 import sys
 import threading
 import time
@@ -56,6 +55,7 @@ from dpmhw.session.metrics import LoopMetrics
 from dpmhw.session.prediction import PosePredictor
 from dpmhw.session.safety import SafetyMonitor, SessionState
 from dpmhw.stage_runner import Fault, Stage, StageFailed, run_timed
+from dpmhw.thread_priority import PRESENT, raise_thread_priority
 from dpmhw.tracking import Tracker, TrackerState
 from dpmhw.transforms import Pose
 
@@ -70,8 +70,6 @@ PRESENT_HANDOFF_NS = 300_000  # a frame ready later than this before its refresh
 PRESENT_LEAD_QUANTILE = 98.0  # of the recent times from waking to a frame ready to hand over
 PRESENT_LEAD_HISTORY = 240  # presents the quantile is taken over (4 s at 60 Hz)
 SWITCH_INTERVAL_S = 0.001  # the interpreter's thread switch interval while a session runs
-PRESENT_RT_PRIORITY = 10  # the present thread's SCHED_FIFO priority, where the process may set it
-PRESENT_NICE = -10  # else its nice value, where the process may raise it
 FREEZE_AFTER_FRAMES = 30  # frames presented before what they made is frozen too (gc.freeze; see _freeze_long_lived)
 
 
@@ -261,26 +259,6 @@ def exercise_reprojection(reprojector, scene, size: tuple[int, int]) -> None:
     cap = reprojector.capture(image, np.full(H * W, moving, np.int32), np.ones(H * W, np.float32),
                               scene.object_poses(0.0), (0, H, 0, W))
     reprojector.reproject(cap, scene.object_poses(0.25), np.zeros_like(image))
-
-
-def _raise_thread_priority(rt_priority: int, nice: int) -> str:
-    """Run the calling thread ahead of the frame thread's work, so that a refresh's present is
-    not queued behind it on a busy machine: SCHED_FIFO at `rt_priority` (Linux; needs
-    CAP_SYS_NICE or an RLIMIT_RTPRIO that allows it: it then preempts every normal thread at
-    once), else the per-thread nice value `nice`, else as it is; the status says which. The
-    thread sleeps most of each period, and the kernel's real-time throttling bounds it anyway."""
-    tid = threading.get_native_id()
-    try:
-        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(rt_priority))
-        return f"SCHED_FIFO {rt_priority}"
-    except (OSError, AttributeError) as exc:
-        log.info("present thread: no real-time priority: %s", exc)
-    try:
-        os.setpriority(os.PRIO_PROCESS, tid, nice)
-        return f"nice {nice}"
-    except (OSError, AttributeError) as exc:
-        log.info("present thread keeps its priority: %s", exc)
-        return "normal (raising it needs CAP_SYS_NICE, RLIMIT_RTPRIO or RLIMIT_NICE)"
 
 
 class SessionLoop:
@@ -834,7 +812,7 @@ class SessionLoop:
     def _present_loop(self) -> None:
         """Wake `_present_lead_ns` before each refresh and present the newest capture, moved to
         each photon window's predicted poses. A present that misses its refresh widens the lead."""
-        self._present_priority = _raise_thread_priority(PRESENT_RT_PRIORITY, PRESENT_NICE)
+        self._present_priority = raise_thread_priority(PRESENT, "present")
         period = self.timing.period_ns
         last = None
         while not self._stop.is_set():
@@ -1156,6 +1134,7 @@ class SessionLoop:
             "implausible": getattr(tracker_status, "implausible", 0),
             "latency_ms": None if tracker_status.latency_ns is None else round(tracker_status.latency_ns / 1e6, 3),
             "stale": self.safety.active("tracking"),
+            "thread_priority": tracker_status.details.get("thread_priority"),  # its receiver's (a driver's own)
         }
         with self._lock:
             accepted, applied = self._accepted, self._settings

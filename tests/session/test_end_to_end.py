@@ -71,6 +71,7 @@ def test_mocked_session_end_to_end(session):
     st = {}
     assert wait_for(streaming_and_lit, 60), st
     assert st["devices"]["tracker"]["kind"] == "natnet"
+    assert st["devices"]["tracker"]["thread_priority"].startswith(("SCHED_FIFO", "nice", "normal"))
     assert st["devices"]["projector"]["display_mode"] == "VIDEO"
     assert len(loop.parts.sink.frames) > 0 and loop.parts.sink.frames[-1].frame.any()
     assert st["latency_ms"]["p50"] > 4.5  # at least the tracker's own latency

@@ -103,6 +103,7 @@ def test_unicast_keep_alives_keep_the_stream_flowing():
         frames = client.status().frames
         assert wait_for(lambda: client.status().frames - frames > 50, WAIT_S)  # still flowing (360 Hz nominal)
         assert client.status().reconnects == 0
+        assert client.status().details["thread_priority"] != "not started"  # what its receiver runs at
         assert server.commands[10] >= 5  # keep-alive is message 10
         assert server.clients
 
