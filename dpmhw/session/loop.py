@@ -299,6 +299,7 @@ class SessionLoop:
         self._present_lead_ns = PRESENT_LEAD_MIN_NS  # how long before a refresh its present begins
         self._lead_penalty_ns = 0  # what missed refreshes added to it (see _adapt_lead)
         self._ready_ns: deque[int] = deque(maxlen=PRESENT_LEAD_HISTORY)  # wake → frame ready to hand over
+        self._present_time_ns = PRESENT_LEAD_MIN_NS  # the median of those, plus the hand-over: the least time a present is tried in
         self._present_number = 0
         self._present_heartbeat_ns = clock()
         self._present_priority = "not started"
@@ -811,15 +812,22 @@ class SessionLoop:
 
     def _present_loop(self) -> None:
         """Wake `_present_lead_ns` before each refresh and present the newest capture, moved to
-        each photon window's predicted poses. A present that misses its refresh widens the lead."""
+        each photon window's predicted poses. A present that misses its refresh widens the lead.
+        Woken (or back from the last present) after the planned wake, the thread still presents
+        for the refresh after the last one while the median time to a ready frame fits before it:
+        skipping that refresh would show the last frame again for certain."""
         self._present_priority = raise_thread_priority(PRESENT, "present")
         period = self.timing.period_ns
         last = None
         while not self._stop.is_set():
             now = self.clock()
             vsync = self.timing.next_vsync(now + self._present_lead_ns, self._vsync_phase)
-            if last is not None and vsync <= last:
-                vsync = last + period
+            if last is not None:
+                following = last + period
+                if vsync > following and following - now >= self._present_time_ns:
+                    vsync = following  # woke or returned late: a present in less than the lead beats a refresh skipped
+                elif vsync <= last:
+                    vsync = following
             wake = vsync - self._present_lead_ns
             if wake > now and self._wait((wake - now) / 1e9):
                 break
@@ -931,7 +939,7 @@ class SessionLoop:
 
     def _adapt_lead(self, ready_ns: int, late: bool) -> None:
         """The lead: the 98th percentile of the time from the planned wake to a frame ready to hand
-        over (the last 240 presents), plus a margin, plus a penalty that a missed refresh
+        over (the last 240 presents; their median sets `_present_time_ns`), plus a margin, plus a penalty that a missed refresh
         raises by a step and on-time presents wear down (a step in ~10 s); within
         [PRESENT_LEAD_MIN_NS, ¾ of a period]. The lead is prediction horizon, but with motion
         predicted to the photon a few milliseconds more of it cost far less registration than a
@@ -942,7 +950,8 @@ class SessionLoop:
         else:
             self._lead_penalty_ns = max(0, self._lead_penalty_ns - PRESENT_LEAD_STEP_NS // 600)
         self._ready_ns.append(max(ready_ns, 0))
-        ready = int(np.percentile(self._ready_ns, PRESENT_LEAD_QUANTILE))
+        median, ready = (int(v) for v in np.percentile(self._ready_ns, (50, PRESENT_LEAD_QUANTILE)))
+        self._present_time_ns = median + PRESENT_HANDOFF_NS
         lead = ready + PRESENT_LEAD_MARGIN_NS + self._lead_penalty_ns
         self._present_lead_ns = min(max(lead, PRESENT_LEAD_MIN_NS), self.timing.period_ns * 3 // 4)
 

@@ -135,3 +135,45 @@ def test_a_present_ready_too_late_for_its_refresh_is_made_again_for_the_next():
             assert np.linalg.norm(poses[body].t - world.pose(body, t / 1e9)[1]) < 1e-3
     finally:
         loop.stop()
+
+
+def test_a_present_back_after_its_next_planned_wake_still_makes_the_next_refresh():
+    """The present thread back from a present later than the next one's planned wake (its sink
+    held it, here a few times), with more than the median time to a ready frame left before the
+    next refresh, presents for that refresh rather than skipping it (which would show the last
+    frame twice for certain)."""
+    import time
+
+    from dpmhw.session.config import load_session_config
+    from dpmhw.session.factory import build_session
+
+    cfg = load_session_config(overrides=["render.width=64", "render.height=48", "api.enabled=false",
+                                         "mock.trajectory=rotate-oscillate", "safety.stale_after_ms=500"])
+    loop = build_session(cfg, mock=True, frame_log=1000)
+    try:
+        loop.start()
+        assert wait_for(lambda: len(loop.frame_log) >= 30, WAIT_S), loop.status()
+        loop._lead_penalty_ns = 8_000_000  # a wide lead, as after missed refreshes: room between the wake and the median
+        assert wait_for(lambda: len(loop.frame_log) >= 40, WAIT_S), loop.status()
+        period, sink = loop.timing.period_ns, loop.parts.sink
+        present, held = sink.present, []  # (refresh presented for, back at, least time then)
+
+        def held_now_and_then(frame, t_target_ns):
+            v = present(frame, t_target_ns)
+            if len(held) < 5 and (not held or v >= held[-1][0] + 10 * period):
+                lead = loop._present_lead_ns
+                time.sleep(max(0.0, (v + period - lead + 500_000 - loop.clock()) / 1e9))  # just past the next planned wake
+                held.append((v, loop.clock(), loop._present_time_ns))
+            return v
+
+        sink.present = held_now_and_then
+        assert wait_for(lambda: len(held) == 5 and any(r.t_present_ns > held[-1][0] for r in list(loop.frame_log)),
+                        WAIT_S), loop.status()
+        presented = [r.t_present_ns for r in list(loop.frame_log)]
+        clean = [(v, back) for v, back, least in held if v + period - back > least + 1_000_000]  # not overshot by the machine
+        assert clean, [(back - v, least) for v, back, least in held]
+        for v, back in clean:
+            nxt = min(t for t in presented if t > v)
+            assert nxt == v + period, f"back {(back - v) / 1e6:.2f} ms after its refresh, next present {(nxt - v) / period:.0f} periods on"
+    finally:
+        loop.stop()
