@@ -572,8 +572,9 @@ class Supervisor:
 
     def _set_deadline(self) -> None:
         """The --duration counts from the first lit frame, or from the loop's start while none came."""
-        if self.duration is not None and self._loop_started is not None:
-            self._deadline = (self._first_lit if self._first_lit is not None else self._loop_started) + self.duration
+        start = self._first_lit if self._first_lit is not None else self._loop_started
+        if self.duration is not None and start is not None:
+            self._deadline = start + self.duration
 
     def _until_exit(self, child, link: _Link, timeout_s: float) -> bool:
         """Relay its messages until the loop process has exited (True) or `timeout_s` passed."""
@@ -605,7 +606,7 @@ class Supervisor:
                     return "stopped", ""
                 return ("crashed" if started else "failed"), f"the loop process (pid {child.pid}) {describe_exit(child.exitcode)}"
             if kind is not None:
-                started = started or kind == "started"
+                started = started or kind in ("started", "lit")  # lit: its link listens and its heartbeat runs
                 self._receive(kind, payload)
             if self._deadline_passed():
                 return self._stop_child(child, link, started), ""
