@@ -160,7 +160,7 @@ def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout):
     return y0, y1, x0, x1
 
 
-@nb.njit(inline="always")
+@nb.njit
 def _put(out, q, ch, r, g, b):
     """Pixel q = (r, g, b), or only its channel ch when ch ≥ 0."""
     if ch < 0:
@@ -175,7 +175,7 @@ def _put(out, q, ch, r, g, b):
         out[q, 2] = b
 
 
-@nb.njit(inline="always")
+@nb.njit
 def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, ch, out):
     """Fill the g pixels between covered pixels qa and qb (q = qa + i·step) that nothing covers
     yet, if the points they show were neighbours at capture; returns (cracks, disoccluded).
