@@ -325,7 +325,7 @@ def _reproject_windows(img, dst, M, channels, moves, full_base, segments, moving
     pixel, plate, colour = arrays
     out = dst.reshape(-1, 3)
     if full_base:
-        _base(img, -1, dst)
+        _base(img, np.int64(-1), dst)  # not a literal: numba would compile _base once more for it
     for w in range(channels.shape[0]):
         ch = channels[w]
         if not full_base:
