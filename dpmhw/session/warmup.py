@@ -229,6 +229,23 @@ def _worker(group: str, run: Callable[[dict], None], config_data: dict, out) -> 
         out.put(("done", group, ""))
 
 
+TRUST_PACE_AT = 0.1  # the fraction of the table's work done from which the observed pace alone sets the ETA
+
+
+def eta_s(elapsed_s: float, frac: float, wall_s: float) -> float:
+    """Seconds left when `frac` of the table's work (by its seconds) is done after `elapsed_s`,
+    the table predicting `wall_s` for the whole. The table was measured on one CPU; another one
+    compiles 3× slower or faster alike, so the whole is estimated from the observed pace
+    (elapsed / frac) as soon as some work is done, blended with the table's `wall_s` until
+    `TRUST_PACE_AT` of it is. The pace counts a kernel when it ends, after the start-up and its
+    callees: early on it errs long, not short."""
+    frac = min(frac, 0.99)
+    if frac <= 0.0:
+        return max(0.0, wall_s - elapsed_s)
+    w = min(1.0, frac / TRUST_PACE_AT)
+    return max(0.0, (1 - w) * wall_s + w * elapsed_s / frac - elapsed_s)
+
+
 def compile_kernels(config, *, progress: Callable[[CompileProgress], None] | None = None,
                     should_stop: Callable[[], bool] = lambda: False, workers: int | None = None,
                     every_s: float = 1.0, force: bool = False, groups: dict[str, KernelGroup] | None = None,
@@ -288,11 +305,7 @@ def compile_kernels(config, *, progress: Callable[[CompileProgress], None] | Non
                     log.warning("compiling the %s kernels failed (the loop compiles them itself): %s", group, what)
             now = clock()
             state.elapsed_s = now - t0
-            # the table's own estimate at first, the observed pace as the work gets done
-            frac = min(done_s / total_s, 0.99) if total_s else 0.0
-            prior = max(0.0, wall_s - state.elapsed_s)
-            observed = state.elapsed_s * (1 - frac) / frac if frac > 0 else prior
-            state.eta_s = (1 - frac) * prior + frac * observed
+            state.eta_s = eta_s(state.elapsed_s, done_s / total_s if total_s else 0.0, wall_s)
             if should_stop():
                 state.stopped = True
                 break
