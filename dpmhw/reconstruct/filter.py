@@ -43,7 +43,7 @@ def mode_code(mode: str) -> int:
     return FILTER_MODES.index(mode)
 
 
-@nb.njit(fastmath=FASTMATH)
+@nb.njit(inline="always", fastmath=FASTMATH)
 def depth_weight(zi, zj):
     """1 at equal depth, smooth below `DEPTH_GATE`, exactly 0 beyond it."""
     d = abs(zi - zj)

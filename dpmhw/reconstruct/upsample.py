@@ -36,7 +36,7 @@ from dpmhw.reconstruct.weights import FASTMATH, SIGMA_N2, fast_exp_neg, fast_lob
 FALLBACK_RADIUS = 2
 
 
-@nb.njit(fastmath=FASTMATH)
+@nb.njit(inline="always", fastmath=FASTMATH)
 def _tap(mode, zi, n0, n1, n2, a0, a1, a2, si, lz, ln, la, ls, j):
     """(diffuse, specular) guide weights of low-resolution tap j: the filter's depth weight times
     its normal- or lobe-aware weight. Every factor is an exponential, so each weight is one
@@ -56,7 +56,7 @@ def _tap(mode, zi, n0, n1, n2, a0, a1, a2, si, lz, ln, la, ls, j):
     return wd, wd
 
 
-@nb.njit(fastmath=FASTMATH)
+@nb.njit(inline="always", fastmath=FASTMATH)
 def _add_tap(d0, d1, d2, e0, e1, e2, s0, s1, s2, wd_sum, ws_sum, wd, ws, ld, le, lsp, j):
     """Add low-resolution tap j with diffuse weight wd and specular weight ws to the running sums."""
     return (d0 + wd * ld[j, 0], d1 + wd * ld[j, 1], d2 + wd * ld[j, 2],
