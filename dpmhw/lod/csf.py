@@ -33,7 +33,7 @@ import numpy as np
 F_MAX = 60.0  # cycles/degree: the upper end of the fit and of foveal acuity
 
 
-@nb.njit(nogil=True, cache=True, inline="always")
+@nb.njit(nogil=True, cache=True)
 def mannos_sakrison(f: float) -> float:
     """The published relative curve A(f) (peak ≈ 0.98 near 8 cpd); 0 outside [0, F_MAX]."""
     if not (0.0 <= f <= F_MAX):  # also catches NaN
@@ -62,7 +62,7 @@ def _peak() -> tuple[float, float]:
 F_PEAK, A_PEAK = _peak()
 
 
-@nb.njit(nogil=True, cache=True, inline="always")
+@nb.njit(nogil=True, cache=True)
 def sensitivity(f: float, peak_sensitivity: float, a_peak: float) -> float:
     """S(f) = peak_sensitivity · A(f) / A(f*), in 1/contrast; 0 outside the fit's range."""
     return peak_sensitivity * mannos_sakrison(f) / a_peak

@@ -72,7 +72,7 @@ E_ROW, S_ROW = 11, 12
 BLOCK = 2048  # points per parallel block (each block's inner loops vectorise)
 
 
-@nb.njit(inline="always", **EVAL)
+@nb.njit(**EVAL)
 def _theta_over_sin(x):
     """θ / sin θ for cos θ = x ∈ [−1, 1]: 2π × the rational fit of Heitz et al. 2016 (LTC,
     `IntegrateEdge`) for x > 0 (error < 1e-3 relative, tested), π/sin θ minus it for x ≤ 0
@@ -83,7 +83,7 @@ def _theta_over_sin(x):
     return v if x > 0.0 else w
 
 
-@nb.njit(inline="always", **EVAL)
+@nb.njit(**EVAL)
 def _unit(a0, a1, a2):
     q = a0 * a0 + a1 * a1 + a2 * a2
     inv = 1.0 / math.sqrt(q)
@@ -91,14 +91,14 @@ def _unit(a0, a1, a2):
     return a0 * inv, a1 * inv, a2 * inv
 
 
-@nb.njit(inline="always", **EVAL)
+@nb.njit(**EVAL)
 def _edge(a0, a1, a2, b0, b1, b2, n0, n1, n2):
     """θ · (n · ĝ) of the edge between unit directions a → b, signed by the winding."""
     c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
     return (n0 * c0 + n1 * c1 + n2 * c2) * _theta_over_sin(a0 * b0 + a1 * b1 + a2 * b2)
 
 
-@nb.njit(inline="always", **EVAL)
+@nb.njit(**EVAL)
 def _clipped_edge(acc, a0, a1, a2, u0, u1, u2, ha, b0, b1, b2, w0, w1, w2, hb, n0, n1, n2):
     """The running sum `acc` = (Σ θ·(n·ĝ), exit point (3), entry point (3), has exit, has entry)
     with the polygon edge a → b added (relative to p; u, w their unit directions, ha, hb their
@@ -121,7 +121,7 @@ def _clipped_edge(acc, a0, a1, a2, u0, u1, u2, ha, b0, b1, b2, w0, w1, w2, hb, n
             has_entry or enters)
 
 
-@nb.njit(inline="always", **EVAL)
+@nb.njit(**EVAL)
 def _irradiance_span(soa, i0, i1, poly, t, lum):
     """E += lum · ∫ cos dω over convex emitter polygon t (`emitter_polygons` row), clipped to
     each point's hemisphere, for points i0..i1; 0 where the point is not in front of the one-sided
@@ -159,7 +159,7 @@ def _irradiance_span(soa, i0, i1, poly, t, lum):
         soa[E_ROW, i] += lum * 0.5 * abs(s) if front else 0.0
 
 
-@nb.njit(inline="always", **EVAL)
+@nb.njit(**EVAL)
 def _specular_span(soa, i0, i1, poly, t, lum):
     """S += lum · amplitude · ∫ exp(λ(r·ω − 1)) · SG_light(ω) dω, the emitter taken as an SG
     of amplitude 1 and its solid angle about the direction to its centre (0 if the point is behind
@@ -188,7 +188,7 @@ def _specular_span(soa, i0, i1, poly, t, lum):
         soa[S_ROW, i] += lum * soa[10, i] * val if ok else 0.0
 
 
-@nb.njit(inline="always", **EVAL)
+@nb.njit(**EVAL)
 def _prepare_span(soa, i0, i1, viewer):
     """In place, points i0..i1: the unit normal, and from the roughness and the specular flag
     (rows 9, 10 as gathered) the reflected view direction r, λ and the amplitude of the specular

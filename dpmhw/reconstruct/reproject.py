@@ -160,7 +160,7 @@ def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout):
     return y0, y1, x0, x1
 
 
-@nb.njit(inline="always")
+@nb.njit
 def _put(out, q, ch, r, g, b):
     """Pixel q = (r, g, b), or only its channel ch when ch ≥ 0."""
     if ch < 0:
@@ -175,7 +175,7 @@ def _put(out, q, ch, r, g, b):
         out[q, 2] = b
 
 
-@nb.njit(inline="always")
+@nb.njit
 def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, ch, out):
     """Fill the g pixels between covered pixels qa and qb (q = qa + i·step) that nothing covers
     yet, if the points they show were neighbours at capture; returns (cracks, disoccluded).
@@ -325,7 +325,7 @@ def _reproject_windows(img, dst, M, channels, moves, full_base, segments, moving
     pixel, plate, colour = arrays
     out = dst.reshape(-1, 3)
     if full_base:
-        _base(img, -1, dst)
+        _base(img, np.int64(-1), dst)  # not a literal: numba would compile _base once more for it
     for w in range(channels.shape[0]):
         ch = channels[w]
         if not full_base:

@@ -110,7 +110,7 @@ class ReuseSettings:
 # kernels
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always")  # typed with its callers' argument types: on its own it took four signatures
 def _blend_pixel(p, c0, c1, c2, prev0, prev1, prev2, n_prev, has_prev, alpha, warmup, hi, lo, n_out, out):
     """Blend one pixel. prev* in float64 (the fetched history), n_prev its history length.
     Returns 1 if the input sample was non-finite (and dropped)."""

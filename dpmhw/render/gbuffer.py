@@ -122,7 +122,7 @@ def _trace_pixels(acc, R, T, o, d, index, first, end, s_t, s_obj, s_prim, s_u, s
         traversal.closest16(acc, R, T, f, iv, valid, o, d, rows, n, t, obj, prim, u, v, bool(True))
 
 
-@nb.njit(inline="always")
+@nb.njit
 def _static_back(p, s_id, s_pos, s_nrm, s_dep, s_alb, s_spec, s_rough, g_id, g_pos, g_normal, g_depth, g_alb, g_spec,
                  g_rough):
     """Pixel p shows its cached static attributes again."""

@@ -15,6 +15,7 @@ thread count or scheduling.
 from __future__ import annotations
 
 import math
+from types import FunctionType
 
 import numba as nb
 import numpy as np
@@ -233,6 +234,24 @@ def _ggx_sample(wo0, wo1, wo2, t0, t1, t2, c0, c1, c2, s0, s1, s2, alpha, x, y):
     h0, h1, h2 = _to_world(hx, hy, hz, t0, t1, t2, c0, c1, c2, s0, s1, s2)
     dh = np.float32(2.0) * _dot(wo0, wo1, wo2, h0, h1, h2)
     return dh * h0 - wo0, dh * h1 - wo1, dh * h2 - wo2
+
+
+def _vectorised(dispatcher):
+    """A copy of an inlined helper for the vectorised kernels (`_sample_block`): compiled on its
+    own with their fast-math flags (`_jit_vector`: neither contraction nor reassociation, so the
+    arithmetic rounds as written, wherever LLVM puts it), once per signature and literal argument
+    value (`glossy`), instead of being parsed and typed again at each of its call sites in numba's
+    IR; LLVM always inlines it (`forceinline`), so the loops still vectorise through it and
+    constant arguments still fold. Renamed, so that it never shares an on-disk cache entry with
+    the original. The shading kernels keep inlining the originals in numba's IR: compiled on their
+    own with `contract`, then inlined, they change the FMAs LLVM forms (the renders' last bits)."""
+    f = dispatcher.py_func
+    copy = FunctionType(f.__code__, f.__globals__, f.__name__ + "_vector")
+    copy.__qualname__ = f.__qualname__ + "_vector"
+    return nb.njit(forceinline=True, **_jit_vector)(copy)
+
+
+_cosine_local_v, _eval_bsdf_v, _ggx_sample_v = (_vectorised(f) for f in (_cosine_local, _eval_bsdf, _ggx_sample))
 
 
 @nb.njit(inline="always", **_jit)
@@ -682,7 +701,7 @@ def _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, g
         u1 = rand(key, k, 1)
         u2 = rand(key, k, 2)
         t0, t1, t2, c0, c1, c2 = _basis(s0, s1, s2)
-        x, y, z = _cosine_local(u1, u2)
+        x, y, z = _cosine_local_v(u1, u2)
         pdf_e = p_env * z * INV_PI32
         inv_e = F1 / pdf_e if pdf_e > F0 else F0
         su = math.sqrt(u1)
@@ -709,8 +728,8 @@ def _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, g
         li2 = bg2 if env else lblk[(L_EMIT + 2) * LSB + j]
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         nee = active & (inv_pl > F0) & (cos_i > F0) & (_dot(wi0, wi1, wi2, g0, g1, g2) > F0)
-        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, ar, ag, ab, sr, sg, sb,
-                                                         alpha, p_spec, glossy)
+        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf_v(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, ar, ag, ab, sr, sg, sb,
+                                                           alpha, p_spec, glossy)
         r_bl = pdf_b * inv_pl
         w = F1 / (F1 + r_bl * r_bl) if sample_bsdf else F1
         scale = cos_i * w * inv_pl
@@ -732,18 +751,18 @@ def _sample_block(key, a, m, surf, lblk, oblk, p_env, background, sample_bsdf, g
         u_lobe = rand(key, k, 3)
         u1 = rand(key, k, 4)
         u2 = rand(key, k, 5)
-        x, y, z = _cosine_local(u1, u2)
+        x, y, z = _cosine_local_v(u1, u2)
         wi0, wi1, wi2 = _to_world(x, y, z, t0, t1, t2, c0, c1, c2, s0, s1, s2)
         if glossy:  # the GGX lobe's direction where u_lobe chooses it
-            h0, h1, h2 = _ggx_sample(wo0, wo1, wo2, t0, t1, t2, c0, c1, c2, s0, s1, s2, alpha, x, y)
+            h0, h1, h2 = _ggx_sample_v(wo0, wo1, wo2, t0, t1, t2, c0, c1, c2, s0, s1, s2, alpha, x, y)
             spec_lobe = u_lobe < p_spec
             wi0 = h0 if spec_lobe else wi0
             wi1 = h1 if spec_lobe else wi1
             wi2 = h2 if spec_lobe else wi2
         cos_i = _dot(wi0, wi1, wi2, s0, s1, s2)
         ok = active & sample_bsdf & (cos_i > F0) & (_dot(wi0, wi1, wi2, g0, g1, g2) > F0)
-        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, ar, ag, ab, sr, sg, sb,
-                                                         alpha, p_spec, glossy)
+        fd0, fd1, fd2, fs0, fs1, fs2, pdf_b = _eval_bsdf_v(wo0, wo1, wo2, wi0, wi1, wi2, s0, s1, s2, ar, ag, ab, sr, sg, sb,
+                                                           alpha, p_spec, glossy)
         ok = ok & (pdf_b > F0)
         f0, f1, f2 = fd0 + fs0, fd1 + fs1, fd2 + fs2
         scale = cos_i / pdf_b
@@ -966,8 +985,10 @@ def trace_segments(counter, starts, counts, clear, radiance, acc, acc_moving, ac
 
 
 # Without fast-math: LLVM inlines the ray queries here, and a fast-math caller would let it fuse
-# their float32 transforms into FMAs (moving objects' hits would change in the last bit).
-@nb.njit(nogil=True, cache=True, error_model="numpy")
+# their float32 transforms into FMAs (moving objects' hits would change in the last bit). Inlined
+# by numba into its one caller, trace_segments: as a function of its own, it would have LLVM
+# optimise and generate the whole path tracer a second time.
+@nb.njit(inline="always", nogil=True, cache=True, error_model="numpy")
 def trace_segment(acc, acc_moving, acc_static, packets, split, depth_limit, max_bounces, mis_last, key, first, count, primary_dirs, primary,
                   complete_primary, static, camera_o, scn, film, gb, surface, work, jitter, scratch):
     """All bounces of the paths through pixels [first, first + count) in one call, with Embree

@@ -151,21 +151,29 @@ def _reconstruction(config_data: dict) -> None:
 # docs/first-run.md. They weigh the progress and its ETA (a kernel not listed is not counted).
 EXPECTED_S: dict[str, dict[str, float]] = {
     "path tracing": {
-        "render.kernels.shade": 5.9, "render.kernels._sample_block_glossy": 4.9, "render.kernels._sample_block_lambert": 4.4,
-        "render.kernels.trace_segment": 3.0, "render.kernels.trace_segments": 2.9, "render.embree.traversal._closest_rows": 2.4,
-        "render.kernels.first_surface": 2.2, "render.embree.traversal.occluded_range": 1.5, "render.kernels.sample_first": 1.5,
-        "render.static_raster._raster": 1.5, "render.static_raster._setup": 1.1, "render.embree.traversal.closest_rows": 0.6,
-        "render.static_raster.resolve_range": 0.5, "render.static_raster._to_camera": 0.5, "render.kernels.jittered_directions": 0.4,
-        "render.embree.traversal.closest_tiles": 0.3, "render.embree.traversal.closest_range": 0.3,
-        "reconstruct.reproject._splat": 1.2, "reconstruct.reproject._column_run": 0.6, "reconstruct.reproject._project": 0.5,
+        "render.kernels.shade": 26.2, "render.kernels.trace_segments": 12.3, "render.embree.traversal._closest_rows": 9.6,
+        "render.kernels._sample_block_glossy": 8.5, "render.kernels._sample_block_lambert": 8.5,
+        "render.static_raster._raster": 6.4, "render.kernels.first_surface": 6.3, "render.kernels.sample_first": 6.0,
+        "reconstruct.reproject._splat": 5.3, "render.static_raster._setup": 4.9, "render.embree.traversal.occluded_range": 4.7,
+        "reconstruct.reproject._fill_run": 3.9, "reconstruct.reproject._reproject_windows": 2.4,
+        "reconstruct.reproject._project": 2.1, "render.embree.traversal.closest_rows": 1.9,
+        "render.kernels._eval_bsdf_vector": 1.4, "render.static_raster._to_camera": 1.4, "reconstruct.reproject._compact": 1.2,
+        "reconstruct.reproject._base": 1.2, "render.kernels._gather_lights": 1.1, "render.kernels.jittered_directions": 1.0,
+        "render.embree.traversal.scratch16": 0.9, "reconstruct.reproject._put": 0.9, "render.embree.traversal.closest_tiles": 0.9,
+        "render.static_raster.resolve_range": 0.8, "render.kernels._ggx_sample_vector": 0.8, "render.static_raster._bin": 0.8,
+        "reconstruct.reproject._column_run": 0.7, "render.embree.traversal.closest_range": 0.7,
+        "render.embree.traversal.tile_order_range": 0.6, "render.kernels.add_unoccluded": 0.6,
     },
     "G-buffer and reconstruction": {
-        "reconstruct.analytic._evaluate_block": 4.7, "reconstruct.upsample._upsample_kernel": 4.1, "render.gbuffer._attributes_py": 2.8,
-        "reconstruct.reuse._motion_py": 2.7, "reconstruct.filter._filter_kernel": 2.0, "render.gbuffer._classify": 2.0,
-        "reconstruct.analytic._products_kernel": 1.9, "reconstruct.guides._guides_kernel": 1.5,
-        "render.gbuffer._restore_kernel": 1.2, "reconstruct.reuse._reproject_py": 1.0, "reconstruct.reuse._same_pixel_py": 1.0,
-        "reconstruct.analytic._row_counts": 0.7, "render.gbuffer._trace_pixels": 0.6, "reconstruct.adaptive._merge": 0.6,
-        "postprocess._encode_kernel": 0.5, "render.embree.traversal.closest16": 0.3,
+        "reconstruct.upsample._upsample_kernel": 18.5, "render.gbuffer._attributes_py": 12.4,
+        "reconstruct.reuse._motion_py": 10.7, "reconstruct.analytic._products_kernel": 8.3,
+        "reconstruct.filter._filter_kernel": 7.5, "render.gbuffer._classify": 6.7, "reconstruct.guides._guides_kernel": 4.2,
+        "reconstruct.reuse._reproject_py": 3.2, "render.gbuffer._restore_kernel": 3.0, "reconstruct.reuse._same_pixel_py": 2.8,
+        "reconstruct.analytic._evaluate_block": 2.0, "reconstruct.analytic._row_counts": 2.0,
+        "reconstruct.analytic._specular_span": 1.9, "reconstruct.analytic._irradiance_span": 1.8,
+        "postprocess._encode_kernel": 1.8, "reconstruct.analytic._prepare_span": 1.6, "reconstruct.analytic._clipped_edge": 1.6,
+        "reconstruct.adaptive._merge": 1.4, "render.gbuffer._trace_pixels": 1.3, "render.embree.traversal.closest16": 0.8,
+        "render.gbuffer._tile_order": 0.7, "reconstruct.adaptive._candidates": 0.7, "render.gbuffer._static_back": 0.6,
     },
 }
 
@@ -229,6 +237,23 @@ def _worker(group: str, run: Callable[[dict], None], config_data: dict, out) -> 
         out.put(("done", group, ""))
 
 
+TRUST_PACE_AT = 0.1  # the fraction of the table's work done from which the observed pace alone sets the ETA
+
+
+def eta_s(elapsed_s: float, frac: float, wall_s: float) -> float:
+    """Seconds left when `frac` of the table's work (by its seconds) is done after `elapsed_s`,
+    the table predicting `wall_s` for the whole. The table was measured on one CPU; on another
+    the whole compile is slower or faster by about one factor, so it is estimated from the
+    observed pace (elapsed / frac), blended with the table's `wall_s` until `TRUST_PACE_AT` of
+    the work is done and alone from then on. A kernel counts when it ends, after the start-up
+    and its callees: early on the estimate errs long, not short."""
+    frac = min(frac, 0.99)
+    if frac <= 0.0:
+        return max(0.0, wall_s - elapsed_s)
+    w = min(1.0, frac / TRUST_PACE_AT)
+    return max(0.0, (1 - w) * wall_s + w * elapsed_s / frac - elapsed_s)
+
+
 def compile_kernels(config, *, progress: Callable[[CompileProgress], None] | None = None,
                     should_stop: Callable[[], bool] = lambda: False, workers: int | None = None,
                     every_s: float = 1.0, force: bool = False, groups: dict[str, KernelGroup] | None = None,
@@ -288,11 +313,7 @@ def compile_kernels(config, *, progress: Callable[[CompileProgress], None] | Non
                     log.warning("compiling the %s kernels failed (the loop compiles them itself): %s", group, what)
             now = clock()
             state.elapsed_s = now - t0
-            # the table's own estimate at first, the observed pace as the work gets done
-            frac = min(done_s / total_s, 0.99) if total_s else 0.0
-            prior = max(0.0, wall_s - state.elapsed_s)
-            observed = state.elapsed_s * (1 - frac) / frac if frac > 0 else prior
-            state.eta_s = (1 - frac) * prior + frac * observed
+            state.eta_s = eta_s(state.elapsed_s, done_s / total_s if total_s else 0.0, wall_s)
             if should_stop():
                 state.stopped = True
                 break

@@ -11,7 +11,7 @@ import pytest
 
 from dpmhw.session import warmup
 from dpmhw.session.config import load_session_config
-from dpmhw.session.warmup import CompileProgress, KernelGroup, compile_kernels
+from dpmhw.session.warmup import TRUST_PACE_AT, CompileProgress, KernelGroup, compile_kernels, eta_s
 
 
 def _add(a, b):
@@ -51,6 +51,17 @@ def test_groups_in_workers_report_kernels_progress_and_failures():
     assert result.kernels["test_warmup._mul"]["signatures"] == 1  # compiled, timed, not counted: not listed
     assert seen and seen[-1].groups_left == []
     assert "1/2 kernels" in result.line() and result.line().endswith("done")
+
+
+def test_the_eta_follows_the_pace_of_a_slower_cpu():
+    """The table says 36 s; this CPU compiles 3× slower (108 s). Before anything is done the
+    table is all there is; from TRUST_PACE_AT of the work on, the ETA is the observed pace's."""
+    assert eta_s(0.0, 0.0, 36.0) == 36.0
+    assert eta_s(TRUST_PACE_AT * 108, TRUST_PACE_AT, 36.0) == pytest.approx(108 * (1 - TRUST_PACE_AT))
+    assert eta_s(54.0, 0.5, 36.0) == pytest.approx(54.0)
+    half_way_in = TRUST_PACE_AT / 2  # blended: between the table's 36 s and the truth, 108 s
+    assert 36.0 - 108 * half_way_in < eta_s(108 * half_way_in, half_way_in, 36.0) < 108 * (1 - half_way_in)
+    assert eta_s(10.0, 0.999, 36.0) >= 0.0
 
 
 def test_a_stop_ends_the_workers_at_once():
