@@ -3,12 +3,24 @@ for a render."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
 from dpmhw.session.testing import wait_for
 
 WAIT_S = 60  # what must happen eventually (a loaded machine, a first compile); only broken code waits
+
+
+def small_mock_session():
+    """A mocked session at 64×48 on the moving trajectory, with a frame log (not started)."""
+    from dpmhw.session.config import load_session_config
+    from dpmhw.session.factory import build_session
+
+    cfg = load_session_config(overrides=["render.width=64", "render.height=48", "api.enabled=false",
+                                         "mock.trajectory=rotate-oscillate", "safety.stale_after_ms=500"])
+    return build_session(cfg, mock=True, frame_log=1000)
 
 
 def test_presents_go_on_while_a_render_is_stuck(make_loop):
@@ -98,14 +110,7 @@ def test_a_present_ready_too_late_for_its_refresh_is_made_again_for_the_next():
     """A reprojection that finishes after its refresh (made slow here once) is predicted and
     reprojected again for the refresh after: that present is counted late and retargeted, the
     refresh it reaches carries it, and its pose is where the body is then (not a period off)."""
-    import time
-
-    from dpmhw.session.config import load_session_config
-    from dpmhw.session.factory import build_session
-
-    cfg = load_session_config(overrides=["render.width=64", "render.height=48", "api.enabled=false",
-                                         "mock.trajectory=rotate-oscillate", "safety.stale_after_ms=500"])
-    loop = build_session(cfg, mock=True, frame_log=1000)
+    loop = small_mock_session()
     try:
         loop.start()
         assert wait_for(lambda: len(loop.frame_log) >= 10, WAIT_S), loop.status()
@@ -142,14 +147,7 @@ def test_a_present_back_after_its_next_planned_wake_still_makes_the_next_refresh
     held it, here a few times), with more than the median time to a ready frame left before the
     next refresh, presents for that refresh rather than skipping it (which would show the last
     frame twice for certain)."""
-    import time
-
-    from dpmhw.session.config import load_session_config
-    from dpmhw.session.factory import build_session
-
-    cfg = load_session_config(overrides=["render.width=64", "render.height=48", "api.enabled=false",
-                                         "mock.trajectory=rotate-oscillate", "safety.stale_after_ms=500"])
-    loop = build_session(cfg, mock=True, frame_log=1000)
+    loop = small_mock_session()
     try:
         loop.start()
         assert wait_for(lambda: len(loop.frame_log) >= 30, WAIT_S), loop.status()
