@@ -388,7 +388,6 @@ class NatNetServer:
     # -- loop ----------------------------------------------------------------------------------
 
     def _run(self) -> None:
-        # the device is another machine: its timing must not follow this process's load
         raise_thread_priority(MOCK_DEVICE, "NatNet mock")
         cfg = self.config
         period_ticks = cfg.clock_hz / cfg.rate_hz

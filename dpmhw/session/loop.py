@@ -822,11 +822,9 @@ class SessionLoop:
         while not self._stop.is_set():
             now = self.clock()
             vsync = self.timing.next_vsync(now + self._present_lead_ns, self._vsync_phase)
-            if last is not None:
+            if last is not None:  # never the last refresh again; woke or returned late, the one after it while a present fits
                 following = last + period
-                if vsync > following and following - now >= self._present_time_ns:
-                    vsync = following  # woke or returned late: a present in less than the lead beats a refresh skipped
-                elif vsync <= last:
+                if vsync <= last or (vsync > following and following - now >= self._present_time_ns):
                     vsync = following
             wake = vsync - self._present_lead_ns
             if wake > now and self._wait((wake - now) / 1e9):
