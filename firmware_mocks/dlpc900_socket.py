@@ -72,6 +72,7 @@ MAX_CLIENTS = 64  # connections served at once (each has a thread); more are clo
 MAX_REQUEST_BYTES = 1 << 20  # one pickled request: a 16-bit transfer and its framing fit many times
 MAX_TRANSFER = 0xFFFF  # a control transfer's wLength is 16 bits; no interrupt report is longer
 EMULATOR_DIRS = OwnedNames(tempfile.gettempdir(), "dpmhw-dlpc900")
+SOCKET_PATH_MAX = 107  # bytes of an AF_UNIX address on Linux (sun_path is 108, with its NUL)
 
 
 # ---- the emulator process -------------------------------------------------------------------
@@ -269,8 +270,11 @@ class EmulatorProcess:
               video_hz: float | None = None) -> "EmulatorProcess":
         EMULATOR_DIRS.sweep()  # the folders of owners that were killed
         tmpdir = os.path.join(EMULATOR_DIRS.directory, EMULATOR_DIRS.new_name())
-        os.mkdir(tmpdir, 0o700)  # only this user may reach the socket
         address = os.path.join(tmpdir, "usb.sock")
+        if len(os.fsencode(address)) > SOCKET_PATH_MAX:  # the emulator could not bind it: say so now, not after timeout_s
+            raise RuntimeError(f"the DLPC900 emulator's socket path {address!r} is {len(os.fsencode(address))} bytes, over "
+                               f"the {SOCKET_PATH_MAX} a Unix socket address holds: set TMPDIR to a shorter directory")
+        os.mkdir(tmpdir, 0o700)  # only this user may reach the socket
         authkey = secrets.token_bytes(16)
         ctx = multiprocessing.get_context("spawn")
         ours, theirs = ctx.Pipe()

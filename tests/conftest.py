@@ -28,6 +28,14 @@ def pytest_sessionstart(session) -> None:
         write(f"compiling the {group} kernels ahead failed ({why}); the tests compile them as they go")
 
 
+def pytest_xdist_auto_num_workers(config) -> int:
+    """`-n auto` (pyproject's addopts): a worker per core, 2 to 4. Much of the suite waits on
+    sessions, sockets and subprocesses against the wall clock, so two workers nearly halve its
+    time even on 2 cores; each test is sized for a loaded 2-core machine, and more workers than
+    cores would load it beyond that. `-n 0` runs it in this process."""
+    return min(4, max(2, os.cpu_count() or 1))
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _own_runtime_dir(tmp_path_factory):
     """Session lock files (dpmhw.session.instance) in a directory of this run's own, so a suite

@@ -6,7 +6,10 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import os
+import pathlib
+import shutil
 import signal
+import tempfile
 
 import pytest
 import usb.core
@@ -141,9 +144,29 @@ def test_oversized_and_malformed_requests_get_an_error_reply_and_the_connection_
     assert emulator.inspect()[0]["serial"] == "EMU0001" and emulator.process.is_alive()
 
 
-def test_a_killed_owner_leaves_no_folder_and_stale_folders_are_swept(tmp_path, monkeypatch):
+@pytest.fixture
+def short_dir():
+    """A folder whose socket paths fit an AF_UNIX address (pytest's tmp_path may not, under xdist)."""
+    path = tempfile.mkdtemp(prefix="dpmhw-t")
+    yield pathlib.Path(path)
+    shutil.rmtree(path, ignore_errors=True)
+
+
+def test_a_socket_path_too_long_for_a_unix_address_is_refused_at_once_by_name(tmp_path, monkeypatch):
     from firmware_mocks import dlpc900_socket as mod
 
+    deep = tmp_path / ("d" * 120)
+    deep.mkdir()
+    monkeypatch.setattr(mod, "EMULATOR_DIRS", mod.OwnedNames(str(deep), "dpmhw-dlpc900"))
+    with pytest.raises(RuntimeError, match="socket path .* over the 107 .* set TMPDIR"):
+        EmulatorProcess.start(timeout_s=600)  # refused before a process starts: no wait
+    assert list(deep.iterdir()) == []
+
+
+def test_a_killed_owner_leaves_no_folder_and_stale_folders_are_swept(short_dir, monkeypatch):
+    from firmware_mocks import dlpc900_socket as mod
+
+    tmp_path = short_dir
     dirs = mod.OwnedNames(str(tmp_path), "dpmhw-dlpc900")
     monkeypatch.setattr(mod, "EMULATOR_DIRS", dirs)
     dead = subprocess_pid_that_exited()

@@ -16,7 +16,7 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 @pytest.fixture
 def loop():
-    session = fake_session().start()
+    session = fake_session(["governor.enabled=false"]).start()  # what changes the settings here is the requests alone
     yield session
     session.parts.renderer.block.set()
     session.stop()

@@ -207,7 +207,8 @@ def test_round_trip_with_garbage_between_records(units):
         assert emu.records_corrupted - 6 * stations <= missed <= (emu.records_corrupted + emu.records_skipped) * 1.01 + 1
         assert tracker.garbage_bytes > 0
         assert {s.rigid_body_id for s in samples} == {1, 2}
-        assert check_against_truth(samples, world, emu) == len(samples) == frames - tracker.gate.held  # held: until they agree
+        assert check_against_truth(samples, world, emu) == len(samples) == frames - tracker.gate.held, \
+            tracker.gate.counts()  # held: until they agree
 
 
 @pytest.mark.realtime
