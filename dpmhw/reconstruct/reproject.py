@@ -213,16 +213,6 @@ def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, 
 
 
 @nb.njit
-def _gap_left(cover, q, cols_left, s2):
-    """g ≥ 2 for the splat q − g nearest to the left of a gap before q (at most GAP_MAX_PX
-    pixels wide, none of them left of the box), else 0."""
-    for g in range(2, min(GAP_MAX_PX + 1, cols_left) + 1):
-        if cover[q - g] == s2:
-            return g
-    return 0
-
-
-@nb.njit
 def _gap_above(cover, q, rows_above, W, s2):
     """g ≥ 2 for the covered pixel q − g·W nearest above a gap over q (at most GAP_MAX_PX rows,
     none of them above the box), else 0."""
@@ -308,11 +298,12 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, 
                 continue
             if not left:  # a splat after a gap in the row: look back for the splat before it
                 left = True
-                g = _gap_left(cover, q, q - row, s2)
-                if g:
-                    h, d = _row_run(q, g, y - y0, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
-                    holes += h
-                    dis += d
+                for g in range(2, min(GAP_MAX_PX + 1, q - row) + 1):
+                    if cover[q - g] == s2:
+                        h, d = _row_run(q, g, y - y0, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
+                        holes += h
+                        dis += d
+                        break
             if y > y0 and cover[q - W] >> 1 != sid:
                 g = _gap_above(cover, q, y - y0, W, s2)
                 if g:
@@ -330,7 +321,7 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, 
 
 @nb.njit(cache=True, nogil=True)
 def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_base, segments, moving, px, py, pz, fx,
-                       fy, cx, cy, dist, W, H, arrays, plate_z, zbuf, src, cover, sid, dest, zout, moves, stats, boxes):
+                       fy, cx, cy, dist, W, H, arrays, plate_z, zbuf, src, cover, sid, dest, zout, moves, same, stats, boxes):
     """Every photon window of one present in one call (one release of the GIL): `dst` = the
     captured image (all channels at once when `full_base`, else each window's own channel), then
     for each window w whose poses (R[w], t[w]) differ from the capture's (cap_R, cap_t) for an
@@ -339,11 +330,11 @@ def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_b
     (`M_bits`, M's bytes as uint32) and whose channel follows its channel joins its splat, which
     writes both channels: the bits each window's own splat would give. `arrays`: the capture's
     (pixel, plate, colour); window w stamps `cover` with 2·(sid + w). stats[w]: moved, dropped,
-    holes, disoccluded, vacated; boxes[w]: the splats' (y0, y1, x0, x1)."""
+    holes, disoccluded, vacated; boxes[w]: the splats' (y0, y1, x0, x1); moves and same are
+    written here."""
     pixel, plate, colour = arrays
     out = dst.reshape(-1, 3)
     n_win = channels.shape[0]
-    same = np.zeros(n_win, np.bool_)
     for w in range(n_win):
         moves[w] = False
         same[w] = w > 0
@@ -457,7 +448,7 @@ class Reprojector:
         self._sid = 0
         k = len(flags)  # per window of a present (at most 3): poses, matrices, channel, results
         self._R, self._t, self._M = np.empty((3, k, 3, 3)), np.empty((3, k, 3)), np.empty((3, k, 3, 4), np.float32)
-        self._channels, self._moves = np.empty(3, np.int64), np.empty(3, np.bool_)
+        self._channels, self._moves, self._same = np.empty(3, np.int64), np.empty(3, np.bool_), np.empty(3, np.bool_)
         self._stats, self._boxes = np.empty((3, 5), np.int64), np.empty((3, 4), np.int64)
         self._dest, self._zout = np.empty(0, np.int32), np.empty(0, np.float32)  # per point, grown to the largest capture
         self._intrinsics = (np.float32(K[0, 0]), np.float32(K[1, 1]), np.float32(K[0, 2]), np.float32(K[1, 2]),
@@ -542,7 +533,7 @@ class Reprojector:
                                capture.t, self._channels[:nw], channels[0] < 0 or nw == 3, seg, moving, px, py, pz,
                                *self._intrinsics, W, H, (capture.pixel, capture.plate, capture.colour), self._plate_z,
                                self._zbuf, self._src, self._cover, sid, self._dest[:n], self._zout[:n], self._moves[:nw],
-                               self._stats[:nw], self._boxes[:nw])
+                               self._same[:nw], self._stats[:nw], self._boxes[:nw])
             moves, stats, boxes = self._moves[:nw].tolist(), self._stats[:nw].tolist(), self._boxes[:nw].tolist()
         result = []
         for w in range(nw):
