@@ -161,27 +161,21 @@ def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout):
 
 
 @nb.njit
-def _put(out, q, ch, r, g, b):
-    """Pixel q = (r, g, b), or only its channel ch when ch ≥ 0."""
-    if ch < 0:
-        out[q, 0] = r
-        out[q, 1] = g
-        out[q, 2] = b
-    elif ch == 0:
-        out[q, 0] = r
-    elif ch == 1:
-        out[q, 1] = g
-    else:
-        out[q, 2] = b
+def _put(out, q, r, g, b, m0, m1, m2):
+    """Pixel q = (r, g, b) in the channels whose byte mask m is 255; the others are stored back
+    as they were (no branch on the channel)."""
+    out[q, 0] = out[q, 0] ^ ((out[q, 0] ^ r) & m0)
+    out[q, 1] = out[q, 1] ^ ((out[q, 1] ^ g) & m1)
+    out[q, 2] = out[q, 2] ^ ((out[q, 2] ^ b) & m2)
 
 
 @nb.njit
-def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, ch, out):
+def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out):
     """Fill the g pixels between covered pixels qa and qb (q = qa + i·step) that nothing covers
     yet, if the points they show were neighbours at capture; returns (cracks, disoccluded).
-    The ends' colours are read back from `out` (a channel not written is never read into one
-    that is); a filled pixel gets a depth and a point (the nearer end's), so that it can end a
-    run along the other axis. `cover`: s2 splatted, s2 + 1 filled in this reprojection."""
+    Channels whose mask is 255 are written; the ends' colours are read back from `out`. A filled
+    pixel gets a depth and a point (the nearer end's), so that it can end a run along the other
+    axis. `cover`: s2 splatted, s2 + 1 filled in this reprojection."""
     ka, kb = src[qa], src[qb]
     d = abs(pixel[kb] - pixel[ka])
     if d > 1 and abs(d - W) > 1:  # (at the frame's side edges a row's end and the next row's start pass too)
@@ -203,14 +197,14 @@ def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
             r = np.uint8(out[qa, 0] + t * (np.float32(out[qb, 0]) - out[qa, 0]) + 0.5)
             gg = np.uint8(out[qa, 1] + t * (np.float32(out[qb, 1]) - out[qa, 1]) + 0.5)
             bb = np.uint8(out[qa, 2] + t * (np.float32(out[qb, 2]) - out[qa, 2]) + 0.5)
-            _put(out, q, ch, r, gg, bb)
+            _put(out, q, r, gg, bb, m0, m1, m2)
             src[q] = ka if t < 0.5 else kb
             holes += 1
         else:
             z = zf
             if plate_z[q] < z * (1.0 - STATIC_Z_REL):
                 continue
-            _put(out, q, ch, out[qf, 0], out[qf, 1], out[qf, 2])
+            _put(out, q, out[qf, 0], out[qf, 1], out[qf, 2], m0, m1, m2)
             src[q] = kf
             dis += 1
         zbuf[q] = z
@@ -218,16 +212,30 @@ def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
     return holes, dis
 
 
-@nb.njit(nogil=True, cache=True)
-def _column_run(q, rows_above, pixel, src, zbuf, cover, s2, plate_z, W, ch, out):
-    """Covered pixel q under a gap in its column (the caller checked the pixel above): fill the
-    run up to the covered pixel above it."""
-    sid = s2 >> 1
+@nb.njit
+def _gap_above(cover, q, rows_above, W, s2):
+    """g ≥ 2 for the covered pixel q − g·W nearest above a gap over q (at most GAP_MAX_PX rows,
+    none of them above the box), else 0."""
     for g in range(2, min(GAP_MAX_PX + 1, rows_above) + 1):
-        a = q - g * W
-        if cover[a] >> 1 == sid:
-            return _fill_run(a, q, W, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
-    return 0, 0
+        if cover[q - g * W] >> 1 == s2 >> 1:
+            return g
+    return 0
+
+
+@nb.njit(nogil=True, cache=True)
+def _row_run(q, g, rows_above, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out):
+    """Fill the row run between splats q − g and q, then the column run above each pixel it
+    filled; returns (cracks, disoccluded). Called only where a gap was found: a call passes
+    its arrays' references (atomic reference counts), too dear for every pixel."""
+    holes, dis = _fill_run(q - g, q, 1, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
+    for a in range(q - g + 1, q):
+        if rows_above > 0 and cover[a] == s2 + 1 and cover[a - W] >> 1 != s2 >> 1:
+            ga = _gap_above(cover, a, rows_above, W, s2)
+            if ga:
+                h, d = _fill_run(a - ga * W, a, W, ga - 1, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
+                holes += h
+                dis += d
+    return holes, dis
 
 
 @nb.njit(cache=True, nogil=True)
@@ -251,17 +259,16 @@ def _base(image, ch, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf, src, cover, s2, out, stats):
-    """Erase the captured moving pixels (the plate), splat the points with a z-test, then, in
-    one row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats
-    along the row, and along the column above each splat and each pixel a row run filled (a
-    crack row crossing a crack column closes too). When a pixel looks up its column, every
-    pixel above it is final: rows above are done, and only this pixel's run fills its column.
-    `cover`: s2 where a point landed, s2 + 1 where a run was filled (older values: neither).
-    stats: moved, dropped, holes, disoccluded, vacated."""
+def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, m2, zbuf, src, cover, s2, out, stats):
+    """Splat the points with a z-test into the channels of `out` whose mask is 255; then, in one
+    row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats along the
+    row, and along the column above each splat and each pixel a row run filled (a crack row
+    crossing a crack column closes too); then give the captured moving pixels that nothing
+    covers the plate. When a pixel looks up its column, every pixel above it is final: rows
+    above are done, and only this pixel's run fills its column. The fills read only covered
+    pixels, so the plate can go in last. `cover`: s2 where a point landed, s2 + 1 where a run
+    was filled (older values: neither). stats: moved, dropped, holes, disoccluded, vacated."""
     n = pixel.shape[0]
-    for k in range(n):
-        _put(out, pixel[k], ch, back[k, 0], back[k, 1], back[k, 2])
     moved = dropped = 0
     for k in range(n):
         q = dest[k]
@@ -279,67 +286,94 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf
             continue
         zbuf[q] = z
         src[q] = k
-        _put(out, q, ch, colour[k, 0], colour[k, 1], colour[k, 2])
+        _put(out, q, colour[k, 0], colour[k, 1], colour[k, 2], m0, m1, m2)
     holes = dis = 0
     sid = s2 >> 1
     for y in range(y0, y1):
-        left = False
-        for x in range(x0, x1):
-            q = y * W + x
+        left = False  # the pixel to the left is a splat
+        row = y * W + x0
+        for q in range(row, row + x1 - x0):
             if cover[q] != s2:
                 left = False
                 continue
             if not left:  # a splat after a gap in the row: look back for the splat before it
-                for g in range(2, min(GAP_MAX_PX + 1, x - x0) + 1):
+                left = True
+                for g in range(2, min(GAP_MAX_PX + 1, q - row) + 1):
                     if cover[q - g] == s2:
-                        h, d = _fill_run(q - g, q, 1, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
+                        h, d = _row_run(q, g, y - y0, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
                         holes += h
                         dis += d
-                        for a in range(q - g + 1, q):  # what the row run filled: each its column too
-                            if cover[a] == s2 + 1 and y > y0 and cover[a - W] >> 1 != sid:
-                                h, d = _column_run(a, y - y0, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
-                                holes += h
-                                dis += d
                         break
-            left = True
             if y > y0 and cover[q - W] >> 1 != sid:
-                h, d = _column_run(q, y - y0, pixel, src, zbuf, cover, s2, plate_z, W, ch, out)
-                holes += h
-                dis += d
+                g = _gap_above(cover, q, y - y0, W, s2)
+                if g:
+                    h, d = _fill_run(q - g * W, q, W, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
+                    holes += h
+                    dis += d
     vacated = 0
     for k in range(n):
-        if cover[pixel[k]] >> 1 != sid:
+        q = pixel[k]
+        if cover[q] >> 1 != sid:
             vacated += 1
+            _put(out, q, back[k, 0], back[k, 1], back[k, 2], m0, m1, m2)
     stats[0], stats[1], stats[2], stats[3], stats[4] = moved, dropped, holes, dis, vacated
 
 
 @nb.njit(cache=True, nogil=True)
-def _reproject_windows(img, dst, M, channels, moves, full_base, segments, moving, px, py, pz, fx, fy, cx, cy, dist,
-                       W, H, arrays, plate_z, zbuf, src, cover, sid, dest, zout, stats, boxes):
+def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_base, segments, moving, px, py, pz, fx,
+                       fy, cx, cy, dist, W, H, arrays, plate_z, zbuf, src, cover, sid, dest, zout, moves, same, stats, boxes):
     """Every photon window of one present in one call (one release of the GIL): `dst` = the
     captured image (all channels at once when `full_base`, else each window's own channel), then
-    for each window w that `moves`, its points moved by `M[w]` and splatted into its channel
-    (`channels[w]`, −1: all). `arrays`: the capture's (pixel, plate, colour); window w stamps
-    `cover` with 2·(sid + w). stats[w]: moved, dropped, holes, disoccluded, vacated; boxes[w]:
-    the splats' (y0, y1, x0, x1)."""
+    for each window w whose poses (R[w], t[w]) differ from the capture's (cap_R, cap_t) for an
+    object of `moving` (`moves[w]`), its points moved by `M[w]` and splatted into its channel
+    (`channels[w]`, −1: all). A window whose matrices are the previous window's bit for bit
+    (`M_bits`, M's bytes as uint32) and whose channel follows its channel joins its splat, which
+    writes both channels: the bits each window's own splat would give. `arrays`: the capture's
+    (pixel, plate, colour); window w stamps `cover` with 2·(sid + w). stats[w]: moved, dropped,
+    holes, disoccluded, vacated; boxes[w]: the splats' (y0, y1, x0, x1); moves and same are
+    written here."""
     pixel, plate, colour = arrays
     out = dst.reshape(-1, 3)
+    n_win = channels.shape[0]
+    for w in range(n_win):
+        moves[w] = False
+        same[w] = w > 0
+        for o in moving:
+            for i in range(3):
+                moves[w] |= t[w, o, i] != cap_t[o, i]
+                for j in range(3):
+                    moves[w] |= R[w, o, i, j] != cap_R[o, i, j]
+            for i in range(12):
+                same[w] &= w > 0 and M_bits[w, o, i] == M_bits[w - 1, o, i]
     if full_base:
         _base(img, np.int64(-1), dst)  # not a literal: numba would compile _base once more for it
-    for w in range(channels.shape[0]):
+    w = 0
+    while w < n_win:
         ch = channels[w]
         if not full_base:
             _base(img, ch, dst)
         if not moves[w]:
+            w += 1
             continue
+        e = w + 1  # windows w to e − 1: one pose, consecutive channels
+        while e < n_win and moves[e] and same[e] and channels[e] == channels[e - 1] + 1:
+            if not full_base:
+                _base(img, channels[e], dst)
+            e += 1
         y0, y1, x0, x1 = H, 0, W, 0
         for o in moving:
-            a, e = segments[o], segments[o + 1]
-            b = _project(px[a:e], py[a:e], pz[a:e], M[w, o], fx, fy, cx, cy, dist, W, H, dest[a:e], zout[a:e])
-            y0, y1, x0, x1 = min(y0, b[0]), max(y1, b[1]), min(x0, b[2]), max(x1, b[3])
-        _splat(pixel, plate, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch, zbuf, src, cover, 2 * (sid + w),
+            a, b = segments[o], segments[o + 1]
+            bx = _project(px[a:b], py[a:b], pz[a:b], M[w, o], fx, fy, cx, cy, dist, W, H, dest[a:b], zout[a:b])
+            y0, y1, x0, x1 = min(y0, bx[0]), max(y1, bx[1]), min(x0, bx[2]), max(x1, bx[3])
+        c0, c1 = (0, 3) if ch < 0 else (ch, channels[e - 1] + 1)  # the channels written, as byte masks
+        m0, m1, m2 = np.uint8(255 if c0 == 0 else 0), np.uint8(255 if c0 <= 1 < c1 else 0), np.uint8(255 if c1 == 3 else 0)
+        _splat(pixel, plate, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, m2, zbuf, src, cover, 2 * (sid + w),
                out, stats[w])
-        boxes[w, 0], boxes[w, 1], boxes[w, 2], boxes[w, 3] = y0, y1, x0, x1
+        for v in range(w, e):
+            for i in range(5):
+                stats[v, i] = stats[w, i]
+            boxes[v, 0], boxes[v, 1], boxes[v, 2], boxes[v, 3] = y0, y1, x0, x1
+        w = e
 
 
 # ---- checks ----------------------------------------------------------------------------------------
@@ -363,8 +397,8 @@ def _poses(poses, n: int, name: str = "poses") -> tuple[np.ndarray, np.ndarray]:
             shapes = (np.shape(getattr(p, "R", None)), np.shape(getattr(p, "t", None)))
             if shapes != ((3, 3), (3,)):
                 raise ValueError(f"{name}[{i}]: expected a Pose with R (3, 3) and t (3,), got {type(p).__name__}")
-    bad = ~(np.isfinite(R).all(axis=(1, 2)) & np.isfinite(t).all(axis=1))
-    if bad.any():
+    if not (np.isfinite(R).all() and np.isfinite(t).all()):
+        bad = ~(np.isfinite(R).all(axis=(1, 2)) & np.isfinite(t).all(axis=1))
         raise ValueError(f"{name}[{int(np.flatnonzero(bad)[0])}]: not finite")
     return R, t
 
@@ -412,7 +446,11 @@ class Reprojector:
         self._src = np.zeros(n, np.int32)  # the point a splatted pixel shows
         self._cover = np.zeros(n, np.int32)  # 2·id of the reprojection that splatted the pixel, + 1: filled it
         self._sid = 0
-        self._moving = [int(k) for k in np.flatnonzero(self.dynamic)]
+        k = len(flags)  # per window of a present (at most 3): poses, matrices, channel, results
+        self._R, self._t, self._M = np.empty((3, k, 3, 3)), np.empty((3, k, 3)), np.empty((3, k, 3, 4), np.float32)
+        self._channels, self._moves, self._same = np.empty(3, np.int64), np.empty(3, np.bool_), np.empty(3, np.bool_)
+        self._stats, self._boxes = np.empty((3, 5), np.int64), np.empty((3, 4), np.int64)
+        self._dest, self._zout = np.empty(0, np.int32), np.empty(0, np.float32)  # per point, grown to the largest capture
         self._intrinsics = (np.float32(K[0, 0]), np.float32(K[1, 1]), np.float32(K[0, 2]), np.float32(K[1, 2]),
                             dist.astype(np.float32))
         self._capture_lock = threading.Lock()
@@ -468,42 +506,42 @@ class Reprojector:
         if np.may_share_memory(out, capture.image):
             raise ValueError("out: is the capture's own image (the capture must stay as it was rendered)")
         windows = list(windows)
-        channels = np.array([self._channel(c, k) for k, (_, c) in enumerate(windows)], np.int64)
-        if len(windows) == 0 or (len(windows) > 1 and (-1 in channels or len(set(channels.tolist())) < len(windows))):
+        nw, n_obj = len(windows), len(self.dynamic)
+        channels = [self._channel(c, k) for k, (_, c) in enumerate(windows)]
+        if nw == 0 or (nw > 1 and (-1 in channels or len(set(channels)) < nw)):
             raise ValueError(f"windows: expected one window of all channels or windows of distinct channels 0–2, "
-                             f"got channels {[None if c < 0 else int(c) for c in channels]}")
+                             f"got channels {[None if c < 0 else c for c in channels]}")
         n, seg = capture.lit, capture.segments
-        moving = np.array([k for k in self._moving if seg[k + 1] > seg[k]], np.int64)
-        M = np.zeros((len(windows), len(self.dynamic), 3, 4), np.float32)  # model → camera: R_camᵀ (R_k·m + t_k − t_cam)
-        moves = np.zeros(len(windows), np.bool_)
-        for w, (poses, _) in enumerate(windows):
-            R, t = _poses(poses, len(self.dynamic), f"windows[{w}] poses" if len(windows) > 1 else "poses")
-            moves[w] = any(not (np.array_equal(R[k], capture.R[k]) and np.array_equal(t[k], capture.t[k])) for k in moving)
-            M[w, :, :, :3] = np.einsum("ji,kjl->kil", self.cam_R, R)
-            M[w, :, :, 3] = (t - self.cam_t) @ self.cam_R
-        full_base = channels[0] < 0 or len(windows) == 3
-        dest, zout = np.empty(n, np.int32), np.empty(n, np.float32)
-        stats = np.zeros((len(windows), 5), np.int64)
-        boxes = np.zeros((len(windows), 4), np.int64)
         px, py, pz = capture.point
-        with self._present_lock:
-            if self._sid + len(windows) >= 2**30 - 1:  # the stamps wrap only after 2³⁰ windows; then start over
+        moving = np.flatnonzero(self.dynamic & (seg[1:] > seg[:-1]))  # the moving objects with points
+        with self._present_lock:  # the buffers below are the present thread's, reused every call
+            R, t, M = self._R[:nw], self._t[:nw], self._M[:nw]
+            for w, (poses, _) in enumerate(windows):
+                R[w], t[w] = _poses(poses, n_obj, f"windows[{w}] poses" if nw > 1 else "poses")
+            M[..., :3] = np.einsum("ji,wkjl->wkil", self.cam_R, R)  # model → camera: R_camᵀ (R_k·m + t_k − t_cam)
+            M[..., 3] = (t - self.cam_t) @ self.cam_R
+            M12 = M.reshape(nw, n_obj, 12)
+            self._channels[:nw] = channels
+            if self._dest.shape[0] < n:
+                self._dest, self._zout = np.empty(n, np.int32), np.empty(n, np.float32)
+            if self._sid + nw >= 2**30 - 1:  # the stamps wrap only after 2³⁰ windows; then start over
                 self._cover[:] = 0
                 self._sid = 0
             sid = self._sid + 1
-            self._sid += len(windows)
-            _reproject_windows(capture.image.reshape(-1), out.reshape(-1), M.reshape(len(windows), -1, 12), channels,
-                               moves, full_base, seg, moving, px, py, pz, *self._intrinsics, W, H,
-                               (capture.pixel, capture.plate, capture.colour), self._plate_z, self._zbuf, self._src,
-                               self._cover, sid, dest, zout, stats, boxes)
+            self._sid += nw
+            _reproject_windows(capture.image.reshape(-1), out.reshape(-1), M12, M12.view(np.uint32), R, t, capture.R,
+                               capture.t, self._channels[:nw], channels[0] < 0 or nw == 3, seg, moving, px, py, pz,
+                               *self._intrinsics, W, H, (capture.pixel, capture.plate, capture.colour), self._plate_z,
+                               self._zbuf, self._src, self._cover, sid, self._dest[:n], self._zout[:n], self._moves[:nw],
+                               self._same[:nw], self._stats[:nw], self._boxes[:nw])
+            moves, stats, boxes = self._moves[:nw].tolist(), self._stats[:nw].tolist(), self._boxes[:nw].tolist()
         result = []
-        for w in range(len(windows)):
+        for w in range(nw):
             if not moves[w]:  # nothing moves: the captured image itself
                 result.append(ReprojectStats(n, n, 0, 0, 0, 0, capture.box if n else None))
                 continue
-            moved, dropped, holes, dis, vacated = (int(v) for v in stats[w])
-            y0, y1, x0, x1 = (int(v) for v in boxes[w])
-            result.append(ReprojectStats(n, moved, dropped, holes, dis, vacated, (y0, y1, x0, x1) if y1 > y0 else None))
+            y0, y1, x0, x1 = boxes[w]
+            result.append(ReprojectStats(n, *stats[w], (y0, y1, x0, x1) if y1 > y0 else None))
         return result
 
     @staticmethod

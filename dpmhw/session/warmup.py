@@ -160,8 +160,8 @@ EXPECTED_S: dict[str, dict[str, float]] = {
         "render.kernels._eval_bsdf_vector": 1.4, "render.static_raster._to_camera": 1.4, "reconstruct.reproject._compact": 1.2,
         "reconstruct.reproject._base": 1.2, "render.kernels._gather_lights": 1.1, "render.kernels.jittered_directions": 1.0,
         "render.embree.traversal.scratch16": 0.9, "reconstruct.reproject._put": 0.9, "render.embree.traversal.closest_tiles": 0.9,
-        "render.static_raster.resolve_range": 0.8, "render.kernels._ggx_sample_vector": 0.8, "render.static_raster._bin": 0.8,
-        "reconstruct.reproject._column_run": 0.7, "render.embree.traversal.closest_range": 0.7,
+        "reconstruct.reproject._row_run": 0.9, "render.static_raster.resolve_range": 0.8,
+        "render.kernels._ggx_sample_vector": 0.8, "render.static_raster._bin": 0.8, "render.embree.traversal.closest_range": 0.7,
         "render.embree.traversal.tile_order_range": 0.6, "render.kernels.add_unoccluded": 0.6,
     },
     "G-buffer and reconstruction": {

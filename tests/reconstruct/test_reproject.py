@@ -217,6 +217,26 @@ def test_bad_input_names_the_argument():
             call()
 
 
+def test_windows_that_share_poses_give_each_windows_own_bits():
+    """Windows at equal poses (one splat writes their channels together) equal their own
+    `reproject` calls, in any order of channels, beside a window at other poses."""
+    cam = _camera(dist=(-0.2, 0.05, 0.001, -0.001, 0.0))
+    image, ids, depth = _planes(cam, [(0, 1.2, (5, 60, 5, 80)), (1, 0.9, (20, 40, 30, 50))])
+    rp = Reprojector(cam, [False, True])
+    cap = rp.capture(image, ids, depth, [_shifted(), _shifted()])
+    a = [_shifted(), Pose(rotation_about_axis((0, 1, 0), 0.1), np.array([0.01, -0.004, -0.3]))]
+    b = [_shifted(), _shifted(-0.02, 0.01)]
+    st = rp.reproject(cap, a, np.zeros_like(image))
+    assert st.holes > 0 and st.vacated > 0  # else this checks little
+    for windows in ([(a, 0), (a, 1), (a, 2)], [(a, 0), (a, 1), (b, 2)], [(b, 0), (a, 1), (a, 2)],
+                    [(a, 2), (a, 0), (a, 1)], [(a, 1), (a, 2)], [(a, 0), (b, 1), (a, 2)]):
+        one_by_one = np.full_like(image, 5)
+        expected = [rp.reproject(cap, poses, one_by_one, channel=ch) for poses, ch in windows]
+        together = np.full_like(image, 5)
+        assert rp.reproject_windows(cap, windows, together) == expected
+        assert np.array_equal(together, one_by_one)
+
+
 def test_a_presents_windows_in_one_call_give_each_windows_own_bits():
     """Three sub-frames (one channel each, each at its own poses; one of them unmoved) in one
     call equal three `reproject` calls; bad window sets are refused, naming the window."""
