@@ -69,7 +69,8 @@ PRESENT_LEAD_MARGIN_NS = 1_000_000  # over the quantile of the recent times to a
 PRESENT_HANDOFF_NS = 300_000  # a frame ready later than this before its refresh is made again for the next
 PRESENT_LEAD_QUANTILE = 98.0  # of the recent times from waking to a frame ready to hand over
 PRESENT_LEAD_HISTORY = 240  # presents the quantile is taken over (4 s at 60 Hz)
-SWITCH_INTERVAL_S = 0.001  # the interpreter's thread switch interval while a session runs
+SWITCH_INTERVAL_S = 0.001  # the interpreter's thread switch interval while a session runs (a pattern-mode session
+# on a 2-core Zen 1 missed 10-16 refreshes in 10 s at 0.2 ms against 1-2 at 1 ms; 3 ms was no better)
 FREEZE_AFTER_FRAMES = 30  # frames presented before what they made is frozen too (gc.freeze; see _freeze_long_lived)
 
 
