@@ -271,8 +271,9 @@ class EmulatorProcess:
         EMULATOR_DIRS.sweep()  # the folders of owners that were killed
         tmpdir = os.path.join(EMULATOR_DIRS.directory, EMULATOR_DIRS.new_name())
         address = os.path.join(tmpdir, "usb.sock")
-        if len(os.fsencode(address)) > SOCKET_PATH_MAX:  # the emulator could not bind it: say so now, not after timeout_s
-            raise RuntimeError(f"the DLPC900 emulator's socket path {address!r} is {len(os.fsencode(address))} bytes, over "
+        size = len(os.fsencode(address))
+        if size > SOCKET_PATH_MAX:  # the emulator could not bind it: say so now, not after timeout_s
+            raise RuntimeError(f"the DLPC900 emulator's socket path {address!r} is {size} bytes, over "
                                f"the {SOCKET_PATH_MAX} a Unix socket address holds: set TMPDIR to a shorter directory")
         os.mkdir(tmpdir, 0o700)  # only this user may reach the socket
         authkey = secrets.token_bytes(16)

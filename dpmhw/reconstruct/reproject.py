@@ -343,8 +343,9 @@ def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_b
                 moves[w] |= t[w, o, i] != cap_t[o, i]
                 for j in range(3):
                     moves[w] |= R[w, o, i, j] != cap_R[o, i, j]
-            for i in range(12):
-                same[w] &= w > 0 and M_bits[w, o, i] == M_bits[w - 1, o, i]
+            if w > 0:
+                for i in range(12):
+                    same[w] &= M_bits[w, o, i] == M_bits[w - 1, o, i]
     if full_base:
         _base(img, np.int64(-1), dst)  # not a literal: numba would compile _base once more for it
     w = 0

@@ -166,25 +166,24 @@ def test_a_socket_path_too_long_for_a_unix_address_is_refused_at_once_by_name(tm
 def test_a_killed_owner_leaves_no_folder_and_stale_folders_are_swept(short_dir, monkeypatch):
     from firmware_mocks import dlpc900_socket as mod
 
-    tmp_path = short_dir
-    dirs = mod.OwnedNames(str(tmp_path), "dpmhw-dlpc900")
+    dirs = mod.OwnedNames(str(short_dir), "dpmhw-dlpc900")
     monkeypatch.setattr(mod, "EMULATOR_DIRS", dirs)
     dead = subprocess_pid_that_exited()
-    stale = tmp_path / f"dpmhw-dlpc900-{dead}-abc123"
+    stale = short_dir / f"dpmhw-dlpc900-{dead}-abc123"
     stale.mkdir()
     (stale / "usb.sock").write_bytes(b"")
-    ours = tmp_path / f"dpmhw-dlpc900-{os.getpid()}-def456"  # a live owner's: kept
+    ours = short_dir / f"dpmhw-dlpc900-{os.getpid()}-def456"  # a live owner's: kept
     ours.mkdir()
     em = EmulatorProcess.start()
     try:
         assert not stale.exists() and ours.exists()
-        assert os.path.dirname(em.address).startswith(str(tmp_path / f"dpmhw-dlpc900-{os.getpid()}-"))
+        assert os.path.dirname(em.address).startswith(str(short_dir / f"dpmhw-dlpc900-{os.getpid()}-"))
         em._conn.close()  # as when the owner dies: the emulator exits and removes its folder
         em.process.join(WAIT_S)
         assert not os.path.exists(os.path.dirname(em.address))
     finally:
         em.close()
-    assert sorted(p.name for p in tmp_path.iterdir()) == [ours.name]
+    assert sorted(p.name for p in short_dir.iterdir()) == [ours.name]
 
 
 def subprocess_pid_that_exited() -> int:

@@ -13,13 +13,13 @@ from dpmhw.session.testing import wait_for
 WAIT_S = 60  # what must happen eventually (a loaded machine, a first compile); only broken code waits
 
 
-def small_mock_session():
+def small_mock_session(*overrides: str):
     """A mocked session at 64×48 on the moving trajectory, with a frame log (not started)."""
     from dpmhw.session.config import load_session_config
     from dpmhw.session.factory import build_session
 
     cfg = load_session_config(overrides=["render.width=64", "render.height=48", "api.enabled=false",
-                                         "mock.trajectory=rotate-oscillate", "safety.stale_after_ms=500"])
+                                         "mock.trajectory=rotate-oscillate", "safety.stale_after_ms=500", *overrides])
     return build_session(cfg, mock=True, frame_log=1000)
 
 
@@ -53,13 +53,7 @@ def test_mock_session_reprojects_each_photon_window_to_its_own_instant(mode):
     """A mock session on the rotating trajectory: each present's windows lie where the emulated
     projector lit them, and with three windows each shows the body where it is at its own instant
     (poses differ between sub-frames), closer to the truth than the rendered pose."""
-    from dpmhw.session.config import load_session_config
-    from dpmhw.session.factory import build_session
-
-    cfg = load_session_config(overrides=["render.width=64", "render.height=48", "api.enabled=false",
-                                         f'display.mode="{mode}"', "mock.trajectory=rotate-oscillate",
-                                         "safety.stale_after_ms=500"])
-    loop = build_session(cfg, mock=True, frame_log=1000)
+    loop = small_mock_session(f'display.mode="{mode}"')
     try:
         loop.start()
         assert wait_for(lambda: len(loop.frame_log) >= 20, WAIT_S), loop.status()
