@@ -48,6 +48,7 @@ __all__ = ["Capture", "ReprojectStats", "Reprojector", "GAP_MAX_PX", "DEPTH_STEP
 GAP_MAX_PX = 8  # longest run of unreached pixels filled between two splats (a rotation of a few degrees opens ~5)
 DEPTH_STEP_REL = 0.02  # ends of a run further apart in depth than this: a disocclusion, not a crack
 STATIC_Z_REL = 1e-3  # a static surface nearer than a moved point by more than this fraction hides it
+SWEEP_CHUNK = 32  # pixels of a row the splats' sweep tests at once for work (fills, look-ups)
 NEAR_Z = 1e-4  # a point this close to the projector's plane (metres) or behind it is dropped
 
 
@@ -92,10 +93,12 @@ def _count(ids, depth, dynamic, W, y0, y1, x0, x1, counts):
     p whose id names no object, else 0."""
     n_obj = dynamic.shape[0]
     for y in range(y0, y1):
-        for p in range(y * W + x0, y * W + x1):
+        row = np.uint64(y * W + x0)
+        for i in range(x1 - x0):
+            p = row + np.uint64(i)
             o = ids[p]
             if o >= n_obj:
-                return -1 - p
+                return -1 - np.int64(p)
             if o >= 0 and dynamic[o] and math.isfinite(depth[p]) and depth[p] > 0.0:
                 counts[o] += 1
     return 0
@@ -107,14 +110,16 @@ def _compact(image, ids, depth, ideal, dynamic, A, b, W, y0, y1, x0, x1, plate, 
     """Moving lit pixels → the capture's arrays, each object's from its `cursor` on (so each
     object's points are one run); every other pixel of the box → the plate."""
     for y in range(y0, y1):
-        for p in range(y * W + x0, y * W + x1):
+        row = np.uint64(y * W + x0)
+        for j in range(x1 - x0):
+            p = row + np.uint64(j)
             o = ids[p]
             z = depth[p]
             if o >= 0 and dynamic[o]:
                 if not (math.isfinite(z) and z > 0.0):
                     continue
-                k = cursor[o]
-                cursor[o] = k + 1
+                k = np.uint64(cursor[o])
+                cursor[o] = k + np.uint64(1)
                 cx, cy = z * ideal[p, 0], z * ideal[p, 1]
                 for i in range(3):
                     point[i, k] = A[o, i, 0] * cx + A[o, i, 1] * cy + A[o, i, 2] * z + b[o, i]
@@ -176,9 +181,9 @@ def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, 
     Channels whose mask is 255 are written; the ends' colours are read back from `out`. A filled
     pixel gets a depth and a point (the nearer end's), so that it can end a run along the other
     axis. `cover`: s2 splatted, s2 + 1 filled in this reprojection."""
-    ka, kb = src[qa], src[qb]
+    ka, kb = np.uint64(src[qa]), np.uint64(src[qb])
     d = abs(pixel[kb] - pixel[ka])
-    if d > 1 and abs(d - W) > 1:  # (at the frame's side edges a row's end and the next row's start pass too)
+    if d > 1 and abs(d - np.int64(W)) > 1:  # (at the frame's side edges a row's end and the next row's start pass too)
         return 0, 0  # something lay between them at capture too: a real gap
     za, zb = zbuf[qa], zbuf[qb]
     crack = abs(za - zb) <= DEPTH_STEP_REL * min(za, zb)
@@ -186,7 +191,7 @@ def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, 
     holes = 0
     dis = 0
     for i in range(1, g + 1):
-        q = qa + i * step
+        q = qa + np.uint64(i) * step
         if cover[q] >> 1 == s2 >> 1:
             continue
         if crack:
@@ -217,7 +222,7 @@ def _gap_above(cover, q, rows_above, W, s2):
     """g ≥ 2 for the covered pixel q − g·W nearest above a gap over q (at most GAP_MAX_PX rows,
     none of them above the box), else 0."""
     for g in range(2, min(GAP_MAX_PX + 1, rows_above) + 1):
-        if cover[q - g * W] >> 1 == s2 >> 1:
+        if cover[q - np.uint64(g) * W] >> 1 == s2 >> 1:
             return g
     return 0
 
@@ -227,12 +232,13 @@ def _row_run(q, g, rows_above, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, 
     """Fill the row run between splats q − g and q, then the column run above each pixel it
     filled; returns (cracks, disoccluded). Called only where a gap was found: a call passes
     its arrays' references (atomic reference counts), too dear for every pixel."""
-    holes, dis = _fill_run(q - g, q, 1, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
-    for a in range(q - g + 1, q):
+    holes, dis = _fill_run(q - np.uint64(g), q, np.uint64(1), g - 1, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
+    for j in range(1, g):
+        a = q - np.uint64(g) + np.uint64(j)
         if rows_above > 0 and cover[a] == s2 + 1 and cover[a - W] >> 1 != s2 >> 1:
             ga = _gap_above(cover, a, rows_above, W, s2)
             if ga:
-                h, d = _fill_run(a - ga * W, a, W, ga - 1, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
+                h, d = _fill_run(a - np.uint64(ga) * W, a, W, ga - 1, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
                 holes += h
                 dis += d
     return holes, dis
@@ -259,22 +265,15 @@ def _base(image, ch, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, m2, zbuf, src, cover, s2, out, stats):
-    """Splat the points with a z-test into the channels of `out` whose mask is 255; then, in one
-    row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats along the
-    row, and along the column above each splat and each pixel a row run filled (a crack row
-    crossing a crack column closes too); then give the captured moving pixels that nothing
-    covers the plate. When a pixel looks up its column, every pixel above it is final: rows
-    above are done, and only this pixel's run fills its column. The fills read only covered
-    pixels, so the plate can go in last. `cover`: s2 where a point landed, s2 + 1 where a run
-    was filled (older values: neither). stats: moved, dropped, holes, disoccluded, vacated."""
-    n = pixel.shape[0]
+def _splat_points(colour, dest, zout, plate_z, m0, m1, m2, zbuf, src, cover, s2, out):
+    """The points into `out` with a z-test (see `_splat`); returns (moved, dropped). Its own
+    function: inside `_splat` the sweep's state spilled this loop's registers to the stack."""
     moved = dropped = 0
-    for k in range(n):
-        q = dest[k]
-        if q < 0:
+    for k in range(dest.shape[0]):
+        if dest[k] < 0:
             dropped += 1
             continue
+        q = np.uint64(dest[k])
         z = zout[k]
         if plate_z[q] < z * (1.0 - STATIC_Z_REL):
             dropped += 1
@@ -287,32 +286,60 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, 
         zbuf[q] = z
         src[q] = k
         _put(out, q, colour[k, 0], colour[k, 1], colour[k, 2], m0, m1, m2)
+    return moved, dropped
+
+
+@nb.njit(cache=True, nogil=True)
+def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, m2, zbuf, src, cover, s2, out, stats):
+    """Splat the points with a z-test into the channels of `out` whose mask is 255; then, in one
+    row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats along the
+    row, and along the column above each splat and each pixel a row run filled (a crack row
+    crossing a crack column closes too); then give the captured moving pixels that nothing
+    covers the plate. When a pixel looks up its column, every pixel above it is final: rows
+    above are done, and only this pixel's run fills its column. The fills read only covered
+    pixels, so the plate can go in last. `cover`: s2 where a point landed, s2 + 1 where a run
+    was filled (older values: neither). stats: moved, dropped, holes, disoccluded, vacated."""
+    n = pixel.shape[0]
+    Wu = np.uint64(W)
+    moved, dropped = _splat_points(colour, dest, zout, plate_z, m0, m1, m2, zbuf, src, cover, s2, out)
     holes = dis = 0
     sid = s2 >> 1
+    nx = x1 - x0
+    one = np.uint64(1)
     for y in range(y0, y1):
-        left = False  # the pixel to the left is a splat
-        row = y * W + x0
-        for q in range(row, row + x1 - x0):
-            if cover[q] != s2:
-                left = False
+        row = np.uint64(y * W + x0)
+        up = y > y0
+        above = Wu * np.uint64(up)  # 0 on the box's first row: the test below then reads the pixel itself
+        for c0 in range(0, nx, SWEEP_CHUNK):
+            c1 = min(c0 + SWEEP_CHUNK, nx)
+            work = False  # a splat that starts a run of the row, or with neither splat nor fill above it
+            for i in range(c0, c1):  # branch-free: the chunks without work (nearly all) cost a vector test
+                q = row + np.uint64(i)
+                left = (i > 0) & (cover[q - np.uint64(i > 0)] == s2)
+                work |= (cover[q] == s2) & (~left | (up & (cover[q - above] >> 1 != sid)))
+            if not work:
                 continue
-            if not left:  # a splat after a gap in the row: look back for the splat before it
-                left = True
-                for g in range(2, min(GAP_MAX_PX + 1, q - row) + 1):
-                    if cover[q - g] == s2:
-                        h, d = _row_run(q, g, y - y0, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
+            for i in range(c0, c1):
+                q = row + np.uint64(i)  # unsigned indices: no negative-index wrap on every access
+                if cover[q] != s2:
+                    continue
+                if not (i > 0 and cover[q - one] == s2):  # a splat after a gap in the row: look back for the splat before it
+                    for g in range(2, min(GAP_MAX_PX + 1, i) + 1):
+                        if cover[q - np.uint64(g)] == s2:
+                            h, d = _row_run(q, g, y - y0, pixel, src, zbuf, cover, s2, plate_z, Wu, m0, m1, m2, out)
+                            holes += h
+                            dis += d
+                            break
+                if up and cover[q - Wu] >> 1 != sid:
+                    g = _gap_above(cover, q, y - y0, Wu, s2)
+                    if g:
+                        h, d = _fill_run(q - np.uint64(g) * Wu, q, Wu, g - 1, pixel, src, zbuf, cover, s2, plate_z, Wu, m0,
+                                         m1, m2, out)
                         holes += h
                         dis += d
-                        break
-            if y > y0 and cover[q - W] >> 1 != sid:
-                g = _gap_above(cover, q, y - y0, W, s2)
-                if g:
-                    h, d = _fill_run(q - g * W, q, W, g - 1, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
-                    holes += h
-                    dis += d
     vacated = 0
     for k in range(n):
-        q = pixel[k]
+        q = np.uint64(pixel[k])
         if cover[q] >> 1 != sid:
             vacated += 1
             _put(out, q, back[k, 0], back[k, 1], back[k, 2], m0, m1, m2)

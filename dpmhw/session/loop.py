@@ -31,7 +31,6 @@ import logging
 import sys
 import threading
 import time
-from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -51,7 +50,7 @@ from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
 from dpmhw.session.governor import Governor
 from dpmhw.session.heartbeat import Heartbeat
-from dpmhw.session.metrics import LoopMetrics
+from dpmhw.session.metrics import LoopMetrics, SortedWindow
 from dpmhw.session.prediction import PosePredictor
 from dpmhw.session.safety import SafetyMonitor, SessionState
 from dpmhw.stage_runner import Fault, Stage, StageFailed, run_timed
@@ -299,7 +298,7 @@ class SessionLoop:
         self._first_valid: dict[int, int] = {}  # body -> arrival of its first fresh sample since the frame thread last looked
         self._present_lead_ns = PRESENT_LEAD_MIN_NS  # how long before a refresh its present begins
         self._lead_penalty_ns = 0  # what missed refreshes added to it (see _adapt_lead)
-        self._ready_ns: deque[int] = deque(maxlen=PRESENT_LEAD_HISTORY)  # wake → frame ready to hand over
+        self._ready_ns = SortedWindow(PRESENT_LEAD_HISTORY)  # wake → frame ready to hand over
         self._present_time_ns = PRESENT_LEAD_MIN_NS  # the median of those, plus the hand-over: the least time a present is tried in
         self._present_number = 0
         self._present_heartbeat_ns = clock()
@@ -948,8 +947,8 @@ class SessionLoop:
             self._lead_penalty_ns += PRESENT_LEAD_STEP_NS
         else:
             self._lead_penalty_ns = max(0, self._lead_penalty_ns - PRESENT_LEAD_STEP_NS // 600)
-        self._ready_ns.append(max(ready_ns, 0))
-        median, ready = (int(v) for v in np.percentile(self._ready_ns, (50, PRESENT_LEAD_QUANTILE)))
+        self._ready_ns.add(max(ready_ns, 0))
+        median, ready = int(self._ready_ns.quantile(50)), int(self._ready_ns.quantile(PRESENT_LEAD_QUANTILE))
         self._present_time_ns = median + PRESENT_HANDOFF_NS
         lead = ready + PRESENT_LEAD_MARGIN_NS + self._lead_penalty_ns
         self._present_lead_ns = min(max(lead, PRESENT_LEAD_MIN_NS), self.timing.period_ns * 3 // 4)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dpmhw.session.metrics import Histogram, LoopMetrics, RollingWindow
+from dpmhw.session.metrics import Histogram, LoopMetrics, RollingWindow, SortedWindow
 from dpmhw.session.safety import SafetyMonitor, SessionState
 
 
@@ -126,6 +126,33 @@ def test_rolling_window_keeps_only_the_last_values():
         w.add(v)
     np.testing.assert_array_equal(w.values(), [6, 7, 8, 9])
     assert len(w) == 4 and w.percentiles((50,)) == [7.5]
+
+
+def test_sorted_window_quantiles_match_numpy_over_the_last_values():
+    rng = np.random.default_rng(3)
+    w, seen = SortedWindow(7), []
+    for x in rng.integers(0, 50, 40).tolist():  # repeats too: the oldest copy leaves, not another
+        w.add(x)
+        seen.append(x)
+        for q in (0, 50, 98, 100):
+            assert w.quantile(q) == pytest.approx(np.percentile(seen[-7:], q))
+    assert len(w) == 7
+    with pytest.raises(ValueError, match="empty"):
+        SortedWindow(3).quantile(50)
+
+
+def test_loop_metrics_summary_percentiles_are_each_windows_own():
+    m = LoopMetrics(window=16)
+    for i in range(20):  # the render stages fill 16 entries; reproject fewer: windows of two lengths
+        m.record_render({"render": 0.001 * i, "frame": 0.002 * i * i}, i)
+        if i % 3 == 0:
+            m.record_present({"reproject": 0.0005 * i, "present": 0.001}, i, 0.01 * i, 0.0)
+    s = m.summary()
+    for name in ("render", "frame", "reproject", "present"):
+        want = [round(x * 1e3, 3) for x in m.stages[name].percentiles()]
+        assert [s["stages_ms"][name][k] for k in ("p50_ms", "p95_ms", "p99_ms")] == want
+    assert s["stages_ms"]["gbuffer"]["p50_ms"] is None
+    assert [s["latency_ms"][k] for k in ("p50", "p95", "p99")] == [round(x * 1e3, 3) for x in m.latency.percentiles()]
 
 
 def test_histogram_is_cumulative_like_prometheus():
