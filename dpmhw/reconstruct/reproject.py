@@ -265,11 +265,19 @@ def _base(image, ch, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def _splat_points(colour, dest, zout, plate_z, m0, m1, m2, zbuf, src, cover, s2, out):
-    """The points into `out` with a z-test (see `_splat`); returns (moved, dropped). Its own
-    function: inside `_splat` the sweep's state spilled this loop's registers to the stack."""
+def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, m2, zbuf, src, cover, s2, out, stats):
+    """Splat the points with a z-test into the channels of `out` whose mask is 255; then, in one
+    row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats along the
+    row, and along the column above each splat and each pixel a row run filled (a crack row
+    crossing a crack column closes too); then give the captured moving pixels that nothing
+    covers the plate. When a pixel looks up its column, every pixel above it is final: rows
+    above are done, and only this pixel's run fills its column. The fills read only covered
+    pixels, so the plate can go in last. `cover`: s2 where a point landed, s2 + 1 where a run
+    was filled (older values: neither). stats: moved, dropped, holes, disoccluded, vacated."""
+    n = pixel.shape[0]
+    Wu = np.uint64(W)
     moved = dropped = 0
-    for k in range(dest.shape[0]):
+    for k in range(n):
         if dest[k] < 0:
             dropped += 1
             continue
@@ -286,22 +294,6 @@ def _splat_points(colour, dest, zout, plate_z, m0, m1, m2, zbuf, src, cover, s2,
         zbuf[q] = z
         src[q] = k
         _put(out, q, colour[k, 0], colour[k, 1], colour[k, 2], m0, m1, m2)
-    return moved, dropped
-
-
-@nb.njit(cache=True, nogil=True)
-def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, m2, zbuf, src, cover, s2, out, stats):
-    """Splat the points with a z-test into the channels of `out` whose mask is 255; then, in one
-    row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats along the
-    row, and along the column above each splat and each pixel a row run filled (a crack row
-    crossing a crack column closes too); then give the captured moving pixels that nothing
-    covers the plate. When a pixel looks up its column, every pixel above it is final: rows
-    above are done, and only this pixel's run fills its column. The fills read only covered
-    pixels, so the plate can go in last. `cover`: s2 where a point landed, s2 + 1 where a run
-    was filled (older values: neither). stats: moved, dropped, holes, disoccluded, vacated."""
-    n = pixel.shape[0]
-    Wu = np.uint64(W)
-    moved, dropped = _splat_points(colour, dest, zout, plate_z, m0, m1, m2, zbuf, src, cover, s2, out)
     holes = dis = 0
     sid = s2 >> 1
     nx = x1 - x0
