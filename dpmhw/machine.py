@@ -1,7 +1,9 @@
 """Which machine a figure was measured on: CPU model, cores, the vector ISA the CPU has, the one
 numba generates code for (`NUMBA_CPU_NAME=znver2` builds AVX2 code on an AVX-512 machine) and
 Embree's (`DPMHW_EMBREE_ISA=avx2` asks its device for AVX2). Figures from different machines
-differ by 2-3x; a figure without these cannot be compared with another."""
+differ by 2-3x; a figure without these cannot be compared with another. On a virtual machine,
+also how much CPU time the host gave to other guests while a figure was measured (`cpu_steal`):
+a present path that holds on bare metal misses refreshes when its CPU is taken away."""
 
 from __future__ import annotations
 
@@ -47,6 +49,34 @@ def machine_info() -> dict:
         info["numba_cpu"] = info["numba_isa"] = f"unknown ({type(exc).__name__})"
     info["embree_isa"] = os.environ.get("DPMHW_EMBREE_ISA") or "native"
     return info
+
+
+def cpu_ticks() -> tuple[int, ...] | None:
+    """The machine's CPU time so far, in ticks per kind (/proc/stat's aggregate line: user, nice,
+    system, idle, iowait, irq, softirq, steal, …), or None where there is no /proc/stat."""
+    try:
+        with open("/proc/stat") as f:
+            head = f.readline().split()
+    except OSError:
+        return None
+    if len(head) < 9 or head[0] != "cpu":
+        return None
+    return tuple(int(v) for v in head[1:9])
+
+
+def cpu_steal(before: tuple[int, ...] | None, after: tuple[int, ...] | None) -> float | None:
+    """The fraction (0-1) of all CPU time between two `cpu_ticks` readings that the hypervisor ran
+    other guests on this VM's CPUs (steal); None without both readings or with no tick between."""
+    if before is None or after is None:
+        return None
+    delta = [b - a for a, b in zip(before, after)]
+    total = sum(delta)
+    return round(delta[7] / total, 4) if total > 0 else None
+
+
+def steal_percent(fraction: float | None) -> str:
+    """A `cpu_steal` figure for a table: "2.5%", or "-" where there is none."""
+    return "-" if fraction is None else f"{100 * fraction:.1f}%"
 
 
 def machine_line() -> str:

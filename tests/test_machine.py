@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from dpmhw.cli.apps import write_json
-from dpmhw.machine import _isa, avx2_features, machine_info
+from dpmhw.machine import _isa, avx2_features, cpu_steal, cpu_ticks, machine_info
 
 
 def test_isa_from_cpuinfo_flags_and_llvm_features():
@@ -27,3 +27,13 @@ def test_bench_json_records_the_machine(tmp_path):
     assert data["machine"] == json.loads(json.dumps(m)) and data["fps"] == 60.0
     rows = json.loads(write_json([{"x": 1}, {"x": 2}], tmp_path / "b.json").read_text())
     assert [r["x"] for r in rows] == [1, 2] and all(r["machine_cpu_model"] == m["cpu_model"] for r in rows)
+
+
+def test_cpu_steal_is_the_stolen_share_of_the_ticks_between_two_readings():
+    before = (100, 0, 50, 800, 0, 0, 0, 50)
+    after = (160, 0, 70, 840, 0, 0, 0, 130)  # 200 ticks: 60 user, 20 system, 40 idle, 80 stolen
+    assert cpu_steal(before, after) == 0.4
+    assert cpu_steal(before, before) is None  # no tick between: no figure
+    assert cpu_steal(None, after) is None and cpu_steal(before, None) is None
+    now = cpu_ticks()  # /proc/stat on Linux; None elsewhere
+    assert now is None or (len(now) == 8 and all(v >= 0 for v in now))

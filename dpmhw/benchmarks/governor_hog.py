@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dpmhw.machine import cpu_steal, cpu_ticks, steal_percent
+
 __all__ = ["counted", "events", "format_table", "level_steps", "plot", "recovery", "run_governor_hog", "second_rows",
            "summarize", "trailing_rate"]
 
@@ -194,7 +196,7 @@ def run_governor_hog(*, seconds: float = 25.0, hog_after: float = 10.0, hog_proc
     loop = build_session(cfg, mock=True, frame_log=int((seconds + warmup_s + 10) * 240))
     clock = loop.clock
     hog: list[subprocess.Popen] = []
-    hog_cpu_s, reasons, cpu, rendered = 0.0, [], {}, {}
+    hog_cpu_s, reasons, cpu, rendered, ticks = 0.0, [], {}, {}, {}
     load_before = round(os.getloadavg()[0], 2)
     try:
         loop.start()
@@ -202,14 +204,14 @@ def run_governor_hog(*, seconds: float = 25.0, hog_after: float = 10.0, hog_proc
             raise RuntimeError(f"bench governor: the session did not start: {loop.status()['reason']}")
         time.sleep(warmup_s)
         t0 = clock()
-        cpu["quiet"], rendered["quiet"] = time.process_time(), loop.status()["frames_rendered"]
+        cpu["quiet"], rendered["quiet"], ticks["quiet"] = time.process_time(), loop.status()["frames_rendered"], cpu_ticks()
         hog_ns = t0 + int(hog_after * 1e9)
         last = loop.status()
         for k in range(int(math.ceil(seconds))):
             end_ns = t0 + int(min(k + 1, seconds) * 1e9)
             if not hog and hog_ns <= end_ns:  # the hog starts inside this second
                 _sleep_until(clock, hog_ns)
-                cpu["hog"], rendered["hog"] = time.process_time(), loop.status()["frames_rendered"]
+                cpu["hog"], rendered["hog"], ticks["hog"] = time.process_time(), loop.status()["frames_rendered"], cpu_ticks()
                 hog, hog_ns = start_hog(n_hog), clock()
             _sleep_until(clock, end_ns)
             st = loop.status()
@@ -220,7 +222,7 @@ def run_governor_hog(*, seconds: float = 25.0, hog_after: float = 10.0, hog_proc
                 f"{g['rung']}")
             last = st
         status = loop.status()
-        cpu["end"], rendered["end"] = time.process_time(), status["frames_rendered"]
+        cpu["end"], rendered["end"], ticks["end"] = time.process_time(), status["frames_rendered"], cpu_ticks()
         records = list(loop.frame_log)
     finally:
         if hog:
@@ -243,6 +245,7 @@ def run_governor_hog(*, seconds: float = 25.0, hog_after: float = 10.0, hog_proc
                "shading_scale": cfg.render.shading_scale, "output_width": status["output_size"][0],
                "output_height": status["output_size"][1], "seconds": seconds, "hog_after_s": round(hog_s, 3),
                "hog_processes": n_hog, "hog_cpu_s": hog_cpu_s, "load_before": load_before,
+               "cpu_steal_quiet": cpu_steal(ticks["quiet"], ticks.get("hog")), "cpu_steal_hog": cpu_steal(ticks.get("hog"), ticks["end"]),
                **summarize(ev, seconds, hog_s, float(status["display"]["refresh_hz"]), float(g["target_fps"]),
                            cfg.governor.down_margin),
                "governor_enabled": g["enabled"], "level_before_hog": held["before the hog"] and held["before the hog"][0],
@@ -295,7 +298,8 @@ def format_table(rows: list[dict]) -> str:
     lines += [
         f"{s['scene']} {s['output_width']}×{s['output_height']} (shading ×{s['shading_scale']:g}), {s['display']} at "
         f"{s['refresh_hz']:g} Hz; {s['hog_processes']} hog processes from t = {s['hog_after_s']:.1f} s "
-        f"({s['hog_cpu_s']:.1f} CPU-s), load average {s['load_before']} before",
+        f"({s['hog_cpu_s']:.1f} CPU-s), load average {s['load_before']} before; the host's steal {steal_percent(s.get('cpu_steal_quiet'))} "
+        f"quiet, {steal_percent(s.get('cpu_steal_hog'))} under the hog",
         f"presents: {s['present_fps_quiet']}/s quiet, {s['present_fps_hog']}/s under the hog (after its first "
         f"{SETTLED_AFTER_S:g} s), min {s['present_fps_min_hog']}/s; below {s['present_threshold_fps']:g}/s for "
         f"{s['present_below_s']:.1f} s; back: {rec(s['present_recovery_s'])}",

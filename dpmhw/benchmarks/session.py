@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dpmhw.benchmarks.load_process import LoadProcess, run_threads
+from dpmhw.machine import cpu_steal, cpu_ticks, steal_percent
 from dpmhw.benchmarks.session_plots import bench_series
 from dpmhw.session.config import load_session_config
 from dpmhw.session.testing import wait_for
@@ -228,8 +229,9 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         time.sleep(warmup_s)
         before = loop.status()
         first, late_before, cpu0 = before["frame_number"], before["counters"].get("late_presents", 0), time.process_time()
+        ticks0 = cpu_ticks()
         time.sleep(seconds)
-        status, cpu_s = loop.status(), time.process_time() - cpu0
+        status, cpu_s, steal = loop.status(), time.process_time() - cpu0, cpu_steal(ticks0, cpu_ticks())
         records = [r for r in list(loop.frame_log) if r.number > first and r.number <= status["frame_number"]]
         world = loop.parts.mock.world
         video = list(loop.parts.mock.video.exposures) if getattr(loop.parts.mock, "video", None) is not None else None
@@ -274,6 +276,7 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         # the session process's CPU (frame, present, tracker and mock threads) per rendered frame
         "cpu_ms_per_rendered_frame": round(cpu_s * 1e3 / max(1, status["frames_rendered"] - before["frames_rendered"]), 3),
         "late_presents": status["counters"].get("late_presents", 0) - late_before,  # while measured
+        "cpu_steal": steal,  # of the machine's CPU time while measured, the host gave to other guests (None: no /proc/stat)
         **_light_counts(video, records),
         # the quality governor's levels over the measured frames (0: the configured settings) and its last reason
         "governor_level_min": min(r.governor_level for r in records),
@@ -466,7 +469,7 @@ def mitsuba_yardstick(width: int = 0, height: int = 0, overrides: tuple[str, ...
 def format_table(bench: dict) -> str:
     results = bench["cases"]
     head = (f"{'case':<52} {'fps':>6} {'render':>6} {'late':>5} {'new/s':>6} {'lat p50':>8} {'p95':>7} {'p99':>7} {'frame p99':>9} "
-            f"{'reg p50':>8} {'reg p99':>8} {'vert p50':>8} {'unpred p50':>10} {'p99':>7}")
+            f"{'reg p50':>8} {'reg p99':>8} {'vert p50':>8} {'unpred p50':>10} {'p99':>7} {'steal':>6}")
     lines = [head, "-" * len(head)] if results else []
     for r in results:
         new = "-" if r.get("new_windows_per_s") is None else f"{r['new_windows_per_s']:.0f}"
@@ -475,7 +478,7 @@ def format_table(bench: dict) -> str:
                      f"{r['latency_ms_p95']:>7.1f} {r['latency_ms_p99']:>7.1f} "
                      f"{r['frame_ms_p99']:>9.1f} {r['registration_px_p50']:>8.2f} {r['registration_px_p99']:>8.2f} "
                      f"{r['vertex_px_p50']:>8.2f} {r['registration_measured_pose_px_p50']:>10.2f} "
-                     f"{r['registration_measured_pose_px_p99']:>7.2f}")
+                     f"{r['registration_measured_pose_px_p99']:>7.2f} {steal_percent(r.get('cpu_steal')):>6}")
     if results:
         lines.append("per-stage p50 ms (" + ", ".join(STAGE_KEYS) + "):")
         for r in results:
@@ -512,5 +515,7 @@ def format_table(bench: dict) -> str:
                  "between the silhouette shown and the true one at each photon window's middle, in projector pixels "
                  f"({results[0]['projector_width']}×{results[0]['projector_height']}; output "
                  f"{results[0]['output_width']}×{results[0]['output_height']}); vert: mean vertex displacement; "
-                 "unpred: reg of the same frames had they shown the measured (unpredicted) pose")
+                 "unpred: reg of the same frames had they shown the measured (unpredicted) pose; steal: of the "
+                 "machine's CPU time while measured, what the host gave to other guests (a virtual machine's "
+                 "refreshes are missed when it is high)")
     return "\n".join(lines)

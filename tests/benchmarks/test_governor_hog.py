@@ -114,6 +114,7 @@ def _result():
     rows = gh.second_rows(ev, 6.0, 3.0, ["r"] * 6)
     summary = {"kind": "summary", "scene": "dpm-bunny", "output_width": 1024, "output_height": 768, "shading_scale": 0.25,
                "display": "video", "seconds": 6.0, "hog_after_s": 3.0, "hog_processes": 2, "hog_cpu_s": 6.0, "load_before": 0.5,
+               "cpu_steal_quiet": 0.012, "cpu_steal_hog": None,
                **gh.summarize(ev, 6.0, 3.0, 60.0, 60.0, 0.1), "level_before_hog": 0, "level_end": 3, "governor_changes": 1,
                "governor_reason": "r", "cpu_ms_per_render_quiet": 60.0, "cpu_ms_per_render_hog": 70.0, "late_presents": 0}
     quality = {"kind": "quality", "held": "configured", "level": 0, "filter": "lobe", "adaptive_rays": 2048, "psnr_db": 40.0,
@@ -128,6 +129,7 @@ def test_table_and_plot(tmp_path):
     table = gh.format_table(result["rows"])
     assert "not back before the end" in table  # renders at 30/s never reach 54/s
     assert "inside the objects 28.20 dB" in table
+    assert "the host's steal 1.2% quiet, - under the hog" in table
     path = gh.plot(result, tmp_path / "sub" / "hog.png")
     img = cv2.imread(str(path))
     assert img is not None and img.shape[:2] == (480, 1100)

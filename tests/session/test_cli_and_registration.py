@@ -183,6 +183,7 @@ def test_bench_session_command(runner, tmp_path):
         assert x["new_windows_per_s"] > 0  # the emulated projector lit new pictures
         assert not any(isinstance(v, (dict, list)) for v in x.values())
         assert x["cpu_ms_per_rendered_frame"] > 0 and x["mitsuba_note"] is not None  # skipped (with why) without mitsuba
+        assert x["cpu_steal"] is None or 0.0 <= x["cpu_steal"] <= 1.0
         assert (x["cpu_over_mitsuba"] is None) == (x["mitsuba_cpu_ms"] is None)
     assert [x["api_mode"] for x in results["api_load"]] == ["process", "thread"]
     for load in results["api_load"]:
