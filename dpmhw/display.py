@@ -18,6 +18,7 @@ the registration of a sub-frame is measured there.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 __all__ = ["DISPLAY_MODES", "DisplayTiming", "PhotonWindow"]
 
@@ -56,11 +57,11 @@ class DisplayTiming:
         if not 0 <= self.controller_delay_ns <= 1_000_000_000:
             raise ValueError(f"display.controller_delay_ms: expected 0 to 1000 ms, got {self.controller_delay_ns / 1e6!r}")
 
-    @property
+    @cached_property  # read several times at every refresh by the present thread
     def period_ns(self) -> int:
         return round(1e9 / self.refresh_hz)
 
-    @property
+    @cached_property
     def windows(self) -> tuple[PhotonWindow, ...]:
         """The photon windows of one video frame, in the order they are lit."""
         p, d = self.period_ns, self.controller_delay_ns
