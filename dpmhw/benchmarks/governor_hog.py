@@ -245,7 +245,8 @@ def run_governor_hog(*, seconds: float = 25.0, hog_after: float = 10.0, hog_proc
                "shading_scale": cfg.render.shading_scale, "output_width": status["output_size"][0],
                "output_height": status["output_size"][1], "seconds": seconds, "hog_after_s": round(hog_s, 3),
                "hog_processes": n_hog, "hog_cpu_s": hog_cpu_s, "load_before": load_before,
-               "cpu_steal_quiet": cpu_steal(ticks["quiet"], ticks.get("hog")), "cpu_steal_hog": cpu_steal(ticks.get("hog"), ticks["end"]),
+               "cpu_steal_quiet": cpu_steal(ticks["quiet"], ticks.get("hog")),
+               "cpu_steal_hog": cpu_steal(ticks.get("hog"), ticks["end"]),
                **summarize(ev, seconds, hog_s, float(status["display"]["refresh_hz"]), float(g["target_fps"]),
                            cfg.governor.down_margin),
                "governor_enabled": g["enabled"], "level_before_hog": held["before the hog"] and held["before the hog"][0],
@@ -298,8 +299,8 @@ def format_table(rows: list[dict]) -> str:
     lines += [
         f"{s['scene']} {s['output_width']}×{s['output_height']} (shading ×{s['shading_scale']:g}), {s['display']} at "
         f"{s['refresh_hz']:g} Hz; {s['hog_processes']} hog processes from t = {s['hog_after_s']:.1f} s "
-        f"({s['hog_cpu_s']:.1f} CPU-s), load average {s['load_before']} before; the host's steal {steal_percent(s.get('cpu_steal_quiet'))} "
-        f"quiet, {steal_percent(s.get('cpu_steal_hog'))} under the hog",
+        f"({s['hog_cpu_s']:.1f} CPU-s), load average {s['load_before']} before; the host's steal "
+        f"{steal_percent(s.get('cpu_steal_quiet'))} quiet, {steal_percent(s.get('cpu_steal_hog'))} under the hog",
         f"presents: {s['present_fps_quiet']}/s quiet, {s['present_fps_hog']}/s under the hog (after its first "
         f"{SETTLED_AFTER_S:g} s), min {s['present_fps_min_hog']}/s; below {s['present_threshold_fps']:g}/s for "
         f"{s['present_below_s']:.1f} s; back: {rec(s['present_recovery_s'])}",

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from dpmhw.benchmarks.load_process import LoadProcess, run_threads
-from dpmhw.machine import cpu_steal, cpu_ticks, steal_percent
 from dpmhw.benchmarks.session_plots import bench_series
+from dpmhw.machine import cpu_steal, cpu_ticks, steal_percent
 from dpmhw.session.config import load_session_config
 from dpmhw.session.testing import wait_for
 from dpmhw.transforms import Pose
