@@ -43,7 +43,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dpmhw.transforms import matrix_to_rotvec, rotvec_to_matrix
+from dpmhw.transforms import rotvec_of_floats, rotvec_to_floats
 
 __all__ = ["PlausibilityGate", "PlausibilityLimits"]
 
@@ -91,7 +91,7 @@ class PlausibilityLimits:
 class _Accepted(NamedTuple):
     t_ns: int
     p: tuple[float, float, float]
-    R: np.ndarray  # (3, 3)
+    R: tuple[float, ...]  # 9 floats, row-major: the checks run per sample in plain floats
 
 
 _HISTORY = 8  # accepted samples kept per body (velocity over the newest ones; one fallback)
@@ -150,7 +150,8 @@ class PlausibilityGate:
         if not (x0 <= x <= x1 and y0 <= y <= y1 and z0 <= z <= z1):  # False for NaN
             return "workspace", (f"position {np.round(p, 3).tolist()} m is outside the workspace "
                                  f"{list(lim.workspace_min)}…{list(lim.workspace_max)} m")
-        new = _Accepted(sample.t_exposure_ns, (x, y, z), sample.rotation)
+        rotation = tuple(np.asarray(sample.rotation, np.float64).reshape(9).tolist())
+        new = _Accepted(sample.t_exposure_ns, (x, y, z), rotation)
         body = sample.rigid_body_id
         history = self._accepted.get(body)
         if history:
@@ -184,7 +185,8 @@ class PlausibilityGate:
                 chain.clear()
             elif len(chain) == 1:
                 if (math.dist(new.p, chain[-1].p) > lim.max_speed_m_s * dt_s + 2.0 * lim.position_noise_m
-                        or _angle(new.R @ chain[-1].R.T) > lim.max_angular_speed_rad_s * dt_s + lim.rotation_noise_rad):
+                        or _angle(_mul_bt(new.R, chain[-1].R))
+                        > lim.max_angular_speed_rad_s * dt_s + lim.rotation_noise_rad):
                     chain.clear()
             elif self._fits(chain, new) is not None:
                 chain.clear()
@@ -223,14 +225,15 @@ class PlausibilityGate:
         if off > bound:
             return "jump", (f"{off * 1e3:.1f} mm from where its motion predicts it {dt_s * 1e3:.1f} ms after the last "
                             f"accepted sample (at most {bound * 1e3:.1f} mm: {lim.max_accel_m_s2:g} m/s²)")
-        turned = new.R @ last.R.T
-        if _angle(turned) > lim.max_angular_speed_rad_s * dt_s + lim.rotation_noise_rad:
-            return "rotation", (f"turned {math.degrees(_angle(turned)):.1f}° in {dt_s * 1e3:.1f} ms "
+        turned = _angle(_mul_bt(new.R, last.R))
+        if turned > lim.max_angular_speed_rad_s * dt_s + lim.rotation_noise_rad:
+            return "rotation", (f"turned {math.degrees(turned):.1f}° in {dt_s * 1e3:.1f} ms "
                                 f"(at most {lim.max_angular_speed_rad_s:g} rad/s)")
         if span_s > 0:
-            omega = matrix_to_rotvec(last.R @ base.R.T) / span_s
-            predicted_R = rotvec_to_matrix(omega * dt_s) @ last.R
-            off_rad = _angle(new.R @ predicted_R.T)
+            wx, wy, wz = rotvec_of_floats(_mul_bt(last.R, base.R))
+            k = dt_s / span_s
+            predicted_R = _mul(rotvec_to_floats(wx * k, wy * k, wz * k), last.R)
+            off_rad = _angle(_mul_bt(new.R, predicted_R))
             bound_rad = lim.rotation_noise_rad * 2.0 + 0.5 * lim.max_angular_accel_rad_s2 * dt_s * dt_s
             if off_rad > bound_rad:
                 return "rotation", (f"{math.degrees(off_rad):.2f}° from the orientation its turning predicts "
@@ -244,6 +247,25 @@ class PlausibilityGate:
                     "last_implausible": self.last_reason, "last_implausible_ns": self.last_drop_ns or 0}
 
 
-def _angle(R: np.ndarray) -> float:
-    """The rotation angle (radians, 0…π) of a rotation matrix, robust near 0 and π."""
-    return float(np.linalg.norm(matrix_to_rotvec(R)))
+def _angle(R: tuple[float, ...]) -> float:
+    """The rotation angle (radians, 0…π) of a rotation matrix (9 floats, row-major), robust near 0 and π."""
+    x, y, z = rotvec_of_floats(R)
+    return math.sqrt(x * x + y * y + z * z)
+
+
+def _mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, ...]:
+    """a·b of two 3×3 matrices given as 9 floats, row-major."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
+    return (a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
+            a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
+            a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
+
+
+def _mul_bt(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, ...]:
+    """a·bᵀ of two 3×3 matrices given as 9 floats, row-major (the turn from rotation b to a)."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
+    return (a0 * b0 + a1 * b1 + a2 * b2, a0 * b3 + a1 * b4 + a2 * b5, a0 * b6 + a1 * b7 + a2 * b8,
+            a3 * b0 + a4 * b1 + a5 * b2, a3 * b3 + a4 * b4 + a5 * b5, a3 * b6 + a4 * b7 + a5 * b8,
+            a6 * b0 + a7 * b1 + a8 * b2, a6 * b3 + a7 * b4 + a8 * b5, a6 * b6 + a7 * b7 + a8 * b8)

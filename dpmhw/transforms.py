@@ -113,15 +113,21 @@ def rotvec_to_matrix(w) -> np.ndarray:
     The predictor's two maps between rotations and rotation vectors run per body per frame on the
     loop's thread; in plain floats they cost a few µs where scipy's `Rotation` costs ~50 each."""
     x, y, z = (float(c) for c in np.asarray(w, np.float64).reshape(3))
+    return np.array(rotvec_to_floats(x, y, z)).reshape(3, 3)
+
+
+def rotvec_to_floats(x: float, y: float, z: float) -> tuple[float, ...]:
+    """`rotvec_to_matrix` on plain floats: the matrix as 9 floats, row-major (for code that runs
+    per tracker sample, where numpy's per-call cost dominates)."""
     t2 = x * x + y * y + z * z
     if t2 < 1e-12:  # sin θ/θ ≈ 1 − θ²/6, (1 − cos θ)/θ² ≈ ½ − θ²/24: exact to double precision here
         a, b = 1.0 - t2 / 6.0, 0.5 - t2 / 24.0
     else:
         t = math.sqrt(t2)
         a, b = math.sin(t) / t, (1.0 - math.cos(t)) / t2
-    return np.array([[1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
-                     [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
-                     [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)]])
+    return (1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y,
+            b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x,
+            b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y))
 
 
 def matrix_to_rotvec(R) -> np.ndarray:
@@ -129,7 +135,12 @@ def matrix_to_rotvec(R) -> np.ndarray:
 
     Through the unit quaternion (Shepperd's choice of the largest component, so no root of a
     small number) and θ = 2·atan2(|v|, w): accurate at 0 and at π alike."""
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(R, np.float64).tolist()
+    return np.array(rotvec_of_floats(np.asarray(R, np.float64).reshape(9).tolist()))
+
+
+def rotvec_of_floats(m) -> tuple[float, float, float]:
+    """`matrix_to_rotvec` of a rotation given as 9 plain floats, row-major."""
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
     trace = m00 + m11 + m22
     if trace >= max(m00, m11, m22):
         s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))
@@ -147,9 +158,9 @@ def matrix_to_rotvec(R) -> np.ndarray:
         qx, qy, qz, qw = -qx, -qy, -qz, -qw
     v = math.sqrt(qx * qx + qy * qy + qz * qz)
     if v < 1e-300:
-        return np.zeros(3)
+        return 0.0, 0.0, 0.0
     k = 2.0 * math.atan2(v, qw) / v
-    return np.array([k * qx, k * qy, k * qz])
+    return k * qx, k * qy, k * qz
 
 
 def look_at(position, target, up) -> Pose:
