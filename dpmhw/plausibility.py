@@ -264,8 +264,4 @@ def _mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, ...]:
 
 def _mul_bt(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, ...]:
     """a·bᵀ of two 3×3 matrices given as 9 floats, row-major (the turn from rotation b to a)."""
-    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
-    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
-    return (a0 * b0 + a1 * b1 + a2 * b2, a0 * b3 + a1 * b4 + a2 * b5, a0 * b6 + a1 * b7 + a2 * b8,
-            a3 * b0 + a4 * b1 + a5 * b2, a3 * b3 + a4 * b4 + a5 * b5, a3 * b6 + a4 * b7 + a5 * b8,
-            a6 * b0 + a7 * b1 + a8 * b2, a6 * b3 + a7 * b4 + a8 * b5, a6 * b6 + a7 * b7 + a8 * b8)
+    return _mul(a, (b[0], b[3], b[6], b[1], b[4], b[7], b[2], b[5], b[8]))
