@@ -43,7 +43,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dpmhw.transforms import rotvec_of_floats, rotvec_to_floats
+from dpmhw.transforms import angle_of_floats, matmul_bt_floats, matmul_floats, rotvec_of_floats, rotvec_to_floats
 
 __all__ = ["PlausibilityGate", "PlausibilityLimits"]
 
@@ -150,8 +150,7 @@ class PlausibilityGate:
         if not (x0 <= x <= x1 and y0 <= y <= y1 and z0 <= z <= z1):  # False for NaN
             return "workspace", (f"position {np.round(p, 3).tolist()} m is outside the workspace "
                                  f"{list(lim.workspace_min)}…{list(lim.workspace_max)} m")
-        rotation = tuple(np.asarray(sample.rotation, np.float64).reshape(9).tolist())
-        new = _Accepted(sample.t_exposure_ns, (x, y, z), rotation)
+        new = _Accepted(sample.t_exposure_ns, (x, y, z), tuple(sample.rotation.ravel().tolist()))
         body = sample.rigid_body_id
         history = self._accepted.get(body)
         if history:
@@ -185,7 +184,7 @@ class PlausibilityGate:
                 chain.clear()
             elif len(chain) == 1:
                 if (math.dist(new.p, chain[-1].p) > lim.max_speed_m_s * dt_s + 2.0 * lim.position_noise_m
-                        or _angle(_mul_bt(new.R, chain[-1].R))
+                        or angle_of_floats(matmul_bt_floats(new.R, chain[-1].R))
                         > lim.max_angular_speed_rad_s * dt_s + lim.rotation_noise_rad):
                     chain.clear()
             elif self._fits(chain, new) is not None:
@@ -225,15 +224,15 @@ class PlausibilityGate:
         if off > bound:
             return "jump", (f"{off * 1e3:.1f} mm from where its motion predicts it {dt_s * 1e3:.1f} ms after the last "
                             f"accepted sample (at most {bound * 1e3:.1f} mm: {lim.max_accel_m_s2:g} m/s²)")
-        turned = _angle(_mul_bt(new.R, last.R))
+        turned = angle_of_floats(matmul_bt_floats(new.R, last.R))
         if turned > lim.max_angular_speed_rad_s * dt_s + lim.rotation_noise_rad:
             return "rotation", (f"turned {math.degrees(turned):.1f}° in {dt_s * 1e3:.1f} ms "
                                 f"(at most {lim.max_angular_speed_rad_s:g} rad/s)")
         if span_s > 0:
-            wx, wy, wz = rotvec_of_floats(_mul_bt(last.R, base.R))
+            wx, wy, wz = rotvec_of_floats(matmul_bt_floats(last.R, base.R))
             k = dt_s / span_s
-            predicted_R = _mul(rotvec_to_floats(wx * k, wy * k, wz * k), last.R)
-            off_rad = _angle(_mul_bt(new.R, predicted_R))
+            predicted_R = matmul_floats(rotvec_to_floats(wx * k, wy * k, wz * k), last.R)
+            off_rad = angle_of_floats(matmul_bt_floats(new.R, predicted_R))
             bound_rad = lim.rotation_noise_rad * 2.0 + 0.5 * lim.max_angular_accel_rad_s2 * dt_s * dt_s
             if off_rad > bound_rad:
                 return "rotation", (f"{math.degrees(off_rad):.2f}° from the orientation its turning predicts "
@@ -245,23 +244,3 @@ class PlausibilityGate:
             return {"implausible": sum(self.dropped.values()), **{f"implausible_{k}": self.dropped[k] for k in self.KINDS},
                     "reacquire_held": self.held,
                     "last_implausible": self.last_reason, "last_implausible_ns": self.last_drop_ns or 0}
-
-
-def _angle(R: tuple[float, ...]) -> float:
-    """The rotation angle (radians, 0…π) of a rotation matrix (9 floats, row-major), robust near 0 and π."""
-    x, y, z = rotvec_of_floats(R)
-    return math.sqrt(x * x + y * y + z * z)
-
-
-def _mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, ...]:
-    """a·b of two 3×3 matrices given as 9 floats, row-major."""
-    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
-    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
-    return (a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
-            a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
-            a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
-
-
-def _mul_bt(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, ...]:
-    """a·bᵀ of two 3×3 matrices given as 9 floats, row-major (the turn from rotation b to a)."""
-    return _mul(a, (b[0], b[3], b[6], b[1], b[4], b[7], b[2], b[5], b[8]))

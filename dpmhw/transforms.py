@@ -163,6 +163,27 @@ def rotvec_of_floats(m) -> tuple[float, float, float]:
     return k * qx, k * qy, k * qz
 
 
+def angle_of_floats(m) -> float:
+    """The rotation angle (radians, 0…π) of a rotation given as 9 plain floats, row-major; robust
+    near 0 and π (the norm of `rotvec_of_floats`)."""
+    x, y, z = rotvec_of_floats(m)
+    return math.sqrt(x * x + y * y + z * z)
+
+
+def matmul_floats(a, b) -> tuple[float, ...]:
+    """a·b of two 3×3 matrices given as 9 plain floats, row-major."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
+    return (a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
+            a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
+            a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
+
+
+def matmul_bt_floats(a, b) -> tuple[float, ...]:
+    """a·bᵀ of two 3×3 matrices given as 9 plain floats, row-major (for rotations: the turn from b to a)."""
+    return matmul_floats(a, (b[0], b[3], b[6], b[1], b[4], b[7], b[2], b[5], b[8]))
+
+
 def look_at(position, target, up) -> Pose:
     """Camera→world pose for an OpenCV camera (x right, y down, z forward) at `position` looking at `target`."""
     position = np.asarray(position, dtype=float)

@@ -282,7 +282,9 @@ def test_a_steady_fast_spin_is_taken_and_a_sudden_stop_in_it_refused():
 
 
 def test_the_gates_plain_float_products_are_numpys():
-    from dpmhw.plausibility import _angle, _mul, _mul_bt
+    from dpmhw.transforms import angle_of_floats as _angle
+    from dpmhw.transforms import matmul_bt_floats as _mul_bt
+    from dpmhw.transforms import matmul_floats as _mul
     from dpmhw.transforms import matrix_to_rotvec
 
     rng = np.random.default_rng(3)
