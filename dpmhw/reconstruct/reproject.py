@@ -133,52 +133,66 @@ def _compact(image, ids, depth, ideal, dynamic, A, b, W, y0, y1, x0, x1, plate, 
 
 
 @nb.njit(cache=True, nogil=True)
-def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout):
+def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout, col):
     """Points of one object moved by its model→camera matrix `M` ((12,) float32, row-major
     3×4) and projected: `dest` the nearest pixel (−1: off the frame or behind the projector),
-    `zout` the camera depth; returns the box (y0, y1, x0, x1) of the pixels. float32, no
-    branch, no scattered write, contiguous arrays: the loop vectorises at the CPU's SIMD width."""
+    `col` its column (−1 likewise), `zout` the camera depth. float32 throughout, no branch, no
+    scattered write, no reduction (a min/max in this loop stops LLVM from vectorising it:
+    `_box` takes them after), contiguous arrays: the loop vectorises at the CPU's SIMD width."""
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     a0, a1, a2, a3, a4, a5 = M[0], M[1], M[2], M[3], M[4], M[5]
     a6, a7, a8, a9, a10, a11 = M[6], M[7], M[8], M[9], M[10], M[11]
-    one, zero, half, near = np.float32(1.0), np.float32(0.0), np.float32(0.5), np.float32(NEAR_Z)
-    Wf, Hf, Wi = np.float32(W), np.float32(H), np.int32(W)
-    y0, y1, x0, x1 = np.int32(H), np.int32(0), np.int32(W), np.int32(0)
+    one, two, zero, half = np.float32(1.0), np.float32(2.0), np.float32(0.0), np.float32(0.5)
+    near, Wf, Hf, Wi = np.float32(NEAR_Z), np.float32(W), np.float32(H), np.int32(W)
     for k in range(px.shape[0]):
         m0, m1, m2 = px[k], py[k], pz[k]
         X = a0 * m0 + a1 * m1 + a2 * m2 + a3
         Y = a4 * m0 + a5 * m1 + a6 * m2 + a7
         Z = a8 * m0 + a9 * m1 + a10 * m2 + a11
         iz = one / max(Z, near)
-        xd, yd = distort_inline(X * iz, Y * iz, k1, k2, p1, p2, k3)
+        xd, yd = distort_inline(X * iz, Y * iz, k1, k2, p1, p2, k3, one, two)
         u = fx * xd + cx + half  # pixel (0, 0) covers [−0.5, 0.5)²: the nearest centre is ⌊u⌋
         v = fy * yd + cy + half
         inside = (Z > near) & (u >= zero) & (u < Wf) & (v >= zero) & (v < Hf)
-        ui = np.int32(u) if inside else np.int32(0)  # u ≥ 0: truncation is ⌊u⌋
+        ui = np.int32(u) if inside else np.int32(-1)  # u ≥ 0: truncation is ⌊u⌋
         vi = np.int32(v) if inside else np.int32(0)
         dest[k] = vi * Wi + ui if inside else np.int32(-1)
+        col[k] = ui
         zout[k] = Z
-        y0 = min(y0, vi if inside else np.int32(H))
-        y1 = max(y1, vi + np.int32(1) if inside else np.int32(0))
-        x0 = min(x0, ui if inside else np.int32(W))
-        x1 = max(x1, ui + np.int32(1) if inside else np.int32(0))
-    return y0, y1, x0, x1
+
+
+@nb.njit(cache=True, nogil=True)
+def _box(dest, col, W, H):
+    """The box (y0, y1, x0, x1) of the projected points' pixels (`_project`'s dest and col),
+    empty (H, 0, W, 0) when none is on the frame: rows from the least and greatest pixel index,
+    columns from `col`."""
+    big = np.int32(2**31 - 1)
+    d0, d1, x0, x1 = big, np.int32(-1), big, np.int32(-1)
+    for k in range(dest.shape[0]):
+        d, x = dest[k], col[k]
+        dm = d if d >= 0 else big
+        xm = x if x >= 0 else big
+        d0 = dm if dm < d0 else d0
+        d1 = d if d > d1 else d1
+        x0 = xm if xm < x0 else x0
+        x1 = x if x > x1 else x1
+    if d1 < 0:
+        return np.int64(H), np.int64(0), np.int64(W), np.int64(0)
+    return np.int64(d0 // W), np.int64(d1 // W + 1), np.int64(x0), np.int64(x1 + 1)
 
 
 @nb.njit
-def _put(out, q, r, g, b, m0, m1, m2):
-    """Pixel q = (r, g, b) in the channels whose byte mask m is 255; the others are stored back
-    as they were (no branch on the channel)."""
-    out[q, 0] = out[q, 0] ^ ((out[q, 0] ^ r) & m0)
-    out[q, 1] = out[q, 1] ^ ((out[q, 1] ^ g) & m1)
-    out[q, 2] = out[q, 2] ^ ((out[q, 2] ^ b) & m2)
+def _put(out, q, r, g, b, ch0, ch1):
+    """Channels ch0 to ch1 − 1 of pixel q = those of (r, g, b); the others are not touched."""
+    for c in range(ch0, ch1):
+        out[q, c] = r if c == 0 else (g if c == 1 else b)
 
 
 @nb.njit
-def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out):
+def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, ch0, ch1, out):
     """Fill the g pixels between covered pixels qa and qb (q = qa + i·step) that nothing covers
     yet, if the points they show were neighbours at capture; returns (cracks, disoccluded).
-    Channels whose mask is 255 are written; the ends' colours are read back from `out`. A filled
+    Channels ch0 to ch1 − 1 are written; the ends' colours are read back from `out`. A filled
     pixel gets a depth and a point (the nearer end's), so that it can end a run along the other
     axis. `cover`: s2 splatted, s2 + 1 filled in this reprojection."""
     ka, kb = np.uint64(src[qa]), np.uint64(src[qb])
@@ -202,14 +216,14 @@ def _fill_run(qa, qb, step, g, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, 
             r = np.uint8(out[qa, 0] + t * (np.float32(out[qb, 0]) - out[qa, 0]) + 0.5)
             gg = np.uint8(out[qa, 1] + t * (np.float32(out[qb, 1]) - out[qa, 1]) + 0.5)
             bb = np.uint8(out[qa, 2] + t * (np.float32(out[qb, 2]) - out[qa, 2]) + 0.5)
-            _put(out, q, r, gg, bb, m0, m1, m2)
+            _put(out, q, r, gg, bb, ch0, ch1)
             src[q] = ka if t < 0.5 else kb
             holes += 1
         else:
             z = zf
             if plate_z[q] < z * (1.0 - STATIC_Z_REL):
                 continue
-            _put(out, q, out[qf, 0], out[qf, 1], out[qf, 2], m0, m1, m2)
+            _put(out, q, out[qf, 0], out[qf, 1], out[qf, 2], ch0, ch1)
             src[q] = kf
             dis += 1
         zbuf[q] = z
@@ -228,17 +242,17 @@ def _gap_above(cover, q, rows_above, W, s2):
 
 
 @nb.njit(nogil=True, cache=True)
-def _row_run(q, g, rows_above, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out):
+def _row_run(q, g, rows_above, pixel, src, zbuf, cover, s2, plate_z, W, ch0, ch1, out):
     """Fill the row run between splats q − g and q, then the column run above each pixel it
     filled; returns (cracks, disoccluded). Called only where a gap was found: a call passes
     its arrays' references (atomic reference counts), too dear for every pixel."""
-    holes, dis = _fill_run(q - np.uint64(g), q, np.uint64(1), g - 1, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
+    holes, dis = _fill_run(q - np.uint64(g), q, np.uint64(1), g - 1, pixel, src, zbuf, cover, s2, plate_z, W, ch0, ch1, out)
     for j in range(1, g):
         a = q - np.uint64(g) + np.uint64(j)
         if rows_above > 0 and cover[a] == s2 + 1 and cover[a - W] >> 1 != s2 >> 1:
             ga = _gap_above(cover, a, rows_above, W, s2)
             if ga:
-                h, d = _fill_run(a - np.uint64(ga) * W, a, W, ga - 1, pixel, src, zbuf, cover, s2, plate_z, W, m0, m1, m2, out)
+                h, d = _fill_run(a - np.uint64(ga) * W, a, W, ga - 1, pixel, src, zbuf, cover, s2, plate_z, W, ch0, ch1, out)
                 holes += h
                 dis += d
     return holes, dis
@@ -265,8 +279,8 @@ def _base(image, ch, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, m2, zbuf, src, cover, s2, out, stats):
-    """Splat the points with a z-test into the channels of `out` whose mask is 255; then, in one
+def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1, zbuf, src, cover, s2, out, stats):
+    """Splat the points with a z-test into channels ch0 to ch1 − 1 of `out`; then, in one
     row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats along the
     row, and along the column above each splat and each pixel a row run filled (a crack row
     crossing a crack column closes too); then give the captured moving pixels that nothing
@@ -293,7 +307,8 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, 
             continue
         zbuf[q] = z
         src[q] = k
-        _put(out, q, colour[k, 0], colour[k, 1], colour[k, 2], m0, m1, m2)
+        for c in range(ch0, ch1):  # one byte store a channel: no read-modify-write of the others
+            out[q, c] = colour[k, c]
     holes = dis = 0
     sid = s2 >> 1
     nx = x1 - x0
@@ -318,15 +333,15 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, 
                 if not (i > 0 and cover[q - one] == s2):  # a splat after a gap in the row: look back for the splat before it
                     for g in range(2, min(GAP_MAX_PX + 1, i) + 1):
                         if cover[q - np.uint64(g)] == s2:
-                            h, d = _row_run(q, g, y - y0, pixel, src, zbuf, cover, s2, plate_z, Wu, m0, m1, m2, out)
+                            h, d = _row_run(q, g, y - y0, pixel, src, zbuf, cover, s2, plate_z, Wu, ch0, ch1, out)
                             holes += h
                             dis += d
                             break
                 if up and cover[q - Wu] >> 1 != sid:
                     g = _gap_above(cover, q, y - y0, Wu, s2)
                     if g:
-                        h, d = _fill_run(q - np.uint64(g) * Wu, q, Wu, g - 1, pixel, src, zbuf, cover, s2, plate_z, Wu, m0,
-                                         m1, m2, out)
+                        h, d = _fill_run(q - np.uint64(g) * Wu, q, Wu, g - 1, pixel, src, zbuf, cover, s2, plate_z, Wu, ch0,
+                                         ch1, out)
                         holes += h
                         dis += d
     vacated = 0
@@ -334,13 +349,14 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, 
         q = np.uint64(pixel[k])
         if cover[q] >> 1 != sid:
             vacated += 1
-            _put(out, q, back[k, 0], back[k, 1], back[k, 2], m0, m1, m2)
+            for c in range(ch0, ch1):
+                out[q, c] = back[k, c]
     stats[0], stats[1], stats[2], stats[3], stats[4] = moved, dropped, holes, dis, vacated
 
 
 @nb.njit(cache=True, nogil=True)
 def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_base, segments, moving, px, py, pz, fx,
-                       fy, cx, cy, dist, W, H, arrays, plate_z, zbuf, src, cover, sid, dest, zout, moves, same, stats, boxes):
+                       fy, cx, cy, dist, W, H, arrays, plate_z, zbuf, src, cover, sid, dest, zout, col, moves, same, stats, boxes):
     """Every photon window of one present in one call (one release of the GIL): `dst` = the
     captured image (all channels at once when `full_base`, else each window's own channel), then
     for each window w whose poses (R[w], t[w]) differ from the capture's (cap_R, cap_t) for an
@@ -380,14 +396,12 @@ def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_b
             if not full_base:
                 _base(img, channels[e], dst)
             e += 1
-        y0, y1, x0, x1 = H, 0, W, 0
         for o in moving:
             a, b = segments[o], segments[o + 1]
-            bx = _project(px[a:b], py[a:b], pz[a:b], M[w, o], fx, fy, cx, cy, dist, W, H, dest[a:b], zout[a:b])
-            y0, y1, x0, x1 = min(y0, bx[0]), max(y1, bx[1]), min(x0, bx[2]), max(x1, bx[3])
-        c0, c1 = (0, 3) if ch < 0 else (ch, channels[e - 1] + 1)  # the channels written, as byte masks
-        m0, m1, m2 = np.uint8(255 if c0 == 0 else 0), np.uint8(255 if c0 <= 1 < c1 else 0), np.uint8(255 if c1 == 3 else 0)
-        _splat(pixel, plate, colour, dest, zout, plate_z, W, y0, y1, x0, x1, m0, m1, m2, zbuf, src, cover, 2 * (sid + w),
+            _project(px[a:b], py[a:b], pz[a:b], M[w, o], fx, fy, cx, cy, dist, W, H, dest[a:b], zout[a:b], col[a:b])
+        y0, y1, x0, x1 = _box(dest, col, W, H)
+        ch0, ch1 = (0, 3) if ch < 0 else (ch, channels[e - 1] + 1)  # the channels written
+        _splat(pixel, plate, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1, zbuf, src, cover, 2 * (sid + w),
                out, stats[w])
         for v in range(w, e):
             for i in range(5):
@@ -470,7 +484,7 @@ class Reprojector:
         self._R, self._t, self._M = np.empty((3, k, 3, 3)), np.empty((3, k, 3)), np.empty((3, k, 3, 4), np.float32)
         self._channels, self._moves, self._same = np.empty(3, np.int64), np.empty(3, np.bool_), np.empty(3, np.bool_)
         self._stats, self._boxes = np.empty((3, 5), np.int64), np.empty((3, 4), np.int64)
-        self._dest, self._zout = np.empty(0, np.int32), np.empty(0, np.float32)  # per point, grown to the largest capture
+        self._dest, self._zout, self._col = np.empty(0, np.int32), np.empty(0, np.float32), np.empty(0, np.int32)  # per point, grown to the largest capture
         self._intrinsics = (np.float32(K[0, 0]), np.float32(K[1, 1]), np.float32(K[0, 2]), np.float32(K[1, 2]),
                             dist.astype(np.float32))
         self._capture_lock = threading.Lock()
@@ -543,7 +557,7 @@ class Reprojector:
             M12 = M.reshape(nw, n_obj, 12)
             self._channels[:nw] = channels
             if self._dest.shape[0] < n:
-                self._dest, self._zout = np.empty(n, np.int32), np.empty(n, np.float32)
+                self._dest, self._zout, self._col = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.int32)
             if self._sid + nw >= 2**30 - 1:  # the stamps wrap only after 2³⁰ windows; then start over
                 self._cover[:] = 0
                 self._sid = 0
@@ -552,8 +566,8 @@ class Reprojector:
             _reproject_windows(capture.image.reshape(-1), out.reshape(-1), M12, M12.view(np.uint32), R, t, capture.R,
                                capture.t, self._channels[:nw], channels[0] < 0 or nw == 3, seg, moving, px, py, pz,
                                *self._intrinsics, W, H, (capture.pixel, capture.plate, capture.colour), self._plate_z,
-                               self._zbuf, self._src, self._cover, sid, self._dest[:n], self._zout[:n], self._moves[:nw],
-                               self._same[:nw], self._stats[:nw], self._boxes[:nw])
+                               self._zbuf, self._src, self._cover, sid, self._dest[:n], self._zout[:n], self._col[:n],
+                               self._moves[:nw], self._same[:nw], self._stats[:nw], self._boxes[:nw])
             moves, stats, boxes = self._moves[:nw].tolist(), self._stats[:nw].tolist(), self._boxes[:nw].tolist()
         result = []
         for w in range(nw):
