@@ -100,6 +100,24 @@ def test_model_points_follow_the_gbuffer_depth_and_lens_distortion():
     assert np.mean(got == np.flatnonzero(clear)) > 0.99
 
 
+def test_the_box_bounds_the_landed_points_and_is_none_when_every_point_leaves_the_frame():
+    cam = _camera()
+    image, ids, depth = _planes(cam, [(0, 1.0, (20, 40, 30, 50))])
+    rp = Reprojector(cam, [True])
+    cap = rp.capture(image, ids, depth, [_shifted()])
+    out = np.zeros_like(image)
+    st = rp.reproject(cap, [_shifted(5 / 80, -3 / 80)], out)  # 5 px right, 3 px up: rows 17–36, columns 35–54
+    assert st.box == (17, 37, 35, 55) and st.moved == cap.lit
+    # the square slid partly off the left edge: the box is clipped to the frame, the rest dropped
+    st = rp.reproject(cap, [_shifted(-40 / 80)], out)
+    assert st.box == (20, 40, 0, 10) and st.dropped == cap.lit - 10 * 20
+    for gone in (_shifted(2.0), _shifted(dz=-1.5)):  # off the side; behind the projector
+        out[:] = 7
+        st = rp.reproject(cap, [gone], out)
+        assert st.box is None and st.moved == 0 and st.dropped == st.vacated == cap.lit
+        assert (out[ids.reshape(H, W) == 0] == 0).all()  # the plate: black where nothing else was seen
+
+
 def test_magnification_cracks_are_filled_with_the_surface_and_counted():
     cam = _camera()
     image, ids, depth = _planes(cam, [(0, 1.0, (26, 46, 38, 58))])
