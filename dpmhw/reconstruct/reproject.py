@@ -138,7 +138,7 @@ def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout, col):
     3×4) and projected: `dest` the nearest pixel (−1: off the frame or behind the projector),
     `col` its column (−1 likewise), `zout` the camera depth. float32 throughout, no branch, no
     scattered write, no reduction (a min/max in this loop stops LLVM from vectorising it:
-    `_box` takes them after), contiguous arrays: the loop vectorises at the CPU's SIMD width."""
+    `_bounds` takes them after), contiguous arrays: the loop vectorises at the CPU's SIMD width."""
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     a0, a1, a2, a3, a4, a5 = M[0], M[1], M[2], M[3], M[4], M[5]
     a6, a7, a8, a9, a10, a11 = M[6], M[7], M[8], M[9], M[10], M[11]
@@ -162,7 +162,7 @@ def _project(px, py, pz, M, fx, fy, cx, cy, dist, W, H, dest, zout, col):
 
 
 @nb.njit(cache=True, nogil=True)
-def _box(dest, col, W, H):
+def _bounds(dest, col, W, H):
     """The box (y0, y1, x0, x1) of the projected points' pixels (`_project`'s dest and col),
     empty (H, 0, W, 0) when none is on the frame: rows from the least and greatest pixel index,
     columns from `col`."""
@@ -399,7 +399,7 @@ def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_b
         for o in moving:
             a, b = segments[o], segments[o + 1]
             _project(px[a:b], py[a:b], pz[a:b], M[w, o], fx, fy, cx, cy, dist, W, H, dest[a:b], zout[a:b], col[a:b])
-        y0, y1, x0, x1 = _box(dest, col, W, H)
+        y0, y1, x0, x1 = _bounds(dest, col, W, H)
         ch0, ch1 = (0, 3) if ch < 0 else (ch, channels[e - 1] + 1)  # the channels written
         _splat(pixel, plate, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1, zbuf, src, cover, 2 * (sid + w),
                out, stats[w])
