@@ -270,33 +270,15 @@ def test_a_steady_fast_spin_is_taken_and_a_sudden_stop_in_it_refused():
     """At 20 rad/s (within the speed bound) each 240-Hz sample turns 0.083 rad, far beyond the
     0.015 rad the angular-acceleration bound allows around the turn the motion predicts: the gate
     must predict the turn to take them, and refuse a sample that stops turning."""
+    def sample(k, turned_k):  # the k-th 240-Hz sample, turned as far as the spin had at sample turned_k
+        return PoseSample(1, _about_z(20.0 * turned_k * PERIOD_240 / 1e9), (0.0, 0.0, 0.0), k * PERIOD_240,
+                          k * PERIOD_240 + 4 * MS, True)
+
     gate = PlausibilityGate()
-    spin = lambda k: PoseSample(1, _about_z(20.0 * k * PERIOD_240 / 1e9), (0.0, 0.0, 0.0), k * PERIOD_240,  # noqa: E731
-                                k * PERIOD_240 + 4 * MS, True)
     held = PlausibilityLimits().confirm - 1  # the first samples agree before the body is taken
-    answers = [gate.admit(spin(k)) for k in range(40)]
+    answers = [gate.admit(sample(k, k)) for k in range(40)]
     assert all("re-acquiring" in a for a in answers[:held]) and answers[held:] == [None] * (40 - held)
-    stopped = PoseSample(1, _about_z(20.0 * 39 * PERIOD_240 / 1e9), (0.0, 0.0, 0.0), 40 * PERIOD_240,
-                         40 * PERIOD_240 + 4 * MS, True)
-    assert "from the orientation its turning predicts" in gate.admit(stopped)
-
-
-def test_the_gates_plain_float_products_are_numpys():
-    from dpmhw.transforms import angle_of_floats as _angle
-    from dpmhw.transforms import matmul_bt_floats as _mul_bt
-    from dpmhw.transforms import matmul_floats as _mul
-    from dpmhw.transforms import matrix_to_rotvec
-
-    rng = np.random.default_rng(3)
-    for _ in range(20):
-        a, b = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
-        fa, fb = tuple(a.reshape(9).tolist()), tuple(b.reshape(9).tolist())
-        assert np.allclose(np.reshape(_mul(fa, fb), (3, 3)), a @ b, rtol=1e-14, atol=1e-14)
-        assert np.allclose(np.reshape(_mul_bt(fa, fb), (3, 3)), a @ b.T, rtol=1e-14, atol=1e-14)
-    for angle in (0.0, 1e-9, 0.3, np.pi - 1e-7):
-        turn = _about_z(angle)
-        expected = float(np.linalg.norm(matrix_to_rotvec(turn)))
-        assert _angle(tuple(turn.reshape(9).tolist())) == pytest.approx(expected, abs=1e-15)
+    assert "from the orientation its turning predicts" in gate.admit(sample(40, 39))  # stopped turning
 
 
 PERIOD_240 = round(1e9 / 240)
