@@ -520,7 +520,7 @@ class NativeGBuffer:
         if prev is not None:  # pixels of the last region outside this one: back to static
             for part in box_minus(prev, box):
                 for k, a in self._static.items():
-                    _restore_kernel(getattr(self, k), a, self.width, *part)
+                    _restore(getattr(self, k), a, self.width, *part)
         self.pixels_rasterised = 0
         if box is not None:
             if mode != "edges" or shading is None:  # every pixel of the region may change
@@ -581,12 +581,22 @@ class NativeGBuffer:
         self.rays_traced = n
 
 
+def _restore(dst: np.ndarray, src: np.ndarray, W: int, y0: int, y1: int, x0: int, x1: int) -> None:
+    """The box's pixels of `dst` = those of `src` (C-contiguous per-pixel buffers of one shape,
+    one row of `W` pixels after another)."""
+    px = dst.nbytes // dst.shape[0]  # bytes a pixel
+    _restore_kernel(dst.reshape(-1).view(np.uint8), src.reshape(-1).view(np.uint8), W * px, y0, y1, x0 * px, x1 * px)
+
+
 @nb.njit(cache=True, nogil=True)
-def _restore_kernel(dst, src, W, y0, y1, x0, x1):
+def _restore_kernel(dst, src, row, y0, y1, a0, a1):
+    """Bytes a0 to a1 − 1 of rows y0 to y1 − 1 (`row` bytes each) of dst = src. Flat bytes: one
+    signature for every buffer. A loop, not a slice assignment: numba's slice assignment brings
+    the string formatting of its shape-mismatch message, seconds of compile."""
     for y in range(y0, y1):
-        a = y * W + x0
-        e = y * W + x1
-        dst[a:e] = src[a:e]
+        a = y * row
+        for i in range(a + a0, a + a1):
+            dst[i] = src[i]
 
 
 def _flat(a, dtype=np.float32, cols=3) -> np.ndarray:

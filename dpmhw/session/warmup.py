@@ -168,7 +168,7 @@ EXPECTED_S: dict[str, dict[str, float]] = {
         "reconstruct.upsample._upsample_kernel": 18.5, "render.gbuffer._attributes_py": 12.4,
         "reconstruct.reuse._motion_py": 10.7, "reconstruct.analytic._products_kernel": 8.3,
         "reconstruct.filter._filter_kernel": 7.5, "render.gbuffer._classify": 6.7, "reconstruct.guides._guides_kernel": 4.2,
-        "reconstruct.reuse._reproject_py": 3.2, "render.gbuffer._restore_kernel": 3.0, "reconstruct.reuse._same_pixel_py": 2.8,
+        "reconstruct.reuse._reproject_py": 3.2, "render.gbuffer._restore_kernel": 1.0, "reconstruct.reuse._same_pixel_py": 2.8,
         "reconstruct.analytic._evaluate_block": 2.0, "reconstruct.analytic._row_counts": 2.0,
         "reconstruct.analytic._specular_span": 1.9, "reconstruct.analytic._irradiance_span": 1.8,
         "postprocess._encode_kernel": 1.8, "reconstruct.analytic._prepare_span": 1.6, "reconstruct.analytic._clipped_edge": 1.6,
