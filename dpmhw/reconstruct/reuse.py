@@ -58,7 +58,7 @@ import numba as nb
 import numpy as np
 
 from dpmhw.errors import DpmhwError
-from dpmhw.parallel_kernels import PARALLEL_MIN_PIXELS, serial_and_parallel
+from dpmhw.parallel_kernels import PixelKernel
 from dpmhw.render.distortion import distort_inline
 from dpmhw.reconstruct.settings import ALPHA_MAX, ALPHA_MIN, MAX_HISTORY_LENGTH, REUSE_MODES
 
@@ -226,8 +226,8 @@ def _motion_py(cur, cur_id, prev_xy, prev_ok, width, height, hi, lo, hist_n, his
     return bad.sum()
 
 
-_same_pixel_kernel = serial_and_parallel(_same_pixel_py)
-_motion_kernel = serial_and_parallel(_motion_py)
+_same_pixel_kernel = PixelKernel(_same_pixel_py)
+_motion_kernel = PixelKernel(_motion_py)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -295,13 +295,13 @@ def reproject(object_id: np.ndarray, model_position: np.ndarray, prev_poses, pre
     still = camera is None or (np.array_equal(camera.pose.R, prev_camera.pose.R) and np.array_equal(camera.pose.t, prev_camera.pose.t))
     xy = np.empty((H * W, 2), np.float64)
     ok = np.empty(H * W, np.bool_)
-    _reproject_kernel[H * W >= PARALLEL_MIN_PIXELS](ids, xm, R, T, np.ascontiguousarray(prev_camera.pose.R, dtype=np.float64),
+    _reproject_kernel(H * W, ids, xm, R, T, np.ascontiguousarray(prev_camera.pose.R, dtype=np.float64),
                       np.ascontiguousarray(prev_camera.pose.t, dtype=np.float64), np.ascontiguousarray(prev_camera.K, dtype=np.float64),
                       np.ascontiguousarray(np.asarray(prev_camera.dist, np.float64).reshape(5)), W, bool(still), xy, ok)
     return xy, ok
 
 
-_reproject_kernel = serial_and_parallel(_reproject_py)
+_reproject_kernel = PixelKernel(_reproject_py)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -419,7 +419,7 @@ class TemporalReuse:
         ids = np.ascontiguousarray(np.asarray(object_id).reshape(-1), dtype=np.int32)
         out = np.empty((H * W, 3), np.float32)
         if s.mode == "same-pixel":
-            bad = _same_pixel_kernel[H * W >= PARALLEL_MIN_PIXELS](cur, ids, self._hi, self._lo, self._n, self._id, s.alpha, s.warmup, out)
+            bad = _same_pixel_kernel(H * W, cur, ids, self._hi, self._lo, self._n, self._id, s.alpha, s.warmup, out)
         else:
             if model_position is None or poses is None or camera is None:
                 raise ReuseError("motion mode needs model_position, poses and camera for every frame")
@@ -432,7 +432,7 @@ class TemporalReuse:
                 prev_xy, prev_ok = self.reprojection(object_id, model_position, camera)
             new_hi, new_lo, new_n = self._spare
             kind = np.empty(H * W, np.int8)
-            bad = _motion_kernel[H * W >= PARALLEL_MIN_PIXELS](cur, ids, prev_xy, prev_ok, W, H, self._hi, self._lo, self._n, self._id, s.alpha, s.warmup,
+            bad = _motion_kernel(H * W, cur, ids, prev_xy, prev_ok, W, H, self._hi, self._lo, self._n, self._id, s.alpha, s.warmup,
                                  new_hi, new_lo, new_n, out, kind)
             self._spare = (self._hi, self._lo, self._n)
             self._hi, self._lo, self._n = new_hi, new_lo, new_n

@@ -46,7 +46,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numba as nb
 import numpy as np
 
-from dpmhw.parallel_kernels import PARALLEL_MIN_PIXELS, serial_and_parallel
+from dpmhw.parallel_kernels import PixelKernel
 from dpmhw.render import kernels
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.distortion import distort_inline
@@ -102,7 +102,7 @@ def _attributes_py(index, d, hits, scene, view, out):
         g_rough[p] = math.sqrt(tri[i, kernels.TRI_ALPHA] if tri[i, kernels.TRI_ALPHA] > 0.0 else alpha[ob])  # per-triangle α: a roughness map
 
 
-_attribute_kernels = serial_and_parallel(_attributes_py)
+_attribute_kernel = PixelKernel(_attributes_py)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -402,8 +402,8 @@ class NativeGBuffer:
 
     def _attributes(self, index, d, hits, R, T) -> None:
         g = self.geometry
-        _attribute_kernels[len(index) >= PARALLEL_MIN_PIXELS](
-            index, d, (hits.t, hits.obj, hits.prim, hits.u, hits.v),
+        _attribute_kernel(
+            len(index), index, d, (hits.t, hits.obj, hits.prim, hits.u, hits.v),
             (g.tri, R, T, g.obj_albedo, g.textures, g.obj_specular, g.obj_alpha), (self.viewer, self.use_viewer, self.cam_fwd),
             (self.id, self.position, self.normal, self.depth, self.albedo, self.spec_albedo, self.roughness))
 
