@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import ThreadPoolExecutor
+from types import FunctionType
 
 import numba as nb
 import numpy as np
@@ -61,6 +62,23 @@ ROI_MARGIN_PX = 4  # plus 1 % of the box size: lens distortion between the hull'
 EDGE_DEPTH_REL = 0.02  # 2×2 shading taps further apart in depth than this: trace the native pixel
 MODES = ("raster", "edges", "trace")
 ATTRIBUTES = ("id", "position", "normal", "depth", "albedo", "spec_albedo", "roughness")  # a pixel's, as NativeGBuffer's arrays
+
+
+def _ieee(dispatcher):
+    """A copy of one of the renderer's first-vertex helpers (`kernels`, numba-inlined there) for
+    `_attributes_py`: compiled on its own with this module's flags (no fast-math: inlined in numba's
+    IR, the helper takes its caller's flags, and these are `_attributes_py`'s), so the arithmetic
+    is the same, and always inlined by LLVM. Typed once, instead of again inside the parallel loop,
+    whose body numba types and lowers twice (the loop, then its gufunc). Renamed: no shared cache
+    entry with the original."""
+    f = dispatcher.py_func
+    copy = FunctionType(f.__code__, f.__globals__, f.__name__ + "_ieee")
+    copy.__qualname__ = f.__qualname__ + "_ieee"
+    return nb.njit(forceinline=True, cache=True)(copy)
+
+
+_geometric_normal, _hit_point, _face_normals, _albedo_at = (
+    _ieee(f) for f in (kernels.geometric_normal, kernels.hit_point, kernels.face_normals, kernels.albedo_at))
 
 
 def _attributes_py(index, d, hits, scene, view, out):
@@ -88,15 +106,15 @@ def _attributes_py(index, d, hits, scene, view, out):
             continue
         i = prim[p]
         d0, d1, d2 = d[p, 0], d[p, 1], d[p, 2]
-        g0, g1, g2 = kernels.geometric_normal(tri, R, ob, i)
-        pm0, pm1, pm2, p0, p1, p2, s0, s1, s2 = kernels.hit_point(tri, R, T, ob, i, u[p], v[p])
-        g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, front = kernels.face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2,
-                                                                            viewer[0], viewer[1], viewer[2], use_viewer)
+        g0, g1, g2 = _geometric_normal(tri, R, ob, i)
+        pm0, pm1, pm2, p0, p1, p2, s0, s1, s2 = _hit_point(tri, R, T, ob, i, u[p], v[p])
+        g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, front = _face_normals(p0, p1, p2, g0, g1, g2, s0, s1, s2, d0, d1, d2,
+                                                                     viewer[0], viewer[1], viewer[2], use_viewer)
         g_id[p] = ob
         g_pos[p, 0], g_pos[p, 1], g_pos[p, 2] = p0, p1, p2
         g_normal[p, 0], g_normal[p, 1], g_normal[p, 2] = s0, s1, s2
         g_depth[p] = t[p] * (d0 * cam_fwd[0] + d1 * cam_fwd[1] + d2 * cam_fwd[2])
-        g_alb[p, 0], g_alb[p, 1], g_alb[p, 2] = kernels.albedo_at(alb, tex, ob, i, u[p], v[p])
+        g_alb[p, 0], g_alb[p, 1], g_alb[p, 2] = _albedo_at(alb, tex, ob, i, u[p], v[p])
         for c in range(3):
             g_spec[p, c] = spec[ob, c]
         g_rough[p] = math.sqrt(tri[i, kernels.TRI_ALPHA] if tri[i, kernels.TRI_ALPHA] > 0.0 else alpha[ob])  # per-triangle α: a roughness map
