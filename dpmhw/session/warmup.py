@@ -151,33 +151,27 @@ def _reconstruction(config_data: dict) -> None:
 # docs/first-run.md. They weigh the progress and its ETA (a kernel not listed is not counted).
 EXPECTED_S: dict[str, dict[str, float]] = {
     "path tracing": {
-        "render.kernels.shade": 26.2, "render.kernels.trace_segments": 12.3, "render.embree.traversal._closest_rows": 9.6,
-        "render.kernels._sample_block_glossy": 8.5, "render.kernels._sample_block_lambert": 8.5,
-        "render.static_raster._raster": 6.4, "render.kernels.first_surface": 6.3, "render.kernels.sample_first": 6.0,
-        "reconstruct.reproject._splat": 5.3, "render.static_raster._setup": 4.9, "render.embree.traversal.occluded_range": 4.7,
-        "reconstruct.reproject._fill_run": 3.9, "reconstruct.reproject._reproject_windows": 2.4,
-        "reconstruct.reproject._project": 2.1, "render.embree.traversal.closest_rows": 1.9,
-        "render.kernels._eval_bsdf_vector": 1.4, "render.static_raster._to_camera": 1.4, "reconstruct.reproject._compact": 1.2,
-        "reconstruct.reproject._base": 1.2, "render.kernels._gather_lights": 1.1, "render.kernels.jittered_directions": 1.0,
-        "render.embree.traversal.scratch16": 0.9, "reconstruct.reproject._put": 0.9, "render.embree.traversal.closest_tiles": 0.9,
-        "reconstruct.reproject._row_run": 0.9, "render.static_raster.resolve_range": 0.8,
-        "render.kernels._ggx_sample_vector": 0.8, "render.static_raster._bin": 0.8, "render.embree.traversal.closest_range": 0.7,
-        "render.embree.traversal.tile_order_range": 0.6, "render.kernels.add_unoccluded": 0.6,
+        "render.kernels.shade": 10.1, "render.kernels.trace_segments": 6.1, "render.kernels._sample_block_glossy": 5.7,
+        "render.embree.traversal._closest_rows": 5.2, "render.kernels._sample_block_lambert": 3.8,
+        "render.kernels.first_surface": 3.5, "render.static_raster._raster": 3.4,
+        "render.embree.traversal.occluded_range": 2.7, "render.kernels.sample_first": 2.6,
+        "reconstruct.reproject._reproject_windows": 2.5, "render.static_raster._setup": 2.4,
+        "reconstruct.reproject._splat": 2.2, "render.embree.traversal.closest_rows": 1.3,
+        "render.kernels._eval_bsdf_vector": 0.9, "render.static_raster._to_camera": 0.8,
+        "reconstruct.reproject._project": 0.7,
     },
     "G-buffer and reconstruction": {
-        "reconstruct.upsample._upsample_kernel": 18.5, "render.gbuffer._attributes_py": 12.4,
-        "reconstruct.reuse._motion_py": 10.7, "reconstruct.analytic._products_kernel": 8.3,
-        "reconstruct.filter._filter_kernel": 7.5, "render.gbuffer._classify": 6.7, "reconstruct.guides._guides_kernel": 4.2,
-        "reconstruct.reuse._reproject_py": 3.2, "render.gbuffer._restore_kernel": 1.0, "reconstruct.reuse._same_pixel_py": 2.8,
-        "reconstruct.analytic._evaluate_block": 2.0, "reconstruct.analytic._row_counts": 2.0,
-        "reconstruct.analytic._specular_span": 1.9, "reconstruct.analytic._irradiance_span": 1.8,
-        "postprocess._encode_kernel": 1.8, "reconstruct.analytic._prepare_span": 1.6, "reconstruct.analytic._clipped_edge": 1.6,
-        "reconstruct.adaptive._merge": 1.4, "render.gbuffer._trace_pixels": 1.3, "render.embree.traversal.closest16": 0.8,
-        "render.gbuffer._tile_order": 0.7, "reconstruct.adaptive._candidates": 0.7, "render.gbuffer._static_back": 0.6,
+        "reconstruct.upsample._upsample_kernel": 9.4, "reconstruct.reuse._motion_py": 6.5,
+        "reconstruct.filter._filter_kernel": 5.1, "reconstruct.analytic._products_kernel": 4.4,
+        "render.gbuffer._classify": 3.8, "render.gbuffer._attributes_py": 2.8, "reconstruct.reuse._reproject_py": 2.7,
+        "reconstruct.guides._guides_kernel": 2.7, "reconstruct.reuse._same_pixel_py": 2.6,
+        "reconstruct.analytic._row_counts": 1.2, "render.gbuffer._trace_pixels": 1.2,
+        "reconstruct.analytic._irradiance_span": 1.2, "reconstruct.analytic._specular_span": 1.1,
+        "reconstruct.analytic._prepare_span": 1.0, "reconstruct.analytic._evaluate_block": 1.0,
+        "reconstruct.analytic._clipped_edge": 0.9, "render.kernels.albedo_at_ieee": 0.9,
+        "postprocess._encode_kernel": 0.8, "render.kernels.hit_point_ieee": 0.7,
     },
 }
-
-
 
 
 @dataclass(frozen=True)
