@@ -12,6 +12,24 @@ from __future__ import annotations
 import numba as nb
 
 PARALLEL_MIN_PIXELS = 16384
+SPAN_PX = 512  # pixels of one call of a kernel's serial span function
+
+
+@nb.njit(cache=True)
+def spans(n):
+    """Spans of SPAN_PX pixels covering n pixels. A parallel kernel loops over spans, each one
+    call of a serial function: numba types and lowers a parallel loop's body twice (the loop,
+    then its gufunc), so the body is kept to a call, and the per-pixel work is compiled once.
+    The same bits as the loop in the body for IEEE kernels (the reuse's); with fast-math
+    reassociation LLVM rounds a function optimised apart otherwise (the upsampling's last bit
+    moved on 1 % of its values), so those keep their loops."""
+    return (n + SPAN_PX - 1) // SPAN_PX
+
+
+@nb.njit(cache=True)
+def span(s, n):
+    """Pixels [first, end) of span s of n."""
+    return s * SPAN_PX, min(n, (s + 1) * SPAN_PX)
 
 
 class PixelKernel:

@@ -58,7 +58,7 @@ import numba as nb
 import numpy as np
 
 from dpmhw.errors import DpmhwError
-from dpmhw.parallel_kernels import PixelKernel
+from dpmhw.parallel_kernels import PixelKernel, span, spans
 from dpmhw.render.distortion import distort_inline
 from dpmhw.reconstruct.settings import ALPHA_MAX, ALPHA_MIN, MAX_HISTORY_LENGTH, REUSE_MODES
 
@@ -157,10 +157,22 @@ def _same_pixel_py(cur, cur_id, hi, lo, hist_n, hist_id, alpha, warmup, out):
 def _motion_py(cur, cur_id, prev_xy, prev_ok, width, height, hi, lo, hist_n, hist_id, alpha, warmup,
                    new_hi, new_lo, new_n, out, fetch_kind):
     """Fetch the history at prev_xy (see the module docstring), blend, write the new history.
-    fetch_kind per pixel: 0 reset, 1 bilinear, 2 nearest matching tap, 3 exact (snapped)."""
-    npix = cur.shape[0]
-    bad = np.zeros(npix, np.int32)
-    for p in nb.prange(npix):
+    fetch_kind per pixel: 0 reset, 1 bilinear, 2 nearest matching tap, 3 exact (snapped).
+    Returns the non-finite inputs dropped."""
+    n = cur.shape[0]
+    bad = 0
+    for s in nb.prange(spans(n)):
+        a, e = span(s, n)
+        bad += _motion_span(a, e, cur, cur_id, prev_xy, prev_ok, width, height, hi, lo, hist_n, hist_id, alpha, warmup,
+                            new_hi, new_lo, new_n, out, fetch_kind)
+    return bad
+
+
+@nb.njit(nogil=True, cache=True, _nrt=False)
+def _motion_span(first, end, cur, cur_id, prev_xy, prev_ok, width, height, hi, lo, hist_n, hist_id, alpha, warmup,
+                 new_hi, new_lo, new_n, out, fetch_kind):
+    bad = 0
+    for p in range(first, end):
         ident = cur_id[p]
         x = prev_xy[p, 0]
         y = prev_xy[p, 1]
@@ -221,9 +233,9 @@ def _motion_py(cur, cur_id, prev_xy, prev_ok, width, height, hi, lo, hist_n, his
                     prev2 = np.float64(hi[best, 2]) + np.float64(lo[best, 2])
                     n_prev = hist_n[best]
         fetch_kind[p] = kind
-        bad[p] = _blend_pixel(p, cur[p, 0], cur[p, 1], cur[p, 2], prev0, prev1, prev2, n_prev, has, alpha, warmup,
-                              new_hi, new_lo, new_n, out)
-    return bad.sum()
+        bad += _blend_pixel(p, cur[p, 0], cur[p, 1], cur[p, 2], prev0, prev1, prev2, n_prev, has, alpha, warmup,
+                            new_hi, new_lo, new_n, out)
+    return bad
 
 
 _same_pixel_kernel = PixelKernel(_same_pixel_py)
@@ -236,8 +248,16 @@ _motion_kernel = PixelKernel(_motion_py)
 
 def _reproject_py(ids, xm, R, T, cam_R, cam_t, K, dist, width, bg_still, xy, ok):
     """world = R[id] @ x_m + T[id]; project with the previous camera (cv2.projectPoints model)."""
+    n = ids.shape[0]
+    for s in nb.prange(spans(n)):
+        a, e = span(s, n)
+        _reproject_span(a, e, ids, xm, R, T, cam_R, cam_t, K, dist, width, bg_still, xy, ok)
+
+
+@nb.njit(nogil=True, cache=True, _nrt=False)
+def _reproject_span(first, end, ids, xm, R, T, cam_R, cam_t, K, dist, width, bg_still, xy, ok):
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    for p in nb.prange(ids.shape[0]):
+    for p in range(first, end):
         o = ids[p]
         if o < 0:
             xy[p, 0] = p % width
