@@ -9,6 +9,8 @@ attributes) reach sooner."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numba as nb
 
 PARALLEL_MIN_PIXELS = 16384
@@ -42,9 +44,17 @@ class PixelKernel:
     def __call__(self, pixels: int, *args):
         if pixels >= PARALLEL_MIN_PIXELS:
             return self.dispatcher(*args)
-        threads = nb.get_num_threads()
-        nb.set_num_threads(1)
-        try:
+        with kernel_threads(1):
             return self.dispatcher(*args)
-        finally:
-            nb.set_num_threads(threads)
+
+
+@contextmanager
+def kernel_threads(n: int):
+    """Parallel kernels this thread launches inside the block run on n of numba's threads (at
+    most its pool's): the calling thread's own setting, put back after, also on a raise."""
+    before = nb.get_num_threads()
+    nb.set_num_threads(min(n, nb.config.NUMBA_NUM_THREADS))
+    try:
+        yield
+    finally:
+        nb.set_num_threads(before)

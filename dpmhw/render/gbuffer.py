@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import ThreadPoolExecutor
-from types import FunctionType
 
 import numba as nb
 import numpy as np
@@ -64,21 +63,12 @@ MODES = ("raster", "edges", "trace")
 ATTRIBUTES = ("id", "position", "normal", "depth", "albedo", "spec_albedo", "roughness")  # a pixel's, as NativeGBuffer's arrays
 
 
-def _ieee(dispatcher):
-    """A copy of one of the renderer's first-vertex helpers (`kernels`, numba-inlined there) for
-    `_attributes_py`: compiled on its own with this module's flags (no fast-math: inlined in numba's
-    IR, the helper takes its caller's flags, and these are `_attributes_py`'s), so the arithmetic
-    is the same, and always inlined by LLVM. Typed once, instead of again inside the parallel loop,
-    whose body numba types and lowers twice (the loop, then its gufunc). Renamed: no shared cache
-    entry with the original."""
-    f = dispatcher.py_func
-    copy = FunctionType(f.__code__, f.__globals__, f.__name__ + "_ieee")
-    copy.__qualname__ = f.__qualname__ + "_ieee"
-    return nb.njit(forceinline=True, cache=True)(copy)
-
-
+# The renderer's first-vertex helpers for `_attributes_py`, compiled with its flags (none: IEEE),
+# so the arithmetic is the one numba's IR inlining gave, but typed once instead of again inside
+# the parallel loop, whose body numba types and lowers twice (the loop, then its gufunc).
 _geometric_normal, _hit_point, _face_normals, _albedo_at = (
-    _ieee(f) for f in (kernels.geometric_normal, kernels.hit_point, kernels.face_normals, kernels.albedo_at))
+    kernels.inline_copy(f, "_ieee", cache=True)
+    for f in (kernels.geometric_normal, kernels.hit_point, kernels.face_normals, kernels.albedo_at))
 
 
 def _attributes_py(index, d, hits, scene, view, out):
@@ -415,6 +405,9 @@ class NativeGBuffer:
         self._static = {k: getattr(self, k).copy() for k in ATTRIBUTES}
         self.static_px = np.ones(len(index), np.bool_)  # the pixel holds its cached static attributes
         self._static["static_px"] = self.static_px.copy()
+        live = [getattr(self, k) for k in self._static]  # a restore copies these from their static copies, as flat bytes
+        self._restore_buffers = (tuple(_bytes(a) for a in live), tuple(_bytes(a) for a in self._static.values()),
+                                 np.array([a.nbytes // a.shape[0] for a in live], np.int64))
         self._static_lit = _bbox(self.id.reshape(self.height, self.width) >= 0)
         self.rays_traced = len(index)
 
@@ -537,8 +530,7 @@ class NativeGBuffer:
         prev = self._prev_box
         if prev is not None:  # pixels of the last region outside this one: back to static
             for part in box_minus(prev, box):
-                for k, a in self._static.items():
-                    _restore(getattr(self, k), a, self.width, *part)
+                _restore_kernel(*self._restore_buffers, self.width, *part)
         self.pixels_rasterised = 0
         if box is not None:
             if mode != "edges" or shading is None:  # every pixel of the region may change
@@ -599,22 +591,24 @@ class NativeGBuffer:
         self.rays_traced = n
 
 
-def _restore(dst: np.ndarray, src: np.ndarray, W: int, y0: int, y1: int, x0: int, x1: int) -> None:
-    """The box's pixels of `dst` = those of `src` (C-contiguous per-pixel buffers of one shape,
-    one row of `W` pixels after another)."""
-    px = dst.nbytes // dst.shape[0]  # bytes a pixel
-    _restore_kernel(dst.reshape(-1).view(np.uint8), src.reshape(-1).view(np.uint8), W * px, y0, y1, x0 * px, x1 * px)
+def _bytes(a: np.ndarray) -> np.ndarray:
+    """A C-contiguous array's bytes, flat (a view: writes reach the array)."""
+    return a.reshape(-1).view(np.uint8)
 
 
 @nb.njit(cache=True, nogil=True)
-def _restore_kernel(dst, src, row, y0, y1, a0, a1):
-    """Bytes a0 to a1 − 1 of rows y0 to y1 − 1 (`row` bytes each) of dst = src. Flat bytes: one
-    signature for every buffer. A loop, not a slice assignment: numba's slice assignment brings
-    the string formatting of its shape-mismatch message, seconds of compile."""
-    for y in range(y0, y1):
-        a = y * row
-        for i in range(a + a0, a + a1):
-            dst[i] = src[i]
+def _restore_kernel(dsts, srcs, px, W, y0, y1, x0, x1):
+    """Pixels x0 to x1 − 1 of rows y0 to y1 − 1 of each buffer dsts[b] = those of srcs[b]: flat
+    bytes, px[b] a pixel, rows of W pixels (one signature and one call for every buffer). A
+    loop, not a slice assignment: numba's slice assignment brings the string formatting of its
+    shape-mismatch message, seconds of compile. Unsigned indices: numba wraps a signed index that
+    may be negative, a select per byte that keeps LLVM from turning the loop into block copies
+    (ten times slower)."""
+    for b in range(len(dsts)):
+        dst, src, n = dsts[b], srcs[b], np.uint64(px[b])
+        for y in range(y0, y1):
+            for i in range(np.uint64(y * W + x0) * n, np.uint64(y * W + x1) * n):
+                dst[i] = src[i]
 
 
 def _flat(a, dtype=np.float32, cols=3) -> np.ndarray:

@@ -24,11 +24,11 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
-import numba as nb
 import numpy as np
 
 from dpmhw.errors import RenderError
 from dpmhw.limits import render_memory_problem
+from dpmhw.parallel_kernels import kernel_threads
 from dpmhw.render import kernels
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.render.embree.accel import Hits, RtcAccel, empty_hits
@@ -308,17 +308,13 @@ class PathIntegrator:
         self._raster_tri = _NO_TRI
         if self._raster is not None and self.raster_camera:
             self.counts.primary_static_rasterised = len(o)
-            threads = nb.get_num_threads()  # (numba's pool, on this integrator's thread count)
-            nb.set_num_threads(min(self.threads, nb.config.NUMBA_NUM_THREADS))
-            try:
+            with kernel_threads(self.threads):  # numba's pool, on this integrator's thread count
                 if not defer:
                     self._static_primary_hits = self._raster.hits(camera, d, out=self._cache_hits(len(o)))
                     self._static_primary_key = key
                     return self._static_primary_hits, False
                 # each pixel's triangle now; the first pass's segments resolve their pixels' hits
                 self._raster_tri = self._raster.triangles(camera)
-            finally:
-                nb.set_num_threads(threads)
         else:
             self.counts.primary_static_traced = len(o)
         if not defer:

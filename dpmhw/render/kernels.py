@@ -236,22 +236,25 @@ def _ggx_sample(wo0, wo1, wo2, t0, t1, t2, c0, c1, c2, s0, s1, s2, alpha, x, y):
     return dh * h0 - wo0, dh * h1 - wo1, dh * h2 - wo2
 
 
-def _vectorised(dispatcher):
-    """A copy of an inlined helper for the vectorised kernels (`_sample_block`): compiled on its
-    own with their fast-math flags (`_jit_vector`: neither contraction nor reassociation, so the
-    arithmetic rounds as written, wherever LLVM puts it), once per signature and literal argument
-    value (`glossy`), instead of being parsed and typed again at each of its call sites in numba's
-    IR; LLVM always inlines it (`forceinline`), so the loops still vectorise through it and
-    constant arguments still fold. Renamed, so that it never shares an on-disk cache entry with
-    the original. The shading kernels keep inlining the originals in numba's IR: compiled on their
-    own with `contract`, then inlined, they change the FMAs LLVM forms (the renders' last bits)."""
+def inline_copy(dispatcher, suffix: str, **jit):
+    """A copy of a helper that numba inlines in its IR (`inline="always"`), compiled on its own
+    with the flags `jit` (the caller's: inlined in numba's IR, a helper takes its caller's
+    fast-math flags), once per signature and literal argument value, instead of being parsed and
+    typed again at each call site; LLVM always inlines it (`forceinline`), so loops still
+    vectorise through it and constant arguments still fold. Renamed (`suffix`), so that it never
+    shares an on-disk cache entry with the original."""
     f = dispatcher.py_func
-    copy = FunctionType(f.__code__, f.__globals__, f.__name__ + "_vector")
-    copy.__qualname__ = f.__qualname__ + "_vector"
-    return nb.njit(forceinline=True, **_jit_vector)(copy)
+    copy = FunctionType(f.__code__, f.__globals__, f.__name__ + suffix)
+    copy.__qualname__ = f.__qualname__ + suffix
+    return nb.njit(forceinline=True, **jit)(copy)
 
 
-_cosine_local_v, _eval_bsdf_v, _ggx_sample_v = (_vectorised(f) for f in (_cosine_local, _eval_bsdf, _ggx_sample))
+# The vectorised kernels' (`_sample_block`) copies, with their flags (`_jit_vector`: neither
+# contraction nor reassociation, so the arithmetic rounds as written, wherever LLVM puts it). The
+# shading kernels keep inlining the originals in numba's IR: compiled on their own with
+# `contract`, then inlined, they change the FMAs LLVM forms (the renders' last bits).
+_cosine_local_v, _eval_bsdf_v, _ggx_sample_v = (inline_copy(f, "_vector", **_jit_vector)
+                                                 for f in (_cosine_local, _eval_bsdf, _ggx_sample))
 
 
 @nb.njit(inline="always", **_jit)
