@@ -193,7 +193,7 @@ class _ApiLoad:
 
 
 STAGE_KEYS = ("gbuffer", "render", "reuse", "filter", "upsample", "adaptive", "lod", "mesh_lod", "post", "capture", "frame",
-              "reproject", "present")
+              "reproject", "reproject_cpu", "present")
 
 
 MEASURED_POSE_EVERY = 4  # the measured-pose comparison on every 4th evaluated window (a reference, not the goal)
@@ -291,6 +291,7 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         out.update({f"{prefix}_p{q}": v for q, v in zip(qs, _pct(values, qs))})
     for stage in STAGE_KEYS:
         out[f"{stage}_ms_p50"] = _pct([r.stages_s.get(stage, np.nan) * 1e3 for r in records], (50,))[0]
+    out["reproject_cpu_ms_p99"] = _pct([r.stages_s.get("reproject_cpu", np.nan) * 1e3 for r in records], (99,))[0]
     out.update({"horizon_ms_mean": status["prediction_horizon_ms"]["mean"], "evaluated_windows": len(errors),
                 "projector_width": scene.render.width, "projector_height": scene.render.height})
     for w in range(len(records[0].windows) if len(records[0].windows) > 1 else 0):  # per sub-frame

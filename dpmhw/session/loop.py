@@ -858,6 +858,7 @@ class SessionLoop:
                 return None
             samples[body] = s
         settings = cap.job.settings
+        cpu_ns = 0  # the present thread's CPU time in the reprojection (the goal's measure; `reproject` is wall time)
         if cap.reprojection is not None:
             made = self._reproject_for(cap, vsync, settings)
             if made is None:
@@ -867,10 +868,12 @@ class SessionLoop:
             if missed:
                 self.metrics.count("retargeted_presents")
                 vsync += self.timing.period_ns
+                cpu_ns = made[3]
                 made = self._reproject_for(cap, vsync, settings)
                 if made is None:
                     return None
-            image, windows, horizon_ns = made
+            image, windows, horizon_ns, cpu = made
+            cpu_ns += cpu
         else:  # as rendered: every window shows the poses the frame was predicted to
             image, horizon_ns = cap.image, cap.job.horizon_ns
             windows = [(t, cap.job.used) for t in self.timing.photon_mid_ns(vsync)]
@@ -895,7 +898,7 @@ class SessionLoop:
         windows = tuple((t, used) for t, (_, used) in zip(shown, windows))
         oldest = min(s.t_exposure_ns for s in samples.values())
         latency_s = (sum(shown) / len(shown) - oldest) / 1e9
-        stages = {"reproject": (t1 - t0) / 1e9, "present": (t2 - t1) / 1e9}
+        stages = {"reproject": (t1 - t0) / 1e9, "reproject_cpu": cpu_ns / 1e9, "present": (t2 - t1) / 1e9}
         self.metrics.record_present(stages, t_present, latency_s, horizon_ns / 1e9)
         mid = len(windows) // 2
         record = FrameRecord(self._present_number, cap.job.t_start, t_present, windows[mid][0], windows[mid][1],
@@ -913,9 +916,10 @@ class SessionLoop:
             self.parts.recorder.frame(record, cap.image)
         return vsync
 
-    def _reproject_for(self, cap: _Capture, vsync: int, settings) -> tuple[np.ndarray, list, int] | None:
+    def _reproject_for(self, cap: _Capture, vsync: int, settings) -> tuple[np.ndarray, list, int, int] | None:
         """The capture moved to the poses predicted for each photon window of `vsync`: (image,
-        [(photon mid, {body: pose shown})], horizon used), or None before any sample."""
+        [(photon mid, {body: pose shown})], horizon used, the reprojection's thread CPU ns), or None
+        before any sample."""
         mids = self.timing.photon_mid_ns(vsync)
         with self._predict_lock:
             self._drain_samples()
@@ -932,8 +936,9 @@ class SessionLoop:
                 used[body] = poses[index]
             windows.append((t, used))
             moves.append((poses, w.channel))
+        cpu0 = time.thread_time_ns()
         self.reprojector.reproject_windows(cap.reprojection, moves, image)
-        return image, windows, horizon_ns
+        return image, windows, horizon_ns, time.thread_time_ns() - cpu0
 
     def _adapt_lead(self, ready_ns: int, late: bool) -> None:
         """The lead: the 98th percentile of the time from the planned wake to a frame ready to hand

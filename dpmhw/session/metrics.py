@@ -20,10 +20,12 @@ __all__ = ["STAGES", "WINDOWS", "Histogram", "LoopMetrics", "RollingWindow", "So
 # render: shading at the shading resolution; gbuffer: the native G-buffer update; filter /
 # upsample: reconstruction (dpmhw.reconstruct); capture: keeping it for the presents; frame: the
 # whole iteration. Presents (the present thread, once per refresh): reproject: moving the last
-# frame to each photon window's predicted poses; present: handing it to the sink.
+# frame to each photon window's predicted poses (with the prediction); reproject_cpu: the present
+# thread's CPU time in the reprojection itself (thread CPU, not wall: waits for the GIL or a core
+# are not in it); present: handing it to the sink.
 RENDER_STAGES = ("tracker_age", "predict", "render", "gbuffer", "reuse", "filter", "upsample", "adaptive", "lod",
                  "mesh_lod", "post", "capture", "frame")
-PRESENT_STAGES = ("reproject", "present")
+PRESENT_STAGES = ("reproject", "reproject_cpu", "present")
 STAGES = RENDER_STAGES + PRESENT_STAGES
 LATENCY_BUCKETS_S = (0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0)
 FRAME_BUCKETS_S = (0.002, 0.005, 0.01, 0.02, 0.033, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0)

@@ -74,6 +74,8 @@ def test_mock_session_reprojects_each_photon_window_to_its_own_instant(mode):
             if len(windows) == 3:
                 ts = [poses[body].t for _, poses in r.windows]
                 assert not np.allclose(ts[0], ts[2])  # each sub-frame at its own instant
+            # the reprojection's thread CPU time: spent, and within the wall time around it
+            assert 0 < r.stages_s["reproject_cpu"] <= r.stages_s["reproject"] + 1e-4
         assert matched >= len(records)  # most presents were lit (a loaded machine misses some refreshes)
         # the shown pose is nearer the truth at photon time than the pose the frame was rendered at
         shown_err, rendered_err = [], []
