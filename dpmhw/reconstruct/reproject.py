@@ -39,6 +39,8 @@ from typing import Sequence
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
+from numba.core.extending import intrinsic
 
 from dpmhw.render.distortion import distort_inline
 from dpmhw.transforms import Pose
@@ -48,7 +50,6 @@ __all__ = ["Capture", "ReprojectStats", "Reprojector", "GAP_MAX_PX", "DEPTH_STEP
 GAP_MAX_PX = 8  # longest run of unreached pixels filled between two splats (a rotation of a few degrees opens ~5)
 DEPTH_STEP_REL = 0.02  # ends of a run further apart in depth than this: a disocclusion, not a crack
 STATIC_Z_REL = 1e-3  # a static surface nearer than a moved point by more than this fraction hides it
-SWEEP_CHUNK = 32  # pixels of a row the splats' sweep tests at once for work (fills, look-ups)
 NEAR_Z = 1e-4  # a point this close to the projector's plane (metres) or behind it is dropped
 
 
@@ -84,6 +85,22 @@ class ReprojectStats:
     disoccluded: int  # pixels of newly visible surface, filled from the farther side
     vacated: int  # captured moving pixels no point or fill covers now: they show the plate
     box: tuple[int, int, int, int] | None  # (y0, y1, x0, x1) the points landed in (None: none did)
+
+
+@intrinsic
+def _trailing_zeros(typingctx, x):
+    """The number of trailing zero bits of x ≠ 0 (one instruction: tzcnt)."""
+    def codegen(context, builder, signature, args):
+        return builder.cttz(args[0], ir.Constant(ir.IntType(1), 1))
+    return x(x), codegen
+
+
+@nb.njit(_nrt=False)
+def _shift_right(r, out):
+    """out[i] = r[i − 1] for 1 ≤ i < len(r), out[0] = r[0]."""
+    out[0] = r[0]
+    for i in range(1, r.shape[0]):
+        out[i] = r[i - 1]
 
 
 # ---- kernels ---------------------------------------------------------------------------------------
@@ -283,7 +300,8 @@ def _base(image, ch, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1, zbuf, src, cover, s2, out, stats):
+def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1, zbuf, src, cover, s2, flags, shift, out,
+           stats):
     """Splat the points with a z-test into channels ch0 to ch1 − 1 of `out`; then, in one
     row-major sweep of the splats' box (y0, y1, x0, x1), fill the runs between splats along the
     row, and along the column above each splat and each pixel a row run filled (a crack row
@@ -291,7 +309,8 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1
     covers the plate. When a pixel looks up its column, every pixel above it is final: rows
     above are done, and only this pixel's run fills its column. The fills read only covered
     pixels, so the plate can go in last. `cover`: s2 where a point landed, s2 + 1 where a run
-    was filled (older values: neither). stats: moved, dropped, holes, disoccluded, vacated."""
+    was filled (older values: neither). `flags` (W + 8 bytes) and `shift` (W stamps): the
+    sweep's scratch rows. stats: moved, dropped, holes, disoccluded, vacated."""
     n = pixel.shape[0]
     Wu = np.uint64(W)
     flat, colf, backf = out.reshape(-1), colour.reshape(-1), back.reshape(-1)  # constant strides: no multiply a store
@@ -319,23 +338,32 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1
     sid = s2 >> 1
     nx = x1 - x0
     one = np.uint64(1)
+    s, s1, bit = np.int32(s2), np.int32(s2 + 1), np.int32(1)  # int32, not numba's int64: twice the lanes a vector
+    words = flags[:(nx + 7) // 8 * 8].view(np.uint64)
+    for i in range(nx, words.shape[0] * 8):
+        flags[i] = 0
     for y in range(y0, y1):
-        row = np.uint64(y * W + x0)
+        p = y * W + x0
+        row = np.uint64(p)
         up = y > y0
-        above = Wu * np.uint64(up)  # 0 on the box's first row: the test below then reads the pixel itself
-        for c0 in range(0, nx, SWEEP_CHUNK):
-            c1 = min(c0 + SWEEP_CHUNK, nx)
-            work = False  # a splat that starts a run of the row, or with neither splat nor fill above it
-            for i in range(c0, c1):  # branch-free: the chunks without work (nearly all) cost a vector test
-                q = row + np.uint64(i)
-                left = (i > 0) & (cover[q - np.uint64(i > 0)] == s2)
-                work |= (cover[q] == s2) & (~left | (up & (cover[q - above] >> 1 != sid)))
-            if not work:
-                continue
-            for i in range(c0, c1):
+        r = cover[p:p + nx]
+        if p == 0:  # the box starts at the frame's first pixel: nothing before it
+            _shift_right(r, shift)
+        left = cover[p - 1:p - 1 + nx] if p > 0 else shift[:nx]  # left[i]: the pixel before r[i]
+        above = cover[p - W:p - W + nx] if up else r
+        fill_up = np.int32(-1) if up else np.int32(0)
+        # the pixels with work: a splat that starts a run of the row, or with neither splat nor fill
+        # above it; one branch-free pass over the row (it vectorises), then only the flagged pixels,
+        # eight flags a word (nearly all words are 0)
+        for i in range(nx):
+            flags[i] = np.uint8((r[i] == s) & ((left[i] != s) | (((above[i] | bit) != s1) & (fill_up != 0))))
+        flags[0] = r[0] == s  # the box's first column has no run to its left
+        for k in range(words.shape[0]):
+            m = words[k]
+            while m:
+                i = 8 * k + np.int64(_trailing_zeros(m) >> np.uint64(3))
+                m &= m - np.uint64(1)
                 q = row + np.uint64(i)  # unsigned indices: no negative-index wrap on every access
-                if cover[q] != s2:
-                    continue
                 if not (i > 0 and cover[q - one] == s2):  # a splat after a gap in the row: look back for the splat before it
                     for g in range(2, min(GAP_MAX_PX + 1, i) + 1):
                         if cover[q - np.uint64(g)] == s2:
@@ -362,7 +390,8 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1
 
 @nb.njit(cache=True, nogil=True)
 def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_base, segments, moving, px, py, pz, fx,
-                       fy, cx, cy, dist, W, H, arrays, plate_z, zbuf, src, cover, sid, dest, zout, col, moves, same, stats, boxes):
+                       fy, cx, cy, dist, W, H, arrays, plate_z, zbuf, src, cover, sid, dest, zout, col, flags, shift, moves, same, stats,
+                       boxes):
     """Every photon window of one present in one call (one release of the GIL): `dst` = the
     captured image (all channels at once when `full_base`, else each window's own channel), then
     for each window w whose poses (R[w], t[w]) differ from the capture's (cap_R, cap_t) for an
@@ -408,7 +437,7 @@ def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_b
         y0, y1, x0, x1 = _bounds(dest, col, W, H)
         ch0, ch1 = (0, 3) if ch < 0 else (ch, channels[e - 1] + 1)  # the channels written
         _splat(pixel, plate, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1, zbuf, src, cover, 2 * (sid + w),
-               out, stats[w])
+               flags, shift, out, stats[w])
         for v in range(w, e):
             for i in range(5):
                 stats[v, i] = stats[w, i]
@@ -486,6 +515,8 @@ class Reprojector:
         self._src = np.zeros(n, np.int32)  # the point a splatted pixel shows
         self._cover = np.zeros(n, np.int32)  # 2·id of the reprojection that splatted the pixel, + 1: filled it
         self._sid = 0
+        self._flags = np.zeros(W + 8, np.uint8)  # a row's pixels with work (the splat's sweep), in whole words
+        self._shift = np.zeros(W, np.int32)  # a row shifted by one pixel, for a box at the frame's first pixel
         k = len(flags)  # per window of a present (at most 3): poses, matrices, channel, results
         self._R, self._t, self._M = np.empty((3, k, 3, 3)), np.empty((3, k, 3)), np.empty((3, k, 3, 4), np.float32)
         self._channels, self._moves, self._same = np.empty(3, np.int64), np.empty(3, np.bool_), np.empty(3, np.bool_)
@@ -573,7 +604,7 @@ class Reprojector:
                                capture.t, self._channels[:nw], channels[0] < 0 or nw == 3, seg, moving, px, py, pz,
                                *self._intrinsics, W, H, (capture.pixel, capture.plate, capture.colour), self._plate_z,
                                self._zbuf, self._src, self._cover, sid, self._dest[:n], self._zout[:n], self._col[:n],
-                               self._moves[:nw], self._same[:nw], self._stats[:nw], self._boxes[:nw])
+                               self._flags, self._shift, self._moves[:nw], self._same[:nw], self._stats[:nw], self._boxes[:nw])
             moves, stats, boxes = self._moves[:nw].tolist(), self._stats[:nw].tolist(), self._boxes[:nw].tolist()
         result = []
         for w in range(nw):

@@ -134,6 +134,19 @@ def test_magnification_cracks_are_filled_with_the_surface_and_counted():
     assert inner.size and (inner[..., 2] >= 200).all()
 
 
+def test_cracks_are_filled_up_to_the_frames_first_pixel():
+    """The splats' box starting at pixel (0, 0): its first row has no pixel before it, and its
+    cracks close as anywhere else."""
+    cam = _camera()
+    image, ids, depth = _planes(cam, [(0, 1.0, (0, 30, 0, 40))])
+    rp = Reprojector(cam, [True])
+    cap = rp.capture(image, ids, depth, [_shifted()])
+    out = np.zeros_like(image)
+    st = rp.reproject(cap, [_shifted(dz=-0.4)], out)  # 1.67×, away from the principal point: past the corner
+    assert st.box[0] == 0 and st.box[2] == 0 and st.holes > 0.3 * st.moved
+    assert (out[:24, :34, 2] >= 200).all()  # the surface everywhere it now covers, the first row too
+
+
 def test_newly_visible_surface_takes_the_farther_side_and_is_counted_as_disoccluded():
     cam = _camera()
     far = (0, 1.0, (10, 60, 10, 86))
