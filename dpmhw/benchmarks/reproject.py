@@ -10,11 +10,13 @@ them, per row: the stale capture shown as it is (no reprojection), and a second 
 start pose (`*_noise`: the references' own noise, the best any reprojection can score).
 
 Cost: CPU-ms of the calling thread (the kernels are serial and run on it) per capture of the
-lit box (`ms_capture`, the frame thread's share), per reprojection of all three channels
-(`ms_per_reprojection`) and per pattern-mode present: three one-channel windows into one frame
-in one call, each moved to its own poses a sub-frame apart (`SUBFRAME_MS`, centred on the
-horizon), as the loop predicts them (`ms_per_present_pattern`); medians of `repeats`, and `*_min`
-the least of them (on a shared machine: the repeat the other processes disturbed least).
+lit box (`ms_capture`, the frame thread's share), per video present (`ms_per_reprojection`: all
+three channels) and per pattern-mode present: three one-channel windows into one frame in one
+call, each moved to its own poses a sub-frame apart (`SUBFRAME_MS`, centred on the horizon), as
+the loop predicts them (`ms_per_present_pattern`). Both present as the loop does, into the
+reprojector's own frames in turn (`Reprojector.present`: only the boxes that changed are copied
+from the capture); medians of `repeats`, and `*_min` the least of them (on a shared machine: the
+repeat the other processes disturbed least).
 """
 
 from __future__ import annotations
@@ -67,10 +69,11 @@ def _cpu_ms(repeats: int, fn, *args) -> tuple[float, float]:
     return 1e3 * float(np.median(times)), 1e3 * float(np.min(times))
 
 
-def _pattern_present(reprojector: Reprojector, cap, window_poses, out) -> None:
-    """A pattern-8bit present as the loop makes it: three one-channel windows, each at its own
-    poses, in one call."""
-    reprojector.reproject_windows(cap, [(poses, k) for k, poses in enumerate(window_poses)], out)
+def _present(reprojector: Reprojector, cap, window_poses) -> None:
+    """A present as the loop makes it, into the reprojector's own frames: one window of all
+    channels (video), or three one-channel windows, each at its own poses (pattern-8bit)."""
+    reprojector.present(cap, [(window_poses[0], None)] if len(window_poses) == 1 else
+                        [(poses, k) for k, poses in enumerate(window_poses)])
 
 
 def run_reproject(cfg: ReprojectBenchConfig, progress=None) -> list[dict]:
@@ -121,7 +124,8 @@ def run_reproject(cfg: ReprojectBenchConfig, progress=None) -> list[dict]:
             lit = f0.object_id >= 0  # the lit box, as the native G-buffer gives it
             rows_lit, cols_lit = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
             box = (int(rows_lit[0]), int(rows_lit[-1]) + 1, int(cols_lit[0]), int(cols_lit[-1]) + 1) if lit.any() else None
-            cap = reprojector.capture(captured, ids, depth, poses_at(start), box)
+            # outside the box the frame equals itself: presents of this capture copy only the boxes, as the loop's
+            cap = reprojector.capture(captured, ids, depth, poses_at(start), box, captured.copy().reshape(-1))
             capture_ms, capture_min = _cpu_ms(cfg.repeats, reprojector.capture, captured, ids, depth, poses_at(start), box)
             for h in cfg.horizons_ms:
                 poses = poses_at(start + h / 1e3)
@@ -137,10 +141,10 @@ def run_reproject(cfg: ReprojectBenchConfig, progress=None) -> list[dict]:
                            psnr_db_noise=noise[0], ssim_noise=noise[1], ms_capture=capture_ms,
                            ms_capture_min=capture_min)
                 row["ms_per_reprojection"], row["ms_per_reprojection_min"] = _cpu_ms(
-                    cfg.repeats, reprojector.reproject, cap, poses, out)
+                    cfg.repeats, _present, reprojector, cap, [poses])
                 row["ms_per_present_pattern"], row["ms_per_present_pattern_min"] = _cpu_ms(
-                    cfg.repeats, _pattern_present, reprojector, cap,
-                    [poses_at(start + (h + (k - 1) * SUBFRAME_MS) / 1e3) for k in range(3)], out)
+                    cfg.repeats, _present, reprojector, cap,
+                    [poses_at(start + (h + (k - 1) * SUBFRAME_MS) / 1e3) for k in range(3)])
                 rows.append(row)
     return rows
 

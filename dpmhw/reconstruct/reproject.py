@@ -2,8 +2,10 @@
 
 The frame thread calls `Reprojector.capture` once per rendered frame: the moving objects' lit
 pixels are compacted into a list (pixel, object, model-space point, colour), so that a present
-costs in proportion to them, not to the frame. The present thread calls `Reprojector.reproject`
-for each photon window with the poses predicted for it:
+costs in proportion to them, not to the frame. The present thread calls `Reprojector.present`
+with each photon window's predicted poses; it draws into the reprojector's own frames in turn
+and copies from the capture only the boxes that changed since a frame's last present
+(`Reprojector.reproject` and `reproject_windows` draw into the caller's frame instead):
 
 1. `out` = the captured image, with the captured moving pixels replaced by the *plate*: the last
    colour each pixel showed while it showed a static object or the background (black where it
@@ -45,12 +47,13 @@ from numba.core.extending import intrinsic
 from dpmhw.render.distortion import distort_inline
 from dpmhw.transforms import Pose
 
-__all__ = ["Capture", "ReprojectStats", "Reprojector", "GAP_MAX_PX", "DEPTH_STEP_REL"]
+__all__ = ["Capture", "ReprojectStats", "Reprojector", "GAP_MAX_PX", "DEPTH_STEP_REL", "PRESENT_FRAMES"]
 
 GAP_MAX_PX = 8  # longest run of unreached pixels filled between two splats (a rotation of a few degrees opens ~5)
 DEPTH_STEP_REL = 0.02  # ends of a run further apart in depth than this: a disocclusion, not a crack
 STATIC_Z_REL = 1e-3  # a static surface nearer than a moved point by more than this fraction hides it
 NEAR_Z = 1e-4  # a point this close to the projector's plane (metres) or behind it is dropped
+PRESENT_FRAMES = 3  # `present`'s frames, used in turn: one is shown, the one before may still be read by a sink
 
 
 @dataclass(frozen=True)
@@ -68,6 +71,7 @@ class Capture:
     colour: np.ndarray  # (n, 3) uint8 its colour in the image
     plate: np.ndarray  # (n, 3) uint8 the plate's colour at its pixel (what shows when it leaves)
     box: tuple[int, int, int, int]  # (y0, y1, x0, x1) the lit box it was compacted from
+    background: np.ndarray | None = None  # what `image` shows outside `box` (see Reprojector.capture)
 
     @property
     def lit(self) -> int:
@@ -280,23 +284,30 @@ def _row_run(q, g, rows_above, pixel, src, zbuf, cover, s2, plate_z, W, ch0, ch1
 
 
 @nb.njit(cache=True, nogil=True)
-def _base(image, ch, out):
-    """out = image, flat uint8 arrays (H*W*3); only channel `ch` of each pixel when ch ≥ 0.
-    Plain loops over contiguous bytes (numba's slice assignment copies element by element, a
-    stride-3 loop does not vectorise): the channel is blended in with a per-channel byte
-    mask, so the other channels are read and stored back unchanged."""
-    if ch < 0:
-        for i in range(image.shape[0]):
-            out[i] = image[i]
-        return
+def _base(image, ch, out, W, box):
+    """out = image inside `box` (y0, y1, x0, x1), flat uint8 arrays (H*W*3); only channel `ch`
+    of each pixel when ch ≥ 0. Plain loops over contiguous bytes (numba's slice assignment
+    copies element by element, a stride-3 loop does not vectorise): the channel is blended in
+    with a per-channel byte mask, so the other channels are read and stored back unchanged."""
+    y0, y1, x0, x1 = box
+    rows, a, e = y1 - y0, 3 * (y0 * W + x0), 3 * (y0 * W + x1)  # the first row's bytes
+    if x0 == 0 and x1 == W:  # whole rows: one run
+        rows, e = 1, 3 * y1 * W
     m0 = np.uint8(255 if ch == 0 else 0)
     m1 = np.uint8(255 if ch == 1 else 0)
     m2 = np.uint8(255 if ch == 2 else 0)
-    for p in range(image.shape[0] // 3):
-        i = 3 * p
-        out[i] = out[i] ^ ((out[i] ^ image[i]) & m0)
-        out[i + 1] = out[i + 1] ^ ((out[i + 1] ^ image[i + 1]) & m1)
-        out[i + 2] = out[i + 2] ^ ((out[i + 2] ^ image[i + 2]) & m2)
+    for r in range(rows):
+        o = 3 * r * W
+        src, dst = image[a + o:e + o], out[a + o:e + o]  # indices from 0: no wrap-around test a byte
+        if ch < 0:
+            for i in range(dst.shape[0]):
+                dst[i] = src[i]
+            continue
+        for p in range(dst.shape[0] // 3):
+            i = 3 * p
+            dst[i] = dst[i] ^ ((dst[i] ^ src[i]) & m0)
+            dst[i + 1] = dst[i + 1] ^ ((dst[i + 1] ^ src[i + 1]) & m1)
+            dst[i + 2] = dst[i + 2] ^ ((dst[i + 2] ^ src[i + 2]) & m2)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -389,11 +400,12 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1
 
 
 @nb.njit(cache=True, nogil=True)
-def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_base, segments, moving, px, py, pz, fx,
+def _reproject_windows(img, dst, base_box, M, M_bits, R, t, cap_R, cap_t, channels, full_base, segments, moving, px, py, pz, fx,
                        fy, cx, cy, dist, W, H, arrays, plate_z, zbuf, src, cover, sid, dest, zout, col, flags, shift, moves, same, stats,
                        boxes):
     """Every photon window of one present in one call (one release of the GIL): `dst` = the
-    captured image (all channels at once when `full_base`, else each window's own channel), then
+    captured image inside `base_box` (all channels at once when `full_base`, else each window's
+    own channel; outside it `dst` holds the same already), then
     for each window w whose poses (R[w], t[w]) differ from the capture's (cap_R, cap_t) for an
     object of `moving` (`moves[w]`), its points moved by `M[w]` and splatted into its channel
     (`channels[w]`, −1: all). A window whose matrices are the previous window's bit for bit
@@ -417,19 +429,19 @@ def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_b
                 for i in range(12):
                     same[w] &= M_bits[w, o, i] == M_bits[w - 1, o, i]
     if full_base:
-        _base(img, np.int64(-1), dst)  # not a literal: numba would compile _base once more for it
+        _base(img, np.int64(-1), dst, W, base_box)  # not a literal: numba would compile _base once more for it
     w = 0
     while w < n_win:
         ch = channels[w]
         if not full_base:
-            _base(img, ch, dst)
+            _base(img, ch, dst, W, base_box)
         if not moves[w]:
             w += 1
             continue
         e = w + 1  # windows w to e − 1: one pose, consecutive channels
         while e < n_win and moves[e] and same[e] and channels[e] == channels[e - 1] + 1:
             if not full_base:
-                _base(img, channels[e], dst)
+                _base(img, channels[e], dst, W, base_box)
             e += 1
         for o in moving:
             a, b = segments[o], segments[o + 1]
@@ -443,6 +455,25 @@ def _reproject_windows(img, dst, M, M_bits, R, t, cap_R, cap_t, channels, full_b
                 stats[v, i] = stats[w, i]
             boxes[v, 0], boxes[v, 1], boxes[v, 2], boxes[v, 3] = y0, y1, x0, x1
         w = e
+
+
+@dataclass
+class _Frame:
+    """One of `present`'s frames: the image, the background its last capture shared, and the box
+    outside which it shows that background."""
+
+    image: np.ndarray
+    background: np.ndarray | None = None
+    written: tuple[int, int, int, int] = (0, 0, 0, 0)
+
+
+def _union(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+    """The bounding box of two (y0, y1, x0, x1) boxes; an empty one (y1 ≤ y0 or x1 ≤ x0) adds nothing."""
+    if a[1] <= a[0] or a[3] <= a[2]:
+        return tuple(b)
+    if b[1] <= b[0] or b[3] <= b[2]:
+        return tuple(a)
+    return min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3])
 
 
 # ---- checks ----------------------------------------------------------------------------------------
@@ -524,14 +555,19 @@ class Reprojector:
         self._dest, self._zout, self._col = np.empty(0, np.int32), np.empty(0, np.float32), np.empty(0, np.int32)  # per point, grown to the largest capture
         self._intrinsics = (np.float32(K[0, 0]), np.float32(K[1, 1]), np.float32(K[0, 2]), np.float32(K[1, 2]),
                             dist.astype(np.float32))
+        self._frames: list[_Frame | None] = [None] * PRESENT_FRAMES  # `present`'s own, made at first use
+        self._turn = 0
         self._capture_lock = threading.Lock()
         self._present_lock = threading.Lock()
 
     def capture(self, image: np.ndarray, object_id: np.ndarray, depth: np.ndarray, poses: Sequence[Pose],
-                box: tuple[int, int, int, int] | None = None) -> Capture:
+                box: tuple[int, int, int, int] | None = None, background: np.ndarray | None = None) -> Capture:
         """Compact the moving objects' lit pixels of `box` (the lit box; None: the whole frame)
         and update the plate there. `object_id`, `depth`: the native G-buffer's (H*W values).
-        The capture keeps `image` itself: hand over a frame that is not written again."""
+        The capture keeps `image` itself: hand over a frame that is not written again.
+        `background`: a frame (H*W*3 bytes, not written again either) that `image` equals
+        outside `box`; captures that share it (the same object) let `present` copy only their
+        boxes into its frames, not the whole frame."""
         W, H = self.width, self.height
         if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.shape != (H, W, 3) \
                 or not image.flags.c_contiguous:
@@ -541,6 +577,10 @@ class Reprojector:
         z = _array(depth, "depth", np.float32, H * W, f"({H * W},)")
         R, t = _poses(poses, len(self.dynamic))
         y0, y1, x0, x1 = self._box(box)
+        if background is not None and (not isinstance(background, np.ndarray) or background.dtype != np.uint8
+                                       or background.size != H * W * 3):
+            got = f"{background.dtype} {background.shape}" if isinstance(background, np.ndarray) else type(background).__name__
+            raise ValueError(f"background: expected None or {H * W * 3} uint8 values, got {got}")
         A = np.einsum("kji,jl->kil", R, self.cam_R)  # camera → model: R_kᵀ (R_cam·c + t_cam − t_k)
         b = np.einsum("kji,kj->ki", R, self.cam_t - t)
         with self._capture_lock:
@@ -555,7 +595,7 @@ class Reprojector:
             colour, back = np.empty((n, 3), np.uint8), np.empty((n, 3), np.uint8)
             _compact(image.reshape(-1, 3), ids, z, self._ideal, self.dynamic, A, b, W, y0, y1, x0, x1, self._plate,
                      self._plate_z, segments[:-1].copy(), pixel, point, colour, back)
-        return Capture(image, R, t, segments, pixel, point, colour, back, (y0, y1, x0, x1))
+        return Capture(image, R, t, segments, pixel, point, colour, back, (y0, y1, x0, x1), background)
 
     def reproject(self, capture: Capture, poses: Sequence[Pose], out: np.ndarray, channel: int | None = None) -> ReprojectStats:
         """`out` = the capture moved to `poses` (only channel `channel` of it when given)."""
@@ -568,14 +608,55 @@ class Reprojector:
         sub-frames). One kernel call for all of them, so the present thread releases the GIL
         once; each window gives the same bits as its own `reproject`."""
         W, H = self.width, self.height
-        if not isinstance(capture, Capture) or capture.image.shape != (H, W, 3) or len(capture.R) != len(self.dynamic):
-            raise ValueError(f"capture: expected a Capture of this Reprojector ({W}×{H}), got {type(capture).__name__}")
+        self._check(capture)
         if not isinstance(out, np.ndarray) or out.dtype != np.uint8 or out.shape != (H, W, 3) or not out.flags.c_contiguous \
                 or not out.flags.writeable:
             got = f"{out.dtype} {out.shape}" if isinstance(out, np.ndarray) else type(out).__name__
             raise ValueError(f"out: expected a writable C-contiguous ({H}, {W}, 3) uint8 array, got {got}")
         if np.may_share_memory(out, capture.image):
             raise ValueError("out: is the capture's own image (the capture must stay as it was rendered)")
+        with self._present_lock:
+            return self._reproject(capture, windows, out, (0, H, 0, W))[0]
+
+    def present(self, capture: Capture, windows: Sequence[tuple[Sequence[Pose], int | None]]
+                ) -> tuple[np.ndarray, list[ReprojectStats]]:
+        """The capture moved to each window's poses (as `reproject_windows`), in the next of
+        `PRESENT_FRAMES` frames of this Reprojector's own: (frame, stats). A frame stays as it is
+        until `PRESENT_FRAMES` − 1 more presents (a sink may still read it). The windows cover
+        every channel: one window of all channels, or three of channels 0, 1 and 2.
+
+        Only what differs from what the frame held is copied from the capture: with a
+        `background` both captures share, the bounding box of this capture's box, the last
+        one's and what the last reprojection into the frame wrote (a present's cost then
+        follows the lit pixels, not the frame); otherwise the whole frame."""
+        W, H = self.width, self.height
+        self._check(capture)
+        windows = list(windows)
+        channels = sorted(self._channel(c, k) for k, (_, c) in enumerate(windows))
+        if channels not in ([-1], [0, 1, 2]):
+            raise ValueError(f"windows: a present covers every channel: one window of all (None) or three of 0, 1 and 2, "
+                             f"got channels {[None if c < 0 else c for c in channels]}")
+        with self._present_lock:
+            self._turn = (self._turn + 1) % PRESENT_FRAMES
+            frame = self._frames[self._turn]
+            if frame is None:
+                frame = self._frames[self._turn] = _Frame(np.zeros((H, W, 3), np.uint8))
+            same = capture.background is not None and frame.background is capture.background
+            base_box = _union(frame.written, capture.box) if same else (0, H, 0, W)
+            stats, splats = self._reproject(capture, windows, frame.image, base_box)
+            frame.background, frame.written = capture.background, _union(capture.box, splats)
+        return frame.image, stats
+
+    def _check(self, capture) -> None:
+        W, H = self.width, self.height
+        if not isinstance(capture, Capture) or capture.image.shape != (H, W, 3) or len(capture.R) != len(self.dynamic):
+            raise ValueError(f"capture: expected a Capture of this Reprojector ({W}×{H}), got {type(capture).__name__}")
+
+    def _reproject(self, capture: Capture, windows, out: np.ndarray, base_box: tuple[int, int, int, int]
+                   ) -> tuple[list[ReprojectStats], tuple[int, int, int, int]]:
+        """`reproject_windows` into `out`, which equals the capture outside `base_box`; holding
+        the present lock. Returns the stats and the bounding box of every window's splats."""
+        W, H = self.width, self.height
         windows = list(windows)
         nw, n_obj = len(windows), len(self.dynamic)
         channels = [self._channel(c, k) for k, (_, c) in enumerate(windows)]
@@ -585,35 +666,36 @@ class Reprojector:
         n, seg = capture.lit, capture.segments
         px, py, pz = capture.point
         moving = np.flatnonzero(self.dynamic & (seg[1:] > seg[:-1]))  # the moving objects with points
-        with self._present_lock:  # the buffers below are the present thread's, reused every call
-            R, t, M = self._R[:nw], self._t[:nw], self._M[:nw]
-            for w, (poses, _) in enumerate(windows):
-                R[w], t[w] = _poses(poses, n_obj, f"windows[{w}] poses" if nw > 1 else "poses")
-            M[..., :3] = np.einsum("ji,wkjl->wkil", self.cam_R, R)  # model → camera: R_camᵀ (R_k·m + t_k − t_cam)
-            M[..., 3] = (t - self.cam_t) @ self.cam_R
-            M12 = M.reshape(nw, n_obj, 12)
-            self._channels[:nw] = channels
-            if self._dest.shape[0] < n:
-                self._dest, self._zout, self._col = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.int32)
-            if self._sid + nw >= 2**30 - 1:  # the stamps wrap only after 2³⁰ windows; then start over
-                self._cover[:] = 0
-                self._sid = 0
-            sid = self._sid + 1
-            self._sid += nw
-            _reproject_windows(capture.image.reshape(-1), out.reshape(-1), M12, M12.view(np.uint32), R, t, capture.R,
-                               capture.t, self._channels[:nw], channels[0] < 0 or nw == 3, seg, moving, px, py, pz,
-                               *self._intrinsics, W, H, (capture.pixel, capture.plate, capture.colour), self._plate_z,
-                               self._zbuf, self._src, self._cover, sid, self._dest[:n], self._zout[:n], self._col[:n],
-                               self._flags, self._shift, self._moves[:nw], self._same[:nw], self._stats[:nw], self._boxes[:nw])
-            moves, stats, boxes = self._moves[:nw].tolist(), self._stats[:nw].tolist(), self._boxes[:nw].tolist()
-        result = []
+        # the buffers below are the present thread's, reused every call
+        R, t, M = self._R[:nw], self._t[:nw], self._M[:nw]
+        for w, (poses, _) in enumerate(windows):
+            R[w], t[w] = _poses(poses, n_obj, f"windows[{w}] poses" if nw > 1 else "poses")
+        M[..., :3] = np.einsum("ji,wkjl->wkil", self.cam_R, R)  # model → camera: R_camᵀ (R_k·m + t_k − t_cam)
+        M[..., 3] = (t - self.cam_t) @ self.cam_R
+        M12 = M.reshape(nw, n_obj, 12)
+        self._channels[:nw] = channels
+        if self._dest.shape[0] < n:
+            self._dest, self._zout, self._col = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.int32)
+        if self._sid + nw >= 2**30 - 1:  # the stamps wrap only after 2³⁰ windows; then start over
+            self._cover[:] = 0
+            self._sid = 0
+        sid = self._sid + 1
+        self._sid += nw
+        _reproject_windows(capture.image.reshape(-1), out.reshape(-1), base_box, M12, M12.view(np.uint32), R, t, capture.R,
+                           capture.t, self._channels[:nw], channels[0] < 0 or nw == 3, seg, moving, px, py, pz,
+                           *self._intrinsics, W, H, (capture.pixel, capture.plate, capture.colour), self._plate_z,
+                           self._zbuf, self._src, self._cover, sid, self._dest[:n], self._zout[:n], self._col[:n],
+                           self._flags, self._shift, self._moves[:nw], self._same[:nw], self._stats[:nw], self._boxes[:nw])
+        moves, stats, boxes = self._moves[:nw].tolist(), self._stats[:nw].tolist(), self._boxes[:nw].tolist()
+        result, splats = [], (0, 0, 0, 0)
         for w in range(nw):
             if not moves[w]:  # nothing moves: the captured image itself
                 result.append(ReprojectStats(n, n, 0, 0, 0, 0, capture.box if n else None))
                 continue
             y0, y1, x0, x1 = boxes[w]
             result.append(ReprojectStats(n, *stats[w], (y0, y1, x0, x1) if y1 > y0 else None))
-        return result
+            splats = _union(splats, (y0, y1, x0, x1))
+        return result, splats
 
     @staticmethod
     def _channel(channel, w: int) -> int:

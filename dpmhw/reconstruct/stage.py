@@ -94,6 +94,7 @@ class StageOutput:
     stages_s: dict  # seconds per sub-stage: gbuffer, reuse, filter, upsample, [adaptive,] post
     lit_box: tuple[int, int, int, int]
     unresolved: int  # native pixels no shading sample supports (see upsample)
+    background: np.ndarray | None = None  # the frame `image` equals outside `lit_box` (the same object while the exposure stays)
 
 
 def _one_kernel_thread() -> None:
@@ -418,4 +419,4 @@ class ReconstructStage:
                    Stage("post", self._encode_lit_box)), w, self.clock, w.st)
         y0, y1, x0, x1 = w.box
         unresolved = int(self._unresolved.reshape(self.H, self.W)[y0:y1, x0:x1].sum())
-        return StageOutput(w.image.reshape(self.H, self.W, 3), w.st, w.box, unresolved)
+        return StageOutput(w.image.reshape(self.H, self.W, 3), w.st, w.box, unresolved, self.base_frame(w.exposure))

@@ -303,8 +303,6 @@ class SessionLoop:
         self._present_number = 0
         self._present_heartbeat_ns = clock()
         self._present_priority = "not started"
-        self._buffers: list[np.ndarray] = []  # the present thread's output frames, in turn
-        self._buffer_turn = 0
         # render frame n+1 beside frame n's reconstruction; not with mesh LOD, whose level switch must hold for
         # a whole frame (render, G-buffer, refinement)
         self.pipeline = bool(config.render.pipeline) and self.mesh_lod is None
@@ -782,7 +780,7 @@ class SessionLoop:
             self.metrics.count("frames_withheld")
             return False
         out = made.output
-        made.capture = self._capture_frame(made.job, out.image, out.lit_box, made.frame)
+        made.capture = self._capture_frame(made.job, out, made.frame)
         return True
 
     # ---- the present thread: one present per refresh, never waiting for a render ----------
@@ -796,10 +794,11 @@ class SessionLoop:
 
         return Reprojector(camera, [o.is_dynamic for o in self.parts.scene.objects])
 
-    def _capture_frame(self, job: "_Job", image: np.ndarray, lit_box, frame) -> _Capture:
-        """Keep a finished frame for the presents; with the late reprojection, its moving pixels
-        (the native G-buffer's ids and depths of this frame: the stage keeps them until its next
-        `apply`) are captured in their objects' own frames."""
+    def _capture_frame(self, job: "_Job", out, frame) -> _Capture:
+        """Keep a finished frame (the stage's output) for the presents; with the late
+        reprojection, its moving pixels (the native G-buffer's ids and depths of this frame: the
+        stage keeps them until its next `apply`) are captured in their objects' own frames."""
+        image = out.image
         reprojection = None
         if self.reprojector is not None:
             native = self.reconstruct.native if self.parts.gbuffer is not None else None
@@ -807,7 +806,7 @@ class SessionLoop:
                 ids, depth = native.id, native.depth
             else:
                 ids, depth = frame.object_id.reshape(-1), frame.depth.reshape(-1)
-            reprojection = self.reprojector.capture(image, ids, depth, list(job.poses), lit_box)
+            reprojection = self.reprojector.capture(image, ids, depth, list(job.poses), out.lit_box, out.background)
         return _Capture(self._frame_number + 1, job, image, reprojection)
 
     def _present_loop(self) -> None:
@@ -927,7 +926,6 @@ class SessionLoop:
                         for body in self._bodies}
         if any(p is None for p in per_body.values()):
             return None
-        image = self._present_buffer()
         windows, moves, horizon_ns = [], [], cap.job.horizon_ns
         for k, (w, t) in enumerate(zip(self.timing.windows, mids)):
             poses, used = list(cap.job.poses), {}
@@ -937,7 +935,7 @@ class SessionLoop:
             windows.append((t, used))
             moves.append((poses, w.channel))
         cpu0 = time.thread_time_ns()
-        self.reprojector.reproject_windows(cap.reprojection, moves, image)
+        image, _ = self.reprojector.present(cap.reprojection, moves)  # one of its frames, in turn (a sink may read the last)
         return image, windows, horizon_ns, time.thread_time_ns() - cpu0
 
     def _adapt_lead(self, ready_ns: int, late: bool) -> None:
@@ -957,14 +955,6 @@ class SessionLoop:
         self._present_time_ns = median + PRESENT_HANDOFF_NS
         lead = ready + PRESENT_LEAD_MARGIN_NS + self._lead_penalty_ns
         self._present_lead_ns = min(max(lead, PRESENT_LEAD_MIN_NS), self.timing.period_ns * 3 // 4)
-
-    def _present_buffer(self) -> np.ndarray:
-        """The next of a few output buffers in turn (a sink may still read the one before)."""
-        if not self._buffers:
-            W, H = self.output_size
-            self._buffers = [np.zeros((H, W, 3), np.uint8) for _ in range(3)]
-        self._buffer_turn = (self._buffer_turn + 1) % len(self._buffers)
-        return self._buffers[self._buffer_turn]
 
     @staticmethod
     def _freeze_long_lived() -> None:

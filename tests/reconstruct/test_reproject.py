@@ -10,7 +10,7 @@ import pytest
 
 from dpmhw.metrics import masked_psnr
 from dpmhw.postprocess import to_srgb8
-from dpmhw.reconstruct.reproject import Reprojector
+from dpmhw.reconstruct.reproject import PRESENT_FRAMES, Reprojector
 from dpmhw.render.cameras import PinholeCamera
 from dpmhw.transforms import Pose, rotation_about_axis
 
@@ -243,9 +243,54 @@ def test_bad_input_names_the_argument():
         (lambda: rp.reproject("capture", ok, out), "capture"),
         (lambda: rp.reproject(cap, ok, image), "out"),
     ]
+    cases += [
+        (lambda: rp.capture(image, ids, depth, ok, background=np.zeros(5, np.uint8)), "background"),
+        (lambda: rp.capture(image, ids, depth, ok, background=image.astype(np.float32)), "background"),
+        (lambda: rp.present(cap, [(ok, 0), (ok, 1)]), "windows"),
+        (lambda: rp.present(cap, [(ok, 0), (ok, 1), (ok, 1)]), "windows"),
+        (lambda: rp.present("capture", [(ok, None)]), "capture"),
+    ]
     for call, name in cases:
         with pytest.raises(ValueError, match=f"^{name}"):
             call()
+
+
+def test_a_present_into_its_own_frames_gives_the_bits_of_a_whole_new_frame():
+    """`present` copies only the boxes that changed into the frame it reuses (captures sharing a
+    background); every present equals a reprojection into a fresh frame, whether the captures
+    move, repeat, change background or have none, in both kinds of present."""
+    cam = _camera()
+    rp = Reprojector(cam, [True])
+    background = np.full((H, W, 3), 7, np.uint8)
+
+    def capture(x, bg):  # the moving square at column x, its box the lit box; the rest shows `bg`
+        box = (10 + x // 3, 30 + x // 3, x, x + 20)
+        image, ids, depth = _planes(cam, [(0, 0.9, box)])
+        inside = np.zeros((H, W), bool)
+        inside[box[0]:box[1], box[2]:box[3]] = True
+        image[~inside] = bg[~inside] if bg is not None else 3
+        return rp.capture(image, ids, depth, [_shifted()], box, None if bg is None else bg.reshape(-1))
+
+    def poses(k):  # 0.9-3 px a step: the splats leave the capture's box
+        return [_shifted(0.01 * k, -0.004 * k)]
+
+    other = np.full((H, W, 3), 11, np.uint8)
+    sequence = [(capture(x, bg), reps) for x, bg, reps in
+                ((10, background, 2), (40, background, 1), (60, background, 3), (20, other, 1), (30, other, 1),
+                 (50, None, 2), (15, background, 2))]
+    frames = set()
+    k = 0
+    for cap, reps in sequence:
+        for _ in range(reps):
+            k += 1
+            for windows in ([(poses(k), None)], [(poses(k + j), j) for j in (2, 0, 1)]):
+                fresh = np.zeros_like(cap.image)
+                expected = rp.reproject_windows(cap, windows, fresh)
+                frame, stats = rp.present(cap, windows)
+                frames.add(id(frame))
+                assert stats == expected
+                assert np.array_equal(frame, fresh), (k, windows[0][1])
+    assert len(frames) == PRESENT_FRAMES
 
 
 def test_windows_that_share_poses_give_each_windows_own_bits():
