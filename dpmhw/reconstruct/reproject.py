@@ -347,7 +347,7 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1
             flat[three * q + np.uint64(c)] = colf[np.uint64(3 * k + c)]
     holes = dis = 0
     sid = s2 >> 1
-    nx = x1 - x0
+    nx = max(x1 - x0, 0)  # (no point landed: an empty box)
     one = np.uint64(1)
     s, s1, bit = np.int32(s2), np.int32(s2 + 1), np.int32(1)  # int32, not numba's int64: twice the lanes a vector
     words = flags[:(nx + 7) // 8 * 8].view(np.uint64)
