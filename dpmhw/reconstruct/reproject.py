@@ -615,8 +615,9 @@ class Reprojector:
             raise ValueError(f"out: expected a writable C-contiguous ({H}, {W}, 3) uint8 array, got {got}")
         if np.may_share_memory(out, capture.image):
             raise ValueError("out: is the capture's own image (the capture must stay as it was rendered)")
+        windows, channels = self._windows(windows)
         with self._present_lock:
-            return self._reproject(capture, windows, out, (0, H, 0, W))[0]
+            return self._reproject(capture, windows, channels, out, (0, H, 0, W))[0]
 
     def present(self, capture: Capture, windows: Sequence[tuple[Sequence[Pose], int | None]]
                 ) -> tuple[np.ndarray, list[ReprojectStats]]:
@@ -631,9 +632,8 @@ class Reprojector:
         follows the lit pixels, not the frame); otherwise the whole frame."""
         W, H = self.width, self.height
         self._check(capture)
-        windows = list(windows)
-        channels = sorted(self._channel(c, k) for k, (_, c) in enumerate(windows))
-        if channels not in ([-1], [0, 1, 2]):
+        windows, channels = self._windows(windows)
+        if sorted(channels) not in ([-1], [0, 1, 2]):
             raise ValueError(f"windows: a present covers every channel: one window of all (None) or three of 0, 1 and 2, "
                              f"got channels {[None if c < 0 else c for c in channels]}")
         with self._present_lock:
@@ -643,7 +643,7 @@ class Reprojector:
                 frame = self._frames[self._turn] = _Frame(np.zeros((H, W, 3), np.uint8))
             same = capture.background is not None and frame.background is capture.background
             base_box = _union(frame.written, capture.box) if same else (0, H, 0, W)
-            stats, splats = self._reproject(capture, windows, frame.image, base_box)
+            stats, splats = self._reproject(capture, windows, channels, frame.image, base_box)
             frame.background, frame.written = capture.background, _union(capture.box, splats)
         return frame.image, stats
 
@@ -652,17 +652,23 @@ class Reprojector:
         if not isinstance(capture, Capture) or capture.image.shape != (H, W, 3) or len(capture.R) != len(self.dynamic):
             raise ValueError(f"capture: expected a Capture of this Reprojector ({W}×{H}), got {type(capture).__name__}")
 
-    def _reproject(self, capture: Capture, windows, out: np.ndarray, base_box: tuple[int, int, int, int]
-                   ) -> tuple[list[ReprojectStats], tuple[int, int, int, int]]:
-        """`reproject_windows` into `out`, which equals the capture outside `base_box`; holding
-        the present lock. Returns the stats and the bounding box of every window's splats."""
-        W, H = self.width, self.height
+    def _windows(self, windows) -> tuple[list, list[int]]:
+        """The windows as a list and their channels (−1: all), or a ValueError: one window of all
+        channels, or windows of distinct channels 0–2."""
         windows = list(windows)
-        nw, n_obj = len(windows), len(self.dynamic)
         channels = [self._channel(c, k) for k, (_, c) in enumerate(windows)]
-        if nw == 0 or (nw > 1 and (-1 in channels or len(set(channels)) < nw)):
+        if not windows or (len(windows) > 1 and (-1 in channels or len(set(channels)) < len(windows))):
             raise ValueError(f"windows: expected one window of all channels or windows of distinct channels 0–2, "
                              f"got channels {[None if c < 0 else c for c in channels]}")
+        return windows, channels
+
+    def _reproject(self, capture: Capture, windows: list, channels: list[int], out: np.ndarray,
+                   base_box: tuple[int, int, int, int]) -> tuple[list[ReprojectStats], tuple[int, int, int, int]]:
+        """`reproject_windows` of checked windows into `out`, which equals the capture outside
+        `base_box`; holding the present lock. Returns the stats and the bounding box of every
+        window's splats."""
+        W, H = self.width, self.height
+        nw, n_obj = len(windows), len(self.dynamic)
         n, seg = capture.lit, capture.segments
         px, py, pz = capture.point
         moving = np.flatnonzero(self.dynamic & (seg[1:] > seg[:-1]))  # the moving objects with points
