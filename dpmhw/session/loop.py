@@ -64,9 +64,9 @@ log = logging.getLogger(__name__)
 
 PRESENT_LEAD_MIN_NS = 3_000_000  # a present begins this long before its refresh at least
 PRESENT_LEAD_STEP_NS = 1_000_000  # added after a present that missed its refresh (on-time ones wear it down)
-PRESENT_LEAD_MARGIN_NS = 1_000_000  # over the quantile of the recent times to a frame ready
+PRESENT_LEAD_MARGIN_NS = 2_000_000  # over the quantile of the recent times to a frame ready
 PRESENT_HANDOFF_NS = 300_000  # a frame ready later than this before its refresh is made again for the next
-PRESENT_LEAD_QUANTILE = 98.0  # of the recent times from waking to a frame ready to hand over
+PRESENT_LEAD_QUANTILE = 99.5  # of the recent times from waking to a frame ready: all but the slowest one or two
 PRESENT_LEAD_HISTORY = 240  # presents the quantile is taken over (4 s at 60 Hz)
 SWITCH_INTERVAL_S = 0.001  # the interpreter's thread switch interval while a session runs (a pattern-mode session
 # on a 2-core Zen 1 missed 10-16 refreshes in 10 s at 0.2 ms against 1-2 at 1 ms; 3 ms was no better)
@@ -939,12 +939,14 @@ class SessionLoop:
         return image, windows, horizon_ns, time.thread_time_ns() - cpu0
 
     def _adapt_lead(self, ready_ns: int, late: bool) -> None:
-        """The lead: the 98th percentile of the time from the planned wake to a frame ready to hand
-        over (the last 240 presents; their median sets `_present_time_ns`), plus a margin, plus a penalty that a missed refresh
-        raises by a step and on-time presents wear down (a step in ~10 s); within
-        [PRESENT_LEAD_MIN_NS, ¾ of a period]. The lead is prediction horizon, but with motion
-        predicted to the photon a few milliseconds more of it cost far less registration than a
-        missed refresh (the display shows the last frame again, a period older than its poses)."""
+        """The lead: the 99.5th percentile of the time from the planned wake to a frame ready to
+        hand over (the last 240 presents: all but the slowest one or two; their median sets
+        `_present_time_ns`), plus a margin, plus a penalty that a missed refresh raises by a step
+        and on-time presents wear down (a step in ~10 s); within [PRESENT_LEAD_MIN_NS, ¾ of a
+        period]. The lead is prediction horizon, but with motion predicted to the photon a few
+        milliseconds more of it cost far less registration than a missed refresh (the display
+        shows the last frame again, a period older than its poses; in pattern mode that is three
+        sub-frames)."""
         if late:  # missed its refresh: shown a period late, at other poses than predicted
             self.metrics.count("late_presents")
             self._lead_penalty_ns += PRESENT_LEAD_STEP_NS

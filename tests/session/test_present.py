@@ -138,6 +138,21 @@ def test_a_present_ready_too_late_for_its_refresh_is_made_again_for_the_next():
         loop.stop()
 
 
+def test_the_lead_covers_all_but_the_slowest_one_or_two_recent_presents(make_loop):
+    """A few slow presents among the last 240 (a busy stretch of the machine) set the lead, so a
+    present as slow as they were still makes its refresh; one alone (a hiccup) does not lengthen
+    every prediction after it."""
+    from dpmhw.session.loop import PRESENT_HANDOFF_NS
+
+    ms = 1_000_000
+    busy, hiccup = make_loop(), make_loop()
+    for k in range(240):
+        busy._adapt_lead(7 * ms if k % 60 == 0 else 2 * ms, late=False)  # 4 of 240 slow
+        hiccup._adapt_lead(7 * ms if k == 100 else 2 * ms, late=False)  # 1 of 240 slow
+    assert busy._present_lead_ns - PRESENT_HANDOFF_NS >= 7 * ms, busy._present_lead_ns
+    assert hiccup._present_lead_ns < 7 * ms, hiccup._present_lead_ns
+
+
 def test_a_present_back_after_its_next_planned_wake_still_makes_the_next_refresh():
     """The present thread back from a present later than the next one's planned wake (its sink
     held it, here a few times), with more than the median time to a ready frame left before the
