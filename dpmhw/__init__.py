@@ -8,4 +8,9 @@ import os as _os
 # shared 2-core machine). Must be set before the OpenMP runtime loads.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+# numba's cache for these sources (dpmhw/kernel_cache.py): before any kernel is defined
+from dpmhw.kernel_cache import configure as _configure_kernel_cache  # noqa: E402
+
+_configure_kernel_cache()
+
 __version__ = "0.1.0"

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time as _time
 from pathlib import Path
 from typing import Callable
@@ -19,6 +18,7 @@ import numpy as np
 
 from dpmhw import __version__
 from dpmhw.cluster.ray_pool import render_passes
+from dpmhw.kernel_cache import cache_root
 from dpmhw.render.digest import renderer_digest
 from dpmhw.scene_file import Scene
 
@@ -49,7 +49,7 @@ def scene_digest(scene: Scene) -> str:
 
 
 def default_cache_dir() -> Path:
-    return Path(os.environ.get("DPMHW_CACHE", Path.home() / ".cache" / "dpmhw")) / "references"
+    return cache_root() / "references"
 
 
 class ReferenceCache:
