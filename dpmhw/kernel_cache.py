@@ -20,7 +20,7 @@ from typing import MutableMapping
 
 __all__ = ["KEEP", "cache_root", "configure", "sources_digest"]
 
-KEEP = 3  # source versions whose kernels stay on disk (each some 20 MB)
+KEEP = 3  # source versions whose kernels stay on disk (a session's kernels take about 6 MB)
 PACKAGE = Path(__file__).resolve().parent
 
 
