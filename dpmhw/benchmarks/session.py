@@ -15,6 +15,7 @@ same session under the same machine conditions. The p99 ratio comes with a 90 % 
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import os
 import queue
@@ -197,6 +198,8 @@ STAGE_KEYS = ("gbuffer", "render", "reuse", "filter", "upsample", "adaptive", "l
 
 
 MEASURED_POSE_EVERY = 4  # the measured-pose comparison on every 4th evaluated window (a reference, not the goal)
+EXPOSURES_PER_S_MAX = 3 * 240  # lit (sub-)frames a second at most: three sub-frames at the highest refresh
+EXPOSURE_ROWS_MAX = 1_000_000  # the emulated projector's log at most (`mock.exposure_rows`)
 
 
 def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 0, height: int = 0,
@@ -217,10 +220,11 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     from dpmhw.session.factory import build_session, prepare_scene
     from dpmhw.session.registration import registration_error
 
+    rows = min(EXPOSURE_ROWS_MAX, 4096 + math.ceil((warmup_s + seconds) * EXPOSURES_PER_S_MAX))  # the whole measurement
     cfg = load_session_config(overrides=[
         f"mock.trajectory={case.trajectory}", f"prediction.enabled={str(case.prediction).lower()}",
         f"prediction.late_reprojection={str(case.reprojection).lower()}", f"render.width={width}", f"render.height={height}", f"render.spp={spp}",
-        "api.enabled=false", *overrides])
+        "api.enabled=false", f"mock.exposure_rows={rows}", *overrides])
     loop = build_session(cfg, mock=True, frame_log=100_000)
     try:
         loop.start()
@@ -301,13 +305,16 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
 
 
 def _light_counts(exposures, records) -> dict:
-    """From the emulated projector, over the measured presents' span: (sub-)frames lit per
-    second with a new picture (`new_windows_per_s`: 180 in pattern mode at 60 Hz when every
-    present makes its refresh) and those lit again for want of one (`repeated_windows`: each
-    shows its picture a period after the instant it was predicted for). None without it."""
+    """From the emulated projector, over the measured presents' span (the part of it its log
+    still holds): (sub-)frames lit per second with a new picture (`new_windows_per_s`: 180 in
+    pattern mode at 60 Hz when every present makes its refresh) and those lit again for want of
+    one (`repeated_windows`: each shows its picture a period after the instant it was predicted
+    for). None without it."""
     if exposures is None:
         return {"new_windows_per_s": None, "repeated_windows": None}
     t0, t1 = records[0].t_present_ns, records[-1].t_present_ns
+    if exposures:
+        t0 = max(t0, exposures[0].scanout_ns)  # the log keeps the newest rows only
     inside = [e for e in exposures if t0 <= e.scanout_ns < t1]
     fresh = sum(not e.repeat for e in inside)
     return {"new_windows_per_s": round(fresh / ((t1 - t0) / 1e9), 2) if t1 > t0 else 0.0,

@@ -332,6 +332,9 @@ class MockSection(_Section):
     speed: float = Field(1.0, gt=0.0, le=100.0, description="scales every velocity of the trajectory")
     marker_noise_mm: float = Field(0.0, ge=0.0, le=10.0, description="Gaussian noise (standard deviation) on each "
                                    "marker of the NatNet mock; the pose it streams is then fitted to the noisy markers")
+    exposure_rows: int = Field(4096, ge=1, le=1_000_000, description="(sub-)frames of light the emulated projector "
+                               "keeps in its log, the newest (4096: 22 s of pattern-8bit at 60 Hz); `dpmhw bench session` "
+                               "sizes it to its measurement")
 
 
 class SessionConfig(_Section):

@@ -246,7 +246,7 @@ def start_mock_rig(config: SessionConfig, scene: Scene, bindings: dict[int, int]
             # the cable into the emulated projector, in before the driver opens it (video pattern
             # mode needs its sync); the loop closes it as its sink, the stack again on error
             video = VideoLink(device.model, timing=config.display_timing(),
-                              shape=(scene.render.height, scene.render.width))
+                              shape=(scene.render.height, scene.render.width), max_rows=config.mock.exposure_rows)
             stack.callback(video.close)
         else:
             device = stack.enter_context(socket_usb(*usb))

@@ -191,6 +191,34 @@ def test_bench_session_command(runner, tmp_path):
     assert "API in its own process: 2 clients" in r.output and "API in its thread of the session process" in r.output
 
 
+def test_the_bench_counts_lit_sub_frames_over_the_span_the_projectors_log_holds():
+    """A measurement longer than the emulated projector's log (the newest rows only) gives the
+    rate of new sub-frames over the part it holds, not the whole span's count spread thin."""
+    from types import SimpleNamespace as NS
+
+    from dpmhw.benchmarks.session import _light_counts
+
+    s = 1_000_000_000
+    records = [NS(t_present_ns=k * s // 60) for k in range(60 * 10 + 1)]  # 10 s of presents
+    held = [NS(scanout_ns=5 * s + (k // 3) * s // 60, repeat=(k // 3) % 60 == 0) for k in range(180 * 5)]  # its last 5 s
+    counts = _light_counts(held, records)
+    assert counts["repeated_windows"] == 15  # one refresh of three in every second held
+    assert counts["new_windows_per_s"] == pytest.approx(180 * 59 / 60, rel=0.01)
+
+
+def test_the_emulated_projectors_log_is_as_long_as_the_config_says():
+    from dpmhw.session.config import load_session_config
+    from dpmhw.session.factory import build_session
+
+    cfg = load_session_config(overrides=["render.width=64", "render.height=48", "api.enabled=false",
+                                         "display.mode=pattern-8bit", "mock.exposure_rows=100"])
+    loop = build_session(cfg, mock=True)
+    try:
+        assert loop.parts.mock.video.exposures.maxlen == 100
+    finally:
+        loop.stop()
+
+
 def test_bench_session_mitsuba_yardstick_is_skipped_with_a_note(monkeypatch):
     from dpmhw.benchmarks import mitsuba as mb
     from dpmhw.benchmarks.session import mitsuba_yardstick
