@@ -29,7 +29,7 @@ import numpy as np
 from dpmhw.benchmarks.load_process import LoadProcess, run_threads
 from dpmhw.benchmarks.session_plots import bench_series
 from dpmhw.machine import cpu_steal, cpu_ticks, steal_percent
-from dpmhw.session.config import load_session_config
+from dpmhw.session.config import MOCK_EXPOSURE_ROWS_MAX, load_session_config
 from dpmhw.session.testing import wait_for
 from dpmhw.transforms import Pose
 
@@ -199,7 +199,6 @@ STAGE_KEYS = ("gbuffer", "render", "reuse", "filter", "upsample", "adaptive", "l
 
 MEASURED_POSE_EVERY = 4  # the measured-pose comparison on every 4th evaluated window (a reference, not the goal)
 EXPOSURES_PER_S_MAX = 3 * 240  # lit (sub-)frames a second at most: three sub-frames at the highest refresh
-EXPOSURE_ROWS_MAX = 1_000_000  # the emulated projector's log at most (`mock.exposure_rows`)
 
 
 def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 0, height: int = 0,
@@ -220,7 +219,7 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     from dpmhw.session.factory import build_session, prepare_scene
     from dpmhw.session.registration import registration_error
 
-    rows = min(EXPOSURE_ROWS_MAX, 4096 + math.ceil((warmup_s + seconds) * EXPOSURES_PER_S_MAX))  # the whole measurement
+    rows = min(MOCK_EXPOSURE_ROWS_MAX, 4096 + math.ceil((warmup_s + seconds) * EXPOSURES_PER_S_MAX))  # the whole measurement
     cfg = load_session_config(overrides=[
         f"mock.trajectory={case.trajectory}", f"prediction.enabled={str(case.prediction).lower()}",
         f"prediction.late_reprojection={str(case.reprojection).lower()}", f"render.width={width}", f"render.height={height}", f"render.spp={spp}",

@@ -56,6 +56,7 @@ MAX_STATIONS = 16  # a Polhemus tracker numbers its stations 1…16 (docs/protoc
 WORKSPACE_LIMIT_M = 1e4  # no capture volume reaches 10 km from its origin
 NS_PER_RAY = 250  # wall time per native ray on the bunny's 69k triangles, 2 render threads (docs/lod.md)
 METRICS_WINDOW_COSTLY = 16384  # frames: a status update's percentiles over more take milliseconds of the loop
+MOCK_EXPOSURE_ROWS_MAX = 1_000_000  # the emulated projector's log of lit (sub-)frames at most (about 320 bytes a row)
 
 
 class SessionConfigError(DpmhwError, ValueError):
@@ -332,7 +333,7 @@ class MockSection(_Section):
     speed: float = Field(1.0, gt=0.0, le=100.0, description="scales every velocity of the trajectory")
     marker_noise_mm: float = Field(0.0, ge=0.0, le=10.0, description="Gaussian noise (standard deviation) on each "
                                    "marker of the NatNet mock; the pose it streams is then fitted to the noisy markers")
-    exposure_rows: int = Field(4096, ge=1, le=1_000_000, description="(sub-)frames of light the emulated projector "
+    exposure_rows: int = Field(4096, ge=1, le=MOCK_EXPOSURE_ROWS_MAX, description="(sub-)frames of light the emulated projector "
                                "keeps in its log, the newest (4096: 22 s of pattern-8bit at 60 Hz); `dpmhw bench session` "
                                "sizes it to its measurement")
 
