@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 from dpmhw.kernel_cache import KEEP, configure, sources_digest
@@ -55,6 +56,14 @@ def test_a_cache_dir_set_by_the_user_is_left_alone(tmp_path):
     env = {"NUMBA_CACHE_DIR": str(tmp_path / "mine"), "DPMHW_CACHE": str(tmp_path / "cache")}
     assert configure(env, pkg) == str(tmp_path / "mine")
     assert env["NUMBA_CACHE_DIR"] == str(tmp_path / "mine") and not (tmp_path / "cache").exists()
+
+
+def test_an_unwritable_cache_root_falls_back_to_this_versions_temporary_dir(tmp_path, monkeypatch):
+    pkg = _package(tmp_path)
+    (tmp_path / "a-file").write_text("")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    env = {"DPMHW_CACHE": str(tmp_path / "a-file")}  # a file: no directory can be made under it
+    assert configure(env, pkg) == str(tmp_path / "tmp" / f"dpmhw-kernels-{sources_digest(pkg)[:16]}")
 
 
 def test_importing_dpmhw_points_numba_at_this_source_versions_cache(tmp_path):
