@@ -5,8 +5,9 @@ machine code of the helpers it calls from other modules (inlined). After an upgr
 a helper and not its caller, numba would load the caller with the old helper in it. So unless
 `NUMBA_CACHE_DIR` is set (then whoever set it owns that cache), the cache is
 `$DPMHW_CACHE/kernels/<digest of every .py file of the package>` (`$DPMHW_CACHE` defaults to
-~/.cache/dpmhw; where that cannot be made, `<temporary directory>/dpmhw-kernels-<digest>`): any change to the sources compiles afresh, and reinstalling the same sources
-finds their kernels again. The `KEEP` most recently used versions are kept.
+~/.cache/dpmhw; where that cannot be made, `dpmhw-kernels-<digest>` in the temporary directory):
+any change to the sources compiles afresh, and reinstalling the same sources finds their
+kernels again. The `KEEP` most recently used versions are kept.
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ def configure(environ: MutableMapping[str, str] = os.environ, package: Path = PA
         os.utime(here)  # most recently used
         for old in sorted((p for p in versions.iterdir() if p.is_dir()), key=lambda p: p.stat().st_mtime)[:-KEEP]:
             shutil.rmtree(old, ignore_errors=True)
-    except OSError:  # not writable: this version's own place in the temporary directory, never numba's per-file one
+    except OSError:  # not writable: this version's place in the temporary directory (never numba's per-file one)
         here = Path(tempfile.gettempdir()) / f"dpmhw-kernels-{digest}"
     environ["NUMBA_CACHE_DIR"] = str(here)
     if environ is os.environ and "numba.core.config" in sys.modules:  # numba read its settings already
