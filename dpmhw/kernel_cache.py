@@ -12,7 +12,6 @@ kernels again. The `KEEP` most recently used versions are kept.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import shutil
 import sys
@@ -20,7 +19,9 @@ import tempfile
 from pathlib import Path
 from typing import MutableMapping
 
-__all__ = ["KEEP", "cache_root", "configure", "sources_digest"]
+from dpmhw.source_digest import source_digest
+
+__all__ = ["KEEP", "cache_root", "configure"]
 
 KEEP = 3  # source versions whose kernels stay on disk (a session's kernels take about 6 MB)
 PACKAGE = Path(__file__).resolve().parent
@@ -31,15 +32,6 @@ def cache_root(environ: MutableMapping[str, str] = os.environ) -> Path:
     return Path(environ.get("DPMHW_CACHE") or Path.home() / ".cache" / "dpmhw")
 
 
-def sources_digest(package: Path = PACKAGE) -> str:
-    """SHA-256 over the relative path and bytes of every .py file under `package`."""
-    h = hashlib.sha256()
-    for path in sorted(package.rglob("*.py")):
-        h.update(path.relative_to(package).as_posix().encode() + b"\0")
-        h.update(path.read_bytes() + b"\0")
-    return h.hexdigest()
-
-
 def configure(environ: MutableMapping[str, str] = os.environ, package: Path = PACKAGE) -> str:
     """Point numba at this source version's cache unless `NUMBA_CACHE_DIR` is set; returns the
     directory. Called when dpmhw is imported, before any kernel is defined; child processes
@@ -47,7 +39,7 @@ def configure(environ: MutableMapping[str, str] = os.environ, package: Path = PA
     if environ.get("NUMBA_CACHE_DIR"):
         return environ["NUMBA_CACHE_DIR"]
     versions = cache_root(environ) / "kernels"
-    digest = sources_digest(package)[:16]
+    digest = source_digest(package)[:16]
     here = versions / digest
     try:
         here.mkdir(parents=True, exist_ok=True)

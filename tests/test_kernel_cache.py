@@ -9,7 +9,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from dpmhw.kernel_cache import KEEP, configure, sources_digest
+from dpmhw.kernel_cache import KEEP, configure
+from dpmhw.source_digest import source_digest
 
 
 def _package(root: Path) -> Path:
@@ -23,15 +24,15 @@ def _package(root: Path) -> Path:
 
 def test_the_digest_follows_every_source_file_and_nothing_else(tmp_path):
     pkg = _package(tmp_path)
-    first = sources_digest(pkg)
-    assert sources_digest(pkg) == first
+    first = source_digest(pkg)
+    assert source_digest(pkg) == first
     (pkg / "notes.txt").write_text("changed, but not a source")
-    assert sources_digest(pkg) == first
+    assert source_digest(pkg) == first
     (pkg / "sub" / "helpers.py").write_text("def helper():\n    return 2\n")  # a helper, not its caller
-    changed = sources_digest(pkg)
+    changed = source_digest(pkg)
     assert changed != first
     (pkg / "sub" / "helpers.py").rename(pkg / "sub" / "other.py")  # same bytes in the same order, another module
-    assert sources_digest(pkg) not in (first, changed)
+    assert source_digest(pkg) not in (first, changed)
 
 
 def test_a_changed_helper_gets_a_cache_of_its_own_and_old_versions_are_pruned(tmp_path):
@@ -63,13 +64,13 @@ def test_an_unwritable_cache_root_falls_back_to_this_versions_temporary_dir(tmp_
     (tmp_path / "a-file").write_text("")
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
     env = {"DPMHW_CACHE": str(tmp_path / "a-file")}  # a file: no directory can be made under it
-    assert configure(env, pkg) == str(tmp_path / "tmp" / f"dpmhw-kernels-{sources_digest(pkg)[:16]}")
+    assert configure(env, pkg) == str(tmp_path / "tmp" / f"dpmhw-kernels-{source_digest(pkg)[:16]}")
 
 
 def test_importing_dpmhw_points_numba_at_this_source_versions_cache(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     env["DPMHW_CACHE"] = str(tmp_path)
-    code = ("import dpmhw, numba.core.config as c; from dpmhw.kernel_cache import sources_digest; "
-            "print(c.CACHE_DIR); print(sources_digest()[:16])")
+    code = ("import dpmhw, numba.core.config as c; from dpmhw.source_digest import source_digest; "
+            "from dpmhw.kernel_cache import PACKAGE; print(c.CACHE_DIR); print(source_digest(PACKAGE)[:16])")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout.split()
     assert out[0] == str(tmp_path / "kernels" / out[1])

@@ -29,7 +29,7 @@ import numpy as np
 from dpmhw.benchmarks.load_process import LoadProcess, run_threads
 from dpmhw.benchmarks.session_plots import bench_series
 from dpmhw.machine import cpu_steal, cpu_ticks, steal_percent
-from dpmhw.session.config import MOCK_EXPOSURE_ROWS_MAX, load_session_config
+from dpmhw.session.config import MOCK_EXPOSURE_ROWS_MAX, REFRESH_HZ_MAX, load_session_config
 from dpmhw.session.testing import wait_for
 from dpmhw.transforms import Pose
 
@@ -198,7 +198,7 @@ STAGE_KEYS = ("gbuffer", "render", "reuse", "filter", "upsample", "adaptive", "l
 
 
 MEASURED_POSE_EVERY = 4  # the measured-pose comparison on every 4th evaluated window (a reference, not the goal)
-EXPOSURES_PER_S_MAX = 3 * 240  # lit (sub-)frames a second at most: three sub-frames at the highest refresh
+EXPOSURES_PER_S_MAX = 3 * int(REFRESH_HZ_MAX)  # lit (sub-)frames a second at most: 3 sub-frames a refresh
 
 
 def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 0, height: int = 0,

@@ -56,6 +56,7 @@ MAX_STATIONS = 16  # a Polhemus tracker numbers its stations 1…16 (docs/protoc
 WORKSPACE_LIMIT_M = 1e4  # no capture volume reaches 10 km from its origin
 NS_PER_RAY = 250  # wall time per native ray on the bunny's 69k triangles, 2 render threads (docs/lod.md)
 METRICS_WINDOW_COSTLY = 16384  # frames: a status update's percentiles over more take milliseconds of the loop
+REFRESH_HZ_MAX = 240.0  # the fastest video link a display section may name
 MOCK_EXPOSURE_ROWS_MAX = 1_000_000  # the emulated projector's log of lit (sub-)frames at most (about 320 bytes a row)
 
 
@@ -253,7 +254,7 @@ class DisplaySection(_Section):
     mode: Literal[DISPLAY_MODES] = Field("video", description="video: the DLPC900 shows each 24-bit frame for one "
                                          "refresh; pattern-8bit: video-pattern mode, the frame's R, G and B bit planes "
                                          "as three 8-bit sub-frames (180 Hz at 60 Hz), each lit by its own LED")
-    refresh_hz: float = Field(60.0, ge=1.0, le=240.0, description="the video link's refresh rate")
+    refresh_hz: float = Field(60.0, ge=1.0, le=REFRESH_HZ_MAX, description="the video link's refresh rate")
     controller_delay_ms: float | None = Field(None, ge=0.0, le=1000.0, description="scan-out start to first photon; "
                                               "unset: one refresh period (an assumption: the programmer's guide gives "
                                               "no figure; the controller buffers a whole frame before showing it)")
