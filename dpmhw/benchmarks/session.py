@@ -15,6 +15,7 @@ same session under the same machine conditions. The p99 ratio comes with a 90 % 
 
 from __future__ import annotations
 
+import hashlib
 import math
 import multiprocessing
 import os
@@ -201,8 +202,26 @@ MEASURED_POSE_EVERY = 4  # the measured-pose comparison on every 4th evaluated w
 EXPOSURES_PER_S_MAX = 3 * int(REFRESH_HZ_MAX)  # lit (sub-)frames a second at most: 3 sub-frames a refresh
 
 
+def _slowed_presents(reprojector, factor: float) -> None:
+    """Each `present` of this reprojector spends `factor` times its own CPU time, the extra in
+    work that releases the GIL as its kernel does: the present of a CPU `factor` times slower
+    (only the present's: the renders run at this machine's speed)."""
+    present, block = reprojector.present, bytes(32768)
+
+    def slowed(*args, **kw):
+        cpu0 = time.thread_time_ns()
+        made = present(*args, **kw)
+        end = time.thread_time_ns() + int((time.thread_time_ns() - cpu0) * (factor - 1.0))
+        while time.thread_time_ns() < end:
+            hashlib.sha256(block)  # ~20 µs each, without the GIL (hashlib releases it over large buffers)
+        return made
+
+    reprojector.present = slowed
+
+
 def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 0, height: int = 0,
-             spp: int = 1, max_eval_windows: int = 1000, overrides: tuple[str, ...] = (), progress=None) -> dict:
+             spp: int = 1, max_eval_windows: int = 1000, overrides: tuple[str, ...] = (), present_cpu_factor: float = 1.0,
+             progress=None) -> dict:
     """Run one mocked session and measure it (see module doc). width/height: the output size
     (0: the projector's native size); the shading scale and filter come from `overrides`.
 
@@ -213,8 +232,10 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     every photon window (up to `max_eval_windows`, else evenly spaced ones; the measured-pose variant on every
     `MEASURED_POSE_EVERY`th of them) (and _max_, measured-pose and vertex variants; registration_px_p99_window<k>
     per sub-frame in pattern mode), <stage>_ms_p50 for every
-    loop stage, late_presents (while measured), new_windows_per_s and repeated_windows (the emulated
-    projector's), frame counts. `progress(text)` hears how the analysis goes."""
+    loop stage, late_presents and shared_pose_presents (while measured), new_windows_per_s and repeated_windows (the emulated
+    projector's), frame counts, present_cpu_factor. `present_cpu_factor` > 1: every present
+    spends that many times its CPU time, as on a slower CPU (`_slowed_presents`).
+    `progress(text)` hears how the analysis goes."""
     from dpmhw.render.cameras import PinholeCamera
     from dpmhw.session.factory import build_session, prepare_scene
     from dpmhw.session.registration import registration_error
@@ -225,13 +246,15 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         f"prediction.late_reprojection={str(case.reprojection).lower()}", f"render.width={width}", f"render.height={height}", f"render.spp={spp}",
         "api.enabled=false", f"mock.exposure_rows={rows}", *overrides])
     loop = build_session(cfg, mock=True, frame_log=100_000)
+    if present_cpu_factor != 1.0 and loop.reprojector is not None:
+        _slowed_presents(loop.reprojector, present_cpu_factor)
     try:
         loop.start()
         if not wait_for(lambda: loop.status()["state"] == "running", 60):
             raise RuntimeError(f"bench {case.label}: the session did not start: {loop.status()['reason']}")
         time.sleep(warmup_s)
         before = loop.status()
-        first, late_before, cpu0 = before["frame_number"], before["counters"].get("late_presents", 0), time.process_time()
+        first, cpu0 = before["frame_number"], time.process_time()
         ticks0 = cpu_ticks()
         time.sleep(seconds)
         status, cpu_s, steal = loop.status(), time.process_time() - cpu0, cpu_steal(ticks0, cpu_ticks())
@@ -267,7 +290,7 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     span_s = (records[-1].t_present_ns - records[0].t_present_ns) / 1e9
     intervals_s = np.diff([r.t_present_ns for r in records]) / 1e9
     out = {
-        "case": case.label, "scene": cfg.scene.source, "method": _method(cfg), "trajectory": case.trajectory,
+        "case": case.label, "present_cpu_factor": present_cpu_factor, "scene": cfg.scene.source, "method": _method(cfg), "trajectory": case.trajectory,
         "prediction": case.prediction, "shading_scale": cfg.render.shading_scale, "filter": cfg.render.filter,
         "alpha": cfg.reuse.alpha, "reuse_mode": cfg.reuse.mode, "spp": spp, "reprojection": case.reprojection,
         "display": getattr(getattr(cfg, "display", None), "mode", "video"), "photon_windows": len(records[0].windows),
@@ -278,7 +301,8 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         "render_fps": round((len(rendered) - 1) / span_s, 2) if span_s > 0 else 0.0,
         # the session process's CPU (frame, present, tracker and mock threads) per rendered frame
         "cpu_ms_per_rendered_frame": round(cpu_s * 1e3 / max(1, status["frames_rendered"] - before["frames_rendered"]), 3),
-        "late_presents": status["counters"].get("late_presents", 0) - late_before,  # while measured
+        # while measured: presents that missed their refresh, and pattern presents whose sub-frames shared a pose
+        **{k: status["counters"].get(k, 0) - before["counters"].get(k, 0) for k in ("late_presents", "shared_pose_presents")},
         "cpu_steal": steal,  # of the machine's CPU time while measured, the host gave to other guests (None: no /proc/stat)
         **_light_counts(video, records),
         # the quality governor's levels over the measured frames (0: the configured settings) and its last reason

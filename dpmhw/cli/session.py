@@ -174,6 +174,7 @@ def bench_session(
     mitsuba: Annotated[bool, typer.Option("--mitsuba/--no-mitsuba", help="Time Mitsuba 3's 1-spp frame of the same scene after the cases and give each case's CPU-ms per rendered frame as a ratio to it (skipped, with a note, without the mitsuba extra).")] = True,
     trajectory: Annotated[Optional[list[BenchTrajectory]], typer.Option(help="Repeatable; default: linear and rotate-oscillate.")] = None,
     display: Annotated[DisplayModeChoice, typer.Option(help="The projector's display mode: video (one 24-bit frame per refresh) or pattern-8bit (three 8-bit sub-frames per refresh, one per colour channel).")] = DisplayModeChoice("video"),
+    present_cpu_factor: Annotated[float, typer.Option(min=1.0, max=20.0, help="Every present spends this many times its CPU time in the reprojection (the extra without the GIL, as its kernel): how the present path holds on a CPU this much slower. The renders keep this machine's speed.")] = 1.0,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
     plot: Annotated[Path, typer.Option(help="Plot of registration error and latency over time and the frame-time histogram (PNG).")] = Path("bench-session/bench-session.png"),
     sets: SetOpt = None,
@@ -203,6 +204,7 @@ def bench_session(
                             api_windows=api_windows, api_window_s=api_window_s, api_client_priority=client_priority.value,
                             cases=not api_only, mitsuba=mitsuba, seconds=seconds,
                             width=width, height=height, spp=spp, overrides=(f"display.mode={display.value}", *(sets or ())),
+                            present_cpu_factor=present_cpu_factor,
                             progress=on_step, note=on_note)
         task.update(steps, description="bench session")
     series = {c["case"]: c.pop("series") for c in results["cases"] if "series" in c}

@@ -258,6 +258,11 @@ class DisplaySection(_Section):
     controller_delay_ms: float | None = Field(None, ge=0.0, le=1000.0, description="scan-out start to first photon; "
                                               "unset: one refresh period (an assumption: the programmer's guide gives "
                                               "no figure; the controller buffers a whole frame before showing it)")
+    shared_pose: Literal["auto", "never"] = Field("auto", description="pattern-8bit, auto: while presents at each "
+                                                  "sub-frame's own pose would need more than ¾ of a period, the three "
+                                                  "sub-frames share the middle one's pose (one splat, not three; the "
+                                                  "outer ones then lag a third of a period's motion); never: always own "
+                                                  "poses, and a present that is not ready misses its refresh")
 
     def timing(self) -> DisplayTiming:
         # DLPU018 states no frame latency for video or video-pattern mode. The controller stores an

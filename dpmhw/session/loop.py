@@ -50,8 +50,9 @@ from dpmhw.scene_file import Scene
 from dpmhw.session.config import LiveSettings, SessionConfig
 from dpmhw.session.governor import Governor
 from dpmhw.session.heartbeat import Heartbeat
-from dpmhw.session.metrics import LoopMetrics, SortedWindow
+from dpmhw.session.metrics import LoopMetrics
 from dpmhw.session.prediction import PosePredictor
+from dpmhw.session.present_lead import HANDOFF_NS, PresentLead
 from dpmhw.session.safety import SafetyMonitor, SessionState
 from dpmhw.stage_runner import Fault, Stage, StageFailed, run_timed
 from dpmhw.thread_priority import PRESENT, raise_thread_priority
@@ -62,12 +63,6 @@ __all__ = ["FrameRecord", "LatestFrame", "ProjectorControl", "Renderer", "Sessio
 
 log = logging.getLogger(__name__)
 
-PRESENT_LEAD_MIN_NS = 3_000_000  # a present begins this long before its refresh at least
-PRESENT_LEAD_STEP_NS = 1_000_000  # added after a present that missed its refresh (on-time ones wear it down)
-PRESENT_LEAD_MARGIN_NS = 2_000_000  # over the quantile of the recent times to a frame ready
-PRESENT_HANDOFF_NS = 300_000  # a frame ready later than this before its refresh is made again for the next
-PRESENT_LEAD_QUANTILE = 99.5  # of the recent times from waking to a frame ready: all but the slowest one or two
-PRESENT_LEAD_HISTORY = 240  # presents the quantile is taken over (4 s at 60 Hz)
 SWITCH_INTERVAL_S = 0.001  # the interpreter's thread switch interval while a session runs (a pattern-mode session
 # on a 2-core Zen 1 missed 10-16 refreshes in 10 s at 0.2 ms against 1-2 at 1 ms; 3 ms was no better)
 FREEZE_AFTER_FRAMES = 30  # frames presented before what they made is frozen too (gc.freeze; see _freeze_long_lived)
@@ -296,10 +291,8 @@ class SessionLoop:
         self._capture: _Capture | None = None  # the newest rendered frame, for the present thread
         self._predict_lock = threading.Lock()  # the predictor is fed and read by both threads
         self._first_valid: dict[int, int] = {}  # body -> arrival of its first fresh sample since the frame thread last looked
-        self._present_lead_ns = PRESENT_LEAD_MIN_NS  # how long before a refresh its present begins
-        self._lead_penalty_ns = 0  # what missed refreshes added to it (see _adapt_lead)
-        self._ready_ns = SortedWindow(PRESENT_LEAD_HISTORY)  # wake → frame ready to hand over
-        self._present_time_ns = PRESENT_LEAD_MIN_NS  # the median of those, plus the hand-over: the least time a present is tried in
+        # when each present begins, and whether a pattern present's sub-frames share one pose
+        self.lead = PresentLead(self.timing.period_ns, len(self.timing.windows) > 1 and config.display.shared_pose == "auto")
         self._present_number = 0
         self._present_heartbeat_ns = clock()
         self._present_priority = "not started"
@@ -617,7 +610,7 @@ class SessionLoop:
     def _photon_target(self, t_ready: int) -> int:
         """The photon time of the first refresh a frame ready at `t_ready` can reach: the middle of
         its photon windows (the late reprojection then moves it to each window's own instant)."""
-        vsync = self.timing.next_vsync(t_ready + self._present_lead_ns, self._vsync_phase)
+        vsync = self.timing.next_vsync(t_ready + self.lead.lead_ns, self._vsync_phase)
         mids = self.timing.photon_mid_ns(vsync)
         return mids[len(mids) // 2]
 
@@ -810,7 +803,7 @@ class SessionLoop:
         return _Capture(self._frame_number + 1, job, image, reprojection)
 
     def _present_loop(self) -> None:
-        """Wake `_present_lead_ns` before each refresh and present the newest capture, moved to
+        """Wake `lead.lead_ns` before each refresh and present the newest capture, moved to
         each photon window's predicted poses. A present that misses its refresh widens the lead.
         Woken (or back from the last present) after the planned wake, the thread still presents
         for the refresh after the last one while the median time to a ready frame fits before it:
@@ -820,12 +813,12 @@ class SessionLoop:
         last = None
         while not self._stop.is_set():
             now = self.clock()
-            vsync = self.timing.next_vsync(now + self._present_lead_ns, self._vsync_phase)
+            vsync = self.timing.next_vsync(now + self.lead.lead_ns, self._vsync_phase)
             if last is not None:  # never the last refresh again; woke or returned late, the one after it while a present fits
                 following = last + period
-                if vsync <= last or (vsync > following and following - now >= self._present_time_ns):
+                if vsync <= last or (vsync > following and following - now >= self.lead.time_ns):
                     vsync = following
-            wake = vsync - self._present_lead_ns
+            wake = vsync - self.lead.lead_ns
             if wake > now and self._wait((wake - now) / 1e9):
                 break
             self._present_heartbeat_ns = self.clock()
@@ -848,7 +841,7 @@ class SessionLoop:
         if cap is None or not self._output_on:
             return None
         t0 = self.clock()
-        planned_wake = vsync - self._present_lead_ns
+        planned_wake = vsync - self.lead.lead_ns
         samples = {}
         for body in self._bodies:
             s = self.parts.tracker.latest(body)
@@ -863,7 +856,7 @@ class SessionLoop:
             if made is None:
                 return None
             ready = self.clock()
-            missed = ready > vsync - PRESENT_HANDOFF_NS
+            missed = ready > vsync - HANDOFF_NS
             if missed:
                 self.metrics.count("retargeted_presents")
                 vsync += self.timing.period_ns
@@ -873,6 +866,8 @@ class SessionLoop:
                     return None
             image, windows, horizon_ns, cpu = made
             cpu_ns += cpu
+            if self.lead.shared:
+                self.metrics.count("shared_pose_presents")
         else:  # as rendered: every window shows the poses the frame was predicted to
             image, horizon_ns = cap.image, cap.job.horizon_ns
             windows = [(t, cap.job.used) for t in self.timing.photon_mid_ns(vsync)]
@@ -919,10 +914,12 @@ class SessionLoop:
         """The capture moved to the poses predicted for each photon window of `vsync`: (image,
         [(photon mid, {body: pose shown})], horizon used, the reprojection's thread CPU ns), or None
         before any sample."""
-        mids = self.timing.photon_mid_ns(vsync)
+        mids = at = self.timing.photon_mid_ns(vsync)
+        if self.lead.shared:  # every sub-frame at the middle one's pose: one projection and splat (PresentLead)
+            at = [mids[len(mids) // 2]] * len(mids)
         with self._predict_lock:
             self._drain_samples()
-            per_body = {body: self.predictor.predict_many(body, mids, enabled=settings.prediction)
+            per_body = {body: self.predictor.predict_many(body, at, enabled=settings.prediction)
                         for body in self._bodies}
         if any(p is None for p in per_body.values()):
             return None
@@ -939,24 +936,12 @@ class SessionLoop:
         return image, windows, horizon_ns, time.thread_time_ns() - cpu0
 
     def _adapt_lead(self, ready_ns: int, late: bool) -> None:
-        """The lead: the 99.5th percentile of the time from the planned wake to a frame ready to
-        hand over (the last 240 presents: all but the slowest one or two; their median sets
-        `_present_time_ns`), plus a margin, plus a penalty that a missed refresh raises by a step
-        and on-time presents wear down (a step in ~10 s); within [PRESENT_LEAD_MIN_NS, ¾ of a
-        period]. The lead is prediction horizon, but with motion predicted to the photon a few
-        milliseconds more of it cost far less registration than a missed refresh (the display
-        shows the last frame again, a period older than its poses; in pattern mode that is three
-        sub-frames)."""
+        """The present's time from its planned wake to a frame ready, to the lead (`PresentLead`)."""
         if late:  # missed its refresh: shown a period late, at other poses than predicted
             self.metrics.count("late_presents")
-            self._lead_penalty_ns += PRESENT_LEAD_STEP_NS
-        else:
-            self._lead_penalty_ns = max(0, self._lead_penalty_ns - PRESENT_LEAD_STEP_NS // 600)
-        self._ready_ns.add(max(ready_ns, 0))
-        median, ready = int(self._ready_ns.quantile(50)), int(self._ready_ns.quantile(PRESENT_LEAD_QUANTILE))
-        self._present_time_ns = median + PRESENT_HANDOFF_NS
-        lead = ready + PRESENT_LEAD_MARGIN_NS + self._lead_penalty_ns
-        self._present_lead_ns = min(max(lead, PRESENT_LEAD_MIN_NS), self.timing.period_ns * 3 // 4)
+        change = self.lead.add(ready_ns, late)
+        if change is not None:
+            log.warning(change)
 
     @staticmethod
     def _freeze_long_lived() -> None:
@@ -1154,7 +1139,8 @@ class SessionLoop:
             "display": {"mode": self.timing.mode, "refresh_hz": self.timing.refresh_hz,
                         "controller_delay_ms": round(self.timing.controller_delay_ns / 1e6, 3),
                         "late_reprojection": self.reprojector is not None,
-                        "present_lead_ms": round(self._present_lead_ns / 1e6, 3),
+                        "present_lead_ms": round(self.lead.lead_ns / 1e6, 3),
+                        "sub_frame_poses": "shared" if self.lead.shared else "own",
                         "present_priority": self._present_priority},
             "render_size": [self.parts.renderer.width, self.parts.renderer.height],  # the shading resolution
             "output_size": list(self.output_size),

@@ -242,3 +242,24 @@ def test_the_tracker_hint_is_a_command_the_cli_accepts(runner):
         assert got == address and watch.startswith("dpmhw tracker watch ")
         r = runner.invoke(app, [*watch.split()[1:], "--seconds", "0.2", "--every", "0.1"])
         assert r.exit_code == 1 and "Usage" not in r.output, r.output  # 1: no frame arrived (not 2: bad options)
+
+
+def test_the_bench_can_make_each_present_cost_what_a_slower_cpu_would():
+    """`--present-cpu-factor F`: a present spends F times its own CPU time (the present thread's,
+    so a busy machine beside does not change it), and returns what the present made."""
+    import time
+    from types import SimpleNamespace as NS
+
+    from dpmhw.benchmarks.session import _slowed_presents
+
+    def present(capture, windows):  # 20 ms of this thread's CPU
+        end = time.thread_time_ns() + 20_000_000
+        while time.thread_time_ns() < end:
+            pass
+        return capture, windows
+
+    reprojector = NS(present=present)
+    _slowed_presents(reprojector, 3.0)
+    cpu0 = time.thread_time_ns()
+    assert reprojector.present("cap", windows=[1]) == ("cap", [1])
+    assert 60e6 <= time.thread_time_ns() - cpu0 < 75e6

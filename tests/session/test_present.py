@@ -11,6 +11,7 @@ import pytest
 from dpmhw.session.testing import wait_for
 
 WAIT_S = 60  # what must happen eventually (a loaded machine, a first compile); only broken code waits
+PERIOD_NS = 16_666_667  # 60 Hz
 
 
 def small_mock_session(*overrides: str):
@@ -52,8 +53,9 @@ def test_every_present_lands_on_the_refresh_grid_with_its_photon_window(make_loo
 def test_mock_session_reprojects_each_photon_window_to_its_own_instant(mode):
     """A mock session on the rotating trajectory: each present's windows lie where the emulated
     projector lit them, and with three windows each shows the body where it is at its own instant
-    (poses differ between sub-frames), closer to the truth than the rendered pose."""
-    loop = small_mock_session(f'display.mode="{mode}"')
+    (poses differ between sub-frames), closer to the truth than the rendered pose (own poses
+    always: a loaded machine must not make them share one)."""
+    loop = small_mock_session(f'display.mode="{mode}"', 'display.shared_pose="never"')
     try:
         loop.start()
         assert wait_for(lambda: len(loop.frame_log) >= 20, WAIT_S), loop.status()
@@ -85,6 +87,29 @@ def test_mock_session_reprojects_each_photon_window_to_its_own_instant(mode):
                 shown_err.append(np.linalg.norm(poses[body].t - p))
             rendered_err.append(np.linalg.norm(r.measured[body].t - world.pose(body, r.windows[0][0] / 1e9)[1]))
         assert np.median(shown_err) < np.median(rendered_err)
+    finally:
+        loop.stop()
+
+
+def test_sharing_presents_show_every_sub_frame_at_the_middle_ones_pose():
+    """While the lead says sub-frames share a pose, a pattern present predicts the body once, for
+    its middle sub-frame, and shows it in all three (one splat): counted, and in the status."""
+    loop = small_mock_session('display.mode="pattern-8bit"')
+    try:
+        loop.start()
+        assert wait_for(lambda: len(loop.frame_log) >= 10, WAIT_S), loop.status()
+        loop.lead.shared = True  # as after presents too slow for their own poses
+        first = loop._present_number
+        assert wait_for(lambda: loop.status()["counters"].get("shared_pose_presents", 0) >= 10
+                        and len([r for r in list(loop.frame_log) if r.number > first + 1]) >= 5, WAIT_S), loop.status()
+        assert loop.status()["display"]["sub_frame_poses"] == "shared"
+        body = next(iter(loop.parts.bindings.values()))
+        world = loop.parts.mock.world
+        for r in [r for r in list(loop.frame_log) if r.number > first + 1][:5]:
+            (t0, p0), (t1, p1), (t2, p2) = r.windows
+            assert t0 < t1 < t2  # still lit at three instants
+            assert np.array_equal(p0[body].t, p1[body].t) and np.array_equal(p2[body].t, p1[body].t)
+            assert np.linalg.norm(p1[body].t - world.pose(body, t1 / 1e9)[1]) < 1e-3  # predicted for the middle one
     finally:
         loop.stop()
 
@@ -138,19 +163,67 @@ def test_a_present_ready_too_late_for_its_refresh_is_made_again_for_the_next():
         loop.stop()
 
 
-def test_the_lead_covers_all_but_the_slowest_one_or_two_recent_presents(make_loop):
+def test_the_lead_covers_all_but_the_slowest_one_or_two_recent_presents():
     """A few slow presents among the last 240 (a busy stretch of the machine) set the lead, so a
     present as slow as they were still makes its refresh; one alone (a hiccup) does not lengthen
     every prediction after it."""
-    from dpmhw.session.loop import PRESENT_HANDOFF_NS
+    from dpmhw.session.present_lead import HANDOFF_NS, PresentLead
 
     ms = 1_000_000
-    busy, hiccup = make_loop(), make_loop()
+    busy, hiccup = PresentLead(PERIOD_NS, False), PresentLead(PERIOD_NS, False)
     for k in range(240):
-        busy._adapt_lead(7 * ms if k % 60 == 0 else 2 * ms, late=False)  # 4 of 240 slow
-        hiccup._adapt_lead(7 * ms if k == 100 else 2 * ms, late=False)  # 1 of 240 slow
-    assert busy._present_lead_ns - PRESENT_HANDOFF_NS >= 7 * ms, busy._present_lead_ns
-    assert hiccup._present_lead_ns < 7 * ms, hiccup._present_lead_ns
+        busy.add(7 * ms if k % 60 == 0 else 2 * ms, late=False)  # 4 of 240 slow
+        hiccup.add(7 * ms if k == 100 else 2 * ms, late=False)  # 1 of 240 slow
+    assert busy.lead_ns - HANDOFF_NS >= 7 * ms, busy.lead_ns
+    assert hiccup.lead_ns < 7 * ms, hiccup.lead_ns
+
+
+@pytest.mark.parametrize("share_poses", [True, False])
+def test_pattern_presents_share_one_pose_while_their_own_would_need_more_than_the_longest_lead(share_poses):
+    """When more than 1 in 100 of the last 240 presents were too slow for the longest lead (¾ of a
+    period; a slow CPU), or 3 of the last 120 missed their refresh at it, a pattern present's
+    three sub-frames share one pose; a few slow ones or two misses (a hiccup) do not make them. Own poses come back once the shared presents' times, scaled by how
+    much dearer own poses were, fit with room again, not before a hold. With
+    `display.shared_pose = "never"` the lead only saturates."""
+    from dpmhw.session.present_lead import HISTORY, SHARED_HOLD, PresentLead
+
+    ms = 1_000_000
+    longest = PERIOD_NS * 3 // 4
+    hiccups = PresentLead(PERIOD_NS, True)
+    for k in range(2 * HISTORY):  # 2 in 240 far too slow, the rest quick
+        assert hiccups.add(30 * ms if k % 120 == 0 else 3 * ms, late=False) is None
+    assert not hiccups.shared and hiccups.lead_ns == longest
+
+    missing = PresentLead(PERIOD_NS, True)  # presents that miss at the longest lead: seen before 240 are measured
+    for k in range(60):
+        assert missing.add(11 * ms, late=k in (20, 40)) is None  # two misses in 120 presents: a hiccup or two
+    assert missing.lead_ns == longest and not missing.shared
+    assert "3 of the last 61 missed" in missing.add(11 * ms, late=True) and missing.shared
+
+    lead = PresentLead(PERIOD_NS, share_poses)
+    for _ in range(HISTORY - 1):  # own poses: 12 ms to a frame ready, a 14-ms lead needed
+        assert lead.add(12 * ms, late=False) is None
+    assert not lead.shared and lead.lead_ns == longest  # not before 240 presents are measured
+    change = lead.add(12 * ms, late=False)
+    assert lead.shared == share_poses and lead.lead_ns == longest
+    if not share_poses:
+        assert change is None
+        return
+    assert "share one pose" in change
+    for _ in range(SHARED_HOLD - 1):  # shared: 4 ms (a third of the work); 3 × 4 + 2 = 14 ms own: stay
+        assert lead.add(4 * ms, late=False) is None
+        assert lead.shared
+    assert lead.lead_ns == 6 * ms  # the shared presents' own lead
+    assert lead.add(4 * ms, late=False) is None and lead.shared  # past the hold, but own poses still would not fit
+    for _ in range(HISTORY):  # the machine is quicker now: 2 ms shared, so 3 × 2 + 2 = 8 ms own, under 0.8 × 12.5
+        change = lead.add(2 * ms, late=False)
+        if change is not None:
+            break
+    assert change is not None and "own pose again" in change and not lead.shared
+    assert lead.lead_ns == 8 * ms  # the estimate, until own-pose presents are measured
+    for _ in range(HISTORY):
+        lead.add(6 * ms, late=False)
+    assert not lead.shared and lead.lead_ns == 8 * ms  # measured own poses: 6 + 2 ms
 
 
 def test_a_present_back_after_its_next_planned_wake_still_makes_the_next_refresh():
@@ -162,7 +235,7 @@ def test_a_present_back_after_its_next_planned_wake_still_makes_the_next_refresh
     try:
         loop.start()
         assert wait_for(lambda: len(loop.frame_log) >= 30, WAIT_S), loop.status()
-        loop._lead_penalty_ns = 8_000_000  # a wide lead, as after missed refreshes: room between the wake and the median
+        loop.lead.penalty_ns = 8_000_000  # a wide lead, as after missed refreshes: room between the wake and the median
         assert wait_for(lambda: len(loop.frame_log) >= 40, WAIT_S), loop.status()
         period, sink = loop.timing.period_ns, loop.parts.sink
         present, held = sink.present, []  # (refresh presented for, back at, least time then)
@@ -170,9 +243,9 @@ def test_a_present_back_after_its_next_planned_wake_still_makes_the_next_refresh
         def held_now_and_then(frame, t_target_ns):
             v = present(frame, t_target_ns)
             if len(held) < 5 and (not held or v >= held[-1][0] + 10 * period):
-                lead = loop._present_lead_ns
+                lead = loop.lead.lead_ns
                 time.sleep(max(0.0, (v + period - lead + 500_000 - loop.clock()) / 1e9))  # just past the next planned wake
-                held.append((v, loop.clock(), loop._present_time_ns))
+                held.append((v, loop.clock(), loop.lead.time_ns))
             return v
 
         sink.present = held_now_and_then

@@ -1,0 +1,101 @@
+"""How long before each refresh the present thread begins its present, and whether a pattern-mode
+present reprojects its three sub-frames to their own poses or to one.
+
+The lead is prediction horizon, but with motion predicted to the photon a few milliseconds more
+of it cost far less registration than a missed refresh: the display shows the last frame again, a
+period older than its poses (in pattern mode, three sub-frames). So the lead covers all but the
+slowest one or two recent presents, up to ¾ of a period. Where presents need more than that (a
+slow CPU, a busy machine), a pattern present reprojects its three sub-frames to the middle one's pose: one
+projection and splat instead of three, so its outer sub-frames are off by a third of a period's
+motion instead of every missed refresh's three being off by a whole period's (docs/session.md)."""
+
+from __future__ import annotations
+
+from collections import deque
+
+from dpmhw.session.metrics import SortedWindow
+
+__all__ = ["HANDOFF_NS", "PresentLead"]
+
+LEAD_MIN_NS = 3_000_000  # a present begins this long before its refresh at least
+STEP_NS = 1_000_000  # added after a present that missed its refresh (on-time ones wear it down)
+MARGIN_NS = 2_000_000  # over the quantile of the recent times to a frame ready
+HANDOFF_NS = 300_000  # a frame ready later than this before its refresh is made again for the next
+QUANTILE = 99.5  # of the recent times from waking to a frame ready: all but the slowest one or two
+HISTORY = 240  # presents the quantile is taken over (4 s at 60 Hz)
+SHARE_QUANTILE = 99.0  # more than 1 in 100 own-pose presents too slow for the longest lead: share (a rare hiccup does not)
+SHARE_MISSES = 3  # or this many presents missed their refresh among the last SHARE_MISS_WINDOW at the longest lead
+SHARE_MISS_WINDOW = 120  # (2 s at 60 Hz: a slow CPU is seen before a whole history is measured)
+SHARED_RATIO_SAMPLES = 60  # shared presents measured before their median is compared with the own ones' (1 s at 60 Hz)
+SHARED_HOLD = 600  # presents at one pose before own poses are tried again (10 s at 60 Hz)
+SHARED_RETURN = 0.8  # own poses again once their estimated lead is below this share of the longest
+
+
+class PresentLead:
+    """The present thread's lead, from the time of each present from its planned wake to a frame
+    ready to hand over (`add`, once per present; one thread).
+
+    lead_ns : begin this long before the refresh: the 99.5th percentile of the last 240 times,
+        plus a margin, plus a penalty that a missed refresh raises by a step and on-time presents
+        wear down (a step in ~10 s); within [LEAD_MIN_NS, ¾ of a period]
+    time_ns : the median time plus the hand-over: the least time a present is tried in
+    shared : the sub-frames of a present share one pose (only with `share_poses`: pattern mode).
+        Taken when more than 1 in 100 of the last 240 own-pose presents were too slow for the
+        longest lead (their 99th percentile plus the margin passes it), or sooner when 3 of the
+        last 120 missed their refresh with the lead at its longest; left after `SHARED_HOLD`
+        presents once the own-pose lead, estimated from the shared presents' times and the ratio
+        of the two kinds' medians around the change, is below `SHARED_RETURN` of the longest.
+    """
+
+    def __init__(self, period_ns: int, share_poses: bool):
+        self.longest_ns = period_ns * 3 // 4
+        self.share_poses = share_poses
+        self.lead_ns = LEAD_MIN_NS
+        self.time_ns = LEAD_MIN_NS
+        self.penalty_ns = 0
+        self.shared = False
+        self._ready = SortedWindow(HISTORY)  # of the present kind in use
+        self._own_median = 0.0  # the own-pose presents' median time when sharing began
+        self._ratio = 0.0  # own-pose / shared median, once SHARED_RATIO_SAMPLES shared presents are measured
+        self._shared_presents = 0
+        self._misses: deque[bool] = deque(maxlen=SHARE_MISS_WINDOW)  # whether each recent present missed at the longest lead
+
+    def add(self, ready_ns: int, late: bool) -> str | None:
+        """One present's time from its planned wake to a frame ready, and whether it missed its
+        refresh. Returns a line for the log when the sub-frames start or stop sharing a pose."""
+        self._misses.append(late and self.lead_ns == self.longest_ns)
+        if late:
+            self.penalty_ns += STEP_NS
+        else:
+            self.penalty_ns = max(0, self.penalty_ns - STEP_NS // 600)
+        self._ready.add(max(ready_ns, 0))
+        median, ready = self._ready.quantile(50), self._ready.quantile(QUANTILE)
+        need = int(ready) + MARGIN_NS + self.penalty_ns
+        change = None
+        slow = len(self._ready) == HISTORY and self._ready.quantile(SHARE_QUANTILE) + MARGIN_NS > self.longest_ns
+        missing = sum(self._misses) >= SHARE_MISSES
+        if not self.shared and self.share_poses and (slow or missing):
+            why = (f"{sum(self._misses)} of the last {len(self._misses)} missed their refresh" if missing else
+                   f"{100 - SHARE_QUANTILE:g} % of them would need a lead over "
+                   f"{(self._ready.quantile(SHARE_QUANTILE) + MARGIN_NS) / 1e6:.1f} ms")
+            change = (f"pattern presents share one pose: at their sub-frames' own poses {why}, with the longest lead "
+                      f"({self.longest_ns / 1e6:.1f} ms)")
+            self._misses.clear()
+            self.shared, self._own_median, self._ratio, self._shared_presents = True, median, 0.0, 0
+            self._ready = SortedWindow(HISTORY)
+        elif self.shared:
+            self._shared_presents += 1
+            if not self._ratio and len(self._ready) >= SHARED_RATIO_SAMPLES:
+                self._ratio = max(1.0, self._own_median / max(median, 1.0))
+            own = int(self._ready.quantile(SHARE_QUANTILE) * self._ratio) + MARGIN_NS + self.penalty_ns
+            if self._ratio and self._shared_presents >= SHARED_HOLD and own < SHARED_RETURN * self.longest_ns:
+                change = f"pattern presents at each sub-frame's own pose again (estimated lead {own / 1e6:.1f} ms)"
+                self.shared = False
+                self._misses.clear()
+                self._ready = SortedWindow(HISTORY)
+                self._ready.add(own - MARGIN_NS - self.penalty_ns)  # the estimate stands until measured times replace it
+                median = ready = own - MARGIN_NS - self.penalty_ns
+                need = own
+        self.time_ns = int(median) + HANDOFF_NS
+        self.lead_ns = min(max(need, LEAD_MIN_NS), self.longest_ns)
+        return change
