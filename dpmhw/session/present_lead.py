@@ -64,38 +64,46 @@ class PresentLead:
         """One present's time from its planned wake to a frame ready, and whether it missed its
         refresh. Returns a line for the log when the sub-frames start or stop sharing a pose."""
         self._misses.append(late and self.lead_ns == self.longest_ns)
-        if late:
-            self.penalty_ns += STEP_NS
-        else:
-            self.penalty_ns = max(0, self.penalty_ns - STEP_NS // 600)
+        self.penalty_ns = self.penalty_ns + STEP_NS if late else max(0, self.penalty_ns - STEP_NS // 600)
         self._ready.add(max(ready_ns, 0))
-        median, ready = self._ready.quantile(50), self._ready.quantile(QUANTILE)
-        need = int(ready) + MARGIN_NS + self.penalty_ns
-        change = None
-        slow = len(self._ready) == HISTORY and self._ready.quantile(SHARE_QUANTILE) + MARGIN_NS > self.longest_ns
-        missing = sum(self._misses) >= SHARE_MISSES
-        if not self.shared and self.share_poses and (slow or missing):
-            why = (f"{sum(self._misses)} of the last {len(self._misses)} missed their refresh" if missing else
-                   f"{100 - SHARE_QUANTILE:g} % of them would need a lead over "
-                   f"{(self._ready.quantile(SHARE_QUANTILE) + MARGIN_NS) / 1e6:.1f} ms")
-            change = (f"pattern presents share one pose: at their sub-frames' own poses {why}, with the longest lead "
-                      f"({self.longest_ns / 1e6:.1f} ms)")
-            self._misses.clear()
-            self.shared, self._own_median, self._ratio, self._shared_presents = True, median, 0.0, 0
-            self._ready = SortedWindow(HISTORY)
-        elif self.shared:
-            self._shared_presents += 1
-            if not self._ratio and len(self._ready) >= SHARED_RATIO_SAMPLES:
-                self._ratio = max(1.0, self._own_median / max(median, 1.0))
-            own = int(self._ready.quantile(SHARE_QUANTILE) * self._ratio) + MARGIN_NS + self.penalty_ns
-            if self._ratio and self._shared_presents >= SHARED_HOLD and own < SHARED_RETURN * self.longest_ns:
-                change = f"pattern presents at each sub-frame's own pose again (estimated lead {own / 1e6:.1f} ms)"
-                self.shared = False
-                self._misses.clear()
-                self._ready = SortedWindow(HISTORY)
-                self._ready.add(own - MARGIN_NS - self.penalty_ns)  # the estimate stands until measured times replace it
-                median = ready = own - MARGIN_NS - self.penalty_ns
-                need = own
+        median = self._ready.quantile(50)
         self.time_ns = int(median) + HANDOFF_NS
-        self.lead_ns = min(max(need, LEAD_MIN_NS), self.longest_ns)
-        return change
+        self.lead_ns = self._within(int(self._ready.quantile(QUANTILE)) + MARGIN_NS + self.penalty_ns)
+        if not self.share_poses:
+            return None
+        return self._own_poses_again() if self.shared else self._share(median)
+
+    def _within(self, lead_ns: int) -> int:
+        return min(max(lead_ns, LEAD_MIN_NS), self.longest_ns)
+
+    def _share(self, median: float) -> str | None:
+        """Share one pose if own-pose presents are too slow for the longest lead (see the class)."""
+        misses = sum(self._misses)
+        need = self._ready.quantile(SHARE_QUANTILE) + MARGIN_NS if len(self._ready) == HISTORY else 0
+        if misses < SHARE_MISSES and need <= self.longest_ns:
+            return None
+        why = (f"{misses} of the last {len(self._misses)} missed their refresh" if misses >= SHARE_MISSES else
+               f"{100 - SHARE_QUANTILE:g} % of them would need a lead over {need / 1e6:.1f} ms")
+        self.shared, self._own_median, self._ratio, self._shared_presents = True, median, 0.0, 0
+        self._misses.clear()
+        self._ready = SortedWindow(HISTORY)  # the shared presents' own times from here
+        return f"pattern presents share one pose: at their sub-frames' own poses {why}, with the longest lead " \
+               f"({self.longest_ns / 1e6:.1f} ms)"
+
+    def _own_poses_again(self) -> str | None:
+        """Back to own poses once, after the hold, their estimated lead fits with room (see the class)."""
+        self._shared_presents += 1
+        if not self._ratio and len(self._ready) >= SHARED_RATIO_SAMPLES:
+            self._ratio = max(1.0, self._own_median / max(self._ready.quantile(50), 1.0))
+        if not self._ratio or self._shared_presents < SHARED_HOLD:
+            return None
+        ready = int(self._ready.quantile(SHARE_QUANTILE) * self._ratio)  # an own-pose present's, estimated
+        own = ready + MARGIN_NS + self.penalty_ns
+        if own >= SHARED_RETURN * self.longest_ns:
+            return None
+        self.shared = False
+        self._misses.clear()
+        self._ready = SortedWindow(HISTORY)
+        self._ready.add(ready)  # the estimate stands until measured times replace it
+        self.time_ns, self.lead_ns = ready + HANDOFF_NS, self._within(own)
+        return f"pattern presents at each sub-frame's own pose again (estimated lead {own / 1e6:.1f} ms)"
