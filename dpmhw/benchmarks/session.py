@@ -203,20 +203,20 @@ EXPOSURES_PER_S_MAX = 3 * int(REFRESH_HZ_MAX)  # lit (sub-)frames a second at mo
 
 
 def _slowed_presents(reprojector, factor: float) -> None:
-    """Each `present` of this reprojector spends `factor` times its own CPU time, the extra in
-    work that releases the GIL as its kernel does: the present of a CPU `factor` times slower
-    (only the present's: the renders run at this machine's speed)."""
-    present, block = reprojector.present, bytes(32768)
+    """Each kernel call of this reprojector's presents (`Reprojector._splats`, on the present
+    thread or its helper) spends `factor` times its own CPU time on its thread, the extra in
+    work that releases the GIL as the kernel does: the present of a CPU `factor` times slower
+    (only the present's kernels: the renders run at this machine's speed)."""
+    splats, block = reprojector._splats, bytes(32768)
 
-    def slowed(*args, **kw):
+    def slowed(*args):
         cpu0 = time.thread_time_ns()
-        made = present(*args, **kw)
+        splats(*args)
         end = time.thread_time_ns() + int((time.thread_time_ns() - cpu0) * (factor - 1.0))
         while time.thread_time_ns() < end:
             hashlib.sha256(block)  # ~20 µs each, without the GIL (hashlib releases it over large buffers)
-        return made
 
-    reprojector.present = slowed
+    reprojector._splats = slowed
 
 
 def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, width: int = 0, height: int = 0,
@@ -232,9 +232,9 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
     every photon window (up to `max_eval_windows`, else evenly spaced ones; the measured-pose variant on every
     `MEASURED_POSE_EVERY`th of them) (and _max_, measured-pose and vertex variants; registration_px_p99_window<k>
     per sub-frame in pattern mode), <stage>_ms_p50 for every
-    loop stage, late_presents and shared_pose_presents (while measured), new_windows_per_s and repeated_windows (the emulated
-    projector's), frame counts, present_cpu_factor. `present_cpu_factor` > 1: every present
-    spends that many times its CPU time, as on a slower CPU (`_slowed_presents`).
+    loop stage, late_presents, shared_pose_presents and split_presents (while measured), new_windows_per_s and repeated_windows (the emulated
+    projector's), frame counts, present_cpu_factor. `present_cpu_factor` > 1: every kernel call
+    of a present spends that many times its CPU time, as on a slower CPU (`_slowed_presents`).
     `progress(text)` hears how the analysis goes."""
     from dpmhw.render.cameras import PinholeCamera
     from dpmhw.session.factory import build_session, prepare_scene
@@ -302,7 +302,7 @@ def run_case(case: BenchCase, *, seconds: float = 4.0, warmup_s: float = 1.5, wi
         # the session process's CPU (frame, present, tracker and mock threads) per rendered frame
         "cpu_ms_per_rendered_frame": round(cpu_s * 1e3 / max(1, status["frames_rendered"] - before["frames_rendered"]), 3),
         # while measured: presents that missed their refresh, and pattern presents whose sub-frames shared a pose
-        **{k: status["counters"].get(k, 0) - before["counters"].get(k, 0) for k in ("late_presents", "shared_pose_presents")},
+        **{k: status["counters"].get(k, 0) - before["counters"].get(k, 0) for k in ("late_presents", "shared_pose_presents", "split_presents")},
         "cpu_steal": steal,  # of the machine's CPU time while measured, the host gave to other guests (None: no /proc/stat)
         **_light_counts(video, records),
         # the quality governor's levels over the measured frames (0: the configured settings) and its last reason

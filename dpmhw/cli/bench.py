@@ -263,7 +263,9 @@ def bench_reproject(
     horizons: Annotated[str, typer.Option(help="Comma-separated horizons (ms) the captures are moved by.")] = "5,10,20,40",
     trajectory: Annotated[BenchTrajectory, typer.Option(help="The mock world's trajectory.")] = BenchTrajectory("rotate-oscillate"),
     repeats: Annotated[int, typer.Option(min=1, help="Timed reprojections per row (the median is reported).")] = 30,
-    threads: Annotated[int, typer.Option(min=1, help="Render threads (the reprojection itself is serial).")] = 2,
+    threads: Annotated[int, typer.Option(min=1, help="Render threads.")] = 2,
+    present_threads: Annotated[int, typer.Option(min=1, max=2, help="The reprojection's threads (2: a helper thread "
+                                                 "shares a pattern present's splats).")] = 1,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the rows as JSON here (a list of flat rows).")] = None,
 ) -> None:
     """Late reprojection: CPU-ms per reprojection and per pattern-mode present (three channels),
@@ -287,7 +289,7 @@ def bench_reproject(
         raise typer.BadParameter(f"--horizons: expected comma-separated milliseconds, got {horizons!r}") from None
     try:
         cfg = ReprojectBenchConfig(scene=scene, size=dims, spp=spp, starts_s=times, horizons_ms=ms, trajectory=trajectory.value,
-                                   repeats=repeats, threads=threads)
+                                   repeats=repeats, threads=threads, present_threads=present_threads)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
     with Progress() as bar:

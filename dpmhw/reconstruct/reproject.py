@@ -36,6 +36,8 @@ from __future__ import annotations
 
 import math
 import threading
+import time
+import weakref
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -401,48 +403,63 @@ def _splat(pixel, back, colour, dest, zout, plate_z, W, y0, y1, x0, x1, ch0, ch1
 
 @nb.njit(cache=True, nogil=True)
 def _reproject_windows(img, dst, base_box, M, M_bits, R, t, cap_R, cap_t, channels, full_base, segments, moving, px, py, pz, fx,
-                       fy, cx, cy, dist, W, H, arrays, plate_z, zbuf, src, cover, sid, dest, zout, col, flags, shift, moves, same, stats,
-                       boxes):
-    """Every photon window of one present in one call (one release of the GIL): `dst` = the
-    captured image inside `base_box` (all channels at once when `full_base`, else each window's
-    own channel; outside it `dst` holds the same already), then
-    for each window w whose poses (R[w], t[w]) differ from the capture's (cap_R, cap_t) for an
-    object of `moving` (`moves[w]`), its points moved by `M[w]` and splatted into its channel
-    (`channels[w]`, −1: all). A window whose matrices are the previous window's bit for bit
-    (`M_bits`, M's bytes as uint32) and whose channel follows its channel joins its splat, which
-    writes both channels: the bits each window's own splat would give. `arrays`: the capture's
-    (pixel, plate, colour); window w stamps `cover` with 2·(sid + w). stats[w]: moved, dropped,
-    holes, disoccluded, vacated; boxes[w]: the splats' (y0, y1, x0, x1); moves and same are
-    written here."""
+                       fy, cx, cy, dist, W, H, arrays, plate_z, sid, moves, same, groups, stats, boxes, scratch, plan, g_first,
+                       g_end):
+    """The photon windows of one present. With `plan`: which windows move and which splats they
+    make (written to moves, same, groups), and `dst` = the captured image inside `base_box` (all
+    channels at once when `full_base`, else each window's own channel; outside it `dst` holds
+    the same already). Then the splats groups[g_first:g_end] (of those planned), each on this
+    call's `scratch`; splats of distinct groups are independent, so two threads may make them
+    at once, each on its own scratch.
+
+    Window w moves (`moves[w]`) when its poses (R[w], t[w]) differ from the capture's (cap_R,
+    cap_t) for an object of `moving`; its points are then moved by `M[w]` and splatted into its
+    channel (`channels[w]`, −1: all). A window whose matrices are the previous window's bit for
+    bit (`M_bits`, M's bytes as uint32) and whose channel follows its channel joins its splat,
+    which writes both channels: the bits each window's own splat would give. A group is (first
+    window, end); (−1, −1) after the last. `arrays`: the capture's (pixel, plate, colour);
+    `scratch`: (zbuf, src, cover, dest, zout, col, flags, shift); window w stamps `cover` with
+    2·(sid + w). stats[w]: moved, dropped, holes, disoccluded, vacated; boxes[w]: the splats'
+    (y0, y1, x0, x1)."""
     pixel, plate, colour = arrays
+    zbuf, src, cover, dest, zout, col, flags, shift = scratch
     out = dst.reshape(-1, 3)
     n_win = channels.shape[0]
-    for w in range(n_win):
-        moves[w] = False
-        same[w] = w > 0
-        for o in moving:
-            for i in range(3):
-                moves[w] |= t[w, o, i] != cap_t[o, i]
-                for j in range(3):
-                    moves[w] |= R[w, o, i, j] != cap_R[o, i, j]
-            if w > 0:
-                for i in range(12):
-                    same[w] &= M_bits[w, o, i] == M_bits[w - 1, o, i]
-    if full_base:
-        _base(img, np.int64(-1), dst, W, base_box)  # not a literal: numba would compile _base once more for it
-    w = 0
-    while w < n_win:
+    if plan:
+        for w in range(n_win):
+            moves[w] = False
+            same[w] = w > 0
+            for o in moving:
+                for i in range(3):
+                    moves[w] |= t[w, o, i] != cap_t[o, i]
+                    for j in range(3):
+                        moves[w] |= R[w, o, i, j] != cap_R[o, i, j]
+                if w > 0:
+                    for i in range(12):
+                        same[w] &= M_bits[w, o, i] == M_bits[w - 1, o, i]
+        if full_base:
+            _base(img, np.int64(-1), dst, W, base_box)  # not a literal: numba would compile _base once more for it
+        else:  # each window's channel (a splat writes only its own channels: the order does not matter)
+            for w in range(n_win):
+                _base(img, channels[w], dst, W, base_box)
+        n, w = 0, 0
+        while w < n_win:
+            if not moves[w]:
+                w += 1
+                continue
+            e = w + 1  # windows w to e − 1: one pose, consecutive channels
+            while e < n_win and moves[e] and same[e] and channels[e] == channels[e - 1] + 1:
+                e += 1
+            groups[n, 0], groups[n, 1] = w, e
+            n += 1
+            w = e
+        for g in range(n, n_win):
+            groups[g, 0], groups[g, 1] = -1, -1
+    for g in range(g_first, min(g_end, n_win)):
+        w, e = groups[g, 0], groups[g, 1]
+        if w < 0:
+            break
         ch = channels[w]
-        if not full_base:
-            _base(img, ch, dst, W, base_box)
-        if not moves[w]:
-            w += 1
-            continue
-        e = w + 1  # windows w to e − 1: one pose, consecutive channels
-        while e < n_win and moves[e] and same[e] and channels[e] == channels[e - 1] + 1:
-            if not full_base:
-                _base(img, channels[e], dst, W, base_box)
-            e += 1
         for o in moving:
             a, b = segments[o], segments[o + 1]
             _project(px[a:b], py[a:b], pz[a:b], M[w, o], fx, fy, cx, cy, dist, W, H, dest[a:b], zout[a:b], col[a:b])
@@ -454,7 +471,101 @@ def _reproject_windows(img, dst, base_box, M, M_bits, R, t, cap_R, cap_t, channe
             for i in range(5):
                 stats[v, i] = stats[w, i]
             boxes[v, 0], boxes[v, 1], boxes[v, 2], boxes[v, 3] = y0, y1, x0, x1
-        w = e
+
+
+class _Scratch:
+    """One thread's buffers for a splat: per pixel, the z-buffer, the point each pixel shows and
+    the stamp of the splat that covered it; per point (grown to the largest capture), where it
+    lands; the sweep's two scratch rows."""
+
+    def __init__(self, W: int, H: int):
+        n = W * H
+        self.zbuf = np.zeros(n, np.float32)  # per splat, valid where `cover` holds its stamp
+        self.src = np.zeros(n, np.int32)  # the point a splatted pixel shows
+        self.cover = np.zeros(n, np.int32)  # 2·id of the window that splatted the pixel, + 1: filled it
+        self.flags = np.zeros(W + 8, np.uint8)  # a row's pixels with work (the splat's sweep), in whole words
+        self.shift = np.zeros(W, np.int32)  # a row shifted by one pixel, for a box at the frame's first pixel
+        self.dest, self.zout, self.col = np.empty(0, np.int32), np.empty(0, np.float32), np.empty(0, np.int32)
+
+    def arrays(self, n: int) -> tuple:
+        """The kernel's `scratch` for a capture of n points."""
+        if self.dest.shape[0] < n:
+            self.dest, self.zout, self.col = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.int32)
+        return self.zbuf, self.src, self.cover, self.dest[:n], self.zout[:n], self.col[:n], self.flags, self.shift
+
+
+class _SplatHelper:
+    """A second thread for a present's splats. The caller and the helper take the splats in turn
+    from one counter, each on its own scratch; the caller then waits only for a splat the helper
+    has begun. A helper that wakes late finds nothing left, the caller having made every splat
+    itself: a present never waits for the helper to be scheduled. Started by the first present
+    that splits, from its thread, the helper shares that thread's scheduling (on Linux a thread
+    inherits its creator's policy and priority: the session's present thread is raised).
+
+    The splats write distinct channels of one frame, a byte store per channel; a fill reads the
+    other channels of its run's ends too, but uses only its own."""
+
+    def __init__(self):
+        self._cv = threading.Condition()
+        self._job = None  # (fn, count) while a present shares its splats
+        self._next = 0  # the next splat to take
+        self._busy = False  # the helper is making one
+        self._cpu_ns = 0
+        self._error: BaseException | None = None
+        self._stop = False
+        self._thread = threading.Thread(target=self._serve, name="reproject-helper", daemon=True)
+        self._thread.start()
+
+    def share(self, fn, count: int) -> int:
+        """fn(k, slot) for every k < count: on this thread (slot 0) and the helper's (slot 1).
+        Returns the helper's CPU time in them (ns); re-raises its error."""
+        with self._cv:
+            self._job, self._next, self._cpu_ns, self._error = (fn, count), 0, 0, None
+            self._cv.notify_all()
+        try:
+            while True:
+                with self._cv:
+                    k = self._next
+                    if k >= count:
+                        break
+                    self._next = k + 1
+                fn(k, 0)
+        finally:
+            with self._cv:
+                self._next = count  # after an error here the helper takes nothing more
+                while self._busy:
+                    self._cv.wait()
+                self._job = None
+        if self._error is not None:
+            raise self._error
+        return self._cpu_ns
+
+    def close(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=5.0)
+
+    def _serve(self) -> None:
+        while True:
+            with self._cv:
+                while not self._stop and (self._job is None or self._next >= self._job[1]):
+                    self._cv.wait()
+                if self._stop:
+                    return
+                fn, k = self._job[0], self._next
+                self._next, self._busy = k + 1, True
+            t0 = time.thread_time_ns()
+            try:
+                fn(k, 1)
+            except BaseException as exc:  # the caller re-raises it
+                self._error = exc
+            finally:
+                with self._cv:
+                    self._busy = False
+                    self._cpu_ns += time.thread_time_ns() - t0
+                    self._cv.notify_all()
 
 
 @dataclass
@@ -516,11 +627,16 @@ class Reprojector:
     camera : the native `PinholeCamera` (with its lens distortion)
     dynamic : per scene object, whether it moves (only those are reprojected)
 
+    threads : 2: a present whose windows make two or three splats (a pattern-8bit present at
+        each sub-frame's own poses) makes them on the calling thread and a helper thread at once
+        (`_SplatHelper`): less wall time for more CPU (docs/reprojection.md); the same bits.
+
     `capture` belongs to one thread (the frame thread), `reproject` to one other (the present
     thread); each holds its own lock, so a second caller waits instead of corrupting state.
+    `close` ends the helper thread (so does the Reprojector's collection).
     """
 
-    def __init__(self, camera, dynamic: Sequence[bool]):
+    def __init__(self, camera, dynamic: Sequence[bool], threads: int = 1):
         try:
             K = np.asarray(camera.K, np.float64)
             dist = np.asarray(camera.dist, np.float64).reshape(-1)
@@ -532,6 +648,8 @@ class Reprojector:
         if K.shape != (3, 3) or dist.shape != (5,) or W < 1 or H < 1 or cam_R.shape != (3, 3) or cam_t.shape != (3,) \
                 or not all(np.isfinite(a).all() for a in (K, dist, cam_R, cam_t)):
             raise ValueError("camera: expected finite K (3, 3), dist (5,), pose and a size ≥ 1×1")
+        if threads not in (1, 2):
+            raise ValueError(f"threads: expected 1 or 2, got {threads!r}")
         flags = np.asarray(list(dynamic))
         if flags.ndim != 1 or flags.size == 0 or flags.dtype != np.bool_:
             raise ValueError(f"dynamic: expected one bool per scene object, got {list(dynamic)!r}")
@@ -542,17 +660,14 @@ class Reprojector:
         n = W * H
         self._plate = np.zeros((n, 3), np.uint8)  # last colour without a moving object in front
         self._plate_z = np.full(n, np.inf, np.float32)  # depth of the static surface there (inf: none seen)
-        self._zbuf = np.zeros(n, np.float32)  # per reprojection, valid where _cover holds its id
-        self._src = np.zeros(n, np.int32)  # the point a splatted pixel shows
-        self._cover = np.zeros(n, np.int32)  # 2·id of the reprojection that splatted the pixel, + 1: filled it
+        self._scratch = [_Scratch(W, H) for _ in range(threads)]  # a splat's buffers, one set per thread
         self._sid = 0
-        self._flags = np.zeros(W + 8, np.uint8)  # a row's pixels with work (the splat's sweep), in whole words
-        self._shift = np.zeros(W, np.int32)  # a row shifted by one pixel, for a box at the frame's first pixel
+        self._helper: _SplatHelper | None = None  # started by the first present that splits
+        self.last_helper_cpu_ns = 0  # the helper thread's CPU time in the last reprojection
         k = len(flags)  # per window of a present (at most 3): poses, matrices, channel, results
         self._R, self._t, self._M = np.empty((3, k, 3, 3)), np.empty((3, k, 3)), np.empty((3, k, 3, 4), np.float32)
         self._channels, self._moves, self._same = np.empty(3, np.int64), np.empty(3, np.bool_), np.empty(3, np.bool_)
-        self._stats, self._boxes = np.empty((3, 5), np.int64), np.empty((3, 4), np.int64)
-        self._dest, self._zout, self._col = np.empty(0, np.int32), np.empty(0, np.float32), np.empty(0, np.int32)  # per point, grown to the largest capture
+        self._stats, self._boxes, self._groups = np.empty((3, 5), np.int64), np.empty((3, 4), np.int64), np.empty((3, 2), np.int64)
         self._intrinsics = (np.float32(K[0, 0]), np.float32(K[1, 1]), np.float32(K[0, 2]), np.float32(K[1, 2]),
                             dist.astype(np.float32))
         self._frames: list[_Frame | None] = [None] * PRESENT_FRAMES  # `present`'s own, made at first use
@@ -605,8 +720,10 @@ class Reprojector:
                           out: np.ndarray) -> list[ReprojectStats]:
         """`out` = the capture moved to each window's poses, in the window's channel: one window
         of all channels (channel None), or windows of distinct channels 0–2 (a present's
-        sub-frames). One kernel call for all of them, so the present thread releases the GIL
-        once; each window gives the same bits as its own `reproject`."""
+        sub-frames). On one thread, one kernel call for all of them, so the present thread
+        releases the GIL once; with `threads` 2 and two or three splats, one call to plan them and
+        one per splat, shared with the helper thread. Each window gives the same bits as its own
+        `reproject`."""
         W, H = self.width, self.height
         self._check(capture)
         if not isinstance(out, np.ndarray) or out.dtype != np.uint8 or out.shape != (H, W, 3) or not out.flags.c_contiguous \
@@ -619,12 +736,13 @@ class Reprojector:
         with self._present_lock:
             return self._reproject(capture, windows, channels, out, (0, H, 0, W))[0]
 
-    def present(self, capture: Capture, windows: Sequence[tuple[Sequence[Pose], int | None]]
+    def present(self, capture: Capture, windows: Sequence[tuple[Sequence[Pose], int | None]], helper: bool = True
                 ) -> tuple[np.ndarray, list[ReprojectStats]]:
         """The capture moved to each window's poses (as `reproject_windows`), in the next of
         `PRESENT_FRAMES` frames of this Reprojector's own: (frame, stats). A frame stays as it is
         until `PRESENT_FRAMES` − 1 more presents (a sink may still read it). The windows cover
-        every channel: one window of all channels, or three of channels 0, 1 and 2.
+        every channel: one window of all channels, or three of channels 0, 1 and 2. `helper`:
+        whether the splats may be shared with the helper thread (with `threads` 2).
 
         Only what differs from what the frame held is copied from the capture: with a
         `background` both captures share, the bounding box of this capture's box, the last
@@ -643,7 +761,7 @@ class Reprojector:
                 frame = self._frames[self._turn] = _Frame(np.zeros((H, W, 3), np.uint8))
             same = capture.background is not None and frame.background is capture.background
             base_box = _union(frame.written, capture.box) if same else (0, H, 0, W)
-            stats, splats = self._reproject(capture, windows, channels, frame.image, base_box)
+            stats, splats = self._reproject(capture, windows, channels, frame.image, base_box, helper)
             frame.background, frame.written = capture.background, _union(capture.box, splats)
         return frame.image, stats
 
@@ -663,10 +781,11 @@ class Reprojector:
         return windows, channels
 
     def _reproject(self, capture: Capture, windows: list, channels: list[int], out: np.ndarray,
-                   base_box: tuple[int, int, int, int]) -> tuple[list[ReprojectStats], tuple[int, int, int, int]]:
+                   base_box: tuple[int, int, int, int], helper: bool = True
+                   ) -> tuple[list[ReprojectStats], tuple[int, int, int, int]]:
         """`reproject_windows` of checked windows into `out`, which equals the capture outside
-        `base_box`; holding the present lock. Returns the stats and the bounding box of every
-        window's splats."""
+        `base_box`, its splats shared with the helper thread if `helper` (and `threads` is 2);
+        holding the present lock. Returns the stats and the bounding box of every window's splats."""
         W, H = self.width, self.height
         nw, n_obj = len(windows), len(self.dynamic)
         n, seg = capture.lit, capture.segments
@@ -680,18 +799,31 @@ class Reprojector:
         M[..., 3] = (t - self.cam_t) @ self.cam_R
         M12 = M.reshape(nw, n_obj, 12)
         self._channels[:nw] = channels
-        if self._dest.shape[0] < n:
-            self._dest, self._zout, self._col = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.int32)
         if self._sid + nw >= 2**30 - 1:  # the stamps wrap only after 2³⁰ windows; then start over
-            self._cover[:] = 0
+            for sc in self._scratch:
+                sc.cover[:] = 0
             self._sid = 0
         sid = self._sid + 1
         self._sid += nw
-        _reproject_windows(capture.image.reshape(-1), out.reshape(-1), base_box, M12, M12.view(np.uint32), R, t, capture.R,
-                           capture.t, self._channels[:nw], channels[0] < 0 or nw == 3, seg, moving, px, py, pz,
-                           *self._intrinsics, W, H, (capture.pixel, capture.plate, capture.colour), self._plate_z,
-                           self._zbuf, self._src, self._cover, sid, self._dest[:n], self._zout[:n], self._col[:n],
-                           self._flags, self._shift, self._moves[:nw], self._same[:nw], self._stats[:nw], self._boxes[:nw])
+        common = (capture.image.reshape(-1), out.reshape(-1), base_box, M12, M12.view(np.uint32), R, t, capture.R, capture.t,
+                  self._channels[:nw], channels[0] < 0 or nw == 3, seg, moving, px, py, pz, *self._intrinsics, W, H,
+                  (capture.pixel, capture.plate, capture.colour), self._plate_z, sid, self._moves[:nw], self._same[:nw],
+                  self._groups[:nw], self._stats[:nw], self._boxes[:nw])
+        scratch = [sc.arrays(n) for sc in self._scratch]
+        self.last_helper_cpu_ns = 0
+        if len(scratch) == 1 or nw == 1 or not helper:
+            self._splats(common, scratch[0], True, 0, nw)
+        else:
+            self._splats(common, scratch[0], True, 0, 0)  # plan, and the captured image under the splats
+            splats = int(np.count_nonzero(self._groups[:nw, 0] >= 0))
+            if splats == 1:
+                self._splats(common, scratch[0], False, 0, 1)
+            elif splats > 1:
+                if self._helper is None:
+                    self._helper = _SplatHelper()
+                    weakref.finalize(self, self._helper.close)
+                self.last_helper_cpu_ns = self._helper.share(
+                    lambda g, slot: self._splats(common, scratch[slot], False, g, g + 1), splats)
         moves, stats, boxes = self._moves[:nw].tolist(), self._stats[:nw].tolist(), self._boxes[:nw].tolist()
         result, splats = [], (0, 0, 0, 0)
         for w in range(nw):
@@ -702,6 +834,17 @@ class Reprojector:
             result.append(ReprojectStats(n, *stats[w], (y0, y1, x0, x1) if y1 > y0 else None))
             splats = _union(splats, (y0, y1, x0, x1))
         return result, splats
+
+    def _splats(self, common: tuple, scratch: tuple, plan: bool, g_first: int, g_end: int) -> None:
+        """One kernel call on one thread's scratch (`_reproject_windows`): the plan when `plan`, then
+        the splats g_first to g_end − 1."""
+        _reproject_windows(*common, scratch, plan, g_first, g_end)
+
+    def close(self) -> None:
+        """End the helper thread, if one started (a later present starts another)."""
+        helper, self._helper = self._helper, None
+        if helper is not None:
+            helper.close()
 
     @staticmethod
     def _channel(channel, w: int) -> int:

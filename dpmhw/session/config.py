@@ -263,6 +263,9 @@ class DisplaySection(_Section):
                                                   "sub-frames share the middle one's pose (one splat, not three; the "
                                                   "outer ones then lag a third of a period's motion); never: always own "
                                                   "poses, and a present that is not ready misses its refresh")
+    present_threads: int = Field(2, ge=1, le=2, description="pattern-8bit, 2: once the present lead nears ¾ of a period, a "
+                                 "present's splats at its sub-frames' own poses are shared with a helper thread at the "
+                                 "present thread's priority (less wall time for more CPU); 1: the present thread alone")
 
     def timing(self) -> DisplayTiming:
         # DLPU018 states no frame latency for video or video-pattern mode. The controller stores an

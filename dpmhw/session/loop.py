@@ -292,7 +292,9 @@ class SessionLoop:
         self._predict_lock = threading.Lock()  # the predictor is fed and read by both threads
         self._first_valid: dict[int, int] = {}  # body -> arrival of its first fresh sample since the frame thread last looked
         # when each present begins, and whether a pattern present's sub-frames share one pose
-        self.lead = PresentLead(self.timing.period_ns, len(self.timing.windows) > 1 and config.display.shared_pose == "auto")
+        pattern = len(self.timing.windows) > 1
+        self.lead = PresentLead(self.timing.period_ns, pattern and config.display.shared_pose == "auto",
+                                split_splats=pattern and config.display.present_threads == 2)
         self._present_number = 0
         self._present_heartbeat_ns = clock()
         self._present_priority = "not started"
@@ -402,6 +404,8 @@ class SessionLoop:
         gc.unfreeze()  # this session's objects may be collected again once it is gone
         sys.setswitchinterval(self._switch_interval)
         self.reconstruct.close()
+        if self.reprojector is not None:
+            self.reprojector.close()
         self.final_blank = self._last_blank
         if self._samples is not None:
             self._samples.close()
@@ -785,7 +789,7 @@ class SessionLoop:
             return None
         from dpmhw.reconstruct.reproject import Reprojector  # numba kernels: not for renderer-less test doubles
 
-        return Reprojector(camera, [o.is_dynamic for o in self.parts.scene.objects])
+        return Reprojector(camera, [o.is_dynamic for o in self.parts.scene.objects], self.config.display.present_threads)
 
     def _capture_frame(self, job: "_Job", out, frame) -> _Capture:
         """Keep a finished frame (the stage's output) for the presents; with the late
@@ -868,6 +872,8 @@ class SessionLoop:
             cpu_ns += cpu
             if self.lead.shared:
                 self.metrics.count("shared_pose_presents")
+            elif self.lead.split:
+                self.metrics.count("split_presents")
         else:  # as rendered: every window shows the poses the frame was predicted to
             image, horizon_ns = cap.image, cap.job.horizon_ns
             windows = [(t, cap.job.used) for t in self.timing.photon_mid_ns(vsync)]
@@ -932,8 +938,8 @@ class SessionLoop:
             windows.append((t, used))
             moves.append((poses, w.channel))
         cpu0 = time.thread_time_ns()
-        image, _ = self.reprojector.present(cap.reprojection, moves)  # one of its frames, in turn (a sink may read the last)
-        return image, windows, horizon_ns, time.thread_time_ns() - cpu0
+        image, _ = self.reprojector.present(cap.reprojection, moves, helper=self.lead.split)  # one of its frames, in turn (a sink may read the last)
+        return image, windows, horizon_ns, time.thread_time_ns() - cpu0 + self.reprojector.last_helper_cpu_ns
 
     def _adapt_lead(self, ready_ns: int, late: bool) -> None:
         """The present's time from its planned wake to a frame ready, to the lead (`PresentLead`)."""
@@ -1141,6 +1147,7 @@ class SessionLoop:
                         "late_reprojection": self.reprojector is not None,
                         "present_lead_ms": round(self.lead.lead_ns / 1e6, 3),
                         "sub_frame_poses": "shared" if self.lead.shared else "own",
+                        "present_threads": 2 if self.lead.split else 1,
                         "present_priority": self._present_priority},
             "render_size": [self.parts.renderer.width, self.parts.renderer.height],  # the shading resolution
             "output_size": list(self.output_size),

@@ -5,9 +5,11 @@ The lead is prediction horizon, but with motion predicted to the photon a few mi
 of it cost far less registration than a missed refresh: the display shows the last frame again, a
 period older than its poses (in pattern mode, three sub-frames). So the lead covers all but the
 slowest one or two recent presents, up to ¾ of a period. Where presents need more than that (a
-slow CPU, a busy machine), a pattern present reprojects its three sub-frames to the middle one's pose: one
-projection and splat instead of three, so its outer sub-frames are off by a third of a period's
-motion instead of every missed refresh's three being off by a whole period's (docs/session.md)."""
+slow CPU, a busy machine), a pattern present first shares its three splats with a helper thread
+once the lead nears its longest (less wall time for more CPU), then, if that is not enough,
+reprojects its three sub-frames to the middle one's pose: one projection and splat
+instead of three, so its outer sub-frames are off by a third of a period's motion instead of
+every missed refresh's three being off by a whole period's (docs/session.md)."""
 
 from __future__ import annotations
 
@@ -29,6 +31,8 @@ SHARE_MISS_WINDOW = 120  # (2 s at 60 Hz: a slow CPU is seen before a whole hist
 SHARED_RATIO_SAMPLES = 60  # shared presents measured before their median is compared with the own ones' (1 s at 60 Hz)
 SHARED_HOLD = 600  # presents at one pose before own poses are tried again (10 s at 60 Hz)
 SHARED_RETURN = 0.8  # own poses again once their estimated lead is below this share of the longest
+SPLIT_ABOVE = 0.8  # own-pose splats shared with the helper thread once the lead is above this share of the longest (near sharing)
+SPLIT_BELOW = 0.65  # and on the present thread alone again once it is below this share (a quick CPU's start-up tail must not keep it split)
 
 
 class PresentLead:
@@ -39,6 +43,10 @@ class PresentLead:
         plus a margin, plus a penalty that a missed refresh raises by a step and on-time presents
         wear down (a step in ~10 s); within [LEAD_MIN_NS, ¾ of a period]
     time_ns : the median time plus the hand-over: the least time a present is tried in
+    split : a present's splats are shared with the reprojection's helper thread (only with
+        `split_splats`, and not while the sub-frames share a pose): from a lead above `SPLIT_ABOVE` of the
+        longest until one below `SPLIT_BELOW` (a split present takes less time, so the lead
+        falls when it begins: the gap keeps it from switching back at once)
     shared : the sub-frames of a present share one pose (only with `share_poses`: pattern mode).
         Taken when more than 1 in 100 of the last 240 own-pose presents were too slow for the
         longest lead (their 99th percentile plus the margin passes it), or sooner when 3 of the
@@ -47,9 +55,11 @@ class PresentLead:
         of the two kinds' medians around the change, is below `SHARED_RETURN` of the longest.
     """
 
-    def __init__(self, period_ns: int, share_poses: bool):
+    def __init__(self, period_ns: int, share_poses: bool, split_splats: bool = False):
         self.longest_ns = period_ns * 3 // 4
         self.share_poses = share_poses
+        self.split_splats = split_splats
+        self.split = False
         self.lead_ns = LEAD_MIN_NS
         self.time_ns = LEAD_MIN_NS
         self.penalty_ns = 0
@@ -62,16 +72,24 @@ class PresentLead:
 
     def add(self, ready_ns: int, late: bool) -> str | None:
         """One present's time from its planned wake to a frame ready, and whether it missed its
-        refresh. Returns a line for the log when the sub-frames start or stop sharing a pose."""
+        refresh. Returns a line for the log when the sub-frames start or stop sharing a pose, or
+        the splats change threads."""
         self._misses.append(late and self.lead_ns == self.longest_ns)
         self.penalty_ns = self.penalty_ns + STEP_NS if late else max(0, self.penalty_ns - STEP_NS // 600)
         self._ready.add(max(ready_ns, 0))
         median = self._ready.quantile(50)
         self.time_ns = int(median) + HANDOFF_NS
         self.lead_ns = self._within(int(self._ready.quantile(QUANTILE)) + MARGIN_NS + self.penalty_ns)
-        if not self.share_poses:
-            return None
-        return self._own_poses_again() if self.shared else self._share(median)
+        change = None
+        if self.share_poses:
+            change = self._own_poses_again() if self.shared else self._share(median)
+        if self.split_splats:  # (a shared present makes one splat: nothing to split)
+            split = not self.shared and self.lead_ns > (SPLIT_BELOW if self.split else SPLIT_ABOVE) * self.longest_ns
+            if split != self.split and change is None:
+                change = f"pattern presents make their splats on {'two threads' if split else 'one thread'} " \
+                         f"(lead {self.lead_ns / 1e6:.1f} ms of at most {self.longest_ns / 1e6:.1f})"
+            self.split = split
+        return change
 
     def _within(self, lead_ns: int) -> int:
         return min(max(lead_ns, LEAD_MIN_NS), self.longest_ns)

@@ -4,6 +4,7 @@ cracks and disocclusions filled, static occluders respected, error against fresh
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -335,3 +336,64 @@ def test_a_presents_windows_in_one_call_give_each_windows_own_bits():
                       ([(ok, 0), (ok, 4)], r"windows\[1\] channel"), ([(ok, 0), ([ok[0]], 1)], r"windows\[1\] poses")):
         with pytest.raises(ValueError, match=f"^{name}"):
             rp.reproject_windows(cap, bad, together)
+
+
+def test_two_threads_give_the_bits_of_one():
+    """A Reprojector with a helper thread presents and reprojects exactly as one without it:
+    three own poses (three splats shared out), two equal ones beside a third (two splats), all
+    three equal (one), one window unmoved, and a single window of all channels."""
+    cam = _camera(dist=(-0.2, 0.05, 0.001, -0.001, 0.0))
+    image, ids, depth = _planes(cam, [(0, 1.2, (5, 60, 5, 80)), (1, 0.9, (20, 40, 30, 50))])
+    one, two = Reprojector(cam, [False, True]), Reprojector(cam, [False, True], threads=2)
+    caps = [rp.capture(image, ids, depth, [_shifted(), _shifted()]) for rp in (one, two)]
+
+    def at(k):
+        return [_shifted(), Pose(rotation_about_axis((0, 1, 0), 0.01 * k), np.array([0.004 * k, -0.002 * k, 0.0]))]
+
+    try:
+        for k in range(1, 40):
+            for windows in ([(at(k + j), j) for j in range(3)], [(at(k), 0), (at(k), 1), (at(k + 1), 2)],
+                            [(at(k), j) for j in range(3)], [(at(0), 0), (at(k), 1), (at(k + 2), 2)], [(at(k), None)]):
+                frames = [rp.present(cap, windows) for rp, cap in zip((one, two), caps)]
+                assert frames[0][1] == frames[1][1]
+                assert np.array_equal(frames[0][0], frames[1][0]), (k, windows)
+        assert one.last_helper_cpu_ns == 0
+    finally:
+        two.close()
+    with pytest.raises(ValueError, match="^threads"):
+        Reprojector(cam, [True], threads=3)
+
+
+def test_the_splat_helper_shares_the_work_and_hands_back_its_errors():
+    """Every splat is made once, some on the helper's thread; a splat that fails there fails
+    the present; a closed helper's thread ends."""
+    from dpmhw.reconstruct.reproject import _SplatHelper
+
+    helper = _SplatHelper()
+    try:
+        for _ in range(5):
+            made, helped = [], threading.Event()
+
+            def splat(k, slot):
+                made.append((k, slot))
+                if slot == 1:
+                    helped.set()
+                else:  # the caller holds on until the helper has taken one
+                    assert helped.wait(30.0)
+
+            helper.share(splat, 3)
+            assert sorted(k for k, _ in made) == [0, 1, 2] and {s for _, s in made} == {0, 1}
+
+        tried = threading.Event()
+
+        def fails_on_the_helper(k, slot):
+            if slot == 1:
+                tried.set()
+                raise RuntimeError("splat failed")
+            assert tried.wait(30.0)
+
+        with pytest.raises(RuntimeError, match="splat failed"):
+            helper.share(fails_on_the_helper, 2)
+    finally:
+        helper.close()
+    assert not helper._thread.is_alive()

@@ -245,21 +245,24 @@ def test_the_tracker_hint_is_a_command_the_cli_accepts(runner):
 
 
 def test_the_bench_can_make_each_present_cost_what_a_slower_cpu_would():
-    """`--present-cpu-factor F`: a present spends F times its own CPU time (the present thread's,
-    so a busy machine beside does not change it), and returns what the present made."""
+    """`--present-cpu-factor F`: each kernel call of a present spends F times its own CPU time
+    on its own thread (the thread's CPU, so a busy machine beside does not change it)."""
     import time
     from types import SimpleNamespace as NS
 
     from dpmhw.benchmarks.session import _slowed_presents
 
-    def present(capture, windows):  # 20 ms of this thread's CPU
+    made = []
+
+    def splats(common, scratch, plan, g_first, g_end):  # 20 ms of this thread's CPU
         end = time.thread_time_ns() + 20_000_000
         while time.thread_time_ns() < end:
             pass
-        return capture, windows
+        made.append((common, scratch, plan, g_first, g_end))
 
-    reprojector = NS(present=present)
+    reprojector = NS(_splats=splats)
     _slowed_presents(reprojector, 3.0)
     cpu0 = time.thread_time_ns()
-    assert reprojector.present("cap", windows=[1]) == ("cap", [1])
+    reprojector._splats("common", "scratch", False, 1, 2)
     assert 60e6 <= time.thread_time_ns() - cpu0 < 75e6
+    assert made == [("common", "scratch", False, 1, 2)]

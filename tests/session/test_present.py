@@ -3,6 +3,7 @@ for a render."""
 
 from __future__ import annotations
 
+import re
 import time
 
 import numpy as np
@@ -118,6 +119,25 @@ def test_sharing_presents_show_every_sub_frame_at_the_middle_ones_pose():
         loop.stop()
 
 
+def test_split_presents_share_their_splats_with_the_helper_thread(monkeypatch):
+    """While the lead says so, an own-pose pattern present's splats go to the reprojection's
+    helper thread too: counted, in the status; stopping the session ends the helper."""
+    import dpmhw.session.present_lead as present_lead
+
+    monkeypatch.setattr(present_lead, "SPLIT_ABOVE", 0.0)  # any lead splits
+    monkeypatch.setattr(present_lead, "SPLIT_BELOW", 0.0)
+    loop = small_mock_session('display.mode="pattern-8bit"', 'display.shared_pose="never"')
+    try:
+        loop.start()
+        assert wait_for(lambda: loop.status()["counters"].get("split_presents", 0) >= 10, WAIT_S), loop.status()
+        assert loop.status()["display"]["present_threads"] == 2
+        helper = loop.reprojector._helper
+        assert helper is not None and helper._thread.is_alive()
+    finally:
+        loop.stop()
+    assert not helper._thread.is_alive()
+
+
 def test_each_lit_exposure_is_matched_to_the_present_it_scanned_out():
     """A refresh with no new frame shows the last present again (a repeat, at that present's
     poses); exposures before the first or after the last measured present are left out."""
@@ -228,6 +248,36 @@ def test_pattern_presents_share_one_pose_while_their_own_would_need_more_than_th
     for _ in range(HISTORY):
         lead.add(6 * ms, late=False)
     assert not lead.shared and lead.lead_ns == 8 * ms  # measured own poses: 6 + 2 ms
+
+
+def test_own_pose_splats_go_to_two_threads_while_the_lead_is_near_its_longest_and_back_once_it_is_short():
+    """Own-pose pattern presents share their splats with the helper thread once the lead passes
+    0.8 of the longest (10 ms at 60 Hz: near where their sub-frames would share one pose), and go
+    back to one thread only below 0.65 of it: the shorter times of split presents alone do not
+    switch them back. Presents sharing one pose make one splat: not split. Without a helper
+    (present_threads 1, or video mode) they never split."""
+    from dpmhw.session.present_lead import HISTORY, PresentLead
+
+    ms = 1_000_000
+    lead, alone = PresentLead(PERIOD_NS, True, split_splats=True), PresentLead(PERIOD_NS, True)
+    for p in (lead, alone):
+        for _ in range(HISTORY):  # 7 ms + 2 = 9 ms: under 0.8 of the longest
+            p.add(7 * ms, late=False)
+        assert not p.split and p.lead_ns == 9 * ms
+        changes = [p.add(9 * ms, late=False) for _ in range(HISTORY)]  # a slower stretch: 9 ms, an 11-ms lead
+        said = [c for c in changes if c]
+        assert len(said) == (p is lead) and all(re.fullmatch(
+            r"pattern presents make their splats on two threads \(lead 1\d\.\d ms of at most 12\.5\)", c) for c in said), said
+    assert lead.split and not alone.split
+    assert not lead.shared
+    for _ in range(HISTORY):  # split: 7 ms, a 9-ms lead, above 0.65 of the longest (8.1 ms): stays split
+        lead.add(7 * ms, late=False)
+    assert lead.split and lead.lead_ns == 9 * ms
+    for _ in range(HISTORY):  # the machine is quicker: 5 ms, a 7-ms lead
+        lead.add(5 * ms, late=False)
+    assert not lead.split
+    changes = [lead.add(12 * ms, late=False) for _ in range(HISTORY)]  # too slow even split: one pose, one splat
+    assert lead.shared and not lead.split and any(c and "share one pose" in c for c in changes)
 
 
 def test_a_present_back_after_its_next_planned_wake_still_makes_the_next_refresh():
