@@ -536,8 +536,9 @@ class _SplatHelper:
                 while self._busy:
                     self._cv.wait()
                 self._job = None
-        if self._error is not None:
-            raise self._error
+        error, self._error = self._error, None  # (its traceback holds the present's frames)
+        if error is not None:
+            raise error
         return self._cpu_ns
 
     def close(self) -> None:
@@ -562,6 +563,7 @@ class _SplatHelper:
             except BaseException as exc:  # the caller re-raises it
                 self._error = exc
             finally:
+                fn = None  # it holds the present's Reprojector: a sleeping helper must not keep it alive
                 with self._cv:
                     self._busy = False
                     self._cpu_ns += time.thread_time_ns() - t0
@@ -761,6 +763,7 @@ class Reprojector:
                 frame = self._frames[self._turn] = _Frame(np.zeros((H, W, 3), np.uint8))
             same = capture.background is not None and frame.background is capture.background
             base_box = _union(frame.written, capture.box) if same else (0, H, 0, W)
+            frame.background = None  # (what the frame holds is unknown until the reprojection is done)
             stats, splats = self._reproject(capture, windows, channels, frame.image, base_box, helper)
             frame.background, frame.written = capture.background, _union(capture.box, splats)
         return frame.image, stats
@@ -819,10 +822,11 @@ class Reprojector:
             if splats == 1:
                 self._splats(common, scratch[0], False, 0, 1)
             elif splats > 1:
-                if self._helper is None:
-                    self._helper = _SplatHelper()
-                    weakref.finalize(self, self._helper.close)
-                self.last_helper_cpu_ns = self._helper.share(
+                helper = self._helper  # (`close` may clear the attribute meanwhile)
+                if helper is None:
+                    helper = self._helper = _SplatHelper()
+                    weakref.finalize(self, helper.close)
+                self.last_helper_cpu_ns = helper.share(
                     lambda g, slot: self._splats(common, scratch[slot], False, g, g + 1), splats)
         moves, stats, boxes = self._moves[:nw].tolist(), self._stats[:nw].tolist(), self._boxes[:nw].tolist()
         result, splats = [], (0, 0, 0, 0)
