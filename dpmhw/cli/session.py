@@ -174,7 +174,7 @@ def bench_session(
     mitsuba: Annotated[bool, typer.Option("--mitsuba/--no-mitsuba", help="Time Mitsuba 3's 1-spp frame of the same scene after the cases and give each case's CPU-ms per rendered frame as a ratio to it (skipped, with a note, without the mitsuba extra).")] = True,
     trajectory: Annotated[Optional[list[BenchTrajectory]], typer.Option(help="Repeatable; default: linear and rotate-oscillate.")] = None,
     display: Annotated[DisplayModeChoice, typer.Option(help="The projector's display mode: video (one 24-bit frame per refresh) or pattern-8bit (three 8-bit sub-frames per refresh, one per colour channel).")] = DisplayModeChoice("video"),
-    present_cpu_factor: Annotated[float, typer.Option(min=1.0, max=20.0, help="Every present spends this many times its CPU time in the reprojection (the extra without the GIL, as its kernel): how the present path holds on a CPU this much slower. The renders keep this machine's speed.")] = 1.0,
+    present_cpu_factor: Annotated[float, typer.Option(min=1.0, max=20.0, help="Every kernel call of a present, on the present thread or its helper, spends this many times its CPU time there (the extra without the GIL, as the kernel): how the present path holds on a CPU this much slower. The renders keep this machine's speed.")] = 1.0,
     json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write the results as JSON here.")] = None,
     plot: Annotated[Path, typer.Option(help="Plot of registration error and latency over time and the frame-time histogram (PNG).")] = Path("bench-session/bench-session.png"),
     sets: SetOpt = None,

@@ -38,6 +38,7 @@ import math
 import threading
 import time
 import weakref
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -495,79 +496,52 @@ class _Scratch:
 
 
 class _SplatHelper:
-    """A second thread for a present's splats. The caller and the helper take the splats in turn
-    from one counter, each on its own scratch; the caller then waits only for a splat the helper
-    has begun. A helper that wakes late finds nothing left, the caller having made every splat
-    itself: a present never waits for the helper to be scheduled. Started by the first present
-    that splits, from its thread, the helper shares that thread's scheduling (on Linux a thread
-    inherits its creator's policy and priority: the session's present thread is raised).
+    """A second thread for a present's splats: a one-thread pool, as `ReconstructStage` keeps
+    its helpers. The caller and the pool's thread take the splats in turn from one counter, each
+    on its own scratch; a helper that has not begun when the caller has taken the last splat is
+    cancelled, so a present never waits for it to be scheduled, only for a splat it has begun.
+    Made by the first present that splits, whose thread starts the pool's thread here: it
+    shares that thread's scheduling (on Linux a thread inherits its creator's policy and
+    priority: the session's present thread is raised).
 
     The splats write distinct channels of one frame, a byte store per channel; a fill reads the
     other channels of its run's ends too, but uses only its own."""
 
     def __init__(self):
-        self._cv = threading.Condition()
-        self._job = None  # (fn, count) while a present shares its splats
-        self._next = 0  # the next splat to take
-        self._busy = False  # the helper is making one
-        self._cpu_ns = 0
-        self._error: BaseException | None = None
-        self._stop = False
-        self._thread = threading.Thread(target=self._serve, name="reproject-helper", daemon=True)
-        self._thread.start()
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="reproject-helper")
+        self._thread = self._pool.submit(threading.current_thread).result()  # started from this thread, now
 
     def share(self, fn, count: int) -> int:
         """fn(k, slot) for every k < count: on this thread (slot 0) and the helper's (slot 1).
         Returns the helper's CPU time in them (ns); re-raises its error."""
-        with self._cv:
-            self._job, self._next, self._cpu_ns, self._error = (fn, count), 0, 0, None
-            self._cv.notify_all()
+        lock, taken = threading.Lock(), [0]
+
+        def take() -> int | None:
+            with lock:
+                k = taken[0]
+                taken[0] = k + 1
+            return k if k < count else None
+
+        def helper() -> int:
+            cpu_ns = 0
+            while (k := take()) is not None:
+                t0 = time.thread_time_ns()
+                fn(k, 1)
+                cpu_ns += time.thread_time_ns() - t0
+            return cpu_ns
+
+        begun = self._pool.submit(helper)
         try:
-            while True:
-                with self._cv:
-                    k = self._next
-                    if k >= count:
-                        break
-                    self._next = k + 1
+            while (k := take()) is not None:
                 fn(k, 0)
         finally:
-            with self._cv:
-                self._next = count  # after an error here the helper takes nothing more
-                while self._busy:
-                    self._cv.wait()
-                self._job = None
-        error, self._error = self._error, None  # (its traceback holds the present's frames)
-        if error is not None:
-            raise error
-        return self._cpu_ns
+            with lock:
+                taken[0] = count  # after an error here the helper takes nothing more
+            helper_ns = 0 if begun.cancel() else begun.result()
+        return helper_ns
 
     def close(self) -> None:
-        with self._cv:
-            self._stop = True
-            self._cv.notify_all()
-        if self._thread is not threading.current_thread():
-            self._thread.join(timeout=5.0)
-
-    def _serve(self) -> None:
-        while True:
-            with self._cv:
-                while not self._stop and (self._job is None or self._next >= self._job[1]):
-                    self._cv.wait()
-                if self._stop:
-                    return
-                fn, k = self._job[0], self._next
-                self._next, self._busy = k + 1, True
-            t0 = time.thread_time_ns()
-            try:
-                fn(k, 1)
-            except BaseException as exc:  # the caller re-raises it
-                self._error = exc
-            finally:
-                fn = None  # it holds the present's Reprojector: a sleeping helper must not keep it alive
-                with self._cv:
-                    self._busy = False
-                    self._cpu_ns += time.thread_time_ns() - t0
-                    self._cv.notify_all()
+        self._pool.shutdown(wait=threading.current_thread() is not self._thread)
 
 
 @dataclass
@@ -812,16 +786,17 @@ class Reprojector:
                   self._channels[:nw], channels[0] < 0 or nw == 3, seg, moving, px, py, pz, *self._intrinsics, W, H,
                   (capture.pixel, capture.plate, capture.colour), self._plate_z, sid, self._moves[:nw], self._same[:nw],
                   self._groups[:nw], self._stats[:nw], self._boxes[:nw])
-        scratch = [sc.arrays(n) for sc in self._scratch]
+        mine = self._scratch[0].arrays(n)
         self.last_helper_cpu_ns = 0
-        if len(scratch) == 1 or nw == 1 or not helper:
-            self._splats(common, scratch[0], True, 0, nw)
+        if len(self._scratch) == 1 or nw == 1 or not helper:
+            self._splats(common, mine, True, 0, nw)
         else:
-            self._splats(common, scratch[0], True, 0, 0)  # plan, and the captured image under the splats
+            self._splats(common, mine, True, 0, 0)  # plan, and the captured image under the splats
             splats = int(np.count_nonzero(self._groups[:nw, 0] >= 0))
             if splats == 1:
-                self._splats(common, scratch[0], False, 0, 1)
+                self._splats(common, mine, False, 0, 1)
             elif splats > 1:
+                scratch = (mine, self._scratch[1].arrays(n))
                 helper = self._helper  # (`close` may clear the attribute meanwhile)
                 if helper is None:
                     helper = self._helper = _SplatHelper()
