@@ -25,9 +25,9 @@ MARGIN_NS = 2_000_000  # over the quantile of the recent times to a frame ready
 HANDOFF_NS = 300_000  # a frame ready later than this before its refresh is made again for the next
 QUANTILE = 99.5  # of the recent times from waking to a frame ready: all but the slowest one or two
 HISTORY = 240  # presents the quantile is taken over (4 s at 60 Hz)
-SHARE_QUANTILE = 99.0  # more than 1 in 100 own-pose presents too slow for the longest lead: share (a rare hiccup does not)
-SHARE_MISSES = 3  # or this many presents missed their refresh among the last SHARE_MISS_WINDOW at the longest lead
-SHARE_MISS_WINDOW = 120  # (2 s at 60 Hz: a slow CPU is seen before a whole history is measured)
+SHARE_QUANTILE = 99.0  # more than 1 in 100 own-pose presents would miss at the longest lead: share (fewer keep p99 registration)
+SHARE_MISSES = 6  # or this many presents missed their refresh among the last SHARE_MISS_WINDOW at the longest lead
+SHARE_MISS_WINDOW = 240  # (2.5 %: a slow CPU is seen before a whole history is measured; a burst of hiccups is not one)
 SHARED_RATIO_SAMPLES = 60  # shared presents measured before their median is compared with the own ones' (1 s at 60 Hz)
 SHARED_HOLD = 600  # presents at one pose before own poses are tried again (10 s at 60 Hz)
 SHARED_RETURN = 0.8  # own poses again once their estimated lead is below this share of the longest
@@ -48,9 +48,11 @@ class PresentLead:
         longest until one below `SPLIT_BELOW` (a split present takes less time, so the lead
         falls when it begins: the gap keeps it from switching back at once)
     shared : the sub-frames of a present share one pose (only with `share_poses`: pattern mode).
-        Taken when more than 1 in 100 of the last 240 own-pose presents were too slow for the
-        longest lead (their 99th percentile plus the margin passes it), or sooner when 3 of the
-        last 120 missed their refresh with the lead at its longest; left after `SHARED_HOLD`
+        Taken when more than 1 in 100 of the last 240 own-pose presents would miss their refresh
+        at the longest lead (their 99th percentile plus the hand-over passes it), or sooner when 6
+        of the last 240 missed it with the lead at its longest. Each change of kind (split or not)
+        starts the weighing afresh: the one-thread presents before a split say nothing about
+        whether split ones fit. Left after `SHARED_HOLD`
         presents once the own-pose lead, estimated from the shared presents' times and the ratio
         of the two kinds' medians around the change, is below `SHARED_RETURN` of the longest.
     """
@@ -69,12 +71,13 @@ class PresentLead:
         self._ratio = 0.0  # own-pose / shared median, once SHARED_RATIO_SAMPLES shared presents are measured
         self._shared_presents = 0
         self._misses: deque[bool] = deque(maxlen=SHARE_MISS_WINDOW)  # whether each recent present missed at the longest lead
+        self._weighed = 0  # presents of the kind in use (own poses split, or not) since it began: their times fill the history
 
     def add(self, ready_ns: int, late: bool) -> str | None:
         """One present's time from its planned wake to a frame ready, and whether it missed its
         refresh. Returns a line for the log when the sub-frames start or stop sharing a pose, or
         the splats change threads."""
-        self._misses.append(late and self.lead_ns == self.longest_ns)
+        missed = late and self.lead_ns == self.longest_ns
         self.penalty_ns = self.penalty_ns + STEP_NS if late else max(0, self.penalty_ns - STEP_NS // 600)
         self._ready.add(max(ready_ns, 0))
         median = self._ready.quantile(50)
@@ -82,28 +85,38 @@ class PresentLead:
         self.lead_ns = self._within(int(self._ready.quantile(QUANTILE)) + MARGIN_NS + self.penalty_ns)
         change = None
         if self.share_poses:
-            change = self._own_poses_again() if self.shared else self._share(median)
+            change = self._own_poses_again() if self.shared else self._share(median, missed)
         if self.split_splats:  # (a shared present makes one splat: nothing to split)
             split = not self.shared and self.lead_ns > (SPLIT_BELOW if self.split else SPLIT_ABOVE) * self.longest_ns
-            if split != self.split and change is None:
-                change = f"pattern presents make their splats on {'two threads' if split else 'one thread'} " \
-                         f"(lead {self.lead_ns / 1e6:.1f} ms of at most {self.longest_ns / 1e6:.1f})"
+            if split != self.split:
+                self._weigh_afresh()
+                if change is None:
+                    change = f"pattern presents make their splats on {'two threads' if split else 'one thread'} " \
+                             f"(lead {self.lead_ns / 1e6:.1f} ms of at most {self.longest_ns / 1e6:.1f})"
             self.split = split
         return change
 
     def _within(self, lead_ns: int) -> int:
         return min(max(lead_ns, LEAD_MIN_NS), self.longest_ns)
 
-    def _share(self, median: float) -> str | None:
+    def _weigh_afresh(self) -> None:
+        """A new kind of present: the sharing rule weighs only its misses and, once they fill the
+        history, its times."""
+        self._misses.clear()
+        self._weighed = 0
+
+    def _share(self, median: float, missed: bool) -> str | None:
         """Share one pose if own-pose presents are too slow for the longest lead (see the class)."""
+        self._misses.append(missed)
+        self._weighed += 1
         misses = sum(self._misses)
-        need = self._ready.quantile(SHARE_QUANTILE) + MARGIN_NS if len(self._ready) == HISTORY else 0
+        need = self._ready.quantile(SHARE_QUANTILE) + HANDOFF_NS if self._weighed >= HISTORY else 0
         if misses < SHARE_MISSES and need <= self.longest_ns:
             return None
         why = (f"{misses} of the last {len(self._misses)} missed their refresh" if misses >= SHARE_MISSES else
-               f"{100 - SHARE_QUANTILE:g} % of them would need a lead over {need / 1e6:.1f} ms")
+               f"{100 - SHARE_QUANTILE:g} % of them would miss it, needing a lead over {need / 1e6:.1f} ms")
         self.shared, self._own_median, self._ratio, self._shared_presents = True, median, 0.0, 0
-        self._misses.clear()
+        self._weigh_afresh()
         self._ready = SortedWindow(HISTORY)  # the shared presents' own times from here
         return f"pattern presents share one pose: at their sub-frames' own poses {why}, with the longest lead " \
                f"({self.longest_ns / 1e6:.1f} ms)"
@@ -120,7 +133,7 @@ class PresentLead:
         if own >= SHARED_RETURN * self.longest_ns:
             return None
         self.shared = False
-        self._misses.clear()
+        self._weigh_afresh()
         self._ready = SortedWindow(HISTORY)
         self._ready.add(ready)  # the estimate stands until measured times replace it
         self.time_ns, self.lead_ns = ready + HANDOFF_NS, self._within(own)

@@ -5,11 +5,13 @@ A sphere moving in front of a wall, G-buffers in closed form at the shading (48�
 demodulation, motion reuse of both histories, lobe filter, upsampling with re-modulation, sRGB.
 No renderer and no Embree: the inputs are the same on every machine. The kernels compute per
 pixel with no sum across lanes, so the digest is the same for numba's AVX-512 and AVX2 code
-built for a Zen 4 or Zen 2 target (`NUMBA_CPU_NAME=znver2 NUMBA_CPU_FEATURES=…`,
+built for a Zen 4, an Intel Rocket Lake or a Zen 2 target (`NUMBA_CPU_NAME=znver2 NUMBA_CPU_FEATURES=…`,
 docs/first-run.md); a change of any kernel's arithmetic, or a vector width that changes it,
 changes the digest. Zen 1 and Zen 3 hosts (numba targets `znver1`, `znver3`; no AVX-512) give
-other bits, the same on both, pinned apart (not yet traced: a kernel's code, or numpy's own SIMD
-paths in the inputs on a host without AVX-512); a target with no digest pinned is skipped, saying so.
+other bits, the same on both, pinned apart: numpy's own AVX-512 paths in the inputs, not the
+kernels (on an AVX-512 host, the AVX2 build with numpy's AVX-512 dispatch off,
+`NPY_DISABLE_CPU_FEATURES="X86_V4 AVX512_ICL AVX512_SPR"`, gives the Zen 1 / Zen 3 digest). A
+target with no digest pinned is skipped, saying so.
 """
 
 from __future__ import annotations
@@ -34,8 +36,8 @@ FRAMES = 4
 RADIUS = 0.3
 VIEWER = np.zeros(3)
 # numba's target CPU → the digest its code gives (checked on those hosts: a Zen 4 (LLVM: znver5), it building for
-# znver2 without AVX-512, a Zen 1 and a Zen 3)
-PINNED = {"znver5": "90d312de38a68ef6", "znver2": "90d312de38a68ef6",
+# znver2 without AVX-512, an AVX-512 Intel Xeon (rocketlake) and it building for znver2, a Zen 1 and a Zen 3)
+PINNED = {"znver5": "90d312de38a68ef6", "znver2": "90d312de38a68ef6", "rocketlake": "90d312de38a68ef6",
           "znver1": "11584b25539b410b", "znver3": "11584b25539b410b"}
 
 
