@@ -26,8 +26,8 @@ HANDOFF_NS = 300_000  # a frame ready later than this before its refresh is made
 QUANTILE = 99.5  # of the recent times from waking to a frame ready: all but the slowest one or two
 HISTORY = 240  # presents the quantile is taken over (4 s at 60 Hz)
 SHARE_QUANTILE = 99.0  # more than 1 in 100 own-pose presents would miss at the longest lead: share (fewer keep p99 registration)
-SHARE_MISSES = 6  # or this many presents missed their refresh among the last SHARE_MISS_WINDOW at the longest lead
-SHARE_MISS_WINDOW = 240  # (2.5 %: a slow CPU is seen before a whole history is measured; a burst of hiccups is not one)
+SHARE_MISSES = 6  # or this many of the last HISTORY presents missed their refresh at the longest lead (2.5 %: a slow CPU
+# is seen before a whole history is measured; a burst of hiccups is not one)
 SHARED_RATIO_SAMPLES = 60  # shared presents measured before their median is compared with the own ones' (1 s at 60 Hz)
 SHARED_HOLD = 600  # presents at one pose before own poses are tried again (10 s at 60 Hz)
 SHARED_RETURN = 0.8  # own poses again once their estimated lead is below this share of the longest
@@ -70,8 +70,9 @@ class PresentLead:
         self._own_median = 0.0  # the own-pose presents' median time when sharing began
         self._ratio = 0.0  # own-pose / shared median, once SHARED_RATIO_SAMPLES shared presents are measured
         self._shared_presents = 0
-        self._misses: deque[bool] = deque(maxlen=SHARE_MISS_WINDOW)  # whether each recent present missed at the longest lead
-        self._weighed = 0  # presents of the kind in use (own poses split, or not) since it began: their times fill the history
+        # whether each present of the kind in use (own poses split, or not) missed at the longest lead, since the kind
+        # began: once full, the history's times are all of that kind too
+        self._misses: deque[bool] = deque(maxlen=HISTORY)
 
     def add(self, ready_ns: int, late: bool) -> str | None:
         """One present's time from its planned wake to a frame ready, and whether it missed its
@@ -103,14 +104,12 @@ class PresentLead:
         """A new kind of present: the sharing rule weighs only its misses and, once they fill the
         history, its times."""
         self._misses.clear()
-        self._weighed = 0
 
     def _share(self, median: float, missed: bool) -> str | None:
         """Share one pose if own-pose presents are too slow for the longest lead (see the class)."""
         self._misses.append(missed)
-        self._weighed += 1
         misses = sum(self._misses)
-        need = self._ready.quantile(SHARE_QUANTILE) + HANDOFF_NS if self._weighed >= HISTORY else 0
+        need = self._ready.quantile(SHARE_QUANTILE) + HANDOFF_NS if len(self._misses) == HISTORY else 0
         if misses < SHARE_MISSES and need <= self.longest_ns:
             return None
         why = (f"{misses} of the last {len(self._misses)} missed their refresh" if misses >= SHARE_MISSES else

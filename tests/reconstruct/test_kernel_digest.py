@@ -5,8 +5,8 @@ A sphere moving in front of a wall, G-buffers in closed form at the shading (48�
 demodulation, motion reuse of both histories, lobe filter, upsampling with re-modulation, sRGB.
 No renderer and no Embree: the inputs are the same on every machine. The kernels compute per
 pixel with no sum across lanes, so the digest is the same for numba's AVX-512 and AVX2 code
-built for a Zen 4, an Intel Rocket Lake or a Zen 2 target (`NUMBA_CPU_NAME=znver2 NUMBA_CPU_FEATURES=…`,
-docs/first-run.md); a change of any kernel's arithmetic, or a vector width that changes it,
+built for a Zen 4, an Intel Rocket Lake or a Zen 2 target (`NUMBA_CPU_NAME=znver2
+NUMBA_CPU_FEATURES=…`, docs/first-run.md); a change of any kernel's arithmetic, or a vector width that changes it,
 changes the digest. Zen 1 and Zen 3 hosts (numba targets `znver1`, `znver3`; no AVX-512) give
 other bits, the same on both, pinned apart: numpy's own AVX-512 paths in the inputs, not the
 kernels (on an AVX-512 host, the AVX2 build with numpy's AVX-512 dispatch off,

@@ -206,9 +206,10 @@ def test_the_lead_covers_all_but_the_slowest_one_or_two_recent_presents():
 def test_pattern_presents_share_one_pose_while_their_own_would_need_more_than_the_longest_lead(share_poses):
     """When more than 1 in 100 of the last 240 presents would miss their refresh at the longest
     lead (¾ of a period; a slow CPU), or 6 of the last 240 missed it there, a pattern present's
-    three sub-frames share one pose; a few slow ones or five misses (hiccups) do not make them. Own poses come back once the shared presents' times, scaled by how
-    much dearer own poses were, fit with room again, not before a hold. With
-    `display.shared_pose = "never"` the lead only saturates."""
+    three sub-frames share one pose; a few slow ones or five misses (hiccups) do not make them.
+    Own poses come back once the shared presents' times, scaled by how much dearer own poses
+    were, fit with room again, not before a hold. With `display.shared_pose = "never"` the lead
+    only saturates."""
     from dpmhw.session.present_lead import HISTORY, SHARED_HOLD, PresentLead
 
     ms = 1_000_000
